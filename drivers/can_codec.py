@@ -1,0 +1,140 @@
+"""CAN codec for the Koala bus, described by ``config/koala.dbc`` and driven by cantools.
+
+The DBC is the single source of ids, layouts and scaling; this module only maps its messages to
+the typed frames of :mod:`drivers.messages` and turns anything it cannot map into a
+:class:`~drivers.messages.Reject` (unknown id, wrong DLC, value outside the DBC range, remote /
+error / FD frames). It performs no bus I/O: transports live in :mod:`drivers.transports`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from types import MappingProxyType
+
+import can
+import cantools
+from cantools.database.can import Database
+from cantools.database.can import Message as DbcMessage
+
+from drivers.messages import (
+    FrameError,
+    GyroFrame,
+    MotorCommandFrame,
+    Reject,
+    RejectReason,
+    WheelOdometryFrame,
+)
+
+__all__ = [
+    "DEFAULT_DBC_PATH",
+    "CanFrame",
+    "KoalaCanCodec",
+    "load_koala_dbc",
+    "wrap_int32",
+]
+
+CanFrame = WheelOdometryFrame | GyroFrame | MotorCommandFrame
+"""Any typed frame of the Koala bus."""
+
+DEFAULT_DBC_PATH = Path(__file__).resolve().parents[1] / "config" / "koala.dbc"
+"""The DBC shipped in the repository (``config/koala.dbc``)."""
+
+_NAMES: Mapping[type, str] = MappingProxyType(
+    {WheelOdometryFrame: "WheelOdometry", GyroFrame: "Gyro", MotorCommandFrame: "MotorCommand"}
+)
+
+
+def load_koala_dbc(path: str | Path = DEFAULT_DBC_PATH) -> Database:
+    """Load and check the Koala DBC; raises :class:`FrameError` if a required message is missing."""
+    db = cantools.database.load_file(str(path), strict=True)
+    if not isinstance(db, Database):
+        raise FrameError(f"{path} is not a CAN database")
+    missing = set(_NAMES.values()) - {m.name for m in db.messages}
+    if missing:
+        raise FrameError(f"{path} lacks message(s) {sorted(missing)}")
+    return db
+
+
+def wrap_int32(value: int) -> int:
+    """Wrap an unbounded counter to signed 32 bits, as the encoder counters wrap on the wire."""
+    return (int(value) + 2**31) % 2**32 - 2**31
+
+
+class KoalaCanCodec:
+    """Typed frames <-> :class:`can.Message` using the Koala DBC.
+
+    Args:
+        db: a database from :func:`load_koala_dbc`; by default the shipped DBC is loaded.
+    """
+
+    def __init__(self, db: Database | None = None) -> None:
+        self.db = db if db is not None else load_koala_dbc()
+        self._by_type: dict[type, DbcMessage] = {
+            t: self.db.get_message_by_name(name) for t, name in _NAMES.items()
+        }
+        self._by_id: dict[int, DbcMessage] = {m.frame_id: m for m in self._by_type.values()}
+
+    @property
+    def frame_ids(self) -> Mapping[str, int]:
+        """CAN id of each message, by DBC name (e.g. ``{"MotorCommand": 0x100, ...}``)."""
+        return MappingProxyType({m.name: m.frame_id for m in self._by_type.values()})
+
+    def encode(self, frame: CanFrame) -> can.Message:
+        """Encode ``frame``; raises :class:`FrameError` if a value is outside its DBC range.
+
+        Encoder counters are wrapped to 32 bits first (they are wrapping counters by definition).
+        """
+        message = self._by_type.get(type(frame))
+        if message is None:
+            raise FrameError(f"no CAN message for {type(frame).__name__}")
+        if isinstance(frame, WheelOdometryFrame):
+            values: dict[str, float] = {
+                "left_ticks": wrap_int32(frame.left_ticks),
+                "right_ticks": wrap_int32(frame.right_ticks),
+            }
+        elif isinstance(frame, GyroFrame):
+            values = {"yaw_rate": frame.yaw_rate}
+        else:
+            values = {"left_speed": frame.left_speed, "right_speed": frame.right_speed}
+        try:
+            data = message.encode(values, strict=True)
+        except (cantools.database.EncodeError, ValueError, OverflowError) as e:
+            raise FrameError(f"cannot encode {frame}: {e}") from e
+        return can.Message(
+            arbitration_id=message.frame_id, is_extended_id=message.is_extended_frame, data=data
+        )
+
+    def decode(self, msg: can.Message) -> CanFrame | Reject:
+        """Decode a received message into a typed frame, or a :class:`Reject` saying why not."""
+        raw = bytes(msg.data)
+        if msg.is_error_frame or msg.is_remote_frame or msg.is_fd:
+            return Reject(RejectReason.UNSUPPORTED, "error, remote or FD frame", raw)
+        message = self._by_id.get(msg.arbitration_id)
+        if message is None or message.is_extended_frame != msg.is_extended_id:
+            kind = "extended" if msg.is_extended_id else "standard"
+            return Reject(RejectReason.UNKNOWN_ID, f"{kind} id {msg.arbitration_id:#x}", raw)
+        if len(raw) != message.length or msg.dlc != message.length:
+            return Reject(
+                RejectReason.WRONG_DLC,
+                f"{message.name} needs DLC {message.length}, got {msg.dlc}",
+                raw,
+            )
+        decoded = message.decode(raw, decode_choices=False, scaling=True)
+        if not isinstance(decoded, Mapping):  # container messages are not used on this bus
+            return Reject(RejectReason.UNSUPPORTED, f"{message.name} is a container", raw)
+        values = {name: float(v) for name, v in decoded.items() if isinstance(v, int | float)}
+        for signal in message.signals:
+            value = values[signal.name]
+            low, high = signal.minimum, signal.maximum
+            if (low is not None and value < low) or (high is not None and value > high):
+                return Reject(
+                    RejectReason.OUT_OF_RANGE,
+                    f"{message.name}.{signal.name}={value} not in [{low}, {high}]",
+                    raw,
+                )
+        if message.name == "WheelOdometry":
+            return WheelOdometryFrame(int(values["left_ticks"]), int(values["right_ticks"]))
+        if message.name == "Gyro":
+            return GyroFrame(values["yaw_rate"])
+        return MotorCommandFrame(values["left_speed"], values["right_speed"])

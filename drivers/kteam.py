@@ -1,0 +1,290 @@
+"""K-Team ASCII serial protocol codec (Koala), usable from both ends of the line.
+
+Robot side (the bridge emulating a Koala): :class:`LineSplitter` -> :func:`parse_command` ->
+(bridge acts) -> :func:`format_reply`; a rejected line is answered with :func:`error_reply`.
+Controller side (firmware, or a tool reading a real Koala): :func:`format_command` ->
+:class:`LineSplitter` -> :func:`parse_reply`.
+
+Wire format (docs/protocols.md, "K-Team ASCII"): a command is an upper-case letter, optional
+comma-separated decimal integer arguments, ended by CR (LF and CRLF accepted too); the reply is the
+same letter in lower case, ``,`` and the values, ended by CR LF. Errors are answered ``z,<text>``
+as K-Team firmware does (``z,Protocol error``; see docs for the sources).
+
+Units are the robot's: speeds in pulse/10 ms, positions in encoder pulses, sensors in raw counts.
+Conversion to SI lives in :mod:`bridge`, with the constants in ``config/``.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass
+from types import MappingProxyType
+
+from drivers.messages import FrameError, KteamCommand, KteamReply, Reject, RejectReason
+
+__all__ = [
+    "ERROR_OUT_OF_RANGE",
+    "ERROR_PROTOCOL",
+    "ERROR_UNKNOWN_COMMAND",
+    "INT32_MAX",
+    "INT32_MIN",
+    "CommandSpec",
+    "KteamLimits",
+    "LineSplitter",
+    "command_specs",
+    "error_reply",
+    "format_command",
+    "format_reply",
+    "parse_command",
+    "parse_reply",
+]
+
+INT32_MIN = -(2**31)
+INT32_MAX = 2**31 - 1
+
+ERROR_PROTOCOL = "Protocol error"
+"""Text of the error reply to a syntax or arity error (K-Team firmware's own wording)."""
+ERROR_UNKNOWN_COMMAND = "Unknown command"
+"""Text of the error reply to a command letter the robot does not implement."""
+ERROR_OUT_OF_RANGE = "Out of range"
+"""Text of the error reply to a well-formed command with an argument outside its range."""
+
+_ERROR_TEXT: Mapping[RejectReason, str] = MappingProxyType(
+    {
+        RejectReason.UNKNOWN_COMMAND: ERROR_UNKNOWN_COMMAND,
+        RejectReason.OUT_OF_RANGE: ERROR_OUT_OF_RANGE,
+    }
+)
+
+_INT_FIELD = re.compile(r"[+-]?[0-9]{1,11}")
+_TERMINATORS = re.compile(rb"[\r\n]")
+
+
+@dataclass(frozen=True, slots=True)
+class KteamLimits:
+    """Argument ranges of the emulated Koala; the defaults are the real robot's.
+
+    Attributes:
+        max_speed: largest ``|speed|`` accepted by ``D``, pulse/10 ms. K-Team's KoreBot library
+            (``koala.c``, ``koa_setSpeed``) documents the range -127..127.
+        leds: number of LEDs; ``L`` accepts LED numbers ``0..leds-1`` (0 lateral, 1 frontal).
+        sensors: number of IR proximity / ambient light sensors returned by ``N`` / ``O``.
+        sensor_max: largest IR/ambient count (10-bit ADC).
+    """
+
+    max_speed: int = 127
+    leds: int = 2
+    sensors: int = 16
+    sensor_max: int = 1023
+
+
+@dataclass(frozen=True, slots=True)
+class CommandSpec:
+    """What one command letter takes and what its reply carries.
+
+    Attributes:
+        letter: upper-case command letter.
+        name: short description for docs and logs.
+        arg_ranges: inclusive ``(low, high)`` per argument; its length is the command's arity.
+        reply_fields: number of reply fields, or ``None`` when variable or textual (``b``).
+    """
+
+    letter: str
+    name: str
+    arg_ranges: tuple[tuple[int, int], ...]
+    reply_fields: int | None
+
+
+def command_specs(limits: KteamLimits | None = None) -> Mapping[str, CommandSpec]:
+    """The implemented commands, keyed by letter, with ranges taken from ``limits``."""
+    lim = limits or KteamLimits()
+    speed = (-lim.max_speed, lim.max_speed)
+    counter = (INT32_MIN, INT32_MAX)
+    specs = (
+        CommandSpec("B", "read firmware version", (), None),
+        CommandSpec("D", "set wheel speeds (left, right) in pulse/10 ms", (speed, speed), 0),
+        CommandSpec("E", "read wheel speeds in pulse/10 ms", (), 2),
+        CommandSpec("G", "set encoder counters (left, right) in pulses", (counter, counter), 0),
+        CommandSpec("H", "read encoder counters in pulses", (), 2),
+        CommandSpec("N", "read IR proximity counts", (), lim.sensors),
+        CommandSpec("O", "read ambient light counts", (), lim.sensors),
+        CommandSpec(
+            "L", "LED (number, action 0 off / 1 on / 2 toggle)", ((0, lim.leds - 1), (0, 2)), 0
+        ),
+    )
+    return MappingProxyType({s.letter: s for s in specs})
+
+
+_DEFAULT_SPECS = command_specs()
+
+
+# --------------------------------------------------------------------------- line framing
+
+
+class LineSplitter:
+    """Incremental splitter: bytes in, complete lines out, memory bounded.
+
+    Lines end at CR, LF or CRLF; empty lines are skipped (so CRLF is one terminator). A line longer
+    than ``max_line`` bytes is reported once as a :class:`Reject` (``LINE_TOO_LONG``) and the rest
+    of it is discarded up to the next terminator, so garbage without terminators cannot grow memory.
+    """
+
+    def __init__(self, max_line: int = 256) -> None:
+        if max_line < 1:
+            raise ValueError("max_line must be >= 1")
+        self.max_line = max_line
+        self._buf = bytearray()
+        self._discarding = False
+
+    def feed(self, data: bytes) -> list[bytes | Reject]:
+        """Consume ``data``; return the lines it completed (terminators stripped) and rejects."""
+        out: list[bytes | Reject] = []
+        pos = 0
+        for m in _TERMINATORS.finditer(data):
+            self._append(data[pos : m.start()], out)
+            if self._discarding:
+                self._discarding = False
+            elif self._buf:
+                out.append(bytes(self._buf))
+            self._buf.clear()
+            pos = m.end()
+        self._append(data[pos:], out)
+        return out
+
+    def reset(self) -> None:
+        """Drop any partial line (e.g. when a new client opens the port)."""
+        self._buf.clear()
+        self._discarding = False
+
+    def _append(self, chunk: bytes, out: list[bytes | Reject]) -> None:
+        if self._discarding or not chunk:
+            return
+        self._buf += chunk
+        if len(self._buf) > self.max_line:
+            out.append(
+                Reject(
+                    RejectReason.LINE_TOO_LONG,
+                    f"line over {self.max_line} bytes",
+                    bytes(self._buf[:32]),
+                )
+            )
+            self._buf.clear()
+            self._discarding = True
+
+
+# --------------------------------------------------------------------------- robot side
+
+
+def parse_command(
+    line: bytes | str, specs: Mapping[str, CommandSpec] = _DEFAULT_SPECS
+) -> KteamCommand | Reject:
+    """Parse one command line (terminator already stripped) into a :class:`KteamCommand`.
+
+    Returns a :class:`Reject` -- never raises -- for non-ASCII input, an unknown letter, bad syntax,
+    wrong arity or an argument out of range.
+    """
+    raw = line.encode("latin-1", "replace") if isinstance(line, str) else bytes(line)
+    try:
+        text = raw.decode("ascii").strip()
+    except UnicodeDecodeError:
+        return Reject(RejectReason.SYNTAX, "non-ASCII byte in command", raw[:32])
+    if not text:
+        return Reject(RejectReason.SYNTAX, "empty command", raw[:32])
+    letter, rest = text[0], text[1:]
+    spec = specs.get(letter)
+    if spec is None:
+        return Reject(RejectReason.UNKNOWN_COMMAND, f"command {letter!r} not implemented", raw[:32])
+    args = _parse_int_fields(rest)
+    if args is None:
+        return Reject(RejectReason.SYNTAX, f"{letter}: arguments must be ,<decimal>...", raw[:32])
+    if len(args) != len(spec.arg_ranges):
+        return Reject(
+            RejectReason.ARITY,
+            f"{letter} takes {len(spec.arg_ranges)} argument(s), got {len(args)}",
+            raw[:32],
+        )
+    for i, (value, (low, high)) in enumerate(zip(args, spec.arg_ranges, strict=True)):
+        if not low <= value <= high:
+            return Reject(
+                RejectReason.OUT_OF_RANGE,
+                f"{letter} argument {i + 1}={value} not in [{low}, {high}]",
+                raw[:32],
+            )
+    return KteamCommand(letter, args)
+
+
+def format_reply(reply: KteamReply) -> bytes:
+    """Encode a reply as sent by the robot: ``letter[,field...]\\r\\n``."""
+    if len(reply.letter) != 1 or not ("a" <= reply.letter <= "z"):
+        raise FrameError(f"reply letter must be one lower-case letter, got {reply.letter!r}")
+    for f in reply.fields:
+        if any(c in f for c in ",\r\n") or not f.isascii():
+            raise FrameError(f"reply field {f!r} contains a separator or non-ASCII character")
+    return ",".join((reply.letter, *reply.fields)).encode("ascii") + b"\r\n"
+
+
+def error_reply(reject: Reject) -> KteamReply:
+    """The ``z,<text>`` reply the robot sends for a rejected command line."""
+    return KteamReply("z", (_ERROR_TEXT.get(reject.reason, ERROR_PROTOCOL),))
+
+
+# --------------------------------------------------------------------------- controller side
+
+
+def format_command(command: KteamCommand, terminator: bytes = b"\r") -> bytes:
+    """Encode a command as a controller sends it: ``LETTER[,arg...]`` + ``terminator``."""
+    if len(command.letter) != 1 or not ("A" <= command.letter <= "Z"):
+        raise FrameError(f"command letter must be one upper-case letter, got {command.letter!r}")
+    if terminator not in (b"\r", b"\n", b"\r\n"):
+        raise FrameError("terminator must be CR, LF or CRLF")
+    return (
+        ",".join((command.letter, *(str(int(a)) for a in command.args))).encode("ascii")
+        + terminator
+    )
+
+
+def parse_reply(
+    line: bytes | str, specs: Mapping[str, CommandSpec] = _DEFAULT_SPECS
+) -> KteamReply | Reject:
+    """Parse one reply line (terminator stripped) into a :class:`KteamReply`.
+
+    A ``z,...`` error reply is returned as a reply (``is_error``), not a reject: it is a valid
+    message. Replies to known commands are checked for their field count and integer fields.
+    """
+    raw = line.encode("latin-1", "replace") if isinstance(line, str) else bytes(line)
+    try:
+        text = raw.decode("ascii").strip()
+    except UnicodeDecodeError:
+        return Reject(RejectReason.SYNTAX, "non-ASCII byte in reply", raw[:32])
+    if not text or not ("a" <= text[0] <= "z"):
+        return Reject(RejectReason.SYNTAX, "reply must start with a lower-case letter", raw[:32])
+    letter, rest = text[0], text[1:]
+    if rest and rest[0] != ",":
+        return Reject(RejectReason.SYNTAX, "reply letter must be followed by ',' or end", raw[:32])
+    fields = tuple(f.strip() for f in rest[1:].split(",")) if rest else ()
+    spec = specs.get(letter.upper())
+    if letter != "z" and spec is not None and spec.reply_fields is not None:
+        if len(fields) != spec.reply_fields:
+            return Reject(
+                RejectReason.ARITY,
+                f"{letter} carries {spec.reply_fields} field(s), got {len(fields)}",
+                raw[:32],
+            )
+        if not all(_INT_FIELD.fullmatch(f) for f in fields):
+            return Reject(
+                RejectReason.SYNTAX, f"{letter}: fields must be decimal integers", raw[:32]
+            )
+    return KteamReply(letter, fields)
+
+
+def _parse_int_fields(rest: str) -> tuple[int, ...] | None:
+    """``",1,-2"`` -> ``(1, -2)``; ``""`` -> ``()``; anything else -> None."""
+    if not rest:
+        return ()
+    if rest[0] != ",":
+        return None
+    parts = [p.strip() for p in rest[1:].split(",")]
+    if not all(_INT_FIELD.fullmatch(p) for p in parts):
+        return None
+    return tuple(int(p) for p in parts)

@@ -1,0 +1,182 @@
+"""MAVLink 2 compass codec built on pymavlink's generated ``common`` dialect.
+
+Each link owns one ``MAVLink`` instance (its own sequence numbers and parser state); nothing here
+touches ``pymavlink.mavutil``, its globals or the ``MAVLINK20`` environment variable.
+
+Frames: the bridge and :mod:`sim` use FLU body axes (x forward, y left, z up) and microtesla;
+MAVLink ``SCALED_IMU.xmag/ymag/zmag`` are FRD body axes (x forward, y right, z down) in
+milligauss. 1 uT = 10 mGauss; FLU -> FRD negates y and z. A level compass then reads
+``heading = atan2(-ymag, xmag)``, clockwise from magnetic north (:func:`heading_from_frd`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from pymavlink.dialects.v20 import common as mavlink2
+
+from drivers.messages import CompassSample, MavlinkHeartbeat, Reject, RejectReason
+
+__all__ = [
+    "MG_PER_UT",
+    "CompassDecoder",
+    "CompassEncoder",
+    "MavlinkIdentity",
+    "flu_ut_to_frd_mgauss",
+    "frd_mgauss_to_flu_ut",
+    "heading_from_frd",
+]
+
+MG_PER_UT = 10.0
+"""Milligauss per microtesla (1 G = 1e-4 T)."""
+_INT16 = (-32768, 32767)
+
+
+@dataclass(frozen=True, slots=True)
+class MavlinkIdentity:
+    """Who the compass says it is in its HEARTBEAT.
+
+    Defaults: system 1, component ``MAV_COMP_ID_IMU`` (200), type ``MAV_TYPE_GROUND_ROVER``,
+    autopilot ``MAV_AUTOPILOT_INVALID`` (the MAVLink rule for components that are not flight
+    controllers), state ``MAV_STATE_ACTIVE``.
+    """
+
+    system_id: int = 1
+    component_id: int = mavlink2.MAV_COMP_ID_IMU
+    mav_type: int = mavlink2.MAV_TYPE_GROUND_ROVER
+    autopilot: int = mavlink2.MAV_AUTOPILOT_INVALID
+    system_status: int = mavlink2.MAV_STATE_ACTIVE
+
+
+def flu_ut_to_frd_mgauss(x_ut: float, y_ut: float, z_ut: float) -> tuple[int, int, int]:
+    """FLU microtesla -> FRD milligauss, rounded and saturated to int16 (the SCALED_IMU type)."""
+    return (_int16(x_ut * MG_PER_UT), _int16(-y_ut * MG_PER_UT), _int16(-z_ut * MG_PER_UT))
+
+
+def frd_mgauss_to_flu_ut(xmag: int, ymag: int, zmag: int) -> tuple[float, float, float]:
+    """FRD milligauss -> FLU microtesla (inverse of :func:`flu_ut_to_frd_mgauss` up to rounding)."""
+    return (xmag / MG_PER_UT, -ymag / MG_PER_UT, -zmag / MG_PER_UT)
+
+
+def heading_from_frd(xmag: float, ymag: float) -> float:
+    """Magnetic heading of a level compass, radians clockwise from magnetic north, in [0, 2*pi)."""
+    return math.atan2(-ymag, xmag) % math.tau
+
+
+class CompassEncoder:
+    """Encodes HEARTBEAT and SCALED_IMU for one outgoing link.
+
+    Only the ``xmag/ymag/zmag`` and ``time_boot_ms`` fields of SCALED_IMU carry data; acceleration
+    and gyro fields are 0 and ``temperature`` is 0 ("no temperature"), as the field definitions
+    allow.
+    """
+
+    def __init__(self, identity: MavlinkIdentity | None = None) -> None:
+        self.identity = identity or MavlinkIdentity()
+        self._mav = mavlink2.MAVLink(None, self.identity.system_id, self.identity.component_id)
+        self.messages_encoded = 0
+
+    def heartbeat(self) -> bytes:
+        """One HEARTBEAT (msg id 0); the bridge sends it at 1 Hz."""
+        ident = self.identity
+        msg = self._mav.heartbeat_encode(ident.mav_type, ident.autopilot, 0, 0, ident.system_status)
+        return self._pack(msg)
+
+    def scaled_imu(self, sample: CompassSample) -> bytes:
+        """One SCALED_IMU (msg id 26) carrying ``sample`` converted to FRD milligauss."""
+        xmag, ymag, zmag = flu_ut_to_frd_mgauss(sample.x_ut, sample.y_ut, sample.z_ut)
+        time_boot_ms = int(sample.time_boot_ms) & 0xFFFFFFFF
+        msg = self._mav.scaled_imu_encode(time_boot_ms, 0, 0, 0, 0, 0, 0, xmag, ymag, zmag, 0)
+        return self._pack(msg)
+
+    def _pack(self, msg: mavlink2.MAVLink_message) -> bytes:
+        buf = bytes(msg.pack(self._mav))
+        self._mav.seq = (self._mav.seq + 1) % 256
+        self.messages_encoded += 1
+        return buf
+
+
+class CompassDecoder:
+    """Parses a MAVLink byte stream (or datagrams) into compass samples and heartbeats.
+
+    Reads the bridge's output or a real MAVLink compass alike. Bytes that are not a valid MAVLink
+    packet (bad CRC, bad magic, truncated) are counted in :attr:`rejected`, never raised. Other
+    valid messages are counted in :attr:`ignored`.
+
+    Args:
+        system_id / component_id: if set, only samples from this source are returned.
+    """
+
+    def __init__(self, system_id: int | None = None, component_id: int | None = None) -> None:
+        self._mav = _new_parser()
+        self.system_id = system_id
+        self.component_id = component_id
+        self.decoded = 0
+        self.ignored = 0
+        self.rejected = 0
+        self.last_reject: Reject | None = None
+
+    def feed(self, data: bytes) -> list[CompassSample | MavlinkHeartbeat]:
+        """Consume a chunk of a byte stream (pty, TCP); a packet may span chunks."""
+        return self._parse(self._mav, data)
+
+    def feed_datagram(self, data: bytes) -> list[CompassSample | MavlinkHeartbeat]:
+        """Consume one UDP datagram: packets never span datagrams, so a truncated or garbage
+        datagram cannot swallow the next one; an incomplete trailing packet is a reject."""
+        parser = _new_parser()
+        out = self._parse(parser, data)
+        if parser.buf_len() > 0:
+            self._reject("datagram ends inside a packet", bytes(data[-32:]))
+        return out
+
+    def _parse(
+        self, parser: mavlink2.MAVLink, data: bytes
+    ) -> list[CompassSample | MavlinkHeartbeat]:
+        out: list[CompassSample | MavlinkHeartbeat] = []
+        try:
+            messages = parser.parse_buffer(bytes(data)) or []
+        except mavlink2.MAVError as e:  # robust_parsing makes this rare; keep the loop alive anyway
+            self._reject(str(e), b"")
+            return out
+        for msg in messages:
+            kind = msg.get_type()
+            if kind == "BAD_DATA":
+                self._reject(str(getattr(msg, "reason", "bad data")), bytes(msg.get_msgbuf()[:32]))
+                continue
+            if not self._wanted(msg):
+                self.ignored += 1
+                continue
+            if kind == "SCALED_IMU":
+                x, y, z = frd_mgauss_to_flu_ut(msg.xmag, msg.ymag, msg.zmag)
+                out.append(CompassSample(int(msg.time_boot_ms), x, y, z))
+            elif kind == "HEARTBEAT":
+                out.append(
+                    MavlinkHeartbeat(
+                        msg.get_srcSystem(), msg.get_srcComponent(), msg.type, msg.autopilot
+                    )
+                )
+            else:
+                self.ignored += 1
+                continue
+            self.decoded += 1
+        return out
+
+    def _wanted(self, msg: mavlink2.MAVLink_message) -> bool:
+        if self.system_id is not None and msg.get_srcSystem() != self.system_id:
+            return False
+        return self.component_id is None or msg.get_srcComponent() == self.component_id
+
+    def _reject(self, detail: str, raw: bytes) -> None:
+        self.rejected += 1
+        self.last_reject = Reject(RejectReason.GARBAGE, detail, raw)
+
+
+def _new_parser() -> mavlink2.MAVLink:
+    parser = mavlink2.MAVLink(None)
+    parser.robust_parsing = True
+    return parser
+
+
+def _int16(value: float) -> int:
+    return max(_INT16[0], min(_INT16[1], round(value)))
