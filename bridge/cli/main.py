@@ -1,0 +1,91 @@
+"""``koala-bridge``: one entry point, one module per subcommand.
+
+Subcommands are listed in :data:`SUBCOMMANDS` (name -> module) and imported only when needed, so
+``koala-bridge --help`` stays fast and a broken subcommand cannot break the others. Each module
+exposes ``add_arguments(parser)`` and ``run(args) -> int``; the first line of its docstring is its
+one-line help, the rest its description.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from collections.abc import Sequence
+from types import ModuleType
+
+SUBCOMMANDS: dict[str, str] = {
+    "run": "bridge.cli.run",
+    "calibrate": "bridge.cli.calibrate",
+    "export": "bridge.cli.export",
+}
+
+EPILOG = """\
+examples:
+  koala-bridge run                                # real time, config/default.toml
+  koala-bridge run --clock fast --duration 10 --seed 3
+  koala-bridge run --endpoints-file /tmp/koala.json --set buses.mavlink.port=14551
+  koala-bridge <subcommand> --help                # what each subcommand does
+"""
+
+
+def _load(module_name: str) -> ModuleType | None:
+    """Import a subcommand module; None only if that very module does not exist (yet)."""
+    try:
+        return importlib.import_module(module_name)
+    except ModuleNotFoundError as e:
+        if e.name == module_name:
+            return None
+        raise
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="koala-bridge",
+        description=(
+            "Hardware-in-the-loop bridge for the K-Team Koala: a simulated robot served on its "
+            "real buses (serial, CAN, MAVLink) and published over Zenoh."
+        ),
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument(
+        "--log-level",
+        default="INFO",
+        choices=("DEBUG", "INFO", "WARNING", "ERROR"),
+        help="logging threshold, to stderr (default: INFO)",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="SUBCOMMAND", required=True)
+    for name, module_name in SUBCOMMANDS.items():
+        module = _load(module_name)
+        if module is None:
+            continue
+        doc = (module.__doc__ or "").strip()
+        summary, _, rest = doc.partition("\n")
+        p = sub.add_parser(
+            name,
+            help=summary,
+            description=f"{summary}\n{rest}".strip(),
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+            parents=[common],
+        )
+        module.add_arguments(p)
+        p.set_defaults(_module=module)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=getattr(logging, args.log_level),
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+    return int(args._module.run(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

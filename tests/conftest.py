@@ -1,0 +1,234 @@
+"""Shared fixtures: free loopback ports, a bridge subprocess, and a leak check.
+
+- ``free_tcp_port`` / ``free_udp_port``: a port the OS just handed out on 127.0.0.1.
+- ``bridge``: a factory that starts ``koala-bridge run`` as a subprocess on free ports, waits for
+  its endpoints file (written only once every endpoint accepts clients) and returns a
+  :class:`BridgeProcess`. Every process it started is terminated at teardown (SIGTERM, then
+  SIGKILL), so no test leaves a bridge behind.
+- ``leak_check`` (autouse): fails the test that leaves a child process, a non-daemon thread, or an
+  open socket / pty / file descriptor behind.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_CONFIG = REPO / "config" / "default.toml"
+
+
+# -- ports -------------------------------------------------------------------------------------
+
+def _free_port(kind: int) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def free_port(kind: str = "tcp") -> int:
+    """A port free on 127.0.0.1 right now (``kind`` "tcp" or "udp")."""
+    return _free_port(socket.SOCK_STREAM if kind == "tcp" else socket.SOCK_DGRAM)
+
+
+@pytest.fixture
+def free_tcp_port() -> int:
+    return free_port("tcp")
+
+
+@pytest.fixture
+def free_udp_port() -> int:
+    return free_port("udp")
+
+
+# -- leak check --------------------------------------------------------------------------------
+
+def _fd_targets() -> dict[int, str]:
+    """Open descriptors that a test could leak: sockets, ptys, regular files (not Zenoh's
+    long-lived runtime descriptors: eventpoll/eventfd, its /dev/shm segment)."""
+    out: dict[int, str] = {}
+    for name in os.listdir("/proc/self/fd"):
+        try:
+            target = os.readlink(f"/proc/self/fd/{name}")
+        except OSError:
+            continue
+        if target.startswith(("anon_inode:", "/dev/shm/", "pipe:", "/dev/null")):
+            continue
+        out[int(name)] = target
+    return out
+
+
+def _children() -> set[int]:
+    me = str(os.getpid())
+    kids: set[int] = set()
+    for pid in os.listdir("/proc"):
+        if not pid.isdigit():
+            continue
+        try:
+            with open(f"/proc/{pid}/stat", encoding="ascii", errors="replace") as f:
+                stat = f.read()
+        except OSError:
+            continue
+        fields = stat.rsplit(")", 1)[-1].split()
+        if len(fields) > 1 and fields[1] == me and fields[0] != "Z":
+            kids.add(int(pid))
+    return kids
+
+
+def _wait_until(predicate: Callable[[], bool], timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.05)
+    return predicate()
+
+
+@pytest.fixture(autouse=True)
+def leak_check(request: pytest.FixtureRequest) -> Iterator[None]:
+    if request.node.get_closest_marker("no_leak_check"):
+        yield
+        return
+    fds_before = _fd_targets()
+    threads_before = set(threading.enumerate())
+    kids_before = _children()
+    yield
+
+    def leaked_threads() -> list[threading.Thread]:
+        return [
+            t for t in threading.enumerate()
+            if t not in threads_before and t.is_alive() and not t.daemon
+        ]
+
+    def leaked_fds() -> dict[int, str]:
+        now = _fd_targets()
+        return {fd: t for fd, t in now.items() if fds_before.get(fd) != t}
+
+    _wait_until(lambda: not leaked_threads() and not leaked_fds()
+                and not (_children() - kids_before), timeout=2.0)
+    problems = []
+    if threads := leaked_threads():
+        problems.append(f"threads still running: {[t.name for t in threads]}")
+    if fds := leaked_fds():
+        problems.append(f"descriptors left open: {fds}")
+    if kids := _children() - kids_before:
+        problems.append(f"child processes left running: {sorted(kids)}")
+        for pid in kids:  # do not let one leak poison the rest of the session
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+    if problems:
+        pytest.fail("leak check: " + "; ".join(problems), pytrace=False)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line("markers", "no_leak_check: skip the autouse leak check")
+
+
+# -- bridge subprocess -------------------------------------------------------------------------
+
+@dataclass
+class BridgeProcess:
+    """A running ``koala-bridge run`` and what its endpoints file says."""
+
+    proc: subprocess.Popen[bytes]
+    endpoints: dict[str, Any]
+    endpoints_file: Path
+    log_path: Path
+    zenoh_endpoint: str
+    mavlink_port: int
+    args: list[str] = field(default_factory=list)
+
+    @property
+    def prefix(self) -> str:
+        return str(self.endpoints["zenoh"]["prefix"])
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+    def stop(self, sig: int = signal.SIGTERM, timeout: float = 15.0) -> int:
+        """Send ``sig`` and wait; returns the exit code (SIGKILL after ``timeout``)."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(5)
+        return int(self.proc.returncode)
+
+
+def bridge_command(*args: str) -> list[str]:
+    return [sys.executable, "-m", "bridge.cli", *args]
+
+
+@pytest.fixture
+def bridge(tmp_path: Path) -> Iterator[Callable[..., BridgeProcess]]:
+    """Factory: ``bridge(clock="fast", sets=[...], extra=[...])`` -> a started BridgeProcess.
+
+    Every port is a free one (Zenoh listen, MAVLink UDP, socketcand 0 = chosen by the OS), so
+    tests run side by side with ``make run``. ``sets`` are extra ``--set`` overrides.
+    """
+    started: list[BridgeProcess] = []
+
+    def start(
+        clock: str = "fast",
+        sets: list[str] | None = None,
+        extra: list[str] | None = None,
+        config: Path = DEFAULT_CONFIG,
+        timeout: float = 30.0,
+    ) -> BridgeProcess:
+        n = len(started)
+        endpoints_file = tmp_path / f"endpoints-{n}.json"
+        log_path = tmp_path / f"bridge-{n}.log"
+        zenoh_endpoint = f"tcp/127.0.0.1:{free_port('tcp')}"
+        mavlink_port = free_port("udp")
+        args = [
+            "run", "--config", str(config), "--clock", clock,
+            "--endpoints-file", str(endpoints_file),
+            "--set", f'zenoh.listen=["{zenoh_endpoint}"]',
+            "--set", f"buses.mavlink.port={mavlink_port}",
+            "--set", "buses.can.socketcand_port=0",
+        ]
+        for s in sets or []:
+            args += ["--set", s]
+        args += extra or []
+        log = open(log_path, "wb")  # noqa: SIM115 - closed right after Popen duplicated it
+        try:
+            proc = subprocess.Popen(
+                bridge_command(*args), cwd=REPO, stdout=log, stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+            )
+        finally:
+            log.close()
+        handle = BridgeProcess(proc, {}, endpoints_file, log_path, zenoh_endpoint,
+                               mavlink_port, args)
+        started.append(handle)
+        deadline = time.monotonic() + timeout
+        while not endpoints_file.exists():
+            if proc.poll() is not None:
+                raise AssertionError(
+                    f"bridge exited with {proc.returncode} before serving:\n{handle.log()}"
+                )
+            if time.monotonic() > deadline:
+                raise AssertionError(f"bridge did not write its endpoints file:\n{handle.log()}")
+            time.sleep(0.05)
+        handle.endpoints = json.loads(endpoints_file.read_text())
+        return handle
+
+    yield start
+    for handle in started:
+        handle.stop()
