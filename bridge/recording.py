@@ -86,24 +86,49 @@ def _array(items: Mapping[str, Any]) -> dict[str, Any]:
 
 
 _POSE = {"x": _NUM, "y": _NUM, "theta": _NUM}
+_INTS = _array({"type": "integer"})
 _OBS = _array(
     {"type": "object", "properties": {"id": {"type": "integer"}, "range": _NUM, "bearing": _NUM}}
 )
 
-#: Schema per topic below the prefix. A topic not listed here (a truth companion whose key the
-#: bridge adds later, say) is recorded with :func:`generic_schema`.
+
+def _truth(props: Mapping[str, Any]) -> dict[str, Any]:
+    """The noise-free companion carried in each sensor message under ``truth``."""
+    return {"type": "object", "properties": dict(props), "description": "noise-free companion"}
+
+
+def _sensor(title: str, props: Mapping[str, Any], truth: Mapping[str, Any]) -> dict[str, Any]:
+    return _obj(title, {**props, "truth": _truth(truth)}, required=list(props))
+
+
+_MAG = {"mx": _NUM, "my": _NUM, "mz": _NUM}
+_TICKS = {"left_ticks": {"type": "integer"}, "right_ticks": {"type": "integer"}}
+
+#: Schema per topic below the prefix (payloads as bridge/zenoh_io.py documents them). A topic
+#: not listed here is recorded with :func:`generic_schema`.
 TOPIC_SCHEMAS: dict[str, dict[str, Any]] = {
     "truth/pose": _obj("koala.truth.Pose", _POSE),
-    "sensors/ir": _obj("koala.sensors.Ir", {"counts": _array({"type": "integer"})}),
-    "sensors/sonar": _obj("koala.sensors.Sonar", {"ranges": _array(_NUM_OR_NULL)}),
-    "sensors/odometry": _obj(
-        "koala.sensors.Odometry",
-        {"left_ticks": {"type": "integer"}, "right_ticks": {"type": "integer"}},
+    "sensors/ir": _sensor(
+        "koala.sensors.Ir",
+        {"counts": _INTS, "ambient": _INTS},
+        {"counts": _INTS, "ranges": _array(_NUM_OR_NULL)},
     ),
-    "sensors/gyro": _obj("koala.sensors.Gyro", {"yaw_rate": _NUM}),
-    "sensors/compass": _obj("koala.sensors.Compass", {"mx": _NUM, "my": _NUM, "mz": _NUM}),
-    "sensors/camera": _obj("koala.sensors.Camera", {"observations": _OBS}),
-    "status": _obj("koala.Status", {}, required=[]),
+    "sensors/sonar": _sensor(
+        "koala.sensors.Sonar",
+        {"ranges": _array(_NUM_OR_NULL)},
+        {"ranges": _array(_NUM_OR_NULL), "incidence": _array(_NUM_OR_NULL)},
+    ),
+    "sensors/odometry": _sensor("koala.sensors.Odometry", _TICKS, _TICKS),
+    "sensors/gyro": _sensor("koala.sensors.Gyro", {"yaw_rate": _NUM}, {"yaw_rate": _NUM}),
+    "sensors/compass": _sensor("koala.sensors.Compass", _MAG, _MAG),
+    "sensors/camera": _sensor(
+        "koala.sensors.Camera", {"observations": _OBS}, {"observations": _OBS}
+    ),
+    "status": _obj(
+        "koala.Status",
+        {"real_time_factor": _NUM_OR_NULL, "buses": {"type": "object"}},
+        required=[],
+    ),
     "estimate/pose": _obj("koala.estimate.Pose", _POSE, required=[]),
     "estimate/cell": _obj("koala.estimate.Cell", {}, required=[]),
     "estimate/grid": _obj("koala.estimate.Grid", {}, required=[]),
@@ -188,7 +213,8 @@ class Recorder:
     key below the prefix, ``payload`` a JSON object or its encoded bytes);
     ``record_frame(bus, direction, t, data)`` takes one raw bus frame. Both are cheap enough for
     the service loop; errors while writing are logged once and counted in :attr:`dropped`, never
-    raised into the caller's loop.
+    raised into the caller's loop. Do not call :meth:`close` from a signal handler (it could
+    interrupt a ``record`` that holds the lock): let the handler set an event, close in the loop.
 
     Args:
         path: the ``.mcap`` file to create (truncated if it exists).

@@ -119,21 +119,22 @@ def test_not_mcap_is_a_clear_error(tmp_path: Path) -> None:
 
 _WRITER = textwrap.dedent(
     """
-    import signal, sys, time
+    import signal, sys, threading, time
     from bridge.recording import Recorder, FROM_ROBOT
     rec = Recorder(sys.argv[1], chunk_size=8192, max_chunk_age_s=0.2)
-    def stop(*_):
-        rec.close()
-        sys.exit(0)
-    signal.signal(signal.SIGTERM, stop)
+    # The handler only sets an event: the loop closes the recorder (the service's pattern;
+    # closing inside the handler could interrupt a record() holding the recorder's lock).
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
     i = 0
-    while True:
+    while not stop.is_set():
         t = i * 0.001
         rec.record("sensors/gyro", t, {"t": t, "yaw_rate": 0.25})
         rec.record_frame("serial/rangefinders", FROM_ROBOT, t, b"\\xa5\\x5a" + bytes(20))
         i += 1
         if i % 50 == 0:
             time.sleep(0.001)
+    rec.close()
     """
 )
 

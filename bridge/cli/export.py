@@ -1,0 +1,39 @@
+"""Export a recording (.mcap) as a measurement bundle of CSV files.
+
+The bundle (../shared/data/BUNDLE-FORMAT.md; docs/recording.md lists the columns) holds one row
+per recorded reading: truth_pose.csv, odometry.csv, gyro.csv, compass.csv, range.csv (sonar and IR
+with their noise-free ranges, kind, sensor id, incidence angle), landmarks.csv, landmark_map.csv
+and meta.json (recording, seed, config). `koala-bridge calibrate` reads the bundle.
+
+example:
+  koala-bridge run --clock fast --duration 60 --record /tmp/run.mcap
+  koala-bridge export /tmp/run.mcap --bundle /tmp/run-bundle
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+
+from bridge.export import export_bundle
+from bridge.recording import RecordingError
+
+log = logging.getLogger(__name__)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("recording", metavar="FILE.mcap", help="a recording of `run --record`")
+    parser.add_argument(
+        "--bundle", metavar="DIR", required=True, help="directory to write (created if needed)"
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        out = export_bundle(args.recording, args.bundle)
+    except RecordingError as e:
+        log.error("%s", e)
+        return 2
+    files = sorted(p.name for p in out.iterdir())
+    log.info("bundle written to %s: %s", out, ", ".join(files))
+    return 0
