@@ -19,6 +19,10 @@ SUBCOMMANDS: dict[str, str] = {
     "run": "bridge.cli.run",
     "calibrate": "bridge.cli.calibrate",
     "export": "bridge.cli.export",
+    "replay": "bridge.cli.replay",
+    "monitor": "bridge.cli.monitor",
+    "snapshot": "bridge.cli.snapshot",
+    "export": "bridge.cli.export",
 }
 
 EPILOG = """\
