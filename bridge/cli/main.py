@@ -22,7 +22,6 @@ SUBCOMMANDS: dict[str, str] = {
     "replay": "bridge.cli.replay",
     "monitor": "bridge.cli.monitor",
     "snapshot": "bridge.cli.snapshot",
-    "export": "bridge.cli.export",
 }
 
 EPILOG = """\
