@@ -1,0 +1,192 @@
+"""Differential-drive kinematics of the Koala with wall collisions. Pure functions of
+``(state, command, params, walls, rng)``.
+
+Kinematics (world frame x east, y north; theta CCW from +x). Wheel surface speeds ``v_l, v_r``
+(m/s) and wheel base ``b`` give ``v = (v_l + v_r) / 2`` and ``w = (v_r - v_l) / b``. Over one fixed
+step ``dt`` the speeds are constant, so the robot moves exactly along a circular arc; in the body
+frame of the pose at the start of the step the displacement is::
+
+    dx_b = v dt sinc(w dt),  dy_b = v dt (1 - cos(w dt)) / (w dt),  dtheta = w dt
+
+(the straight line ``dx_b = v dt, dy_b = 0`` in the limit ``w -> 0``). There is no integration
+error, whatever ``dt``.
+
+Collisions: the body is a circle of ``body_radius_m`` around the robot's centre. A move is split
+into sub-steps no longer than half the radius (so no wall is tunnelled through, whatever the
+speed and ``dt``); a sub-step that would bring the body closer to a wall it already penetrates
+or touches (distance < radius) is cut back by bisection to the last non-penetrating fraction, the
+robot stops there for the rest of the step and :attr:`RobotState.collided` is set. Moves that
+increase the distance to every touched wall (backing away, turning in place) are always allowed.
+With ideal drive the wheels stall against the wall: wheel travel (what the encoders count) is cut
+by the same fraction as the body motion.
+
+Seam for the drive-error model (issue 3, seeds/000 eq. 1-4, wheel slip): :func:`step` takes an
+optional ``drive_error`` object (see :class:`DriveErrorModel`). It receives the ideal body-frame
+displacement of the step and returns the displacement that really happens (and may change the
+wheel travel the encoders see); collision handling applies to the displacement it returns.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from sim.config import RobotConfig
+from sim.raycast import SegmentSet, point_segment_distances
+
+
+def wrap_angle(a: float) -> float:
+    """Wrap an angle to (-pi, pi]."""
+    w = math.fmod(a + math.pi, 2.0 * math.pi)
+    if w <= 0.0:
+        w += 2.0 * math.pi
+    return w - math.pi
+
+
+@dataclass(frozen=True, slots=True)
+class RobotState:
+    """Truth state of the robot after a step."""
+
+    x: float
+    y: float
+    theta: float                # wrapped to (-pi, pi]
+    heading: float              # unwrapped heading (theta + 2 pi k): integrates yaw rate exactly
+    left_travel_m: float        # cumulative wheel surface travel, m (encoders count this)
+    right_travel_m: float
+    left_speed: float           # mean wheel surface speed over the last step, m/s
+    right_speed: float
+    yaw_rate: float             # mean yaw rate over the last step, rad/s
+    collided: bool = False
+
+    @classmethod
+    def at(cls, x: float, y: float, theta: float) -> RobotState:
+        return cls(x, y, wrap_angle(theta), theta, 0.0, 0.0, 0.0, 0.0, 0.0, False)
+
+
+@dataclass(frozen=True, slots=True)
+class Motion:
+    """What one step does: body-frame displacement (frame of the pose at the step's start) and the
+    wheel surface travel the encoders count."""
+
+    dx_b: float
+    dy_b: float
+    dtheta: float
+    left_m: float
+    right_m: float
+
+
+class DriveErrorModel(Protocol):
+    """Seam for drive errors (seeds/000 eq. 1-4) and wheel slip; implemented in ``sim/models``."""
+
+    def perturb(self, ideal: Motion, state: RobotState, rng: np.random.Generator) -> Motion:
+        """Return the motion that really happens given the ideal one (pure but for ``rng``)."""
+        ...
+
+
+def limit_wheel_speeds(left: float, right: float, max_speed: float) -> tuple[float, float]:
+    """Clip each wheel's surface speed to ``[-max_speed, max_speed]`` (non-finite -> 0)."""
+    lf = left if math.isfinite(left) else 0.0
+    rf = right if math.isfinite(right) else 0.0
+    return (min(max(lf, -max_speed), max_speed), min(max(rf, -max_speed), max_speed))
+
+
+def arc_motion(v_left: float, v_right: float, wheel_base: float, dt: float) -> Motion:
+    """Exact body-frame displacement of one step at constant wheel speeds (module docstring)."""
+    v = 0.5 * (v_left + v_right)
+    dth = (v_right - v_left) / wheel_base * dt
+    s = v * dt
+    if abs(dth) < 1e-9:
+        # Series of sin(x)/x and (1 - cos x)/x; exact to double precision here.
+        dx = s * (1.0 - dth * dth / 6.0)
+        dy = s * 0.5 * dth
+    else:
+        dx = s * math.sin(dth) / dth
+        dy = s * (1.0 - math.cos(dth)) / dth
+    return Motion(dx, dy, dth, v_left * dt, v_right * dt)
+
+
+def _pose_after(state: RobotState, m: Motion, frac: float) -> tuple[float, float, float]:
+    c = math.cos(state.theta)
+    s = math.sin(state.theta)
+    dx = frac * m.dx_b
+    dy = frac * m.dy_b
+    return (state.x + c * dx - s * dy, state.y + s * dx + c * dy, state.heading + frac * m.dtheta)
+
+
+def _blocked(walls: SegmentSet, d_old: np.ndarray, x: float, y: float, radius: float) -> bool:
+    d_new = point_segment_distances(walls, x, y)
+    return bool(np.any((d_new < radius) & (d_new < d_old)))
+
+
+def step(
+    state: RobotState,
+    left_speed: float,
+    right_speed: float,
+    dt: float,
+    params: RobotConfig,
+    walls: SegmentSet,
+    rng: np.random.Generator | None = None,
+    drive_error: DriveErrorModel | None = None,
+) -> RobotState:
+    """Advance the robot by one fixed step ``dt`` at the given wheel surface speeds (m/s).
+
+    Speeds are clipped to ``params.max_wheel_speed_mps``. Returns the new state; ``collided`` is
+    True when a wall stopped the robot during this step.
+    """
+    vl, vr = limit_wheel_speeds(left_speed, right_speed, params.max_wheel_speed_mps)
+    motion = arc_motion(vl, vr, params.wheel_base_m, dt)
+    if drive_error is not None:
+        if rng is None:
+            raise ValueError("a drive-error model needs an rng")
+        motion = drive_error.perturb(motion, state, rng)
+
+    radius = params.body_radius_m
+    length = math.hypot(motion.dx_b, motion.dy_b)
+    n_sub = max(1, math.ceil(length / (0.5 * radius)))
+    done = 0.0          # fraction of the motion completed
+    collided = False
+    x, y, heading = state.x, state.y, state.heading
+    if length > 0.0 and len(walls):
+        for i in range(1, n_sub + 1):
+            d_old = point_segment_distances(walls, x, y)
+            frac = i / n_sub
+            nx, ny, nh = _pose_after(state, motion, frac)
+            if not _blocked(walls, d_old, nx, ny, radius):
+                x, y, heading, done = nx, ny, nh, frac
+                continue
+            # Bisection for the last safe fraction within this sub-step.
+            lo, hi = done, frac
+            for _ in range(30):
+                mid = 0.5 * (lo + hi)
+                mx, my, _mh = _pose_after(state, motion, mid)
+                if _blocked(walls, d_old, mx, my, radius):
+                    hi = mid
+                else:
+                    lo = mid
+                if (hi - lo) * length < 1e-7:   # 0.1 um
+                    break
+            x, y, heading = _pose_after(state, motion, lo)
+            done = lo
+            collided = True
+            break
+    else:
+        x, y, heading = _pose_after(state, motion, 1.0)
+        done = 1.0
+    left_m = motion.left_m * done
+    right_m = motion.right_m * done
+    dheading = heading - state.heading
+    return RobotState(
+        x=x,
+        y=y,
+        theta=wrap_angle(heading),
+        heading=heading,
+        left_travel_m=state.left_travel_m + left_m,
+        right_travel_m=state.right_travel_m + right_m,
+        left_speed=left_m / dt,
+        right_speed=right_m / dt,
+        yaw_rate=dheading / dt,
+        collided=collided,
+    )

@@ -1,0 +1,54 @@
+"""The seam between ideal sensors and error models.
+
+Every sensor module in :mod:`sim.sensors` follows the same shape:
+
+1. a pure function computes the sensor's *truth* -- a frozen dataclass holding the noise-free value
+   and everything an error model may need (ray ranges, incidence angles, sample interval, ...);
+2. a thin class ``<Name>Sensor(params, error_model=None)`` with ``measure(...) -> <Reading>``:
+   with ``params.ideal`` (or no error model) it returns the ideal reading built from the truth;
+   otherwise it returns ``error_model.measure(truth, rng)``.
+
+An error model therefore only has to implement :class:`ErrorModel` for its sensor's truth type and
+return the sensor's reading type of :mod:`sim.types` (filling the reading's ``truth_*`` fields from
+the truth). Models may keep internal state (bias random walk, Gauss-Markov); the simulator builds
+new ones on every ``reset``, so a run starts from the same state.
+
+How the simulator finds error models: ``Simulator(config, error_models=...)`` takes a mapping
+``{sensor name: factory}``; when it is None and any sensor (or ``[robot.drive]``) has
+``ideal = false``, the simulator imports :mod:`sim.models` and uses its ``ERROR_MODELS`` mapping.
+A factory is called as ``factory(errors, params)`` with the sensor's ``errors`` sub-table (a
+read-only mapping, validated by the factory) and the sensor's typed config; it returns the model.
+The drive-error model is registered under the name ``"drive"`` and implements
+:class:`sim.robot.DriveErrorModel` instead.
+
+Each sensor draws only from its own ``numpy.random.Generator`` (one child stream per sensor,
+:data:`sim.simulator.RNG_STREAMS`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import Any, Protocol, TypeVar
+
+import numpy as np
+
+TruthT = TypeVar("TruthT", contravariant=True)
+ReadingT = TypeVar("ReadingT", covariant=True)
+
+
+class ErrorModel(Protocol[TruthT, ReadingT]):
+    """Turns a sensor's noise-free truth into a measurement, drawing from ``rng`` only."""
+
+    def measure(self, truth: TruthT, rng: np.random.Generator) -> ReadingT: ...
+
+
+ErrorModelFactory = Callable[[Mapping[str, Any], Any], Any]
+"""``factory(errors_table, sensor_config) -> ErrorModel`` (or a DriveErrorModel for "drive")."""
+
+
+def fan_offsets(rays: int, aperture_rad: float) -> np.ndarray:
+    """Angles of ``rays`` rays spread evenly over a cone of ``aperture_rad`` around its axis
+    (the Webots distance-sensor convention that seeds/004 quotes: aperture + numberOfRays)."""
+    if rays == 1:
+        return np.zeros(1)
+    return np.linspace(-0.5 * aperture_rad, 0.5 * aperture_rad, rays)

@@ -1,0 +1,96 @@
+"""3-axis magnetometer: Earth field plus local magnetic sources, body frame FLU, microtesla.
+
+Truth (pure, :func:`field_world` / :func:`field_body`), seeds/000 eq. 16-18: the field is the
+vector sum of the Earth field ``F_0`` (``World.earth_field``) and one horizontal vector per local
+source ``i`` of magnitude ``strength_i / d_i^2`` (``strength_uT`` is the field at 1 m; ``d_i``
+clamped below at ``min_source_distance_m``), pointing from the robot towards the source (away for
+a negative strength). The world-frame vector (x east, y north, z up) is rotated into the body frame
+(x forward, y left, z up) by the robot's heading::
+
+    b_x = cos(theta) B_x + sin(theta) B_y,   b_y = -sin(theta) B_x + cos(theta) B_y,   b_z = B_z
+
+A level compass's heading, clockwise from magnetic north, is ``atan2(b_y, b_x)`` in FLU.
+
+Seam: ``CompassSensor.measure(state, rng)``; an error model (issue 3: hard/soft iron, motor-current
+disturbance) gets :class:`CompassTruth`, which includes the wheel speeds.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from sim.config import CompassConfig
+from sim.robot import RobotState
+from sim.sensors.base import ErrorModel
+from sim.types import CompassReading
+from sim.world import World
+
+
+@dataclass(frozen=True)
+class CompassTruth:
+    field_body_uT: np.ndarray     # (3,) FLU
+    field_world_uT: np.ndarray    # (3,) x east, y north, z up
+    theta: float
+    left_speed: float             # m/s, for motor-current disturbances
+    right_speed: float
+
+
+def field_world(
+    x: float,
+    y: float,
+    earth_uT: np.ndarray,
+    sources_xy: np.ndarray,
+    strengths_uT: np.ndarray,
+    min_distance_m: float,
+) -> np.ndarray:
+    """World-frame field at ``(x, y)``: Earth ``(3,)`` + sources ``(n, 2)`` of ``(n,)`` strengths."""
+    b = earth_uT.copy()
+    if strengths_uT.size:
+        vx = sources_xy[:, 0] - x
+        vy = sources_xy[:, 1] - y
+        d = np.maximum(np.hypot(vx, vy), min_distance_m)
+        mag = strengths_uT / (d * d)
+        # Unit vector towards the source; at (clamped) zero distance there is no direction.
+        dist = np.hypot(vx, vy)
+        safe = np.where(dist > 0, dist, 1.0)
+        b[0] += float(np.sum(mag * vx / safe))
+        b[1] += float(np.sum(mag * vy / safe))
+    return b
+
+
+def field_body(b_world: np.ndarray, theta: float) -> np.ndarray:
+    c = math.cos(theta)
+    s = math.sin(theta)
+    return np.array([c * b_world[0] + s * b_world[1], -s * b_world[0] + c * b_world[1], b_world[2]])
+
+
+class CompassSensor:
+    name = "compass"
+
+    def __init__(
+        self,
+        params: CompassConfig,
+        world: World,
+        error_model: ErrorModel[CompassTruth, CompassReading] | None = None,
+    ) -> None:
+        self.params = params
+        self.error_model = None if params.ideal else error_model
+        self.earth = world.earth_field.vector_world()
+        self.sources_xy = np.array([[m.x, m.y] for m in world.magnetic_sources],
+                                   dtype=float).reshape(-1, 2)
+        self.strengths = np.array([m.strength_uT for m in world.magnetic_sources], dtype=float)
+
+    def truth(self, state: RobotState) -> CompassTruth:
+        bw = field_world(state.x, state.y, self.earth, self.sources_xy, self.strengths,
+                         self.params.min_source_distance_m)
+        return CompassTruth(field_body(bw, state.theta), bw, state.theta,
+                            state.left_speed, state.right_speed)
+
+    def measure(self, state: RobotState, rng: np.random.Generator) -> CompassReading:
+        truth = self.truth(state)
+        if self.error_model is None:
+            return CompassReading(truth.field_body_uT, truth.field_body_uT)
+        return self.error_model.measure(truth, rng)

@@ -1,0 +1,48 @@
+"""Ray fans of range sensors: body-frame sensor poses x rays per sensor -> world-frame rays."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from sim.sensors.base import fan_offsets
+
+
+@dataclass(frozen=True)
+class RayFan:
+    """``n`` sensors at body poses ``(n, 3)`` ``[x, y, theta]``, ``k`` rays each over an aperture.
+
+    Rays are ordered sensor-major: ray ``i * k + j`` is ray ``j`` of sensor ``i``; ray ``k // 2``
+    of each sensor lies on its axis (``k`` is odd).
+    """
+
+    bx: np.ndarray      # (n*k,) body-frame ray origins
+    by: np.ndarray
+    ba: np.ndarray      # (n*k,) body-frame ray angles
+    n: int
+    k: int
+
+    @classmethod
+    def build(cls, poses: np.ndarray, rays: int, aperture_rad: float) -> RayFan:
+        off = fan_offsets(rays, aperture_rad)
+        bx = np.repeat(poses[:, 0], rays)
+        by = np.repeat(poses[:, 1], rays)
+        ba = (poses[:, 2][:, None] + off[None, :]).reshape(-1)
+        return cls(bx, by, ba, int(poses.shape[0]), int(rays))
+
+    def world_rays(
+        self, x: float, y: float, theta: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """World-frame ``(ox, oy, dx, dy)``, each ``(n*k,)``, for a robot at ``(x, y, theta)``."""
+        c = math.cos(theta)
+        s = math.sin(theta)
+        ox = x + c * self.bx - s * self.by
+        oy = y + s * self.bx + c * self.by
+        a = self.ba + theta
+        return ox, oy, np.cos(a), np.sin(a)
+
+    @property
+    def size(self) -> int:
+        return self.n * self.k

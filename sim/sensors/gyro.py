@@ -1,0 +1,61 @@
+"""Yaw-rate gyroscope (z axis, counter-clockwise positive, rad/s).
+
+Truth (pure, :func:`mean_yaw_rate`): the mean yaw rate over the interval since the previous sample,
+``(heading_now - heading_prev) / interval``, with the unwrapped heading -- what an ideal
+rate-integrating gyro with an anti-aliasing filter reports. Summing ``yaw_rate * interval`` over
+the samples therefore gives the heading change exactly.
+
+Seam: ``GyroSensor.measure(state, rng)``; an error model (issue 3, seeds/000 eq. 15: scale error,
+turn-on bias, angle random walk, bias random walk) gets :class:`GyroTruth` (rate and interval).
+The sensor object keeps the heading of its previous sample; the simulator builds a new one on
+every reset.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from sim.config import BasicSensorConfig
+from sim.robot import RobotState
+from sim.sensors.base import ErrorModel
+from sim.types import GyroReading
+
+
+@dataclass(frozen=True)
+class GyroTruth:
+    yaw_rate: float         # rad/s, mean over the interval
+    interval_s: float       # time since the previous sample (0 at the first sample)
+    heading: float          # unwrapped heading at this sample, rad
+
+
+def mean_yaw_rate(heading_now: float, heading_prev: float, interval_s: float) -> float:
+    return (heading_now - heading_prev) / interval_s if interval_s > 0 else 0.0
+
+
+class GyroSensor:
+    name = "gyro"
+
+    def __init__(
+        self,
+        params: BasicSensorConfig,
+        error_model: ErrorModel[GyroTruth, GyroReading] | None = None,
+    ) -> None:
+        self.params = params
+        self.error_model = None if params.ideal else error_model
+        self._prev_heading: float | None = None
+        self._prev_t = 0.0
+
+    def measure(self, state: RobotState, t: float, rng: np.random.Generator) -> GyroReading:
+        if self._prev_heading is None:
+            truth = GyroTruth(0.0, 0.0, state.heading)
+        else:
+            dt = t - self._prev_t
+            truth = GyroTruth(mean_yaw_rate(state.heading, self._prev_heading, dt), dt,
+                              state.heading)
+        self._prev_heading = state.heading
+        self._prev_t = t
+        if self.error_model is None:
+            return GyroReading(truth.yaw_rate, truth.yaw_rate)
+        return self.error_model.measure(truth, rng)

@@ -1,0 +1,92 @@
+"""Infrared proximity sensors (16 on the Koala): K-Team counts 0..1023, larger = closer.
+
+Truth (pure, :func:`ir_truth`): each sensor casts ``rays`` rays over its aperture
+(``[sensors.ir]``); each ray's range maps to counts through the response table
+``response_range_m -> response_counts`` (linear interpolation, 0 beyond the last range, as Webots'
+distance-sensor lookup table does); the sensor's counts are the mean over its rays. The axis
+ray's range is the sensor's ``truth_ranges`` value (inf: nothing within the table's last range).
+Ambient light is the constant ``ambient_counts`` (no light sources are simulated yet).
+
+Seam: ``IrSensor.measure(hits, rng)``; with ``ideal = false`` an error model (issue 3: reflectivity,
+distance error table of seeds/004 +-3 %, ambient light) gets the :class:`IrTruth` -- per-ray
+ranges, incidence angles and hit wall indices -- and returns an :class:`~sim.types.IrReading`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from sim.config import IrConfig
+from sim.raycast import RayHits
+from sim.sensors.base import ErrorModel
+from sim.sensors.fan import RayFan
+from sim.types import IrReading
+
+
+@dataclass(frozen=True)
+class IrTruth:
+    counts: np.ndarray          # (n,) int, noise-free counts
+    counts_float: np.ndarray    # (n,) float, before rounding
+    axis_ranges: np.ndarray     # (n,) m, along each sensor's axis (inf: nothing)
+    ray_ranges: np.ndarray      # (n, k) m
+    ray_incidence: np.ndarray   # (n, k) rad (nan: no hit)
+    ray_wall: np.ndarray        # (n, k) index into the simulator's SegmentSet (-1: none)
+    ambient: np.ndarray         # (n,) int
+
+
+def response_counts(ranges_m: np.ndarray, params: IrConfig) -> np.ndarray:
+    """Counts of the response table at ``ranges_m`` (float; 0 beyond the table, inf -> 0)."""
+    return np.interp(ranges_m, params.response_range_m, params.response_counts, right=0.0)
+
+
+def ir_truth(hits: RayHits, fan: RayFan, params: IrConfig) -> IrTruth:
+    n, k = fan.n, fan.k
+    ray_ranges = hits.range.reshape(n, k)
+    per_ray = response_counts(ray_ranges, params)
+    counts_f = per_ray.mean(axis=1)
+    counts = np.clip(np.rint(counts_f), 0, 1023).astype(np.int64)
+    return IrTruth(
+        counts=counts,
+        counts_float=counts_f,
+        axis_ranges=ray_ranges[:, k // 2].copy(),
+        ray_ranges=ray_ranges,
+        ray_incidence=hits.incidence.reshape(n, k),
+        ray_wall=hits.index.reshape(n, k),
+        ambient=np.full(n, params.ambient_counts, dtype=np.int64),
+    )
+
+
+def ideal_reading(truth: IrTruth) -> IrReading:
+    return IrReading(
+        counts=truth.counts,
+        ambient=truth.ambient,
+        truth_counts=truth.counts,
+        truth_ranges=truth.axis_ranges,
+    )
+
+
+class IrSensor:
+    """The ring of IR proximity sensors; see the module docstring."""
+
+    name = "ir"
+
+    def __init__(
+        self, params: IrConfig, error_model: ErrorModel[IrTruth, IrReading] | None = None
+    ) -> None:
+        self.params = params
+        self.error_model = None if params.ideal else error_model
+        self.fan = RayFan.build(params.poses, params.rays, math.radians(params.aperture_deg))
+
+    @property
+    def max_range_m(self) -> float:
+        return self.params.max_range_m
+
+    def measure(self, hits: RayHits, rng: np.random.Generator) -> IrReading:
+        """Reading from this step's hits of :attr:`fan` (cast by the caller, see simulator)."""
+        truth = ir_truth(hits, self.fan, self.params)
+        if self.error_model is None:
+            return ideal_reading(truth)
+        return self.error_model.measure(truth, rng)

@@ -1,0 +1,88 @@
+"""Ultrasonic range sensors (a ring of 9 on the Koala 2.5): first echo within a cone of rays.
+
+Truth (pure, :func:`sonar_truth`): each sensor casts ``rays`` rays over ``aperture_deg`` (defaults
+of seeds/004: 5 rays, 22.9 deg, the Webots Khepera III ultrasonic sensor); its range is the
+nearest hit of any ray (the first echo), with that ray's incidence angle. ``truth_ranges`` is nan
+when nothing lies within ``max_range_m``.
+
+Ideal reading, as the Koala 2.5 reports (User Manual rev 1.1 section 4.1): nearer than
+``min_range_m`` -> 0.0 (the Koala returns 0); farther than ``max_range_m`` -> nan (no echo; the
+Koala returns 1000); otherwise the true range.
+
+Seam: ``SonarSensor.measure(hits, rng)``; with ``ideal = false`` an error model (issue 3: distance
+error table +-6.6 %, specular reflection beyond a critical incidence angle, crosstalk, glitches)
+gets the :class:`SonarTruth` with every ray's range, incidence and wall index.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from sim.config import SonarConfig
+from sim.raycast import RayHits
+from sim.sensors.base import ErrorModel
+from sim.sensors.fan import RayFan
+from sim.types import SonarReading
+
+
+@dataclass(frozen=True)
+class SonarTruth:
+    ranges: np.ndarray          # (n,) m, first echo; nan beyond max range
+    incidence: np.ndarray       # (n,) rad, of the ray giving the first echo (nan: none)
+    ray_ranges: np.ndarray      # (n, k) m (inf: nothing within max range)
+    ray_incidence: np.ndarray   # (n, k) rad
+    ray_wall: np.ndarray        # (n, k) int
+    min_range_m: float
+    max_range_m: float
+
+
+def sonar_truth(hits: RayHits, fan: RayFan, params: SonarConfig) -> SonarTruth:
+    n, k = fan.n, fan.k
+    rr = hits.range.reshape(n, k)
+    inc = hits.incidence.reshape(n, k)
+    j = np.argmin(rr, axis=1)
+    rows = np.arange(n)
+    first = rr[rows, j]
+    found = np.isfinite(first)
+    return SonarTruth(
+        ranges=np.where(found, first, np.nan),
+        incidence=np.where(found, inc[rows, j], np.nan),
+        ray_ranges=rr,
+        ray_incidence=inc,
+        ray_wall=hits.index.reshape(n, k),
+        min_range_m=params.min_range_m,
+        max_range_m=params.max_range_m,
+    )
+
+
+def ideal_reading(truth: SonarTruth) -> SonarReading:
+    r = truth.ranges
+    with np.errstate(invalid="ignore"):
+        ranges = np.where(r < truth.min_range_m, 0.0, r)
+    return SonarReading(ranges=ranges, truth_ranges=truth.ranges, incidence=truth.incidence)
+
+
+class SonarSensor:
+    """The sonar ring; see the module docstring."""
+
+    name = "sonar"
+
+    def __init__(
+        self, params: SonarConfig, error_model: ErrorModel[SonarTruth, SonarReading] | None = None
+    ) -> None:
+        self.params = params
+        self.error_model = None if params.ideal else error_model
+        self.fan = RayFan.build(params.poses, params.rays, math.radians(params.aperture_deg))
+
+    @property
+    def max_range_m(self) -> float:
+        return self.params.max_range_m
+
+    def measure(self, hits: RayHits, rng: np.random.Generator) -> SonarReading:
+        truth = sonar_truth(hits, self.fan, self.params)
+        if self.error_model is None:
+            return ideal_reading(truth)
+        return self.error_model.measure(truth, rng)

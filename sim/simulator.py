@@ -1,0 +1,233 @@
+"""The simulated Koala: ``reset(seed) -> Readings``, ``step(command) -> Readings``, nothing else.
+
+Fixed step ``dt = [sim] dt_s``. Step ``k`` ends at simulation time ``t = k * dt`` (computed from the
+integer counter, so there is no floating-point drift). A sensor with rate ``f`` is due at every step
+``k`` with ``k % round(1 / (f dt)) == 0`` (rates must divide ``1/dt``; the config loader checks),
+so ``reset`` (step 0) returns a reading of every sensor. :class:`~sim.types.Readings` holds the truth
+pose and the readings due at that step; the others are None.
+
+Randomness (Gymnasium pattern): ``reset(seed)`` builds ``numpy.random.SeedSequence(seed)`` and
+spawns one child per name of :data:`RNG_STREAMS`, in that fixed order, each feeding its own
+``numpy.random.Generator``; enabling an error model for one sensor never changes another sensor's
+draws. New streams must be appended to the end of :data:`RNG_STREAMS`. The same config and seed
+give bit-identical readings.
+
+Error models plug in through ``error_models`` (see :mod:`sim.sensors.base`).
+
+All range sensors due at a step share one ray cast (:func:`sim.raycast.cast_rays`).
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from sim import robot as kin
+from sim.config import SENSOR_NAMES, SimConfig, load_sim_config, poses_to_list
+from sim.raycast import RayHits, SegmentSet, cast_rays
+from sim.robot import RobotState
+from sim.schema import ConfigError
+from sim.sensors.base import ErrorModelFactory
+from sim.sensors.camera import CameraSensor
+from sim.sensors.compass import CompassSensor
+from sim.sensors.encoders import EncoderSensor
+from sim.sensors.gyro import GyroSensor
+from sim.sensors.ir import IrSensor
+from sim.sensors.sonar import SonarSensor
+from sim.types import Pose, Readings, WheelCommand
+
+# Fixed order of the per-sensor RNG streams (SeedSequence.spawn). Append only.
+RNG_STREAMS: tuple[str, ...] = ("drive", *SENSOR_NAMES)
+
+
+class Simulator:
+    """One simulated Koala in one world. See the module docstring."""
+
+    def __init__(
+        self,
+        config: SimConfig | Mapping[str, Any],
+        error_models: Mapping[str, ErrorModelFactory] | None = None,
+    ) -> None:
+        self.config: SimConfig = (
+            config if isinstance(config, SimConfig) else load_sim_config(config)
+        )
+        cfg = self.config
+        self.dt: float = cfg.sim.dt_s
+        self.world = cfg.world
+        self.walls = SegmentSet.from_segments(cfg.world.segments, merge=True)
+        self.periods: dict[str, int] = {
+            name: cfg.period_steps(rate) for name, rate in cfg.sensors.rates_hz().items()
+        }
+        self._factories = self._resolve_error_models(error_models)
+        self._k = 0
+        self._state: RobotState | None = None
+        self._rngs: dict[str, np.random.Generator] = {}
+        self._build_sensors()
+
+    # ------------------------------------------------------------------ public API
+    @property
+    def t(self) -> float:
+        """Simulation time of the last step, s (``step_count * dt``)."""
+        return self._k * self.dt
+
+    @property
+    def step_count(self) -> int:
+        return self._k
+
+    def reset(self, seed: int | None = None) -> Readings:
+        """Put the robot at the world's start pose, reseed every stream, return step-0 readings."""
+        seed = self.config.sim.seed if seed is None else seed
+        children = np.random.SeedSequence(seed).spawn(len(RNG_STREAMS))
+        self._rngs = {name: np.random.Generator(np.random.PCG64(ss))
+                      for name, ss in zip(RNG_STREAMS, children, strict=True)}
+        self._build_sensors()
+        start = self.world.start
+        if start is None:
+            x, y = self.world.cell_centre(*self.world.free_cells()[0])
+            self._state = RobotState.at(x, y, 0.0)
+        else:
+            self._state = RobotState.at(start.x, start.y, start.theta)
+        self._k = 0
+        return self._readings(self._state)
+
+    def step(self, command: WheelCommand) -> Readings:
+        """Advance one step ``dt`` with the commanded wheel surface speeds (m/s)."""
+        if self._state is None:
+            raise RuntimeError("call reset() before step()")
+        self._state = kin.step(
+            self._state, command.left, command.right, self.dt, self.config.robot, self.walls,
+            self._rngs["drive"], self._drive_error,
+        )
+        self._k += 1
+        return self._readings(self._state)
+
+    def robot_description(self) -> dict[str, Any]:
+        """The robot's parameters, JSON-ready (the ``robot`` part of the Zenoh ``world`` answer)."""
+        r = self.config.robot
+        s = self.config.sensors
+        return {
+            "name": r.name,
+            "wheel_base_m": r.wheel_base_m,
+            "wheel_diameter_m": r.wheel_diameter_m,
+            "ticks_per_metre": r.ticks_per_metre,
+            "body_radius_m": r.body_radius_m,
+            "max_wheel_speed_mps": r.max_wheel_speed_mps,
+            "speed_unit_s": r.speed_unit_s,
+            "dt_s": self.dt,
+            "frames": {"world": "x east, y north, theta CCW from x",
+                       "body": "x forward, y left, z up (FLU)"},
+            "sensors": {
+                "ir": {"rate_hz": s.ir.rate_hz, "poses": poses_to_list(s.ir.poses),
+                       "rays": s.ir.rays, "aperture_rad": float(np.radians(s.ir.aperture_deg)),
+                       "max_range_m": s.ir.max_range_m,
+                       "response_range_m": s.ir.response_range_m.tolist(),
+                       "response_counts": s.ir.response_counts.tolist(),
+                       "ideal": s.ir.ideal},
+                "sonar": {"rate_hz": s.sonar.rate_hz, "poses": poses_to_list(s.sonar.poses),
+                          "rays": s.sonar.rays,
+                          "aperture_rad": float(np.radians(s.sonar.aperture_deg)),
+                          "min_range_m": s.sonar.min_range_m,
+                          "max_range_m": s.sonar.max_range_m, "ideal": s.sonar.ideal},
+                "encoders": {"rate_hz": s.encoders.rate_hz, "ideal": s.encoders.ideal},
+                "gyro": {"rate_hz": s.gyro.rate_hz, "ideal": s.gyro.ideal},
+                "compass": {"rate_hz": s.compass.rate_hz, "ideal": s.compass.ideal},
+                "camera": {"rate_hz": s.camera.rate_hz,
+                           "pose": poses_to_list([s.camera.pose])[0],
+                           "fov_rad": float(np.radians(s.camera.fov_deg)),
+                           "min_range_m": s.camera.min_range_m,
+                           "max_range_m": s.camera.max_range_m, "ideal": s.camera.ideal},
+            },
+        }
+
+    # ------------------------------------------------------------------ internals
+    def _resolve_error_models(
+        self, given: Mapping[str, ErrorModelFactory] | None
+    ) -> Mapping[str, ErrorModelFactory]:
+        cfg = self.config
+        wanted = [n for n in SENSOR_NAMES if not getattr(cfg.sensors, n).ideal]
+        if not cfg.robot.drive.ideal:
+            wanted.insert(0, "drive")
+        if not wanted:
+            return {}
+        if given is None:
+            try:
+                given = importlib.import_module("sim.models").ERROR_MODELS
+            except (ImportError, AttributeError) as e:
+                raise ConfigError(
+                    f"ideal = false for {wanted}, but no error models are available "
+                    f"(sim.models.ERROR_MODELS): {e}"
+                ) from e
+        missing = [n for n in wanted if n not in given]
+        if missing:
+            raise ConfigError(f"ideal = false for {missing}, but no error model is registered "
+                              f"for them (known: {sorted(given)})")
+        return given
+
+    def _make(self, name: str, params: Any) -> Any:
+        if params.ideal:
+            return None
+        return self._factories[name](params.errors, params)
+
+    def _build_sensors(self) -> None:
+        cfg = self.config
+        s = cfg.sensors
+        self._drive_error = self._make("drive", cfg.robot.drive)
+        self.ir = IrSensor(s.ir, self._make("ir", s.ir))
+        self.sonar = SonarSensor(s.sonar, self._make("sonar", s.sonar))
+        self.encoders = EncoderSensor(s.encoders, cfg.robot.ticks_per_metre,
+                                      self._make("encoders", s.encoders))
+        self.gyro = GyroSensor(s.gyro, self._make("gyro", s.gyro))
+        self.compass = CompassSensor(s.compass, self.world, self._make("compass", s.compass))
+        self.camera = CameraSensor(s.camera, self.world, self.walls,
+                                   self._make("camera", s.camera))
+
+    def _due(self, name: str) -> bool:
+        return self._k % self.periods[name] == 0
+
+    def _readings(self, st: RobotState) -> Readings:
+        rngs = self._rngs
+        ir_due = self._due("ir")
+        sonar_due = self._due("sonar")
+        ir = sonar = None
+        if ir_due or sonar_due:
+            fans = []
+            if ir_due:
+                fans.append((self.ir.fan, self.ir.max_range_m))
+            if sonar_due:
+                fans.append((self.sonar.fan, self.sonar.max_range_m))
+            parts = [f.world_rays(st.x, st.y, st.theta) for f, _ in fans]
+            if len(parts) == 1:
+                ox, oy, dx, dy = parts[0]
+                max_r: float | np.ndarray = fans[0][1]
+            else:
+                ox, oy, dx, dy = (np.concatenate(a) for a in zip(*parts, strict=True))
+                max_r = np.concatenate([np.full(f.size, m) for f, m in fans])
+            hits = cast_rays(self.walls, ox, oy, dx, dy, max_r)
+            if ir_due and sonar_due:
+                n_ir = self.ir.fan.size
+                ir = self.ir.measure(_slice(hits, 0, n_ir), rngs["ir"])
+                sonar = self.sonar.measure(_slice(hits, n_ir, None), rngs["sonar"])
+            elif ir_due:
+                ir = self.ir.measure(hits, rngs["ir"])
+            else:
+                sonar = self.sonar.measure(hits, rngs["sonar"])
+        t = self.t
+        return Readings(
+            t=t,
+            pose=Pose(st.x, st.y, st.theta),
+            wheel_speeds=WheelCommand(st.left_speed, st.right_speed),
+            ir=ir,
+            sonar=sonar,
+            odometry=self.encoders.measure(st, rngs["encoders"]) if self._due("encoders") else None,
+            gyro=self.gyro.measure(st, t, rngs["gyro"]) if self._due("gyro") else None,
+            compass=self.compass.measure(st, rngs["compass"]) if self._due("compass") else None,
+            camera=self.camera.measure(st, rngs["camera"]) if self._due("camera") else None,
+            collided=st.collided,
+        )
+
+
+def _slice(hits: RayHits, start: int, stop: int | None) -> RayHits:
+    return RayHits(hits.range[start:stop], hits.index[start:stop], hits.incidence[start:stop])
