@@ -1,0 +1,154 @@
+"""The two transport interfaces -- byte streams and CAN -- and their shared bookkeeping.
+
+A transport moves bytes or CAN frames and nothing else; which codec reads them is the caller's
+business. Every transport binds to 127.0.0.1 by default, has :meth:`close`, is a context manager,
+and reports counters through :attr:`stats` (for the bridge's ``status``).
+"""
+
+from __future__ import annotations
+
+import threading
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Self
+
+import can
+
+__all__ = ["ByteTransport", "CanTransport", "Endpoint", "StatsCounter", "TransportStats"]
+
+
+@dataclass(frozen=True, slots=True)
+class TransportStats:
+    """A snapshot of a transport's counters.
+
+    Attributes:
+        sent: writes (byte transports) or frames (CAN) handed to clients.
+        received: reads / datagrams (byte transports) or frames (CAN) received from clients.
+        rejected: malformed input the transport itself refused (protocol-level garbage; codec
+            rejects are counted by the codec's caller).
+        dropped: outgoing data thrown away because no client was connected or a client could not
+            keep up, and incoming frames dropped because the receive queue was full.
+        clients: clients currently connected, where the transport can tell (else 0).
+    """
+
+    sent: int = 0
+    received: int = 0
+    rejected: int = 0
+    dropped: int = 0
+    clients: int = 0
+
+
+class StatsCounter:
+    """Thread-safe mutable counters behind :class:`TransportStats`."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._values = {"sent": 0, "received": 0, "rejected": 0, "dropped": 0}
+
+    def add(self, name: str, n: int = 1) -> None:
+        """Increase counter ``name`` (``sent``, ``received``, ``rejected`` or ``dropped``)."""
+        with self._lock:
+            self._values[name] += n
+
+    def snapshot(self, clients: int = 0) -> TransportStats:
+        """A consistent copy of the counters."""
+        with self._lock:
+            return TransportStats(clients=clients, **self._values)
+
+
+@dataclass(frozen=True, slots=True)
+class Endpoint:
+    """Where a client connects to a transport.
+
+    Attributes:
+        kind: backend name (``pty``, ``tcp``, ``udp``, ``loop``, ``socketcand``, ``slcan``,
+            ``virtual``, ``python-can``).
+        path: device path for pty-based backends (the stable symlink if one was asked for).
+        host / port: socket address for network backends (for ``udp``, where datagrams are sent).
+        channel: CAN channel name (socketcand bus name, python-can channel).
+        interface: python-can interface name for the ``python-can`` and ``virtual`` backends.
+    """
+
+    kind: str
+    path: str | None = None
+    host: str | None = None
+    port: int | None = None
+    channel: str | None = None
+    interface: str | None = None
+
+
+class _Closable(ABC):
+    @abstractmethod
+    def close(self) -> None:
+        """Release every resource; idempotent; joins any thread the transport started."""
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+
+class ByteTransport(_Closable):
+    """A byte stream (pty, TCP, loopback) or datagram link (UDP) to one or more clients.
+
+    :meth:`read` and :meth:`write` never block. On a datagram transport (``is_datagram``) each
+    :meth:`read` returns one whole datagram and each :meth:`write` sends one.
+    """
+
+    is_datagram: bool = False
+
+    @property
+    @abstractmethod
+    def endpoint(self) -> Endpoint:
+        """Where clients connect."""
+
+    @property
+    @abstractmethod
+    def stats(self) -> TransportStats:
+        """Counters snapshot."""
+
+    @abstractmethod
+    def read(self, max_bytes: int = 65536) -> bytes:
+        """Bytes (or one datagram) received from a client; ``b""`` if none are waiting."""
+
+    @abstractmethod
+    def write(self, data: bytes) -> int:
+        """Send ``data`` to the client(s); returns the bytes accepted (0 if dropped).
+
+        ``data`` is delivered whole or not at all (and then counted in ``dropped``), so a
+        message is never cut in half by a slow or absent client.
+        """
+
+    @abstractmethod
+    def wait(self, timeout: float | None) -> bool:
+        """Block until :meth:`read` may return data or ``timeout`` s pass; True if readable."""
+
+
+class CanTransport(_Closable):
+    """A CAN bus endpoint: frames from the bridge go to every client, frames from clients queue up
+    for :meth:`recv`."""
+
+    @property
+    @abstractmethod
+    def endpoint(self) -> Endpoint:
+        """Where clients connect."""
+
+    @property
+    @abstractmethod
+    def stats(self) -> TransportStats:
+        """Counters snapshot."""
+
+    @abstractmethod
+    def send(self, msg: can.Message) -> None:
+        """Put ``msg`` on the bus for every client; never blocks on a slow client."""
+
+    @abstractmethod
+    def recv(self, timeout: float | None = 0.0) -> can.Message | None:
+        """Next frame from a client, waiting up to ``timeout`` s (None: forever); None if none."""

@@ -1,0 +1,80 @@
+"""python-can backend: any python-can interface as a bus, e.g. ``virtual`` (in-process, the CAN
+loopback used by tests) or ``socketcan`` on hosts that have it.
+
+The bridge's bus object is one node on that bus; clients are other python-can ``Bus`` objects on
+the same channel (``can.Bus(interface="virtual", channel=...)`` in the same process), or real
+nodes on a real bus.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import can
+
+from drivers.messages import TransportClosedError, TransportError
+from drivers.transports.base import CanTransport, Endpoint, StatsCounter, TransportStats
+
+__all__ = ["PythonCanTransport", "VirtualCanTransport"]
+
+
+class PythonCanTransport(CanTransport):
+    """A python-can ``Bus`` behind the :class:`CanTransport` interface.
+
+    Args:
+        interface: python-can interface name (``virtual``, ``socketcan``, ...).
+        channel: interface channel (``vcan0``, a virtual channel name, ...).
+        **kwargs: passed to :class:`can.Bus` (bitrate, ...).
+    """
+
+    def __init__(self, interface: str, channel: str, **kwargs: Any) -> None:
+        try:
+            self._bus: can.BusABC | None = can.Bus(interface=interface, channel=channel, **kwargs)
+        except (can.CanError, OSError, ValueError, ImportError) as e:
+            raise TransportError(f"cannot open python-can {interface}:{channel}: {e}") from e
+        self._interface = interface
+        self._channel = channel
+        self._stats = StatsCounter()
+
+    @property
+    def endpoint(self) -> Endpoint:
+        return Endpoint("python-can", channel=self._channel, interface=self._interface)
+
+    @property
+    def stats(self) -> TransportStats:
+        return self._stats.snapshot()
+
+    def send(self, msg: can.Message) -> None:
+        try:
+            self._b().send(msg, timeout=0.0)
+        except can.CanOperationError:
+            self._stats.add("dropped")
+            return
+        self._stats.add("sent")
+
+    def recv(self, timeout: float | None = 0.0) -> can.Message | None:
+        msg = self._b().recv(timeout)
+        if msg is not None:
+            self._stats.add("received")
+        return msg
+
+    def close(self) -> None:
+        if self._bus is not None:
+            self._bus.shutdown()
+            self._bus = None
+
+    def _b(self) -> can.BusABC:
+        if self._bus is None:
+            raise TransportClosedError("python-can transport is closed")
+        return self._bus
+
+
+class VirtualCanTransport(PythonCanTransport):
+    """python-can's in-process ``virtual`` bus on ``channel``; clients open the same channel."""
+
+    def __init__(self, channel: str = "koala", **kwargs: Any) -> None:
+        super().__init__("virtual", channel, **kwargs)
+
+    @property
+    def endpoint(self) -> Endpoint:
+        return Endpoint("virtual", channel=self._channel, interface="virtual")

@@ -1,0 +1,376 @@
+"""A socketcand server on loopback, so python-can's ``socketcand`` interface (and any socketcand
+client) opens the simulated CAN bus unchanged.
+
+Protocol subset (https://github.com/linux-can/socketcand, doc/protocol.md), ASCII over TCP, every
+element ``< ... >``::
+
+    server: < hi >                              on connect
+    client: < open CHANNEL >     server: < ok >  (or < error could not open bus >)
+    client: < rawmode >          server: < ok >
+    server: < frame ID SECS.USECS DATA >        every bus frame, to every raw-mode client
+    client: < send ID DLC B0 B1 ... >           a frame onto the bus (no reply when valid)
+    client: < echo >             server: < echo >
+    client: < bcmmode >          server: < ok >  (stops frame delivery to that client)
+
+``ID`` is hex, 3 digits for a standard id and 8 for an extended one; ``DATA`` in ``frame`` is hex
+without spaces; ``DLC`` and the bytes of ``send`` are hex. Malformed or unsupported elements are
+answered ``< error TEXT >``, counted as rejected, and the connection stays open.
+
+python-can reads the handshake replies with one ``recv`` each, so after ``< ok >`` to
+``rawmode`` frames for that client are held back for ``handshake_grace_s`` lest they arrive in
+the same segment as the ``< ok >``.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import selectors
+import socket
+import threading
+import time
+from collections import deque
+
+import can
+
+from drivers.messages import TransportClosedError, TransportError
+from drivers.transports._service import FrameQueue, ServiceThread, Waker
+from drivers.transports.base import CanTransport, Endpoint, StatsCounter, TransportStats
+
+__all__ = ["SocketcandServer", "format_frame_element", "parse_send_element"]
+
+log = logging.getLogger(__name__)
+
+_HEX = re.compile(r"[0-9A-Fa-f]+")
+_UNSUPPORTED = frozenset(
+    {"add", "update", "delete", "filter", "subscribe", "unsubscribe", "controlmode", "isotpmode",
+     "statistics", "muxfilter"}
+)  # fmt: skip
+
+
+def format_frame_element(msg: can.Message, timestamp: float) -> bytes:
+    """``< frame ID SECS.USECS DATA >`` for one bus frame, as socketcand's raw mode sends it."""
+    if msg.is_extended_id:
+        can_id = f"{msg.arbitration_id & 0x1FFFFFFF:08X}"
+    else:
+        can_id = f"{msg.arbitration_id & 0x7FF:03X}"
+    secs = int(timestamp)
+    usecs = int(round((timestamp - secs) * 1e6))
+    if usecs >= 1_000_000:
+        secs, usecs = secs + 1, usecs - 1_000_000
+    data = bytes(msg.data[: msg.dlc]).hex().upper()
+    return f"< frame {can_id} {secs}.{usecs:06d} {data} >".encode("ascii")
+
+
+def parse_send_element(words: list[str]) -> can.Message | str:
+    """``["send", ID, DLC, B0, ...]`` -> a message, or the reason it is malformed."""
+    if len(words) < 3:
+        return "send needs an id and a dlc"
+    id_s, dlc_s, byte_s = words[1], words[2], words[3:]
+    if not _HEX.fullmatch(id_s) or len(id_s) > 8:
+        return f"bad id {id_s!r}"
+    extended = len(id_s) == 8  # socketcand's rule: 8 hex digits mean an extended id
+    can_id = int(id_s, 16)
+    if can_id > (0x1FFFFFFF if extended else 0x7FF):
+        return f"id {id_s} out of range"
+    if not _HEX.fullmatch(dlc_s) or int(dlc_s, 16) > 8:
+        return f"bad dlc {dlc_s!r}"
+    dlc = int(dlc_s, 16)
+    if len(byte_s) != dlc or not all(_HEX.fullmatch(b) and len(b) <= 2 for b in byte_s):
+        return f"dlc {dlc} needs {dlc} hex bytes, got {byte_s}"
+    return can.Message(
+        arbitration_id=can_id, is_extended_id=extended, data=bytes(int(b, 16) for b in byte_s)
+    )
+
+
+class _Client:
+    __slots__ = ("sock", "mode", "inbuf", "outbuf", "held", "hold_until", "in_garbage", "events")
+
+    def __init__(self, sock: socket.socket) -> None:
+        self.sock = sock
+        self.mode = "new"  # new -> bcm (after open) -> raw (after rawmode)
+        self.inbuf = bytearray()
+        self.outbuf = bytearray()
+        self.held = bytearray()  # frames waiting for the end of the handshake grace period
+        self.hold_until: float | None = None
+        self.in_garbage = False
+        self.events = selectors.EVENT_READ
+
+
+class SocketcandServer(CanTransport):
+    """socketcand server for one CAN channel.
+
+    Args:
+        host / port: listening address; port 0 picks a free port (see :attr:`endpoint`).
+        channel: the bus name clients must ``open`` (python-can's ``channel=``).
+        max_clients: further connections are closed at once and counted as rejected.
+        rx_queue: frames from clients waiting for :meth:`recv`; beyond it they are dropped.
+        max_pending: per-client output bytes kept for a slow client; beyond it frames are dropped.
+        max_element: longest ``< ... >`` element accepted, in bytes.
+        handshake_grace_s: delay between ``< ok >`` to ``rawmode`` and the first frame.
+    """
+
+    def __init__(
+        self,
+        host: str = "127.0.0.1",
+        port: int = 0,
+        channel: str = "can0",
+        *,
+        max_clients: int = 16,
+        rx_queue: int = 1024,
+        max_pending: int = 1 << 20,
+        max_element: int = 256,
+        handshake_grace_s: float = 0.05,
+    ) -> None:
+        if not channel or any(c.isspace() or c in "<>" for c in channel):
+            raise ValueError(f"invalid channel name {channel!r}")
+        listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        try:
+            listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            listener.bind((host, port))
+            listener.listen(max_clients)
+            listener.setblocking(False)
+        except OSError as e:
+            listener.close()
+            raise TransportError(f"cannot listen on {host}:{port}: {e}") from e
+        self._listener = listener
+        self._host, self._port = listener.getsockname()[:2]
+        self.channel = channel
+        self._max_clients = max_clients
+        self._max_pending = max_pending
+        self._max_element = max_element
+        self._grace = handshake_grace_s
+        self._stats = StatsCounter()
+        self._rx = FrameQueue(rx_queue, self._stats)
+        self._outbox: deque[tuple[bytes, _Client | None]] = deque()
+        self._clients: dict[socket.socket, _Client] = {}
+        self._waker = Waker()
+        self._sel = selectors.DefaultSelector()
+        self._sel.register(listener, selectors.EVENT_READ, None)
+        self._sel.register(self._waker, selectors.EVENT_READ, self._waker)
+        self._closed = False
+        self._close_lock = threading.Lock()
+        self._thread = ServiceThread(f"socketcand:{self._port}", self._step, self._waker)
+        self._thread.start()
+
+    # ----------------------------------------------------------------- CanTransport
+
+    @property
+    def endpoint(self) -> Endpoint:
+        return Endpoint("socketcand", host=self._host, port=self._port, channel=self.channel)
+
+    @property
+    def stats(self) -> TransportStats:
+        return self._stats.snapshot(clients=len(self._clients))
+
+    def send(self, msg: can.Message) -> None:
+        if self._closed:
+            raise TransportClosedError("socketcand server is closed")
+        stamp = msg.timestamp if msg.timestamp > 0 else time.time()
+        self._outbox.append((format_frame_element(msg, stamp), None))
+        self._stats.add("sent")
+        self._waker.wake()
+
+    def recv(self, timeout: float | None = 0.0) -> can.Message | None:
+        if self._closed:
+            raise TransportClosedError("socketcand server is closed")
+        return self._rx.get(timeout)
+
+    def close(self) -> None:
+        with self._close_lock:
+            if self._closed:
+                return
+            self._closed = True
+        self._thread.stop()
+        for client in list(self._clients.values()):
+            client.sock.close()
+        self._clients.clear()
+        self._sel.close()
+        self._listener.close()
+        self._waker.close()
+
+    # ----------------------------------------------------------------- service thread
+
+    def _step(self, stop: threading.Event) -> None:
+        for key, mask in self._sel.select(self._timeout()):
+            if stop.is_set():
+                return
+            if key.fileobj is self._listener:
+                self._accept()
+            elif key.data is self._waker:
+                self._waker.drain()
+            else:
+                client: _Client = key.data
+                if mask & selectors.EVENT_READ:
+                    self._on_readable(client)
+                if mask & selectors.EVENT_WRITE and client.sock in self._clients:
+                    self._flush(client)
+        self._distribute()
+        self._release_held()
+        for client in list(self._clients.values()):
+            self._flush(client)
+            self._update_interest(client)
+
+    def _timeout(self) -> float | None:
+        holds = [c.hold_until for c in self._clients.values() if c.hold_until is not None]
+        return max(0.0, min(holds) - time.monotonic()) if holds else None
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                sock, _ = self._listener.accept()
+            except (BlockingIOError, OSError):
+                return
+            if len(self._clients) >= self._max_clients:
+                sock.close()
+                self._stats.add("rejected")
+                continue
+            sock.setblocking(False)
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            client = _Client(sock)
+            self._clients[sock] = client
+            self._sel.register(sock, selectors.EVENT_READ, client)
+            self._reply(client, b"< hi >")
+
+    def _on_readable(self, client: _Client) -> None:
+        try:
+            data = client.sock.recv(4096)
+        except BlockingIOError:
+            return
+        except OSError:
+            data = b""
+        if not data:
+            self._drop(client)
+            return
+        client.inbuf += data
+        self._parse(client)
+
+    def _parse(self, client: _Client) -> None:
+        buf = client.inbuf
+        while buf:
+            start = buf.find(b"<")
+            junk = buf if start < 0 else buf[:start]
+            if junk.strip():
+                self._reject(client, "data outside < >")
+            if start < 0:
+                buf.clear()
+                return
+            del buf[:start]
+            end = buf.find(b">")
+            if end < 0:
+                if len(buf) > self._max_element:
+                    self._reject(client, "element too long")
+                    self._reply(client, b"< error element too long >")
+                    buf.clear()
+                return
+            element = bytes(buf[1:end])
+            del buf[: end + 1]
+            nested = element.rfind(b"<")
+            if nested >= 0:  # "< sen< send ... >": the first element was cut short
+                self._reject(client, "unterminated element")
+                element = element[nested + 1 :]
+            client.in_garbage = False
+            self._on_element(client, element)
+
+    def _on_element(self, client: _Client, element: bytes) -> None:
+        try:
+            words = element.decode("ascii").split()
+        except UnicodeDecodeError:
+            words = []
+        if not words:
+            self._error(client, "syntax error")
+            return
+        command = words[0]
+        if client.mode == "new":
+            if command == "open" and len(words) == 2 and words[1] == self.channel:
+                client.mode = "bcm"
+                self._reply(client, b"< ok >")
+            elif command == "open":
+                self._error(client, "could not open bus")
+            else:
+                self._error(client, "open a bus first")
+        elif command == "send":
+            result = parse_send_element(words)
+            if isinstance(result, str):
+                self._error(client, f"syntax error: {result}")
+                return
+            result.timestamp = time.time()
+            result.channel = self.channel
+            self._rx.put(result)
+            # Other nodes on a CAN bus see the frame too.
+            self._outbox.append((format_frame_element(result, result.timestamp), client))
+        elif command == "rawmode" and len(words) == 1:
+            client.mode = "raw"
+            client.hold_until = time.monotonic() + self._grace
+            self._reply(client, b"< ok >")
+        elif command == "bcmmode" and len(words) == 1:
+            client.mode = "bcm"
+            client.held.clear()
+            client.hold_until = None
+            self._reply(client, b"< ok >")
+        elif command == "echo" and len(words) == 1:
+            self._reply(client, b"< echo >")
+        elif command in _UNSUPPORTED:
+            self._error(client, f"{command} not supported")
+        else:
+            self._error(client, "unknown command")
+
+    def _distribute(self) -> None:
+        while self._outbox:
+            line, origin = self._outbox.popleft()
+            for client in self._clients.values():
+                if client is origin or client.mode != "raw":
+                    continue
+                target = client.held if client.hold_until is not None else client.outbuf
+                if len(client.outbuf) + len(client.held) + len(line) > self._max_pending:
+                    self._stats.add("dropped")
+                    continue
+                target += line
+
+    def _release_held(self) -> None:
+        now = time.monotonic()
+        for client in self._clients.values():
+            if client.hold_until is not None and now >= client.hold_until:
+                client.outbuf += client.held
+                client.held.clear()
+                client.hold_until = None
+
+    def _reply(self, client: _Client, element: bytes) -> None:
+        client.outbuf += element
+        self._flush(client)
+
+    def _error(self, client: _Client, text: str) -> None:
+        self._reject(client, text)
+        self._reply(client, f"< error {text} >".encode("ascii", "replace"))
+
+    def _reject(self, client: _Client, why: str) -> None:
+        if client.in_garbage and why == "data outside < >":
+            return  # one run of junk is one reject
+        client.in_garbage = why == "data outside < >"
+        self._stats.add("rejected")
+        log.debug("socketcand client %s: rejected input (%s)", client.sock.fileno(), why)
+
+    def _flush(self, client: _Client) -> None:
+        if not client.outbuf or client.sock not in self._clients:
+            return
+        try:
+            sent = client.sock.send(client.outbuf)
+        except BlockingIOError:
+            return
+        except OSError:
+            self._drop(client)
+            return
+        del client.outbuf[:sent]
+
+    def _update_interest(self, client: _Client) -> None:
+        if client.sock not in self._clients:
+            return
+        want = selectors.EVENT_READ | (selectors.EVENT_WRITE if client.outbuf else 0)
+        if want != client.events:
+            self._sel.modify(client.sock, want, client)
+            client.events = want
+
+    def _drop(self, client: _Client) -> None:
+        if self._clients.pop(client.sock, None) is not None:
+            self._sel.unregister(client.sock)
+        client.sock.close()

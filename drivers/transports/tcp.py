@@ -1,0 +1,165 @@
+"""TCP server backend: clients connect to 127.0.0.1:<port>; what the bridge writes goes to every
+connected client, what any client sends is returned by :meth:`TcpServerTransport.read`.
+
+No thread: connections are accepted and data moved whenever :meth:`read`, :meth:`write` or
+:meth:`wait` is called (the kernel completes the TCP handshake from the listen backlog meanwhile).
+"""
+
+from __future__ import annotations
+
+import select
+import socket
+
+from drivers.messages import TransportClosedError, TransportError
+from drivers.transports.base import ByteTransport, Endpoint, StatsCounter, TransportStats
+
+__all__ = ["TcpServerTransport"]
+
+
+class _Client:
+    __slots__ = ("sock", "pending")
+
+    def __init__(self, sock: socket.socket) -> None:
+        self.sock = sock
+        self.pending = bytearray()
+
+
+class TcpServerTransport(ByteTransport):
+    """A listening TCP socket fanning bytes out to all its clients.
+
+    Args:
+        host: address to bind; loopback by default.
+        port: port to bind; 0 picks a free one (see :attr:`endpoint`).
+        max_clients: further connections are accepted and closed at once.
+        max_pending: per-client bytes kept while that client is slow; beyond it writes to that
+            client are dropped whole.
+    """
+
+    def __init__(
+        self,
+        host: str = "127.0.0.1",
+        port: int = 0,
+        *,
+        max_clients: int = 8,
+        max_pending: int = 65536,
+    ) -> None:
+        self._listener: socket.socket | None = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        try:
+            self._listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            self._listener.bind((host, port))
+            self._listener.listen(max_clients)
+            self._listener.setblocking(False)
+        except OSError as e:
+            self._listener.close()
+            raise TransportError(f"cannot listen on {host}:{port}: {e}") from e
+        self._host, self._port = self._listener.getsockname()[:2]
+        self._clients: list[_Client] = []
+        self._max_clients = max_clients
+        self._max_pending = max_pending
+        self._stats = StatsCounter()
+        self._next = 0
+
+    @property
+    def endpoint(self) -> Endpoint:
+        return Endpoint("tcp", host=self._host, port=self._port)
+
+    @property
+    def stats(self) -> TransportStats:
+        return self._stats.snapshot(clients=len(self._clients))
+
+    def read(self, max_bytes: int = 65536) -> bytes:
+        self._service()
+        # Round-robin so one chatty client cannot starve the others.
+        for _ in range(len(self._clients)):
+            client = self._clients[self._next % len(self._clients)]
+            self._next += 1
+            try:
+                data = client.sock.recv(max_bytes)
+            except BlockingIOError:
+                continue
+            except OSError:
+                data = b""
+            if not data:
+                self._drop_client(client)
+                return b""
+            self._stats.add("received")
+            return data
+        return b""
+
+    def write(self, data: bytes) -> int:
+        self._service()
+        if not self._clients:
+            self._stats.add("dropped")
+            return 0
+        for client in list(self._clients):
+            if client.pending:
+                if len(client.pending) + len(data) > self._max_pending:
+                    self._stats.add("dropped")
+                    continue
+                client.pending += data
+                continue
+            sent = self._send(client, data)
+            if sent < len(data):
+                client.pending += data[sent:]
+        self._stats.add("sent")
+        return len(data)
+
+    def wait(self, timeout: float | None) -> bool:
+        listener = self._sock()
+        self._service()
+        readable, _, _ = select.select(
+            [listener, *(c.sock for c in self._clients)], [], [], timeout
+        )
+        if listener in readable:
+            self._service()
+        return any(s is not listener for s in readable)
+
+    def close(self) -> None:
+        if self._listener is None:
+            return
+        for client in self._clients:
+            client.sock.close()
+        self._clients.clear()
+        self._listener.close()
+        self._listener = None
+
+    # ----------------------------------------------------------------- internals
+
+    def _sock(self) -> socket.socket:
+        if self._listener is None:
+            raise TransportClosedError("tcp transport is closed")
+        return self._listener
+
+    def _service(self) -> None:
+        """Accept waiting connections and flush pending output."""
+        listener = self._sock()
+        while True:
+            try:
+                sock, _ = listener.accept()
+            except (BlockingIOError, OSError):
+                break
+            if len(self._clients) >= self._max_clients:
+                sock.close()
+                self._stats.add("rejected")
+                continue
+            sock.setblocking(False)
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            self._clients.append(_Client(sock))
+        for client in list(self._clients):
+            if client.pending:
+                sent = self._send(client, bytes(client.pending))
+                del client.pending[:sent]
+
+    def _send(self, client: _Client, data: bytes) -> int:
+        try:
+            return client.sock.send(data)
+        except BlockingIOError:
+            return 0
+        except OSError:
+            self._drop_client(client)
+            return len(data)
+
+    def _drop_client(self, client: _Client) -> None:
+        if client in self._clients:
+            self._clients.remove(client)
+        client.sock.close()

@@ -1,0 +1,94 @@
+"""UDP backend: datagrams go to a fixed destination (by default 127.0.0.1:14550, where MAVLink
+ground stations listen), and replies arriving on the same socket are returned by :meth:`read`.
+
+Each :meth:`UdpTransport.write` is one datagram and each :meth:`UdpTransport.read` returns one.
+"""
+
+from __future__ import annotations
+
+import select
+import socket
+
+from drivers.messages import TransportClosedError, TransportError
+from drivers.transports.base import ByteTransport, Endpoint, StatsCounter, TransportStats
+
+__all__ = ["UdpTransport"]
+
+
+class UdpTransport(ByteTransport):
+    """One UDP socket bound on loopback, sending to ``(host, port)``.
+
+    Args:
+        host / port: destination of every datagram written.
+        bind_host / bind_port: local address; port 0 picks a free one.
+    """
+
+    is_datagram = True
+
+    def __init__(
+        self,
+        host: str = "127.0.0.1",
+        port: int = 14550,
+        *,
+        bind_host: str = "127.0.0.1",
+        bind_port: int = 0,
+    ) -> None:
+        self._sock: socket.socket | None = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            self._sock.bind((bind_host, bind_port))
+        except OSError as e:
+            self._sock.close()
+            raise TransportError(f"cannot bind UDP {bind_host}:{bind_port}: {e}") from e
+        self._sock.setblocking(False)
+        self._dest = (host, port)
+        self._stats = StatsCounter()
+        self.last_peer: tuple[str, int] | None = None
+
+    @property
+    def endpoint(self) -> Endpoint:
+        return Endpoint("udp", host=self._dest[0], port=self._dest[1])
+
+    @property
+    def local_address(self) -> tuple[str, int]:
+        """The (host, port) datagrams come from; replies are received here."""
+        host, port = self._s().getsockname()[:2]
+        return host, port
+
+    @property
+    def stats(self) -> TransportStats:
+        return self._stats.snapshot()
+
+    def read(self, max_bytes: int = 65536) -> bytes:
+        try:
+            data, peer = self._s().recvfrom(max_bytes)
+        except (BlockingIOError, ConnectionRefusedError):
+            # Linux reports an earlier datagram's ICMP "port unreachable" on the next call.
+            return b""
+        self.last_peer = (peer[0], peer[1])
+        self._stats.add("received")
+        return data
+
+    def write(self, data: bytes) -> int:
+        try:
+            sent = self._s().sendto(data, self._dest)
+        except (BlockingIOError, ConnectionRefusedError):
+            self._stats.add("dropped")
+            return 0
+        except OSError as e:
+            raise TransportError(f"UDP send to {self._dest} failed: {e}") from e
+        self._stats.add("sent")
+        return sent
+
+    def wait(self, timeout: float | None) -> bool:
+        readable, _, _ = select.select([self._s()], [], [], timeout)
+        return bool(readable)
+
+    def close(self) -> None:
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
+
+    def _s(self) -> socket.socket:
+        if self._sock is None:
+            raise TransportClosedError("udp transport is closed")
+        return self._sock
