@@ -1,0 +1,159 @@
+"""Open the transports the configuration asks for, and close them all again.
+
+One place maps ``[buses]`` settings to ``drivers.transports`` backends (pty, UDP, TCP,
+socketcand, slcan-on-a-pty, python-can). :class:`OpenBuses` holds what was opened; if opening one
+fails, everything opened before it is closed and the error names the bus.
+
+Byte transports are not safe to use from two threads at once (a write may flush data held back
+for a slow client while a read does the same), so each is wrapped in :class:`LockedByteLink`:
+the simulation loop writes while a reader thread reads.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from bridge.config import BusesSettings
+from drivers.messages import TransportError
+from drivers.transports.base import ByteTransport, CanTransport, TransportStats
+
+log = logging.getLogger(__name__)
+
+
+class BusOpenError(OSError):
+    """A bus could not be opened; the message names the bus and the cause."""
+
+
+class LockedByteLink:
+    """A :class:`ByteTransport` used by several threads: read and write are serialised."""
+
+    def __init__(self, transport: ByteTransport) -> None:
+        self.transport = transport
+        self._lock = threading.Lock()
+
+    @property
+    def is_datagram(self) -> bool:
+        return self.transport.is_datagram
+
+    def read(self, max_bytes: int = 65536) -> bytes:
+        with self._lock:
+            return self.transport.read(max_bytes)
+
+    def write(self, data: bytes) -> int:
+        with self._lock:
+            return self.transport.write(data)
+
+    def wait(self, timeout: float | None) -> bool:
+        return self.transport.wait(timeout)
+
+    @property
+    def stats(self) -> TransportStats:
+        return self.transport.stats
+
+    def close(self) -> None:
+        with self._lock:
+            self.transport.close()
+
+
+@dataclass
+class OpenBuses:
+    """Every transport the bridge serves, by bus name (the names used in ``status``)."""
+
+    kteam: LockedByteLink | None = None
+    rangefinders: LockedByteLink | None = None
+    mavlink: LockedByteLink | None = None
+    can: dict[str, CanTransport] = field(default_factory=dict)
+
+    def byte_links(self) -> dict[str, LockedByteLink]:
+        links = {"kteam": self.kteam, "rangefinders": self.rangefinders, "mavlink": self.mavlink}
+        return {name: link for name, link in links.items() if link is not None}
+
+    def stats(self) -> dict[str, TransportStats]:
+        out = {name: link.stats for name, link in self.byte_links().items()}
+        out.update({name: t.stats for name, t in self.can.items()})
+        return out
+
+    def close(self) -> None:
+        """Close every transport (each one even if another fails)."""
+        closables: list[tuple[str, LockedByteLink | CanTransport]] = [
+            *self.byte_links().items(),
+            *self.can.items(),
+        ]
+        for name, closable in closables:
+            try:
+                closable.close()
+            except Exception:  # closing must go on for the others
+                log.exception("closing %s failed", name)
+        self.kteam = self.rangefinders = self.mavlink = None
+        self.can.clear()
+
+
+def _open(name: str, factory: Callable[[], object]) -> object:
+    try:
+        return factory()
+    except (TransportError, OSError) as e:
+        raise BusOpenError(f"cannot open bus {name}: {e}") from e
+
+
+def open_buses(settings: BusesSettings) -> OpenBuses:
+    """Open every enabled bus of ``settings``; on failure close what was opened and raise."""
+    # Imported here: a backend's dependencies load only when its bus is enabled.
+    buses = OpenBuses()
+    try:
+        if settings.kteam or settings.rangefinders:
+            from drivers.transports.pty import PtyTransport
+        if settings.kteam:
+            buses.kteam = LockedByteLink(_open("kteam", PtyTransport))  # type: ignore[arg-type]
+        if settings.rangefinders:
+            buses.rangefinders = LockedByteLink(
+                _open("rangefinders", PtyTransport)  # type: ignore[arg-type]
+            )
+        mav = settings.mavlink
+        if mav.enabled:
+            buses.mavlink = LockedByteLink(_open("mavlink", lambda: _mavlink_transport(settings)))  # type: ignore[arg-type]
+        can = settings.can
+        if can.socketcand:
+            from drivers.transports.socketcand import SocketcandServer
+
+            buses.can["can.socketcand"] = _open(  # type: ignore[assignment]
+                "can.socketcand",
+                lambda: SocketcandServer(can.socketcand_host, can.socketcand_port, can.channel),
+            )
+        if can.slcan:
+            from drivers.transports.slcan import SlcanAdapter
+
+            buses.can["can.slcan"] = _open("can.slcan", SlcanAdapter)  # type: ignore[assignment]
+        if can.virtual:
+            from drivers.transports.pythoncan import VirtualCanTransport
+
+            buses.can["can.virtual"] = _open(  # type: ignore[assignment]
+                "can.virtual", lambda: VirtualCanTransport(can.virtual_channel)
+            )
+        if can.socketcan:
+            from drivers.transports.pythoncan import PythonCanTransport
+
+            buses.can["can.socketcan"] = _open(  # type: ignore[assignment]
+                "can.socketcan", lambda: PythonCanTransport("socketcan", can.socketcan_channel)
+            )
+    except BaseException:
+        buses.close()
+        raise
+    return buses
+
+
+def _mavlink_transport(settings: BusesSettings) -> ByteTransport:
+    mav = settings.mavlink
+    if mav.transport == "udp":
+        from drivers.transports.udp import UdpTransport
+
+        return UdpTransport(mav.host, mav.port)
+    if mav.transport == "tcp":
+        from drivers.transports.tcp import TcpServerTransport
+
+        return TcpServerTransport(mav.host, mav.port)
+    from drivers.transports.pty import PtyTransport
+
+    return PtyTransport()

@@ -1,0 +1,125 @@
+"""Run the simulated Koala and serve it on every bus and over Zenoh.
+
+On start it prints where each client connects and, with --endpoints-file, writes the same as
+JSON once every endpoint accepts clients. SIGINT (Ctrl-C) or SIGTERM stops it cleanly (exit 0);
+--duration stops it after that many simulation seconds.
+
+examples:
+  koala-bridge run                                  # config/default.toml, real time
+  koala-bridge run --clock fast --duration 30 --seed 7
+  koala-bridge run --endpoints-file /tmp/koala.json --set buses.mavlink.port=14551
+  koala-bridge run --set 'zenoh.listen=["tcp/127.0.0.1:7500"]' --set robot.name=k2
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+from pathlib import Path
+from types import FrameType
+from typing import Any
+
+from bridge.clock import CLOCK_NAMES
+from bridge.config import (
+    BridgeSettings,
+    ConfigError,
+    apply_override,
+    load_config,
+    parse_override,
+)
+
+log = logging.getLogger(__name__)
+
+DEFAULT_CONFIG = Path("config/default.toml")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--config", type=Path, default=DEFAULT_CONFIG,
+        help=f"TOML configuration (default: {DEFAULT_CONFIG})",
+    )
+    parser.add_argument(
+        "--clock", choices=CLOCK_NAMES,
+        help="realtime: one simulation second per wall second; fast: as fast as possible "
+        "(default: [run] clock)",
+    )
+    parser.add_argument(
+        "--duration", type=float, metavar="S",
+        help="stop after S simulation seconds; 0 = until stopped (default: [run] duration_s)",
+    )
+    parser.add_argument("--seed", type=int, help="random seed (default: [sim] seed)")
+    parser.add_argument(
+        "--endpoints-file", type=Path, metavar="F",
+        help="write where clients connect, as JSON, to F (default: [run] endpoints_file)",
+    )
+    parser.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", dest="overrides",
+        help="override a config key, e.g. --set buses.mavlink.port=14551 (repeatable; "
+        "VALUE is TOML)",
+    )
+
+
+def resolve_config(args: argparse.Namespace) -> dict[str, Any]:
+    """The file's configuration with the command line applied on top (CLI > file)."""
+    config = load_config(args.config)
+    for text in args.overrides:
+        config = apply_override(config, *parse_override(text))
+    flags = {
+        ("run", "clock"): args.clock,
+        ("run", "duration_s"): args.duration,
+        ("sim", "seed"): args.seed,
+        ("run", "endpoints_file"): (
+            None if args.endpoints_file is None else str(args.endpoints_file)
+        ),
+    }
+    for key, value in flags.items():
+        if value is not None:
+            config = apply_override(config, list(key), value)
+    return config
+
+
+def run(args: argparse.Namespace) -> int:
+    # Imported here so that `koala-bridge --help` does not load the simulator and Zenoh.
+    from bridge.endpoints import write_endpoints_file
+    from bridge.service import BridgeService
+    from drivers.messages import DriverError
+
+    try:
+        config = resolve_config(args)
+        settings = BridgeSettings.from_config(config)
+        service = BridgeService(config, settings)
+    except ConfigError as e:
+        print(f"koala-bridge run: configuration error: {e}", file=sys.stderr)
+        return 2
+
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        log.info("%s received: stopping", signal.Signals(signum).name)
+        stop.set()
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        try:
+            endpoints = service.open()
+        except (OSError, DriverError) as e:
+            print(f"koala-bridge run: {e}", file=sys.stderr)
+            return 1
+        print(endpoints.describe(), flush=True)
+        if settings.run.endpoints_file:
+            path = write_endpoints_file(settings.run.endpoints_file, endpoints)
+            print(f"  Endpoints file          {path}", flush=True)
+        clock = settings.run.clock
+        until = f"for {settings.run.duration_s:g} s" if settings.run.duration_s else "until Ctrl-C"
+        print(f"Simulating ({clock} clock) {until}.", flush=True)
+        last = service.run(stop)
+        rtf = service.clock.real_time_factor(last.t)
+        print(f"Stopped at t = {last.t:.3f} s (real-time factor {rtf:.2f}).", flush=True)
+    finally:
+        service.close()
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    return 0
