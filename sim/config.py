@@ -2,8 +2,8 @@
 
 Built from plain dicts (the parsed TOML; file I/O lives in ``bridge/``) by :func:`load_sim_config`.
 Every key a run uses is written in ``config/default.toml``; nothing here hides a default that the
-file should show, so every key of these sections is *required* except the optional ``errors``
-sub-tables. Unknown keys are :class:`~sim.schema.ConfigError` that suggest the nearest valid key.
+file should show, so every key of these sections is *required* (error-model parameters are
+validated by their own classes). Unknown keys are :class:`~sim.schema.ConfigError` that suggest the nearest valid key.
 Top-level sections other than ``sim``, ``robot``, ``sensors`` and ``world`` belong to ``bridge/``
 and are ignored here.
 
@@ -11,15 +11,18 @@ Units: SI unless the key's suffix says otherwise (``_deg``, ``_hz``, ``_uT``, ``
 Sensor poses are in the body frame FLU (x forward, y left), ``[x_m, y_m, theta_deg]`` with theta
 counter-clockwise from the robot's forward axis.
 
-Seam for error models (issue 3): every sensor section and ``[robot.drive]`` has ``ideal`` (bool)
-and an optional free-form ``errors`` sub-table (``[sensors.gyro.errors]`` ...). This module keeps
-``errors`` as a read-only mapping without interpreting it; the error model that the simulator builds
-for that sensor (see :mod:`sim.sensors.base`) validates it. With ``ideal = true`` the ``errors``
-table is ignored and the sensor reports its noise-free value.
+Seam for error models (issue 3): every sensor section and ``[robot.drive_error]`` has ``ideal``
+(bool) and, side by side with the simulator's keys, the parameters of that sensor's error model
+(``[sensors.gyro] gyroscope_noise_density = ...``). The error model's params class
+(:data:`ERROR_PARAMS`, in ``sim/models/``, imported lazily) validates and types them; the result is
+the sensor config's ``errors`` attribute. With ``ideal = true`` the sensor reports its noise-free
+value whatever those parameters say.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import importlib
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -78,11 +81,49 @@ def _odd(d: Mapping[str, Any], key: str, section: str) -> int:
     return n
 
 
-def _errors(d: Mapping[str, Any], section: str) -> Mapping[str, Any]:
-    e = d.get("errors", {})
-    if not isinstance(e, Mapping):
-        raise ConfigError(f"[{section}] 'errors' must be a table, got {e!r}")
-    return MappingProxyType(dict(e))
+# Error-model parameter classes (issue 3, owned by sim/models/), imported lazily by name so that
+# sim/config.py does not depend on them: module, class. Each has ``from_dict(d, section)``.
+ERROR_PARAMS: Mapping[str, tuple[str, str]] = MappingProxyType({
+    "drive": ("sim.models.drive", "DriveErrorParams"),
+    "ir": ("sim.models.ir", "IrErrorParams"),
+    "sonar": ("sim.models.sonar", "SonarErrorParams"),
+    "encoders": ("sim.models.encoders", "EncoderErrorParams"),
+    "gyro": ("sim.models.gyro", "GyroErrorParams"),
+    "compass": ("sim.models.compass", "CompassErrorParams"),
+    "camera": ("sim.models.camera", "CameraErrorParams"),
+})
+
+
+def _error_params_class(model: str) -> Any | None:
+    spec = ERROR_PARAMS.get(model)
+    if spec is None:
+        return None
+    try:
+        module = importlib.import_module(spec[0])
+    except ModuleNotFoundError:
+        return None
+    return getattr(module, spec[1], None)
+
+
+def _split_errors(
+    d: Mapping[str, Any], own_keys: Sequence[str], section: str, model: str
+) -> Any:
+    """Validate a section that mixes this module's keys with an error model's keys.
+
+    A section such as ``[sensors.gyro]`` holds the simulator's keys (``rate_hz``, ``ideal``, ...)
+    *and* the parameters of the sensor's error model (issue 3), side by side. Keys that are not
+    ``own_keys`` go to the error model's params class (:data:`ERROR_PARAMS`); keys that both
+    know (``ideal``, ``min_range_m``, ...) go to both. A key known to neither is an error suggesting the nearest key of both. Returns the params
+    object (or an empty mapping when no error model exists for this sensor).
+    """
+    cls = _error_params_class(model)
+    fields = [f.name for f in dataclasses.fields(cls)] if cls is not None else []
+    allowed = list(own_keys) + [f for f in fields if f not in own_keys]
+    reject_unknown(d, allowed, section)
+    if cls is None:
+        return _empty()
+    rest = {k: v for k, v in d.items() if k in fields}   # shared keys (ideal, ...) go to both
+    return cls.from_dict(rest, section)
 
 
 def _poses(value: Any, key: str, section: str) -> np.ndarray:
@@ -128,13 +169,13 @@ class DriveConfig:
     """``[robot.drive]``: switch and parameters of the drive-error model (seeds/000 eq. 1-4)."""
 
     ideal: bool
-    errors: Mapping[str, Any] = field(default_factory=_empty)
+    errors: Any = field(default_factory=_empty)
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> DriveConfig:
-        sec = "robot.drive"
-        reject_unknown(d, ["ideal", "errors"], sec)
-        return cls(ideal=_bool(d, "ideal", sec), errors=_errors(d, sec))
+        sec = "robot.drive_error"
+        errors = _split_errors(d, ["ideal"], sec, "drive")
+        return cls(ideal=_bool(d, "ideal", sec), errors=errors)
 
 
 @dataclass(frozen=True)
@@ -156,7 +197,7 @@ class RobotConfig:
         reject_unknown(
             d,
             ["name", "ticks_per_metre", "wheel_diameter_m", "wheel_base_m", "body_radius_m",
-             "max_wheel_speed_mps", "speed_unit_s", "drive"],
+             "max_wheel_speed_mps", "speed_unit_s", "drive_error"],
             sec,
         )
         name = str(require(d, "name", sec))
@@ -172,7 +213,7 @@ class RobotConfig:
                 require(d, "max_wheel_speed_mps", sec), "max_wheel_speed_mps", sec
             ),
             speed_unit_s=positive(require(d, "speed_unit_s", sec), "speed_unit_s", sec),
-            drive=DriveConfig.from_dict(require(d, "drive", sec)),
+            drive=DriveConfig.from_dict(require(d, "drive_error", sec)),
         )
 
 
@@ -188,7 +229,7 @@ class IrConfig:
     response_range_m: np.ndarray        # (k,) increasing
     response_counts: np.ndarray         # (k,) counts at those ranges (linear interpolation)
     ambient_counts: int                 # ambient light reading (K-Team 'O')
-    errors: Mapping[str, Any] = field(default_factory=_empty)
+    errors: Any = field(default_factory=_empty)
 
     @property
     def max_range_m(self) -> float:
@@ -197,11 +238,12 @@ class IrConfig:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> IrConfig:
         sec = "sensors.ir"
-        reject_unknown(
+        errors = _split_errors(
             d,
             ["rate_hz", "ideal", "poses", "rays", "aperture_deg", "response_range_m",
-             "response_counts", "ambient_counts", "errors"],
+             "response_counts", "ambient_counts"],
             sec,
+            "ir",
         )
         rng_m = np.array(require(d, "response_range_m", sec), dtype=float)
         counts = np.array(require(d, "response_counts", sec), dtype=float)
@@ -227,7 +269,7 @@ class IrConfig:
             response_range_m=rng_m,
             response_counts=counts,
             ambient_counts=ambient,
-            errors=_errors(d, sec),
+            errors=errors,
         )
 
 
@@ -242,16 +284,16 @@ class SonarConfig:
     aperture_deg: float
     min_range_m: float                  # closer: the Koala reports 0
     max_range_m: float                  # farther: no echo
-    errors: Mapping[str, Any] = field(default_factory=_empty)
+    errors: Any = field(default_factory=_empty)
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> SonarConfig:
         sec = "sensors.sonar"
-        reject_unknown(
+        errors = _split_errors(
             d,
-            ["rate_hz", "ideal", "poses", "rays", "aperture_deg", "min_range_m", "max_range_m",
-             "errors"],
+            ["rate_hz", "ideal", "poses", "rays", "aperture_deg", "min_range_m", "max_range_m"],
             sec,
+            "sonar",
         )
         lo = _nonneg(d, "min_range_m", sec)
         hi = positive(require(d, "max_range_m", sec), "max_range_m", sec)
@@ -265,7 +307,7 @@ class SonarConfig:
             aperture_deg=_nonneg(d, "aperture_deg", sec),
             min_range_m=lo,
             max_range_m=hi,
-            errors=_errors(d, sec),
+            errors=errors,
         )
 
 
@@ -275,15 +317,15 @@ class BasicSensorConfig:
 
     rate_hz: float
     ideal: bool
-    errors: Mapping[str, Any] = field(default_factory=_empty)
+    errors: Any = field(default_factory=_empty)
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any], sec: str) -> BasicSensorConfig:
-        reject_unknown(d, ["rate_hz", "ideal", "errors"], sec)
+    def from_dict(cls, d: Mapping[str, Any], sec: str, model: str) -> BasicSensorConfig:
+        errors = _split_errors(d, ["rate_hz", "ideal"], sec, model)
         return cls(
             rate_hz=positive(require(d, "rate_hz", sec), "rate_hz", sec),
             ideal=_bool(d, "ideal", sec),
-            errors=_errors(d, sec),
+            errors=errors,
         )
 
 
@@ -294,19 +336,19 @@ class CompassConfig:
     rate_hz: float
     ideal: bool
     min_source_distance_m: float        # 1/d^2 is clamped at this distance (no singularity)
-    errors: Mapping[str, Any] = field(default_factory=_empty)
+    errors: Any = field(default_factory=_empty)
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> CompassConfig:
         sec = "sensors.compass"
-        reject_unknown(d, ["rate_hz", "ideal", "min_source_distance_m", "errors"], sec)
+        errors = _split_errors(d, ["rate_hz", "ideal", "min_source_distance_m"], sec, "compass")
         return cls(
             rate_hz=positive(require(d, "rate_hz", sec), "rate_hz", sec),
             ideal=_bool(d, "ideal", sec),
             min_source_distance_m=positive(
                 require(d, "min_source_distance_m", sec), "min_source_distance_m", sec
             ),
-            errors=_errors(d, sec),
+            errors=errors,
         )
 
 
@@ -320,15 +362,16 @@ class CameraConfig:
     fov_deg: float                      # full horizontal field of view
     min_range_m: float
     max_range_m: float
-    errors: Mapping[str, Any] = field(default_factory=_empty)
+    errors: Any = field(default_factory=_empty)
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> CameraConfig:
         sec = "sensors.camera"
-        reject_unknown(
+        errors = _split_errors(
             d,
-            ["rate_hz", "ideal", "pose", "fov_deg", "min_range_m", "max_range_m", "errors"],
+            ["rate_hz", "ideal", "pose", "fov_deg", "min_range_m", "max_range_m"],
             sec,
+            "camera",
         )
         lo = _nonneg(d, "min_range_m", sec)
         hi = positive(require(d, "max_range_m", sec), "max_range_m", sec)
@@ -344,7 +387,7 @@ class CameraConfig:
             fov_deg=fov,
             min_range_m=lo,
             max_range_m=hi,
-            errors=_errors(d, sec),
+            errors=errors,
         )
 
 
@@ -367,8 +410,8 @@ class SensorsConfig:
         return cls(
             ir=IrConfig.from_dict(d["ir"]),
             sonar=SonarConfig.from_dict(d["sonar"]),
-            encoders=BasicSensorConfig.from_dict(d["encoders"], "sensors.encoders"),
-            gyro=BasicSensorConfig.from_dict(d["gyro"], "sensors.gyro"),
+            encoders=BasicSensorConfig.from_dict(d["encoders"], "sensors.encoders", "encoders"),
+            gyro=BasicSensorConfig.from_dict(d["gyro"], "sensors.gyro", "gyro"),
             compass=CompassConfig.from_dict(d["compass"]),
             camera=CameraConfig.from_dict(d["camera"]),
         )

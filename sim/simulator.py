@@ -65,7 +65,6 @@ class Simulator:
         self._k = 0
         self._state: RobotState | None = None
         self._rngs: dict[str, np.random.Generator] = {}
-        self._build_sensors()
 
     # ------------------------------------------------------------------ public API
     @property
@@ -167,9 +166,11 @@ class Simulator:
         return given
 
     def _make(self, name: str, params: Any) -> Any:
+        """The error model of ``name`` for this run, or None when ideal. Factories draw any
+        turn-on state (biases) from the sensor's own stream."""
         if params.ideal:
             return None
-        return self._factories[name](params.errors, params)
+        return self._factories[name](params, self._rngs[name])
 
     def _build_sensors(self) -> None:
         cfg = self.config

@@ -16,8 +16,9 @@ new ones on every ``reset``, so a run starts from the same state.
 How the simulator finds error models: ``Simulator(config, error_models=...)`` takes a mapping
 ``{sensor name: factory}``; when it is None and any sensor (or ``[robot.drive]``) has
 ``ideal = false``, the simulator imports :mod:`sim.models` and uses its ``ERROR_MODELS`` mapping.
-A factory is called as ``factory(errors, params)`` with the sensor's ``errors`` sub-table (a
-read-only mapping, validated by the factory) and the sensor's typed config; it returns the model.
+A factory is called at every ``reset`` as ``factory(config, rng)`` with the sensor's typed config
+(:mod:`sim.config`; its ``errors`` attribute holds the error model's validated params object)
+and the sensor's own generator (for turn-on biases); it returns the model.
 The drive-error model is registered under the name ``"drive"`` and implements
 :class:`sim.robot.DriveErrorModel` instead.
 
@@ -27,7 +28,7 @@ Each sensor draws only from its own ``numpy.random.Generator`` (one child stream
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from typing import Any, Protocol, TypeVar
 
 import numpy as np
@@ -42,8 +43,8 @@ class ErrorModel(Protocol[TruthT, ReadingT]):
     def measure(self, truth: TruthT, rng: np.random.Generator) -> ReadingT: ...
 
 
-ErrorModelFactory = Callable[[Mapping[str, Any], Any], Any]
-"""``factory(errors_table, sensor_config) -> ErrorModel`` (or a DriveErrorModel for "drive")."""
+ErrorModelFactory = Callable[[Any, np.random.Generator], Any]
+"""``factory(sensor_config, rng) -> ErrorModel`` (a DriveErrorModel for "drive")."""
 
 
 def fan_offsets(rays: int, aperture_rad: float) -> np.ndarray:
