@@ -213,7 +213,9 @@ def test_pty_keeps_serving_after_bad_input(robot: _Robot) -> None:
         assert _ask(client, robot, b"Q\r") == b"z,Unknown command\r\n"
         assert _ask(client, robot, b"D,1\r") == b"z,Protocol error\r\n"
         assert _ask(client, robot, b"D,500,0\r") == b"z,Out of range\r\n"
-        garbage = bytes(rng.randrange(256) for _ in range(300)).replace(b"\r", b"").replace(b"\n", b"")
+        garbage = (
+            bytes(rng.randrange(256) for _ in range(300)).replace(b"\r", b"").replace(b"\n", b"")
+        )
         client.write(garbage + b"\r")
         robot.serve()
         assert client.read_until(b"\r\n").startswith(b"z,")  # one error for the one bad line
