@@ -1,0 +1,384 @@
+"""Continuous pose tracking: an extended Kalman filter over ``[x, y, theta, gyro_bias]``.
+
+Why an EKF (docs/localisation.md has the long form): once the grid filter or a landmark fix has
+said where the robot is, the pose belief is unimodal; the motion and measurement models (unicycle,
+range/bearing, heading) are smooth and only mildly non-linear at the centimetre/degree
+uncertainties involved; and an EKF step costs tens of microseconds, so it keeps up with 200 Hz
+odometry in pure numpy. Global ambiguity (no known start, a kidnapped robot) is the job of the
+histogram filter (:mod:`bridge.estimation.grid_localisation`) and :func:`wls_fix`, whose output
+re-initialises this filter.
+
+State ``x = [x, y, theta, b]``: position (m, world frame), heading (rad CCW from east, wrapped to
+(-pi, pi]) and the gyro's yaw-rate bias ``b`` (rad/s; a real MEMS gyro's bias is of order
+0.02 rad/s, /work/shared/data/real/README.md "mpu6050_gyro_static").
+
+Motion (prediction) -- "gyrodometry": the distance travelled ``ds`` comes from the wheel
+encoders; the heading change comes from the gyro, ``dtheta = integral(omega) - b * T``, whenever
+gyro samples arrive, otherwise from the encoders, ``(d_right - d_left) / wheel_base``. The
+midpoint unicycle model propagates the pose (Thrun et al., *Probabilistic Robotics*, 2005,
+§5.4 odometry motion model, linearised as in §7.4 table 7.3)::
+
+    theta_m = theta + dtheta / 2
+    x' = x + ds cos(theta_m);  y' = y + ds sin(theta_m);  theta' = theta + dtheta;  b' = b
+
+Measurements: compass heading ``theta``; landmark range ``|L - p|`` and bearing
+``atan2(L - p) - theta``; a position fix ``[x, y]`` (from :func:`wls_fix`). Each is gated by its
+normalised innovation squared (NIS) against a chi-square quantile, so a misrecognised landmark
+(seeds/000 eq. 9) or a compass near a radiator is rejected and counted, not fused.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.stats import chi2
+
+from bridge.estimation.errors import EstimationError
+from bridge.estimation.trilateration import wrap_angle
+
+FloatArray = NDArray[np.float64]
+
+STATE_DIM = 4  # x, y, theta, gyro bias
+
+
+def _wrap(a: float) -> float:
+    return float(wrap_angle(a))
+
+
+# --------------------------------------------------------------------------- pure functions
+
+
+def odometry_increment(
+    d_left_m: float, d_right_m: float, wheel_base_m: float
+) -> tuple[float, float]:
+    """Distance travelled by the axle centre and heading change from the two wheels' distances.
+
+    Returns ``(ds, dtheta)``: metres, rad CCW.
+    """
+    return 0.5 * (d_left_m + d_right_m), (d_right_m - d_left_m) / wheel_base_m
+
+
+def predict(
+    x: FloatArray,
+    P: FloatArray,
+    ds: float,
+    dtheta: float,
+    cov_u: FloatArray,
+    bias_time: float = 0.0,
+    bias_var: float = 0.0,
+) -> tuple[FloatArray, FloatArray]:
+    """EKF prediction with the midpoint unicycle model (module docstring).
+
+    Args:
+        x: ``(4,)`` state ``[x, y, theta, b]``.
+        P: ``(4, 4)`` covariance.
+        ds: distance travelled, m.
+        dtheta: measured heading change, rad (gyro integral, or encoder difference / wheel base).
+        cov_u: ``(2, 2)`` covariance of ``(ds, dtheta)``.
+        bias_time: seconds over which ``dtheta`` integrated the gyro (the bias is subtracted for
+            that long); 0 when ``dtheta`` came from the encoders.
+        bias_var: variance added to the bias over this step, (rad/s)^2 (bias random walk).
+
+    Returns:
+        ``(x', P')``.
+    """
+    th = x[2]
+    dth = dtheta - x[3] * bias_time
+    thm = th + 0.5 * dth
+    c, s = math.cos(thm), math.sin(thm)
+    xn = np.array([x[0] + ds * c, x[1] + ds * s, _wrap(th + dth), x[3]])
+    F = np.eye(STATE_DIM)
+    F[0, 2] = -ds * s
+    F[1, 2] = ds * c
+    F[0, 3] = 0.5 * ds * s * bias_time
+    F[1, 3] = -0.5 * ds * c * bias_time
+    F[2, 3] = -bias_time
+    G = np.array([[c, -0.5 * ds * s], [s, 0.5 * ds * c], [0.0, 1.0], [0.0, 0.0]])
+    Pn = F @ P @ F.T + G @ cov_u @ G.T
+    Pn[3, 3] += bias_var
+    return xn, 0.5 * (Pn + Pn.T)
+
+
+def innovation(
+    x: FloatArray,
+    P: FloatArray,
+    z: ArrayLike,
+    R: ArrayLike,
+    H: FloatArray,
+    hx: ArrayLike | None = None,
+    angle_rows: tuple[int, ...] = (),
+) -> tuple[FloatArray, FloatArray]:
+    """Innovation ``y = z - h(x)`` (angles wrapped) and its covariance ``S = H P H^T + R``."""
+    za = np.atleast_1d(np.asarray(z, dtype=float))
+    h = H @ x if hx is None else np.atleast_1d(np.asarray(hx, dtype=float))
+    y = za - h
+    for i in angle_rows:
+        y[i] = _wrap(y[i])
+    S = H @ P @ H.T + np.atleast_2d(np.asarray(R, dtype=float))
+    return y, S
+
+
+def update(
+    x: FloatArray,
+    P: FloatArray,
+    z: ArrayLike,
+    R: ArrayLike,
+    H: FloatArray,
+    hx: ArrayLike | None = None,
+    angle_rows: tuple[int, ...] = (),
+) -> tuple[FloatArray, FloatArray]:
+    """EKF measurement update (Joseph form, so ``P`` stays symmetric positive semi-definite).
+
+    Args:
+        x: ``(n,)`` state; P: ``(n, n)`` covariance.
+        z: ``(m,)`` measurement; R: ``(m, m)`` its covariance.
+        H: ``(m, n)`` Jacobian of the measurement model at ``x``.
+        hx: ``(m,)`` predicted measurement ``h(x)``; ``H @ x`` when omitted (linear model).
+        angle_rows: indices of ``z`` that are angles (their innovation is wrapped).
+
+    Returns:
+        ``(x', P')``; the heading (index 2) of a pose state is wrapped.
+    """
+    y, S = innovation(x, P, z, R, H, hx, angle_rows)
+    K = np.linalg.solve(S.T, (P @ H.T).T).T
+    xn = x + K @ y
+    if xn.size > 2:
+        xn[2] = _wrap(xn[2])
+    ikh = np.eye(x.size) - K @ H
+    Pn = ikh @ P @ ikh.T + K @ np.atleast_2d(np.asarray(R, dtype=float)) @ K.T
+    return xn, 0.5 * (Pn + Pn.T)
+
+
+def landmark_model(x: FloatArray, landmark_xy: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """Predicted ``[range, bearing]`` of a landmark and its ``(2, 4)`` Jacobian."""
+    lx, ly = np.asarray(landmark_xy, dtype=float)
+    dx, dy = lx - x[0], ly - x[1]
+    q = dx * dx + dy * dy
+    if q == 0.0:
+        raise EstimationError("the estimate coincides with the landmark")
+    r = math.sqrt(q)
+    hx = np.array([r, _wrap(math.atan2(dy, dx) - x[2])])
+    H = np.array([[-dx / r, -dy / r, 0.0, 0.0], [dy / q, -dx / q, -1.0, 0.0]])
+    return hx, H
+
+
+HEADING_H = np.array([[0.0, 0.0, 1.0, 0.0]])
+POSITION_H = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]])
+
+
+def heading_from_field(
+    field_body_uT: ArrayLike,
+    north_rad: float,
+    hard_iron_uT: ArrayLike | None = None,
+) -> float:
+    """Robot heading from a magnetometer on a level robot.
+
+    The horizontal Earth field points at ``north_rad`` (CCW from east, ``World.earth_field``);
+    seen from the body frame (FLU) it points at ``north_rad - theta``, hence
+    ``theta = north_rad - atan2(m_y, m_x)``. ``hard_iron_uT`` (body frame) is subtracted first.
+
+    Args:
+        field_body_uT: ``(3,)`` field in the body frame, x forward, y left, z up, microtesla.
+        north_rad: direction of magnetic north in the world frame, rad.
+        hard_iron_uT: optional ``(3,)`` offset to remove.
+
+    Returns:
+        Heading, rad, wrapped to (-pi, pi].
+    """
+    m = np.asarray(field_body_uT, dtype=float)
+    if hard_iron_uT is not None:
+        m = m - np.asarray(hard_iron_uT, dtype=float)
+    return _wrap(north_rad - math.atan2(m[1], m[0]))
+
+
+# --------------------------------------------------------------------------- stateful wrapper
+
+
+@dataclass(frozen=True)
+class PoseTrackerParams:
+    """Noise model of the pose tracker (docs/localisation.md lists these as a TOML table).
+
+    Attributes:
+        wheel_base_m: distance between the wheels' contact points, m.
+        ticks_per_metre: encoder counts per metre of wheel travel.
+        odo_distance_var_per_m: variance of the encoder distance per metre travelled, m^2/m.
+        odo_heading_var_per_m: variance of the encoder heading change per metre, rad^2/m.
+        odo_heading_var_per_rad: variance of the encoder heading change per radian, rad^2/rad.
+        gyroscope_noise_density: gyro white noise, rad/s/sqrt(Hz) (Kalibr's name; the integrated
+            heading has variance ``density^2 * T``).
+        gyroscope_random_walk: gyro bias random walk, rad/s^2/sqrt(Hz) (Kalibr's name).
+        gyro_bias_sigma0: prior standard deviation of the gyro bias, rad/s.
+        gyro_timeout_s: after this long without a gyro sample, heading comes from the encoders.
+        compass_sigma_rad: standard deviation of a compass heading, rad.
+        gate_probability: NIS gate; a measurement beyond this chi-square quantile is rejected.
+    """
+
+    wheel_base_m: float
+    ticks_per_metre: float
+    odo_distance_var_per_m: float = 1e-4
+    odo_heading_var_per_m: float = 4e-3
+    odo_heading_var_per_rad: float = 2e-3
+    gyroscope_noise_density: float = 2e-3
+    gyroscope_random_walk: float = 1e-4
+    gyro_bias_sigma0: float = 0.05
+    gyro_timeout_s: float = 0.5
+    compass_sigma_rad: float = math.radians(5.0)
+    gate_probability: float = 0.999
+
+    def __post_init__(self) -> None:
+        if not (self.wheel_base_m > 0 and self.ticks_per_metre > 0):
+            raise EstimationError("wheel_base_m and ticks_per_metre must be > 0")
+        if not 0.0 < self.gate_probability < 1.0:
+            raise EstimationError("gate_probability must be in (0, 1)")
+
+
+@dataclass
+class GateCounters:
+    """Accepted and rejected (gated-out) measurements per kind."""
+
+    accepted: dict[str, int] = field(default_factory=dict)
+    rejected: dict[str, int] = field(default_factory=dict)
+
+    def count(self, kind: str, ok: bool) -> None:
+        d = self.accepted if ok else self.rejected
+        d[kind] = d.get(kind, 0) + 1
+
+
+class PoseTracker:
+    """EKF pose tracker fed with decoded bus data (thin wrapper over the pure functions).
+
+    Feed it in arrival order: :meth:`on_gyro` and :meth:`on_odometry` predict, the ``on_*``
+    measurement methods correct and return whether the measurement passed the gate.
+    """
+
+    def __init__(self, params: PoseTrackerParams) -> None:
+        self.params = params
+        self.x = np.zeros(STATE_DIM)
+        self.P = np.diag([1e6, 1e6, math.pi**2, params.gyro_bias_sigma0**2])
+        self.t = 0.0
+        self.counters = GateCounters()
+        self._gates = {m: float(chi2.ppf(params.gate_probability, m)) for m in (1, 2)}
+        self._ticks: tuple[int, int] | None = None
+        self._gyro_t: float | None = None
+        self._gyro_angle = 0.0
+        self._gyro_time = 0.0
+        self._gyro_last_seen = -math.inf
+
+    def reset(
+        self,
+        x: float,
+        y: float,
+        theta: float,
+        cov: ArrayLike,
+        t: float = 0.0,
+        gyro_bias: float = 0.0,
+    ) -> None:
+        """Set the pose and its ``(3, 3)`` covariance; the bias keeps its prior."""
+        self.x = np.array([x, y, _wrap(theta), gyro_bias])
+        P = np.zeros((STATE_DIM, STATE_DIM))
+        P[:3, :3] = np.asarray(cov, dtype=float)
+        P[3, 3] = self.params.gyro_bias_sigma0**2
+        self.P = P
+        self.t = t
+
+    # -- prediction ------------------------------------------------------------------------
+    def on_gyro(self, t: float, yaw_rate: float) -> None:
+        """A gyro yaw rate (rad/s, CCW) sampled at ``t``; integrated until the next odometry."""
+        # After a gap longer than the timeout the encoders carried the heading: start afresh.
+        if self._gyro_t is not None and 0.0 < t - self._gyro_t <= self.params.gyro_timeout_s:
+            dt = t - self._gyro_t
+            self._gyro_angle += yaw_rate * dt
+            self._gyro_time += dt
+        self._gyro_t = t
+        self._gyro_last_seen = t
+
+    def on_odometry(self, t: float, left_ticks: int, right_ticks: int) -> None:
+        """Cumulative encoder counts at ``t``; predicts over the interval since the last ones."""
+        p = self.params
+        if self._ticks is None:
+            self._ticks = (left_ticks, right_ticks)
+            self.t = t
+            return
+        dl = (left_ticks - self._ticks[0]) / p.ticks_per_metre
+        dr = (right_ticks - self._ticks[1]) / p.ticks_per_metre
+        self._ticks = (left_ticks, right_ticks)
+        ds, dth_odo = odometry_increment(dl, dr, p.wheel_base_m)
+        var_ds = p.odo_distance_var_per_m * abs(ds)
+        dt = max(t - self.t, 0.0)
+        if t - self._gyro_last_seen <= p.gyro_timeout_s:
+            dth, bias_time = self._gyro_angle, self._gyro_time
+            var_th = p.gyroscope_noise_density**2 * bias_time
+            self._gyro_angle = 0.0
+            self._gyro_time = 0.0
+        else:
+            self._gyro_angle = 0.0
+            self._gyro_time = 0.0
+            dth, bias_time = dth_odo, 0.0
+            var_th = p.odo_heading_var_per_m * abs(ds) + p.odo_heading_var_per_rad * abs(dth_odo)
+        cov_u = np.diag([var_ds, var_th])
+        self.x, self.P = predict(
+            self.x, self.P, ds, dth, cov_u, bias_time, p.gyroscope_random_walk**2 * dt
+        )
+        self.t = t
+
+    # -- correction ------------------------------------------------------------------------
+    def _gated_update(
+        self,
+        kind: str,
+        z: ArrayLike,
+        R: FloatArray,
+        H: FloatArray,
+        hx: ArrayLike | None = None,
+        angle_rows: tuple[int, ...] = (),
+    ) -> bool:
+        y, S = innovation(self.x, self.P, z, R, H, hx, angle_rows)
+        nis = float(y @ np.linalg.solve(S, y))
+        ok = nis <= self._gates[y.size]
+        self.counters.count(kind, ok)
+        if ok:
+            self.x, self.P = update(self.x, self.P, z, R, H, hx, angle_rows)
+        return ok
+
+    def on_compass(self, t: float, heading: float, sigma: float | None = None) -> bool:
+        """A compass heading (rad; see :func:`heading_from_field`)."""
+        s = self.params.compass_sigma_rad if sigma is None else sigma
+        return self._gated_update(
+            "compass", [heading], np.array([[s * s]]), HEADING_H, [self.x[2]], (0,)
+        )
+
+    def on_landmark(
+        self,
+        t: float,
+        landmark_xy: ArrayLike,
+        range_m: float,
+        bearing: float,
+        sigma_range: float,
+        sigma_bearing: float,
+    ) -> bool:
+        """A camera landmark observation: range (m) and bearing (rad CCW from heading)."""
+        hx, H = landmark_model(self.x, landmark_xy)
+        R = np.diag([sigma_range**2, sigma_bearing**2])
+        return self._gated_update("landmark", [range_m, bearing], R, H, hx, (1,))
+
+    def on_position(self, t: float, xy: ArrayLike, cov: ArrayLike) -> bool:
+        """A position fix ``[x, y]`` with its ``(2, 2)`` covariance (e.g. from ``wls_fix``)."""
+        return self._gated_update("position", xy, np.asarray(cov, dtype=float), POSITION_H)
+
+    # -- read-out --------------------------------------------------------------------------
+    @property
+    def pose(self) -> tuple[float, float, float]:
+        """``(x, y, theta)``, m and rad."""
+        return (float(self.x[0]), float(self.x[1]), float(self.x[2]))
+
+    @property
+    def pose_cov(self) -> FloatArray:
+        """``(3, 3)`` covariance of ``(x, y, theta)``."""
+        return self.P[:3, :3].copy()
+
+    @property
+    def gyro_bias(self) -> float:
+        """Estimated gyro bias, rad/s."""
+        return float(self.x[3])
