@@ -150,7 +150,7 @@ def cast_rays(
     idx = np.argmin(t, axis=1)
     rows = np.arange(r)
     rng = t[rows, idx]
-    hit = rng <= max_range
+    hit = (rng <= max_range) & (rng < np.inf)
     rng = np.where(hit, rng, np.inf)
     cos_inc = np.minimum(aden[rows, idx] * walls.inv_len[idx], 1.0)
     incidence = np.where(hit, np.arccos(cos_inc), np.nan)
