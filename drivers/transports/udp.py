@@ -59,8 +59,9 @@ class UdpTransport(ByteTransport):
         return self._stats.snapshot()
 
     def read(self, max_bytes: int = 65536) -> bytes:
+        sock = self._s()
         try:
-            data, peer = self._s().recvfrom(max_bytes)
+            data, peer = sock.recvfrom(max_bytes)
         except (BlockingIOError, ConnectionRefusedError):
             # Linux reports an earlier datagram's ICMP "port unreachable" on the next call.
             return b""
@@ -69,8 +70,9 @@ class UdpTransport(ByteTransport):
         return data
 
     def write(self, data: bytes) -> int:
+        sock = self._s()
         try:
-            sent = self._s().sendto(data, self._dest)
+            sent = sock.sendto(data, self._dest)
         except (BlockingIOError, ConnectionRefusedError):
             self._stats.add("dropped")
             return 0
