@@ -1,0 +1,77 @@
+"""The :class:`Effect` interface and the :class:`EffectInstance` a stream's model is built from."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, ClassVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    from bridge.calibration.problem import StreamProblem
+
+
+@dataclass(frozen=True)
+class EffectInstance:
+    """One effect proposed for one stream, with its parameter names and starting values.
+
+    ``fixed`` instances carry parameters estimated when proposed (a quantisation step, a glitch
+    value): least squares does not move them. ``data`` holds what ``apply`` needs beyond the
+    parameters (a covariate's fit-split mean, the levels of a categorical column).
+    """
+
+    name: str
+    effect: Effect
+    param_names: tuple[str, ...]
+    x0: tuple[float, ...]
+    fixed: bool = False
+    column: str | None = None
+    data: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def n_free(self) -> int:
+        return 0 if self.fixed else len(self.param_names)
+
+    def apply(self, state: Any, params: NDArray[np.float64]) -> None:
+        self.effect.apply(self, state, params)
+
+    def config(self, params: Sequence[float], problem: StreamProblem) -> dict[str, Any]:
+        return self.effect.config(self, np.asarray(params, dtype=float), problem)
+
+
+class Effect(ABC):
+    """A candidate effect the declared model may lack.
+
+    Subclasses set ``kinds`` (the stream kinds they apply to: ``"scalar"``, ``"compass"``,
+    ``"odometry"``) and implement :meth:`propose`, :meth:`apply` and :meth:`config`.
+    ``name`` is set by ``register_effect``.
+    """
+
+    name: ClassVar[str] = ""
+    kinds: ClassVar[frozenset[str]] = frozenset()
+
+    def propose(self, problem: StreamProblem) -> list[EffectInstance]:
+        """Instances of this effect that make sense for ``problem`` (empty: not applicable)."""
+        if problem.kind not in self.kinds:
+            return []
+        return self._propose(problem)
+
+    @abstractmethod
+    def _propose(self, problem: StreamProblem) -> list[EffectInstance]: ...
+
+    @abstractmethod
+    def apply(self, inst: EffectInstance, state: Any, params: NDArray[np.float64]) -> None:
+        """Change the stream's model state (see the stream module) by this effect."""
+
+    @abstractmethod
+    def config(
+        self, inst: EffectInstance, params: NDArray[np.float64], problem: StreamProblem
+    ) -> dict[str, Any]:
+        """Config keys this effect writes, relative to the stream's config section.
+
+        A key ``"calibration.x"`` goes to the ``[sensors.<stream>.calibration]`` table; a key
+        starting with ``"/"`` is absolute (``"/robot.wheel_base_m"``).
+        """

@@ -1,0 +1,29 @@
+"""``bias``: a constant offset of a scalar measurement.
+
+    y = gain * curve(u) + b          params: b (stream unit)
+
+Writes the stream's native bias key (gyro: ``[sensors.gyro] bias_rad_s``, declared + b) or
+``[sensors.<stream>.calibration] bias``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from bridge.calibration.effects import register_effect
+from bridge.calibration.effects.base import Effect, EffectInstance
+from bridge.calibration.effects.common import scalar_config
+
+
+@register_effect("bias")
+class Bias(Effect):
+    kinds = frozenset({"scalar"})
+
+    def _propose(self, problem: Any) -> list[EffectInstance]:
+        return [EffectInstance(self.name, self, ("bias",), (0.0,))]
+
+    def apply(self, inst: EffectInstance, state: Any, params: Any) -> None:
+        state.add = state.add + params[0]
+
+    def config(self, inst: EffectInstance, params: Any, problem: Any) -> dict[str, Any]:
+        return scalar_config(inst, params, problem)

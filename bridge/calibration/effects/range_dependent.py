@@ -1,0 +1,32 @@
+"""``range_dependent``: an error that grows faster than linearly with the true range.
+
+    y = ... + k * r^2        params: k (stream unit per m^2); r = true range (m)
+
+An error proportional to range is ``scale``; this is the part growing with range beyond that
+(beam spreading, a wrong speed-of-sound correction applied twice, ...). Range-type streams only.
+Writes ``[sensors.<stream>.calibration] range_dependent = {k_per_m2}``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from bridge.calibration.effects import register_effect
+from bridge.calibration.effects.base import Effect, EffectInstance
+from bridge.calibration.effects.common import scalar_config
+
+
+@register_effect("range_dependent")
+class RangeDependent(Effect):
+    kinds = frozenset({"scalar"})
+
+    def _propose(self, problem: Any) -> list[EffectInstance]:
+        if not problem.is_range:
+            return []
+        return [EffectInstance(self.name, self, ("k_per_m2",), (0.0,))]
+
+    def apply(self, inst: EffectInstance, state: Any, params: Any) -> None:
+        state.add = state.add + params[0] * state.part.u**2
+
+    def config(self, inst: EffectInstance, params: Any, problem: Any) -> dict[str, Any]:
+        return scalar_config(inst, params, problem)

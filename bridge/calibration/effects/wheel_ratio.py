@@ -1,0 +1,30 @@
+"""``wheel_ratio``: the left and right wheels have different diameters (UMBmark's E_d).
+
+    s_l = dL / tpm * 2 rho / (1 + rho),  s_r = dR / tpm * 2 / (1 + rho)    params: rho = D_l / D_r
+
+The mean distance per tick is kept, so ``rho`` is separate from ``tick_scale``. Tick odometry
+only. Writes ``[sensors.odometry] wheel_diameter_ratio`` (left / right).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from bridge.calibration.effects import register_effect
+from bridge.calibration.effects.base import Effect, EffectInstance
+
+
+@register_effect("wheel_ratio")
+class WheelRatio(Effect):
+    kinds = frozenset({"odometry"})
+
+    def _propose(self, problem: Any) -> list[EffectInstance]:
+        if problem.form != "ticks":
+            return []
+        return [EffectInstance(self.name, self, ("ratio_left_right",), (1.0,))]
+
+    def apply(self, inst: EffectInstance, state: Any, params: Any) -> None:
+        state.ratio = float(params[0])
+
+    def config(self, inst: EffectInstance, params: Any, problem: Any) -> dict[str, Any]:
+        return {"wheel_diameter_ratio": float(f"{params[0]:.6g}")}

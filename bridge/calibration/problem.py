@@ -1,0 +1,194 @@
+"""The stream problem: what every stream (gyro, compass, odometry, ranges, landmarks) gives the loop.
+
+A :class:`StreamProblem` predicts a stream's measurements from the reference with the declared
+model plus a list of :class:`~bridge.calibration.effects.EffectInstance`, and returns the residual
+on the fit or the score part of the time split. Parameters of all instances are one vector:
+``[nuisance..., free parameters of instance 1..., instance 2..., ...]``; nuisance parameters belong
+to the declared model itself (a compass's unknown north direction, a field magnitude) and are
+fitted in every model, including the one reported as *before*.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from bridge.calibration.effects.base import EffectInstance
+
+FloatArray = NDArray[np.float64]
+Part = Literal["fit", "score"]
+
+#: Fraction of a stream's time span used for fitting; the rest is held out for scoring.
+FIT_FRACTION = 0.6
+
+
+@dataclass(frozen=True)
+class Split:
+    """Fit on ``[t0, t1)``, score on ``[t1, t2]`` (``t1 = t0 + 0.6 (t2 - t0)``)."""
+
+    t0: float
+    t1: float
+    t2: float
+
+    @classmethod
+    def of(cls, t: FloatArray) -> Split:
+        t0, t2 = float(np.min(t)), float(np.max(t))
+        return cls(t0, t0 + FIT_FRACTION * (t2 - t0), t2)
+
+    def mask(self, t: FloatArray, part: Part) -> NDArray[np.bool_]:
+        return (t < self.t1) if part == "fit" else (t >= self.t1)
+
+
+@dataclass(frozen=True)
+class SecondaryMetric:
+    """A further metric of the same stream, reported as its own entry of report.json."""
+
+    metric: str
+    unit: str
+    before: float
+    after: float
+
+
+@dataclass
+class StreamProblem(ABC):
+    """Base of the per-stream problems in :mod:`bridge.calibration.streams`."""
+
+    name: str
+    kind: str
+    metric: str
+    unit: str
+    section: str
+    split: Split
+    notes: list[str] = field(default_factory=list, kw_only=True)
+    #: effect name -> config key of the stream's own section that the effect sets (the total,
+    #: declared value plus what was found); effects without one write ``calibration.<name>``.
+    native_keys: dict[str, str] = field(default_factory=dict, kw_only=True)
+    #: effect name -> the declared value the found parameter adds to.
+    declared_values: dict[str, float] = field(default_factory=dict, kw_only=True)
+
+    # ----- the model -------------------------------------------------------------------------
+    def nuisance_x0(self) -> FloatArray:
+        """Starting values of the declared model's nuisance parameters (default: none)."""
+        return np.empty(0)
+
+    def initial_vector(
+        self,
+        insts: Sequence[EffectInstance],
+        previous: FloatArray | None = None,
+        previous_insts: Sequence[EffectInstance] = (),
+    ) -> FloatArray:
+        """Parameter vector for ``insts``, warm-started from a previous fit where names match."""
+        parts = [self.nuisance_x0() if previous is None else previous[: len(self.nuisance_x0())]]
+        prev = (
+            dict(
+                zip(
+                    [i.name for i in previous_insts],
+                    split_params(self, previous_insts, previous),
+                    strict=True,
+                )
+            )
+            if previous is not None
+            else {}
+        )
+        for inst in insts:
+            if inst.fixed:
+                continue
+            parts.append(np.asarray(prev.get(inst.name, inst.x0), dtype=float))
+        return np.concatenate(parts) if parts else np.empty(0)
+
+    @abstractmethod
+    def residuals(
+        self, insts: Sequence[EffectInstance], x: FloatArray, part: Part, for_fit: bool = False
+    ) -> FloatArray:
+        """Residual vector (measured - predicted, in :attr:`unit`) on one part of the split.
+
+        ``for_fit`` asks for the smooth version least squares minimises (no output rounding).
+        """
+
+    def metric_value(self, insts: Sequence[EffectInstance], x: FloatArray, part: Part) -> float:
+        """The stream's reported metric; the default is the RMS of the residual."""
+        r = self.residuals(insts, x, part)
+        return float(np.sqrt(np.mean(r**2))) if r.size else float("nan")
+
+    def secondary_metrics(
+        self,
+        before: tuple[Sequence[EffectInstance], FloatArray],
+        after: tuple[Sequence[EffectInstance], FloatArray],
+    ) -> list[SecondaryMetric]:
+        """Further metrics on the score part (default: none)."""
+        return []
+
+    @abstractmethod
+    def residual_series(
+        self, insts: Sequence[EffectInstance], x: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """``(t, r)`` over the whole span, for the residual plot (r: 1-D, one value per t)."""
+
+    def autocorrelation(self, r: FloatArray) -> float:
+        """Lag-1 autocorrelation of a residual vector in this stream's sample order."""
+        return lag1_autocorrelation(r)
+
+    def config_values(self, insts: Sequence[EffectInstance], x: FloatArray) -> dict[str, Any]:
+        """Config keys written for the declared model's own fitted parts (default: none)."""
+        return {}
+
+    def describe(self) -> dict[str, Any]:
+        """Facts about the stream for the report (sample counts, reference used, ...)."""
+        return {}
+
+
+def lag1_autocorrelation(r: FloatArray) -> float:
+    """Lag-1 autocorrelation of the noise in ``r``, from its first differences, in [0, 0.999].
+
+    For an AR(1) series with coefficient rho the differences have lag-1 autocorrelation
+    -(1 - rho) / 2, so rho = 1 + 2 rho_diff. Unlike the plain estimate it is not fooled by slow
+    deterministic structure (an unexplained effect spanning many samples), which is not chance;
+    a random walk (integrated noise, as in dead reckoning) still gives rho near 1.
+    """
+    r = np.asarray(r, dtype=float).ravel()
+    if r.size < 4:
+        return 0.0
+    d = np.diff(r)
+    d = d - d.mean()
+    den = float(np.dot(d, d))
+    rho_d = float(np.dot(d[1:], d[:-1]) / den) if den > 0 else -0.5
+    return min(max(1.0 + 2.0 * rho_d, 0.0), 0.999)
+
+
+def effective_size(n: int, rho: float) -> float:
+    """n (1 - rho) / (1 + rho), at least 2: the AR(1) variance-inflation correction (e.g.
+    Bretherton et al. 1999, J. Climate 12, eq. 31), so correlated residuals do not pass for many
+    independent ones."""
+    if n < 3:
+        return float(n)
+    return float(max(min(n * (1 - rho) / (1 + rho), n), 2.0))
+
+
+def split_params(
+    problem: StreamProblem, insts: Sequence[EffectInstance], x: FloatArray | None
+) -> list[FloatArray]:
+    """Per-instance parameter arrays from the packed vector (fixed instances: their ``x0``)."""
+    out: list[FloatArray] = []
+    if x is None:
+        return [np.asarray(i.x0, dtype=float) for i in insts]
+    k = len(problem.nuisance_x0())
+    for inst in insts:
+        if inst.fixed:
+            out.append(np.asarray(inst.x0, dtype=float))
+        else:
+            out.append(np.asarray(x[k : k + inst.n_free], dtype=float))
+            k += inst.n_free
+    return out
+
+
+def apply_all(
+    state: Any, problem: StreamProblem, insts: Sequence[EffectInstance], x: FloatArray
+) -> None:
+    """Apply every instance's effect to a stream state, in order."""
+    for inst, p in zip(insts, split_params(problem, insts, x), strict=True):
+        inst.apply(state, p)

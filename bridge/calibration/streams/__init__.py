@@ -1,0 +1,412 @@
+"""Build one :class:`~bridge.calibration.problem.StreamProblem` per stream of a bundle.
+
+What each stream is held against (the *reference*), in the order the bundle allows:
+
+* gyro: the rate of the reference heading, ``truth_pose.theta``; without one, the heading of the
+  bundle's compass after its own calibration (smoothed over 0.25 s); otherwise skipped.
+* compass: ``truth_pose.theta`` if present, else the physical constancy of the field magnitude.
+* odometry: ``truth_pose`` positions (and heading when present), windows re-anchored.
+* range: ``true_range`` through the declared curve (identity for metric sensors).
+* landmarks: range and bearing from the reference pose to the mapped landmark.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from bridge.calibration.bundle import Bundle, Table
+from bridge.calibration.effects.common import categorical_levels
+from bridge.calibration.model import DeclaredModel
+from bridge.calibration.problem import FloatArray, Split
+from bridge.calibration.streams.compass import CompassProblem
+from bridge.calibration.streams.odometry import OdometryProblem
+from bridge.calibration.streams.scalar import ScalarProblem, fit_shared_curve, wrap_angle
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "CompassProblem",
+    "OdometryProblem",
+    "ScalarProblem",
+    "build_compass",
+    "build_gyro",
+    "build_landmarks",
+    "build_odometry",
+    "build_ranges",
+    "heading_reference",
+]
+
+#: Heading-error windows for the gyro's secondary metric (shortened on short recordings).
+HEADING_WINDOW_S = 10.0
+#: Smoothing of a compass-derived heading before it is differentiated into a reference rate.
+COMPASS_SMOOTHING_S = 0.25
+
+
+def _extras(table: Table, known: set[str]) -> dict[str, FloatArray]:
+    return {k: v for k, v in table.columns.items() if k not in known and np.any(np.isfinite(v))}
+
+
+def _unit(meta: Mapping[str, Any], key: str) -> str:
+    units = meta.get("units", {})
+    return str(units.get(key, "")) if isinstance(units, Mapping) else ""
+
+
+def heading_reference(bundle: Bundle) -> tuple[FloatArray, FloatArray] | None:
+    """``(t, theta unwrapped)`` from ``truth_pose`` when it has a heading."""
+    truth = bundle.get("truth_pose")
+    if truth is None or "theta" not in truth.columns:
+        return None
+    ok = np.isfinite(truth["theta"])
+    if ok.sum() < 2:
+        return None
+    return truth["t"][ok], np.unwrap(truth["theta"][ok])
+
+
+def _rate_of(t: FloatArray, theta: FloatArray, t_out: FloatArray) -> FloatArray:
+    """Rate of a heading series at ``t_out``: finite differences at midpoints, interpolated."""
+    dt = np.diff(t)
+    ok = dt > 0
+    mid = 0.5 * (t[1:] + t[:-1])[ok]
+    rate = (np.diff(theta)[ok]) / dt[ok]
+    return np.interp(t_out, mid, rate)
+
+
+def _moving_average(v: FloatArray, n: int) -> FloatArray:
+    if n <= 1:
+        return v
+    pad = np.pad(v, (n // 2, n - 1 - n // 2), mode="edge")
+    return np.convolve(pad, np.ones(n) / n, mode="valid")
+
+
+def build_gyro(
+    bundle: Bundle,
+    model: DeclaredModel,
+    compass_heading: tuple[FloatArray, FloatArray] | None = None,
+) -> ScalarProblem | None:
+    gyro = bundle.get("gyro")
+    if gyro is None:
+        return None
+    ref = heading_reference(bundle)
+    source = "truth_pose.theta"
+    if ref is None and compass_heading is not None:
+        # Resample to a uniform grid first: compass stamps are irregular and readings repeat.
+        t_c, th_c = compass_heading
+        step = COMPASS_SMOOTHING_S / 5
+        grid = np.arange(t_c[0], t_c[-1], step)
+        ref = (grid, _moving_average(np.interp(grid, t_c, np.unwrap(th_c)), 5))
+        source = "calibrated compass heading (no truth heading in the bundle)"
+    if ref is None:
+        log.warning("gyro: no heading reference (truth_pose.theta or compass); stream skipped")
+        return None
+    t = gyro["t"]
+    inside = (t >= ref[0][0]) & (t <= ref[0][-1]) & np.isfinite(gyro["yaw_rate"])
+    table = gyro.select(inside)
+    t = table["t"]
+    rate_ref = _rate_of(ref[0], ref[1], t)
+    ref_series = (t.copy(), rate_ref.copy())
+    extras = _extras(table, {"t", "yaw_rate"})
+    split = Split.of(t)
+    window = min(HEADING_WINDOW_S, (split.t2 - split.t1) / 4)
+    problem = ScalarProblem(
+        "gyro",
+        "scalar",
+        "rms_rate_error",
+        "rad/s",
+        "sensors.gyro",
+        split,
+        t=t,
+        y=table["yaw_rate"],
+        u=rate_ref,
+        columns=extras,
+        covariate_names=tuple(sorted(extras)),
+        categorical_names=tuple(
+            k
+            for k in sorted(extras)
+            if categorical_levels(extras[k][split.mask(t, "fit")]) is not None
+        ),
+        reference=ref_series,
+        base_gain=1.0 + model.gyro_scale_error,
+        base_add=model.gyro_bias_rad_s,
+        heading_window_s=float(f"{window:.3g}"),
+        quantity="yaw rate",
+        integrate_window_s=HEADING_WINDOW_S if source != "truth_pose.theta" else None,
+        native_keys={"bias": "bias_rad_s", "scale": "scale_error"},
+        declared_values={"bias": model.gyro_bias_rad_s, "scale": model.gyro_scale_error},
+    )
+    problem.notes.append(f"reference: {source}")
+    return problem
+
+
+def _compass_unit(meta: Mapping[str, Any]) -> tuple[str, float]:
+    u = _unit(meta, "compass.mx").lower()
+    if "milligauss" in u or u.startswith("mg"):
+        return "mG", 0.1
+    if "gauss" in u:
+        return "gauss", 100.0
+    if "nt" in u.split() or u.startswith("nt"):
+        return "nT", 0.001
+    return "uT", 1.0
+
+
+def build_compass(bundle: Bundle, model: DeclaredModel) -> CompassProblem | None:
+    compass = bundle.get("compass")
+    if compass is None:
+        return None
+    ok = np.isfinite(compass["mx"]) & np.isfinite(compass["my"])
+    compass = compass.select(ok)
+    t = compass["t"]
+    mz = compass["mz"] if "mz" in compass.columns else np.zeros_like(t)
+    m = np.column_stack([compass["mx"], compass["my"], np.nan_to_num(mz)])
+    unit, uT = _compass_unit(bundle.meta)
+    ref = heading_reference(bundle)
+    theta = None
+    if ref is not None:
+        inside = (t >= ref[0][0]) & (t <= ref[0][-1])
+        t, m = t[inside], m[inside]
+        theta = np.interp(t, ref[0], ref[1])
+        mode = "heading"
+    else:
+        horiz = float(min(np.std(m[:, 0]), np.std(m[:, 1])))
+        mode = "magnitude_3d" if np.std(m[:, 2]) > 0.25 * horiz else "magnitude_2d"
+    problem = CompassProblem(
+        "compass",
+        "compass",
+        "rms_heading_error"
+        if mode == "heading"
+        else (
+            "field_magnitude_spread"
+            if mode == "magnitude_3d"
+            else "horizontal_field_magnitude_spread"
+        ),
+        "rad" if mode == "heading" else "%",
+        "sensors.compass",
+        Split.of(t),
+        t=t,
+        m=m,
+        mode=mode,
+        theta_ref=theta,
+        h_declared=np.asarray(model.compass_hard_iron, dtype=float) / uT,
+        C_declared=np.linalg.inv(np.asarray(model.compass_soft_iron, dtype=float)),
+        uT_per_unit=uT,
+        data_unit=unit,
+    )
+    problem.notes.append(f"mode: {mode}; field unit {unit}")
+    return problem
+
+
+def build_odometry(
+    bundle: Bundle, model: DeclaredModel, window_s: float = 10.0
+) -> OdometryProblem | None:
+    odo, truth = bundle.get("odometry"), bundle.get("truth_pose")
+    if odo is None or truth is None:
+        return None
+    t = odo["t"]
+    keep = np.r_[True, np.diff(t) > 0]
+    odo = odo.select(keep)
+    t = odo["t"]
+    kw: dict[str, Any] = {}
+    if "left_ticks" in odo.columns and "right_ticks" in odo.columns:
+        if model.ticks_per_metre is None or model.wheel_base_m is None:
+            log.warning(
+                "odometry: ticks need ticks_per_metre and wheel_base_m "
+                "([robot] in the config or meta.json robot); stream skipped"
+            )
+            return None
+        form = "ticks"
+        kw.update(
+            d_left=np.diff(odo["left_ticks"]),
+            d_right=np.diff(odo["right_ticks"]),
+            tpm=model.ticks_per_metre,
+            wheel_base=model.wheel_base_m,
+        )
+    elif "v" in odo.columns and "omega" in odo.columns:
+        form = "speeds"
+        dt = np.diff(t)
+        kw.update(
+            ds=0.5 * (odo["v"][1:] + odo["v"][:-1]) * dt,
+            dtheta=0.5 * (odo["omega"][1:] + odo["omega"][:-1]) * dt,
+        )
+    elif all(c in odo.columns for c in ("x", "y", "theta")):
+        form = "pose"
+        th = np.unwrap(odo["theta"])
+        dx, dy = np.diff(odo["x"]), np.diff(odo["y"])
+        mid = 0.5 * (th[1:] + th[:-1])
+        kw.update(ds=dx * np.cos(mid) + dy * np.sin(mid), dtheta=np.diff(th))
+    else:
+        log.warning("odometry: needs left_ticks,right_ticks or v,omega or x,y,theta; skipped")
+        return None
+    ok = np.isfinite(truth["x"]) & np.isfinite(truth["y"])
+    truth = truth.select(ok)
+    ref = heading_reference(bundle)
+    theta = np.interp(truth["t"], ref[0], ref[1]) if ref is not None else None
+    t_ref = truth["t"]
+    inside = (t_ref >= t[0]) & (t_ref <= t[-1])
+    split = Split.of(t_ref[inside])
+    window = min(window_s, (split.t2 - split.t1) / 2)
+    problem = OdometryProblem(
+        "odometry",
+        "odometry",
+        "window_position_rms",
+        "m",
+        "sensors.odometry",
+        split,
+        t_odo=t,
+        t_ref=t_ref,
+        p_ref=np.column_stack([truth["x"], truth["y"]]),
+        theta_ref=theta,
+        window_s=float(f"{window:.3g}"),
+        form=form,
+        start_pose=(float(t_ref[inside][0]), model.start_pose.theta, 0.0)
+        if model.start_pose is not None and theta is None
+        else None,
+        **kw,
+    )
+    problem.notes.append(
+        f"windows of {problem.window_s:g} s re-anchored to the reference"
+        + (
+            ""
+            if theta is not None
+            else "; no reference heading: heading dead-reckoned from the declared start heading"
+            if problem.start_pose is not None
+            else "; no reference heading: each window's start heading aligned (Procrustes)"
+        )
+    )
+    return problem
+
+
+def build_ranges(bundle: Bundle, model: DeclaredModel) -> list[ScalarProblem]:
+    table = bundle.get("range")
+    if table is None:
+        return []
+    out = []
+    kinds = np.unique(table.text["kind"]) if "kind" in table.text else np.array([""])
+    for kind in kinds:
+        sub = table.select(table.text["kind"] == kind) if kind else table
+        unit_text = _unit(
+            bundle.meta, f"range.measured.{kind}" if kind else "range.measured"
+        ) or _unit(bundle.meta, "range.measured")
+        counts = "count" in unit_text.lower() or kind == "ir"
+        ok = np.isfinite(sub["measured"]) & np.isfinite(sub["true_range"]) & (sub["true_range"] > 0)
+        dropped = int((~ok).sum())
+        sub = sub.select(ok)
+        if len(sub) < 10:
+            continue
+        t = sub["t"]
+        split = Split.of(t)
+        section_kind = kind or ("ir" if counts else "sonar")
+        extras = _extras(sub, {"t", "measured", "true_range"})
+        fit = split.mask(t, "fit")
+        curve = None
+        fitted = False
+        base_add: FloatArray | float = 0.0
+        if counts:
+            if model.ir_curve is not None:
+                curve = (np.asarray(model.ir_curve[0]), np.asarray(model.ir_curve[1]))
+            else:
+                curve = fit_shared_curve(sub["true_range"][fit], sub["measured"][fit])
+                fitted = True
+            if model.ir_per_sensor_offset:
+                off = np.asarray(model.ir_per_sensor_offset)
+                idx = sub["sensor"].astype(int)
+                base_add = np.where(
+                    (idx >= 0) & (idx < off.size), off[np.clip(idx, 0, off.size - 1)], 0.0
+                )
+        name = f"range:{kind}" if kind else "range"
+        problem = ScalarProblem(
+            name,
+            "scalar",
+            "rms_error",
+            "counts" if counts else "m",
+            f"sensors.{section_kind}",
+            split,
+            t=t,
+            y=sub["measured"],
+            u=sub["true_range"],
+            columns=extras,
+            covariate_names=tuple(k for k in sorted(extras) if k != "sensor"),
+            categorical_names=tuple(
+                k for k in sorted(extras) if categorical_levels(extras[k][fit]) is not None
+            ),
+            is_range=True,
+            curve_points=curve,
+            curve_fitted=fitted,
+            base_add=base_add,
+            quantity="IR counts" if counts else "range",
+            native_keys={"offset_per:sensor": "per_sensor_offset_counts"} if counts else {},
+        )
+        if fitted:
+            problem.notes.append(
+                "response curve declared only as a shape: shared curve fitted "
+                "on the fit part first (binned means)"
+            )
+        if dropped:
+            problem.notes.append(f"{dropped} readings with true_range <= 0 or non-finite dropped")
+        out.append(problem)
+    return out
+
+
+def build_landmarks(bundle: Bundle, model: DeclaredModel) -> list[ScalarProblem]:
+    obs, lmap, truth = bundle.get("landmarks"), bundle.get("landmark_map"), bundle.get("truth_pose")
+    if obs is None or lmap is None or truth is None:
+        return []
+    ids = lmap["id"]
+    idx = np.searchsorted(ids, obs["landmark_id"], sorter=np.argsort(ids))
+    order = np.argsort(ids)
+    idx = order[np.clip(idx, 0, ids.size - 1)]
+    known = ids[idx] == obs["landmark_id"]
+    t = obs["t"]
+    inside = known & (t >= truth["t"][0]) & (t <= truth["t"][-1])
+    obs, idx, t = obs.select(inside), idx[inside], t[inside]
+    px = np.interp(t, truth["t"], truth["x"])
+    py = np.interp(t, truth["t"], truth["y"])
+    lx, ly = lmap["x"][idx] - px, lmap["y"][idx] - py
+    true_range = np.hypot(lx, ly)
+    extras = _extras(obs, {"t", "range", "bearing", "landmark_id"})
+    out: list[ScalarProblem] = []
+    ok = np.isfinite(obs["range"])
+    if ok.sum() >= 10:
+        sub_split = Split.of(t[ok])
+        out.append(
+            ScalarProblem(
+                "landmark_range",
+                "scalar",
+                "rms_range_error",
+                "m",
+                "sensors.camera",
+                sub_split,
+                t=t[ok],
+                y=obs["range"][ok],
+                u=true_range[ok],
+                columns={k: v[ok] for k, v in extras.items()},
+                covariate_names=tuple(sorted(extras)),
+                is_range=True,
+                quantity="landmark range",
+            )
+        )
+    ref = heading_reference(bundle)
+    if ref is not None:
+        theta = np.interp(t, ref[0], ref[1])
+        bearing = wrap_angle(np.arctan2(ly, lx) - theta)
+        okb = np.isfinite(obs["bearing"])
+        out.append(
+            ScalarProblem(
+                "landmark_bearing",
+                "scalar",
+                "rms_bearing_error",
+                "rad",
+                "sensors.camera",
+                Split.of(t[okb]),
+                t=t[okb],
+                y=obs["bearing"][okb],
+                u=bearing[okb],
+                columns={k: v[okb] for k, v in extras.items()},
+                covariate_names=tuple(sorted(extras)),
+                angle=True,
+                quantity="landmark bearing",
+            )
+        )
+    return out

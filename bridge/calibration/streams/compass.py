@@ -1,0 +1,108 @@
+"""Compass (magnetometer) stream: field vectors against a heading reference or against physics.
+
+Correction model (the inverse of ``m = S m_true + h``, ArduPilot/PX4 style)::
+
+    m_c = C (m - h),   C = (I + E) C_declared,   h = h_declared + delta_h
+
+Three modes, chosen from the data:
+
+* ``heading``: a reference heading exists (``truth_pose.theta``); planar. Residual is the heading
+  error ``wrap(alpha - atan2(m_c,y, m_c,x) - theta_ref)`` in rad; ``alpha`` (direction of
+  magnetic north in the world frame: declination plus mounting yaw) is a nuisance parameter.
+* ``magnitude_2d``: no reference, rotation about z only (the vertical component varies little):
+  the horizontal field magnitude must be constant; residual ``|m_c,xy| / B - 1``.
+* ``magnitude_3d``: no reference, rotation through many orientations: ``|m_c| / B - 1``.
+
+``B`` (the field magnitude) is a nuisance parameter. The metric is the RMS heading error (rad) or,
+with no reference, the spread std/mean of the (horizontal) field magnitude in percent.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from bridge.calibration.effects.base import EffectInstance
+from bridge.calibration.problem import FloatArray, Part, StreamProblem, apply_all
+from bridge.calibration.streams.scalar import wrap_angle
+
+
+@dataclass
+class CompassState:
+    """Hard-iron offset ``h`` (3,) and correction matrix ``C`` (3, 3) the effects change."""
+
+    h: FloatArray
+    C: FloatArray
+    dims: int
+
+
+@dataclass
+class CompassProblem(StreamProblem):
+    t: FloatArray = field(default_factory=lambda: np.empty(0))
+    m: FloatArray = field(default_factory=lambda: np.empty((0, 3)))
+    mode: str = "magnitude_2d"
+    theta_ref: FloatArray | None = None
+    h_declared: FloatArray = field(default_factory=lambda: np.zeros(3))
+    C_declared: FloatArray = field(default_factory=lambda: np.eye(3))
+    uT_per_unit: float = 1.0
+    data_unit: str = "uT"
+
+    def __post_init__(self) -> None:
+        fit = self.split.mask(self.t, "fit")
+        self._masks = {"fit": fit, "score": ~fit, "all": np.ones_like(fit)}
+
+    @property
+    def dims(self) -> int:
+        return 3 if self.mode == "magnitude_3d" else 2
+
+    def state(self) -> CompassState:
+        return CompassState(self.h_declared.copy(), self.C_declared.copy(), self.dims)
+
+    def corrected(self, insts: Sequence[EffectInstance], x: FloatArray, part: str) -> FloatArray:
+        st = self.state()
+        apply_all(st, self, insts, x)
+        m = self.m[self._masks[part]]
+        return (m - st.h) @ st.C.T
+
+    def nuisance_x0(self) -> FloatArray:
+        fit = self._masks["fit"]
+        m = (self.m[fit] - self.h_declared) @ self.C_declared.T
+        if self.mode == "heading":
+            assert self.theta_ref is not None
+            a = self.theta_ref[fit] + np.arctan2(m[:, 1], m[:, 0])
+            return np.array([float(np.arctan2(np.mean(np.sin(a)), np.mean(np.cos(a))))])
+        return np.array([float(np.mean(np.linalg.norm(m[:, : self.dims], axis=1)))])
+
+    def heading(self, mc: FloatArray) -> FloatArray:
+        """Compass heading (rad, CCW, up to the constant alpha): -atan2(m_c,y, m_c,x)."""
+        return np.asarray(-np.arctan2(mc[:, 1], mc[:, 0]), dtype=float)
+
+    def _residual(self, insts: Sequence[EffectInstance], x: FloatArray, part: str) -> FloatArray:
+        mc = self.corrected(insts, x, part)
+        if self.mode == "heading":
+            assert self.theta_ref is not None
+            return wrap_angle(x[0] + self.heading(mc) - self.theta_ref[self._masks[part]])
+        return np.linalg.norm(mc[:, : self.dims], axis=1) / x[0] - 1.0
+
+    def residuals(
+        self, insts: Sequence[EffectInstance], x: FloatArray, part: Part, for_fit: bool = False
+    ) -> FloatArray:
+        return self._residual(insts, x, part)
+
+    def metric_value(self, insts: Sequence[EffectInstance], x: FloatArray, part: Part) -> float:
+        if self.mode == "heading":
+            r = self._residual(insts, x, part)
+            return float(np.sqrt(np.mean(r**2)))
+        mag = np.linalg.norm(self.corrected(insts, x, part)[:, : self.dims], axis=1)
+        return float(100.0 * np.std(mag) / np.mean(mag))
+
+    def residual_series(
+        self, insts: Sequence[EffectInstance], x: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        return self.t, self._residual(insts, x, "all")
+
+    def describe(self) -> dict[str, Any]:
+        return {"samples": int(self.t.size), "mode": self.mode, "data_unit": self.data_unit}

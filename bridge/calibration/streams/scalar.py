@@ -1,0 +1,257 @@
+"""Scalar streams: one number per reading predicted from one reference quantity.
+
+Gyro yaw rate (reference: rate of the reference heading), range sensors (reference: true range),
+landmark range and bearing (reference: geometry of the reference pose and the landmark map).
+Forward model, with the declared values and every effect's hook::
+
+    y_hat = gain * curve(u(t - tau)) + add(t, covariates, u)     then, if quantised, q * round(y_hat / q)
+
+``gain`` starts at 1 + declared scale error, ``add`` at the declared bias, ``curve`` is the
+identity unless the stream measures raw counts (IR), where it is the declared response curve or,
+declared only as a shape, a shared curve fitted on the fit part first (binned means, linear
+interpolation). Readings the glitch effect explains (equal to its glitch value) score zero.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from bridge.calibration.effects.base import EffectInstance
+from bridge.calibration.problem import (
+    FloatArray,
+    Part,
+    SecondaryMetric,
+    StreamProblem,
+    apply_all,
+)
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ScalarPart:
+    """The samples of one part of the split (or all), sliced once."""
+
+    t: FloatArray
+    y: FloatArray
+    u: FloatArray
+    columns: Mapping[str, FloatArray]
+
+
+@dataclass
+class ScalarState:
+    """Mutable model state the effects change; see the module docstring for the equation."""
+
+    part: ScalarPart
+    u_at: Callable[[FloatArray, float], FloatArray] | None
+    gain: float = 1.0
+    add: FloatArray | float = 0.0
+    tau: float = 0.0
+    quant_step: float | None = None
+    glitch_value: float | None = None
+
+    def predict(self, curve: Callable[[FloatArray], FloatArray], rounding: bool) -> FloatArray:
+        u = self.part.u
+        if self.tau != 0.0 and self.u_at is not None:
+            u = self.u_at(self.part.t, self.tau)
+        y = self.gain * curve(u) + self.add
+        if rounding and self.quant_step:
+            y = self.quant_step * np.round(y / self.quant_step)
+        return np.asarray(y, dtype=float)
+
+
+def wrap_angle(a: FloatArray) -> FloatArray:
+    """Wrap to (-pi, pi]."""
+    return np.asarray(np.pi - np.mod(np.pi - a, 2 * np.pi), dtype=float)
+
+
+@dataclass
+class ScalarProblem(StreamProblem):
+    """A scalar stream; see the module docstring. Built by :mod:`bridge.calibration.streams`."""
+
+    t: FloatArray = field(default_factory=lambda: np.empty(0))
+    y: FloatArray = field(default_factory=lambda: np.empty(0))
+    u: FloatArray = field(default_factory=lambda: np.empty(0))
+    columns: Mapping[str, FloatArray] = field(default_factory=dict)
+    covariate_names: tuple[str, ...] = ()
+    categorical_names: tuple[str, ...] = ()
+    reference: tuple[FloatArray, FloatArray] | None = None  # (t_ref, u_ref) for time offsets
+    angle: bool = False
+    is_range: bool = False
+    base_gain: float = 1.0
+    base_add: FloatArray | float = 0.0
+    curve_points: tuple[FloatArray, FloatArray] | None = None
+    curve_fitted: bool = False
+    heading_window_s: float | None = None
+    quantity: str = "value"
+    #: compare in heading space: the residual rate integrated over windows of this length
+    #: (re-anchored at each window start) instead of the rate residual itself; used when the
+    #: reference heading is noisy (a compass), whose derivative is far noisier than its integral.
+    integrate_window_s: float | None = None
+
+    def __post_init__(self) -> None:
+        fit = self.split.mask(self.t, "fit")
+        self._parts = {
+            "fit": self._slice(fit),
+            "score": self._slice(~fit),
+            "all": self._slice(np.ones_like(fit)),
+        }
+        base_add = np.broadcast_to(np.asarray(self.base_add, dtype=float), self.t.shape)
+        self._base_add = {"fit": base_add[fit], "score": base_add[~fit], "all": base_add}
+
+    def _slice(self, m: np.ndarray) -> ScalarPart:
+        return ScalarPart(
+            self.t[m], self.y[m], self.u[m], {k: v[m] for k, v in self.columns.items()}
+        )
+
+    def part(self, part: str) -> ScalarPart:
+        return self._parts[part]
+
+    # ----- model -------------------------------------------------------------------------------
+    def curve(self, u: FloatArray) -> FloatArray:
+        if self.curve_points is None:
+            return u
+        return np.interp(u, self.curve_points[0], self.curve_points[1])
+
+    def _u_at(self, t: FloatArray, tau: float) -> FloatArray:
+        assert self.reference is not None
+        return np.interp(t - tau, self.reference[0], self.reference[1])
+
+    def state(self, part: str) -> ScalarState:
+        return ScalarState(
+            self._parts[part],
+            self._u_at if self.reference is not None else None,
+            gain=self.base_gain,
+            add=self._base_add[part].copy(),
+        )
+
+    def _residual(
+        self, insts: Sequence[EffectInstance], x: FloatArray, part: str, for_fit: bool
+    ) -> FloatArray:
+        st = self.state(part)
+        apply_all(st, self, insts, x)
+        y_hat = st.predict(self.curve, rounding=not for_fit)
+        r = st.part.y - y_hat
+        if self.angle:
+            r = wrap_angle(r)
+        if st.glitch_value is not None:
+            r = np.where(np.isclose(st.part.y, st.glitch_value, rtol=1e-9, atol=1e-12), 0.0, r)
+        return r
+
+    def residuals(
+        self, insts: Sequence[EffectInstance], x: FloatArray, part: Part, for_fit: bool = False
+    ) -> FloatArray:
+        r = self._residual(insts, x, part, for_fit)
+        if self.integrate_window_s is not None:
+            return self._integrate(self._parts[part].t, r, self.integrate_window_s)
+        return r
+
+    @staticmethod
+    def _integrate(t: FloatArray, r: FloatArray, window_s: float) -> FloatArray:
+        """Trapezoidal integral of ``r`` from the start of each ``window_s`` window."""
+        if t.size < 2:
+            return np.zeros_like(r)
+        inc = np.r_[0.0, 0.5 * (r[1:] + r[:-1]) * np.diff(t)]
+        k = np.floor((t - t[0]) / window_s).astype(int)
+        start = np.r_[True, k[1:] != k[:-1]]
+        inc[start] = 0.0
+        c = np.cumsum(inc)
+        return np.asarray(c - np.maximum.accumulate(np.where(start, c, -np.inf)), dtype=float)
+
+    def residual_series(
+        self, insts: Sequence[EffectInstance], x: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        r = self._residual(insts, x, "all", False)
+        if self.integrate_window_s is not None:
+            r = self._integrate(self.t, r, self.integrate_window_s)
+        return self.t, r
+
+    # ----- metrics -----------------------------------------------------------------------------
+    def heading_window_error(
+        self, insts: Sequence[EffectInstance], x: FloatArray, window_s: float
+    ) -> float:
+        """RMS over score-part windows of the heading error the residual rate accumulates.
+
+        Each window of ``window_s`` seconds starts from zero error (re-anchored to the
+        reference); its value is the trapezoidal integral of the residual rate over the window.
+        """
+        p = self._parts["score"]
+        r = self._residual(insts, x, "score", False)
+        if p.t.size < 2:
+            return float("nan")
+        k = np.floor((p.t - p.t[0]) / window_s).astype(int)
+        dt = np.diff(p.t)
+        inc = 0.5 * (r[1:] + r[:-1]) * dt
+        same = k[1:] == k[:-1]
+        sums = np.bincount(k[1:][same], weights=inc[same], minlength=int(k.max()) + 1)
+        span = np.bincount(k[1:][same], weights=dt[same], minlength=int(k.max()) + 1)
+        full = span >= 0.9 * window_s
+        if not np.any(full):
+            full = span > 0
+        return float(np.sqrt(np.mean(sums[full] ** 2)))
+
+    def secondary_metrics(
+        self,
+        before: tuple[Sequence[EffectInstance], FloatArray],
+        after: tuple[Sequence[EffectInstance], FloatArray],
+    ) -> list[SecondaryMetric]:
+        if self.heading_window_s is None:
+            return []
+        w = self.heading_window_s
+        return [
+            SecondaryMetric(
+                f"heading_error_{w:g}s_window_rms",
+                "rad",
+                self.heading_window_error(*before, w),
+                self.heading_window_error(*after, w),
+            )
+        ]
+
+    def config_values(self, insts: Sequence[EffectInstance], x: FloatArray) -> dict[str, Any]:
+        if self.curve_fitted and self.curve_points is not None:
+            return {
+                "curve": {
+                    "range_m": [round(float(v), 6) for v in self.curve_points[0]],
+                    "counts": [round(float(v), 3) for v in self.curve_points[1]],
+                }
+            }
+        return {}
+
+    def describe(self) -> dict[str, Any]:
+        return {
+            "samples": int(self.t.size),
+            "quantity": self.quantity,
+            "curve": "fitted shared curve"
+            if self.curve_fitted
+            else ("declared curve" if self.curve_points is not None else "identity"),
+        }
+
+
+def fit_shared_curve(
+    u: FloatArray, y: FloatArray, max_levels: int = 50, bins: int = 20
+) -> tuple[FloatArray, FloatArray]:
+    """A response curve declared only as a shape: binned means of y over u, sorted by u.
+
+    Distinct reference values (up to ``max_levels``) are their own bins (a set-up with known
+    distances); otherwise ``bins`` quantile bins. Linear interpolation between bin centres,
+    clamped outside.
+    """
+    ok = np.isfinite(u) & np.isfinite(y)
+    u, y = u[ok], y[ok]
+    levels = np.unique(u)
+    if levels.size <= max_levels:
+        idx = np.searchsorted(levels, u)
+        xs = levels
+    else:
+        edges = np.unique(np.quantile(u, np.linspace(0, 1, bins + 1)))
+        idx = np.clip(np.searchsorted(edges, u, side="right") - 1, 0, edges.size - 2)
+        xs = np.bincount(idx, weights=u) / np.maximum(np.bincount(idx), 1)
+    counts = np.bincount(idx, minlength=xs.size)
+    ys = np.bincount(idx, weights=y, minlength=xs.size) / np.maximum(counts, 1)
+    keep = counts > 0
+    return np.asarray(xs[keep], dtype=float), np.asarray(ys[keep], dtype=float)
