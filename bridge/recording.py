@@ -372,6 +372,20 @@ class Recorder:
         return True
 
 
+def run_metadata(
+    source: str, config: Mapping[str, Any], config_path: str | os.PathLike[str] | None
+) -> dict[str, str]:
+    """The ``koala-bridge`` metadata of a run: source, seed, config path and the resolved
+    configuration (file + command-line overrides) as JSON."""
+    seed = (config.get("sim") or {}).get("seed")
+    return {
+        "source": source,
+        "seed": "" if seed is None else str(seed),
+        "config_path": "" if config_path is None else str(Path(config_path).resolve()),
+        "config": json.dumps(config, default=str),
+    }
+
+
 def _as_text(v: object) -> str:
     if isinstance(v, str):
         return v

@@ -9,6 +9,7 @@ examples:
   koala-bridge run --clock fast --duration 30 --seed 7
   koala-bridge run --endpoints-file /tmp/koala.json --set buses.mavlink.port=14551
   koala-bridge run --set 'zenoh.listen=["tcp/127.0.0.1:7500"]' --set robot.name=k2
+  koala-bridge run --clock fast --duration 60 --record /tmp/run.mcap   # docs/recording.md
 """
 
 from __future__ import annotations
@@ -60,6 +61,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="override a config key, e.g. --set buses.mavlink.port=14551 (repeatable; "
         "VALUE is TOML)",
     )
+    parser.add_argument(
+        "--record", type=Path, metavar="FILE.mcap",
+        help="record every Zenoh message and raw bus frame to an MCAP file (docs/recording.md)",
+    )
 
 
 def resolve_config(args: argparse.Namespace) -> dict[str, Any]:
@@ -95,6 +100,21 @@ def run(args: argparse.Namespace) -> int:
         print(f"koala-bridge run: configuration error: {e}", file=sys.stderr)
         return 2
 
+    recorder = None
+    if args.record is not None:
+        from bridge.recording import Recorder, RecordingError, run_metadata
+
+        try:
+            recorder = Recorder(
+                args.record,
+                metadata=run_metadata("sim", config, args.config),
+                world=service.world_answer(),
+            )
+        except RecordingError as e:
+            print(f"koala-bridge run: {e}", file=sys.stderr)
+            return 1
+        service.tap = recorder
+
     stop = threading.Event()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
@@ -120,6 +140,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"Stopped at t = {last.t:.3f} s (real-time factor {rtf:.2f}).", flush=True)
     finally:
         service.close()
+        if recorder is not None:
+            recorder.close()
+            print(f"Recorded {recorder.written} messages to {recorder.path}.", flush=True)
         for s, handler in previous.items():
             signal.signal(s, handler)
     return 0

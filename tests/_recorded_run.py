@@ -1,0 +1,65 @@
+"""A 60 s simulated run recorded with ``run --record`` on the fast clock, with a K-Team client.
+
+Shared by the recording and replay tests (each module records its own: about 3 s each).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import serial
+from conftest import DEFAULT_CONFIG, REPO, bridge_command, free_port
+
+DURATION_S = 60.0
+KTEAM_COMMANDS = (b"B\r", b"D,20,20\r", b"H\r", b"N\r", b"X\r", b"E\r")
+
+
+@dataclass
+class RecordedRun:
+    path: Path
+    endpoints: dict[str, Any]
+    kteam_exchanges: list[tuple[bytes, bytes]]  # (command, reply) as the client saw them
+    log: str
+
+
+def record_run(
+    tmp: Path, duration_s: float = DURATION_S, extra: list[str] | None = None
+) -> RecordedRun:
+    path = tmp / "run.mcap"
+    endpoints_file = tmp / "endpoints.json"
+    log_path = tmp / "bridge.log"
+    args = [
+        "run", "--config", str(DEFAULT_CONFIG), "--clock", "fast",
+        "--duration", str(duration_s), "--record", str(path),
+        "--endpoints-file", str(endpoints_file),
+        "--set", f'zenoh.listen=["tcp/127.0.0.1:{free_port()}"]',
+        "--set", f"buses.mavlink.port={free_port('udp')}",
+        "--set", "buses.can.socketcand_port=0",
+        *(extra or []),
+    ]
+    with log_path.open("wb") as log:
+        proc = subprocess.Popen(bridge_command(*args), cwd=REPO, stdout=log,
+                                stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+    exchanges: list[tuple[bytes, bytes]] = []
+    try:
+        deadline = time.monotonic() + 30
+        while not endpoints_file.exists():
+            assert proc.poll() is None, log_path.read_text()
+            assert time.monotonic() < deadline, "no endpoints file"
+            time.sleep(0.02)
+        endpoints = json.loads(endpoints_file.read_text())
+        with serial.Serial(endpoints["serial"]["kteam"], 115200, timeout=5) as port:
+            for command in KTEAM_COMMANDS:
+                port.write(command)
+                exchanges.append((command, port.read_until(b"\r\n")))
+        assert proc.wait(timeout=120) == 0, log_path.read_text()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    return RecordedRun(path, endpoints, exchanges, log_path.read_text())
