@@ -12,7 +12,9 @@ the simulation loop writes while a reader thread reads.
 from __future__ import annotations
 
 import logging
+import select
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -22,17 +24,30 @@ from drivers.transports.base import ByteTransport, CanTransport, TransportStats
 
 log = logging.getLogger(__name__)
 
+HANGUP_RETRY_S = 0.02   # how often a reader re-checks a pty nobody has opened yet
+
 
 class BusOpenError(OSError):
     """A bus could not be opened; the message names the bus and the cause."""
 
 
 class LockedByteLink:
-    """A :class:`ByteTransport` used by several threads: read and write are serialised."""
+    """A :class:`ByteTransport` used by several threads: every call into it is serialised.
+
+    :meth:`wait` does not hold the lock while it blocks: where the transport has a ``fileno``
+    it polls that descriptor with a poll object of its own (a transport's internal poll object
+    may not be used by two threads at once), so the simulation loop can write and read counters
+    while a reader thread waits for input.
+    """
 
     def __init__(self, transport: ByteTransport) -> None:
         self.transport = transport
         self._lock = threading.Lock()
+        fileno = getattr(transport, "fileno", None)
+        self._poll: select.poll | None = None
+        if fileno is not None:
+            self._poll = select.poll()
+            self._poll.register(fileno(), select.POLLIN)
 
     @property
     def is_datagram(self) -> bool:
@@ -46,12 +61,22 @@ class LockedByteLink:
         with self._lock:
             return self.transport.write(data)
 
-    def wait(self, timeout: float | None) -> bool:
-        return self.transport.wait(timeout)
+    def wait(self, timeout: float) -> bool:
+        """Block until input may be waiting or ``timeout`` s pass; True if readable."""
+        if self._poll is None:
+            with self._lock:
+                return self.transport.wait(timeout)
+        events = self._poll.poll(int(timeout * 1000))
+        if any(ev & select.POLLIN for _, ev in events):
+            return True
+        if events:  # a pty with no client reports hang-up at once: do not spin on it
+            time.sleep(min(timeout, HANGUP_RETRY_S))
+        return False
 
     @property
     def stats(self) -> TransportStats:
-        return self.transport.stats
+        with self._lock:
+            return self.transport.stats
 
     def close(self) -> None:
         with self._lock:

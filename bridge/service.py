@@ -8,10 +8,11 @@ Threads (all owned here, all joined by :meth:`BridgeService.close`):
   rangefinders pty, CAN ``WheelOdometry`` / ``Gyro`` on every CAN interface, MAVLink
   ``SCALED_IMU`` (and ``HEARTBEAT`` at ``heartbeat_hz``), and the Zenoh messages. Sample times are
   simulation times; a reading is on the wire within the step that produced it.
-- one **reader thread per input**: K-Team commands (answered at once from the latest readings),
-  CAN frames from each interface (``MotorCommand``), and whatever clients send on the
-  rangefinders pty and the MAVLink link. Input that does not decode is rejected and counted and
-  changes nothing else.
+- one **reader thread per input**: K-Team commands (answered at once from the latest readings)
+  and CAN frames from each interface (``MotorCommand``). What clients send on the rangefinders
+  pty and the MAVLink link is read by the simulation loop itself, every ``DRAIN_PERIOD_S`` of
+  wall time, as it is the only thread using those transports. Input that does not decode is
+  rejected and counted and changes nothing else.
 
 ``status`` counters per bus: ``sent`` (writes/frames handed to clients, from the transport),
 ``received`` (well-formed frames the bridge acted on or accepted), ``rejected`` (input discarded:
@@ -24,6 +25,7 @@ from __future__ import annotations
 import logging
 import math
 import threading
+import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, Protocol
@@ -57,6 +59,7 @@ from sim.types import Readings
 log = logging.getLogger(__name__)
 
 READ_TIMEOUT_S = 0.1        # how long a reader thread blocks before it checks for stop
+DRAIN_PERIOD_S = 0.02       # wall time between reads of the output links' input
 GYRO_LIMIT = 20.0           # rad/s: the DBC range of Gyro.yaw_rate
 
 
@@ -112,6 +115,8 @@ class BridgeService:
         self._range_seq = {RangeKind.IR: 0, RangeKind.SONAR: 0}
         self._last_readings: Readings | None = None
         self._write_errors: set[str] = set()
+        self._drains: list[Callable[[], None]] = []
+        self._last_drain = 0.0
         zs = settings.zenoh
         self._pose_period = max(1, round(1.0 / (zs.pose_rate_hz * self.dt)))
         self._status_period = max(1, round(1.0 / (zs.status_rate_hz * self.dt)))
@@ -233,6 +238,7 @@ class BridgeService:
                     "mavlink", self.buses.mavlink, self.mav_encoder.scaled_imu(sample), r.t
                 )
         self._publish(r, n)
+        self._drain_output_links()
 
     def _publish(self, r: Readings, n: int) -> None:
         assert self.zenoh is not None
@@ -316,12 +322,16 @@ class BridgeService:
         b = self.buses
         if b.kteam is not None:
             self._spawn("kteam", self._kteam_reader(b.kteam))
-        if b.rangefinders is not None:
-            self._spawn("rangefinders", self._reject_all_reader("rangefinders", b.rangefinders))
-        if b.mavlink is not None:
-            self._spawn("mavlink", self._mavlink_reader(b.mavlink))
         for name, transport in b.can.items():
             self._spawn(name, self._can_reader(name, transport))
+        # The rangefinders and MAVLink links are written by the simulation loop; it also reads
+        # what clients send there (_drain_output_links), so that no transport is used by two
+        # threads at once.
+        self._drains = []
+        if b.rangefinders is not None:
+            self._drains.append(self._reject_all_reader("rangefinders", b.rangefinders))
+        if b.mavlink is not None:
+            self._drains.append(self._mavlink_reader(b.mavlink))
 
     def _spawn(self, name: str, step: Callable[[], None]) -> None:
         def loop() -> None:
@@ -366,11 +376,25 @@ class BridgeService:
 
         return step
 
+    def _drain_output_links(self) -> None:
+        """Read what clients sent on the links the loop writes (at most every DRAIN_PERIOD_S)."""
+        now = time.monotonic()
+        if now - self._last_drain < DRAIN_PERIOD_S:
+            return
+        self._last_drain = now
+        for drain in self._drains:
+            try:
+                drain()
+            except TransportError as e:
+                self._write_failed("input", e)
+
     def _reject_all_reader(self, bus: str, link: LockedByteLink) -> Callable[[], None]:
         """An output-only link: anything a client sends is rejected (and counted)."""
 
         def step() -> None:
-            if link.wait(READ_TIMEOUT_S) and link.read():
+            for _ in range(64):  # bounded: the loop must not stall on a flood
+                if not link.read():
+                    return
                 self.counters.rejected(bus)
 
         return step
@@ -379,11 +403,13 @@ class BridgeService:
         decoder = CompassDecoder()
 
         def step() -> None:
-            if not link.wait(READ_TIMEOUT_S):
-                return
-            data = link.read()
-            if not data:
-                return
+            for _ in range(64):  # bounded: the loop must not stall on a flood
+                data = link.read()
+                if not data:
+                    return
+                one(data)
+
+        def one(data: bytes) -> None:
             before = (decoder.decoded + decoder.ignored, decoder.rejected)
             if link.is_datagram:
                 decoder.feed_datagram(data)

@@ -232,3 +232,92 @@ def bridge(tmp_path: Path) -> Iterator[Callable[..., BridgeProcess]]:
     yield start
     for handle in started:
         handle.stop()
+
+
+# -- Zenoh client ------------------------------------------------------------------------------
+
+class ZenohWatch:
+    """A Zenoh peer connected to a bridge, keeping every message under its prefix by key."""
+
+    def __init__(self, endpoint: str, prefix: str) -> None:
+        import zenoh
+
+        self.prefix = prefix
+        self._cond = threading.Condition()
+        self.messages: dict[str, list[dict[str, Any]]] = {}
+        config = zenoh.Config()
+        config.insert_json5("mode", '"peer"')
+        config.insert_json5("scouting/multicast/enabled", "false")
+        config.insert_json5("connect/endpoints", json.dumps([endpoint]))
+        self.session = zenoh.open(config)
+        self._sub = self.session.declare_subscriber(f"{prefix}/**", self._on_sample)
+
+    def _on_sample(self, sample: Any) -> None:
+        key = str(sample.key_expr)[len(self.prefix) + 1:]
+        msg = json.loads(sample.payload.to_bytes())
+        with self._cond:
+            self.messages.setdefault(key, []).append(msg)
+            self._cond.notify_all()
+
+    def latest(self, key: str) -> dict[str, Any] | None:
+        with self._cond:
+            got = self.messages.get(key)
+            return got[-1] if got else None
+
+    def wait_for(
+        self, key: str, predicate: Callable[[dict[str, Any]], bool] = lambda m: True,
+        timeout: float = 20.0,
+    ) -> dict[str, Any]:
+        """The first message of ``key`` arriving from now on (or already latest) that satisfies
+        ``predicate``."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            seen = 0
+            got = self.messages.get(key, [])
+            if got and predicate(got[-1]):
+                return got[-1]
+            seen = len(got)
+            while True:
+                got = self.messages.get(key, [])
+                for msg in got[seen:]:
+                    if predicate(msg):
+                        return msg
+                seen = len(got)
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    last = got[-1] if got else None
+                    raise AssertionError(f"no {key} message matched in {timeout} s; last {last}")
+                self._cond.wait(remaining)
+
+    def after(self, key: str, t: float, timeout: float = 20.0) -> dict[str, Any]:
+        """The first ``key`` message with simulation time ``t`` or later."""
+        return self.wait_for(key, lambda m: m["t"] >= t, timeout)
+
+    def query(self, suffix: str, timeout: float = 10.0) -> dict[str, Any]:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            for reply in self.session.get(f"{self.prefix}/{suffix}", timeout=2.0):
+                if reply.ok is not None:
+                    return json.loads(reply.ok.payload.to_bytes())
+            time.sleep(0.1)
+        raise AssertionError(f"no answer to {self.prefix}/{suffix}")
+
+    def close(self) -> None:
+        self._sub.undeclare()
+        self.session.close()
+
+
+@pytest.fixture
+def zenoh_watch() -> Iterator[Callable[[BridgeProcess], ZenohWatch]]:
+    """Factory: ``zenoh_watch(bridge_process)`` -> a connected :class:`ZenohWatch` (closed at
+    teardown)."""
+    opened: list[ZenohWatch] = []
+
+    def connect(b: BridgeProcess) -> ZenohWatch:
+        w = ZenohWatch(b.endpoints["zenoh"]["endpoints"][0], b.prefix)
+        opened.append(w)
+        return w
+
+    yield connect
+    for w in opened:
+        w.close()
