@@ -1,0 +1,211 @@
+"""Camera landmark errors: perception, recognition, distance and bearing (seeds/000 eq. 5–14).
+
+Source: seeds/000_b0d2d08e12d78625.txt, "Cameras". The extracted formulas are garbled; the
+reading below is argued in docs/models.md §Camera. Symbols: ``a`` = viewing angle, the angle
+between the landmark's facing direction and the direction from the landmark to the robot
+(0 = seen head-on); ``d`` = distance robot–landmark.
+
+Perception (miss) probability, eq. 5, 6 and 8 read as::
+
+    P_miss(a, d) = min(1, 4 a^2 / a_max^2 + p_perc + f(d))                      (5)+(8)
+    f(d) = (b^((d - d_min)/(d_max - d_min)) - 1) / (b - 1)   for d_min <= d <= d_max   (6)
+    f(d) = 1                                                 for d < d_min or d > d_max
+
+``b`` = ``distance_base`` (2 in the seed: "exponential at base 2"; Figure 4 compares bases).
+Properties kept from the text: the angle term reaches 1 at ``a = a_max / 2`` (``a_max`` is the
+full opening of the landmark's viewing cone), ``P_miss = p_perc`` at 0° and at near range
+(``d = d_min``), ``P_miss = 1`` at ``d_max`` ("reaches its maximum (1) at the maximum sight
+distance"), and below ``d_min`` the landmark is not perceived ("approximate the error, when the
+landmark is too close, by applying a minimum sight distance"). A huge ``a_max`` (10000°) makes the
+angle term vanish: an omnidirectional landmark. The seed's eq. 7 (a square-root-free
+approximation of eq. 6) is a speed trick with no effect on the distribution; it is not used.
+
+Recognition, eq. 9: "depends on the perception angle and the distance. So we get the same
+distribution": ``P_wrong(a, d) = min(1, 4 a^2/a_max^2 + p_recog + f(d))`` for a perceived landmark;
+a wrong id is drawn uniformly from the *other* ``n - 1`` landmark ids (eq. 9's ``1/n`` would
+include the true id; we draw from the others so that ``p_recog`` is the rate of ids that are
+actually wrong, the quantity one measures). With a single landmark no wrong id exists.
+
+Distance, eq. 10–12::
+
+    d_est = d + eps_near * N(0, 1) + eps_far * |N(0, 1)|       (10)
+    eps_far  = dist * d_mid * 2^((d - d_mid) / far_doubling_m)  (11)
+    eps_near = dist * d                                         (12)
+
+so at ``d = d_mid`` each term is ``+-dist`` (relative) as the seed says; the far term is one-sided
+(half-normal), which is what makes "the estimated mean distance ... highly erroneous" at far range
+while it stays close to the truth for near landmarks (a zero-mean term could not bias the mean).
+Stereo ranging over-estimates far distances (the disparity shrinks towards the noise), hence
+positive.
+
+Bearing, eq. 13–14: the two cameras are approximated by one virtual camera between them (eq. 13
+is that geometry, which the ray geometry here gives directly); eq. 14 "(alpha_C +- random()) *
+alpha_ang" is read as ``bearing_est = bearing + bearing_sigma * N(0, 1)`` ("This again is a
+Gaussian error").
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from sim.models._params import (
+    check_nonnegative,
+    check_positive,
+    check_probability,
+    params_from_dict,
+)
+from sim.schema import ConfigError
+
+
+@dataclass(frozen=True)
+class CameraErrorParams:
+    """``[sensors.camera]`` error-model keys. Distances in m, angles in degrees."""
+
+    ideal: bool = False
+    p_perc: float = 0.01              # eq. 5: miss probability at 0°, near range (Figure 2)
+    p_recog: float = 0.01             # eq. 9: wrong-id probability at 0°, near range
+    d_min_m: float = 0.1              # eq. 6: minimum sight distance
+    d_max_m: float = 3.0              # eq. 6: maximum sight distance (P_miss = 1 there)
+    distance_base: float = 2.0        # eq. 6: "exponential at base 2"
+    dist: float = 0.05                # eq. 10–12: relative distance error (+-dist at d_mid)
+    d_mid_m: float = 1.0              # eq. 11: medium sight distance
+    far_doubling_m: float = 1.0       # eq. 11: distance over which the far error doubles
+    bearing_sigma_deg: float = 2.0    # eq. 14: alpha_ang
+
+    def __post_init__(self) -> None:
+        check_probability(self.p_perc, "p_perc")
+        check_probability(self.p_recog, "p_recog")
+        check_nonnegative(self.d_min_m, "d_min_m")
+        if not self.d_max_m > self.d_min_m:
+            raise ConfigError("'d_max_m' must be > 'd_min_m'")
+        check_positive(self.distance_base, "distance_base")
+        check_nonnegative(self.dist, "dist")
+        check_positive(self.d_mid_m, "d_mid_m")
+        check_positive(self.far_doubling_m, "far_doubling_m")
+        check_nonnegative(self.bearing_sigma_deg, "bearing_sigma_deg")
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], section: str = "sensors.camera") -> CameraErrorParams:
+        return params_from_dict(cls, d, section)
+
+
+def angle_term(a_rad: np.ndarray | float, a_max_rad: np.ndarray | float) -> np.ndarray:
+    """``4 a^2 / a_max^2`` (seeds/000 eq. 5 without p_perc)."""
+    a = np.asarray(a_rad, dtype=float)
+    return 4.0 * a * a / np.asarray(a_max_rad, dtype=float) ** 2
+
+
+def distance_term(d_m: np.ndarray | float, params: CameraErrorParams) -> np.ndarray:
+    """``f(d)`` of seeds/000 eq. 6 as reconstructed: 0 at d_min, 1 at d_max, exponential with base
+    ``distance_base`` in between (linear when the base is 1), 1 outside [d_min, d_max]."""
+    d = np.asarray(d_m, dtype=float)
+    u = (d - params.d_min_m) / (params.d_max_m - params.d_min_m)
+    b = params.distance_base
+    if abs(b - 1.0) < 1e-12:
+        f = u
+    else:
+        f = (np.power(b, np.clip(u, 0.0, 1.0)) - 1.0) / (b - 1.0)
+    return np.where((d < params.d_min_m) | (d > params.d_max_m), 1.0, f)
+
+
+def miss_probability(a_rad: np.ndarray | float, d_m: np.ndarray | float,
+                     a_max_rad: np.ndarray | float, params: CameraErrorParams) -> np.ndarray:
+    """Perception error probability ``P_miss(a, d)`` (seeds/000 eq. 5, 6, 8 as reconstructed)."""
+    p = angle_term(a_rad, a_max_rad) + params.p_perc + distance_term(d_m, params)
+    return np.minimum(1.0, p)
+
+
+def wrong_id_probability(a_rad: np.ndarray | float, d_m: np.ndarray | float,
+                         a_max_rad: np.ndarray | float, params: CameraErrorParams) -> np.ndarray:
+    """Recognition error probability for a perceived landmark (seeds/000 eq. 9 text: "the same
+    distribution" as perception, with base rate ``p_recog``)."""
+    p = angle_term(a_rad, a_max_rad) + params.p_recog + distance_term(d_m, params)
+    return np.minimum(1.0, p)
+
+
+def far_sigma(d_m: np.ndarray | float, params: CameraErrorParams) -> np.ndarray:
+    """``eps_far`` of seeds/000 eq. 11 (m)."""
+    d = np.asarray(d_m, dtype=float)
+    doublings = (d - params.d_mid_m) / params.far_doubling_m
+    return params.dist * params.d_mid_m * np.power(2.0, doublings)
+
+
+def near_sigma(d_m: np.ndarray | float, params: CameraErrorParams) -> np.ndarray:
+    """``eps_near`` of seeds/000 eq. 12 (m)."""
+    return params.dist * np.asarray(d_m, dtype=float)
+
+
+def distance_error_mean(d_m: np.ndarray | float, params: CameraErrorParams) -> np.ndarray:
+    """E[d_est - d] = eps_far * sqrt(2/pi) (mean of the half-normal far term)."""
+    return far_sigma(d_m, params) * math.sqrt(2.0 / math.pi)
+
+
+def distance_error_std(d_m: np.ndarray | float, params: CameraErrorParams) -> np.ndarray:
+    """Std of d_est - d: sqrt(eps_near^2 + eps_far^2 (1 - 2/pi))."""
+    return np.sqrt(near_sigma(d_m, params) ** 2 + far_sigma(d_m, params) ** 2 * (1 - 2 / math.pi))
+
+
+@dataclass(frozen=True)
+class CameraMeasurement:
+    """What the camera reports for the landmarks in its field of view (arrays of equal length)."""
+
+    ids: np.ndarray        # (k,) int, reported ids (possibly wrong)
+    ranges: np.ndarray     # (k,) m
+    bearings: np.ndarray   # (k,) rad, CCW from the robot's heading
+    source: np.ndarray     # (k,) int, index into the input arrays of the landmark seen
+
+
+def measure(
+    ids: np.ndarray,
+    ranges_m: np.ndarray,
+    bearings_rad: np.ndarray,
+    view_angles_rad: np.ndarray,
+    a_max_rad: np.ndarray,
+    all_ids: np.ndarray,
+    params: CameraErrorParams,
+    rng: np.random.Generator,
+) -> CameraMeasurement:
+    """Apply perception, recognition, distance and bearing errors to the landmarks in view.
+
+    Inputs are the noise-free values of the ``m`` landmarks in the field of view (shape ``(m,)``):
+    true ids, ranges, bearings, viewing angles ``a`` (see module doc) and each landmark's
+    ``a_max``; ``all_ids`` are the ids of every landmark in the world (eq. 9's ``n``).
+    Draws a fixed number of variates per landmark in view (6 per landmark), so the stream's use
+    does not depend on the outcomes. ``ideal`` reports every landmark in view unchanged.
+    """
+    ids = np.asarray(ids, dtype=int)
+    m = ids.shape[0]
+    if params.ideal or m == 0:
+        return CameraMeasurement(ids.copy(), np.asarray(ranges_m, float).copy(),
+                                 np.asarray(bearings_rad, float).copy(), np.arange(m))
+    u = rng.random((m, 3))           # miss, wrong id, which wrong id
+    z = rng.standard_normal((m, 3))  # near, far, bearing
+    a = np.abs(np.asarray(view_angles_rad, dtype=float))
+    d = np.asarray(ranges_m, dtype=float)
+    seen = u[:, 0] >= miss_probability(a, d, a_max_rad, params)
+    wrong = u[:, 1] < wrong_id_probability(a, d, a_max_rad, params)
+    out_ids = ids.copy()
+    all_ids = np.asarray(all_ids, dtype=int)
+    if all_ids.shape[0] > 1:
+        for k in np.flatnonzero(wrong):
+            others = all_ids[all_ids != ids[k]]
+            out_ids[k] = others[min(int(u[k, 2] * others.shape[0]), others.shape[0] - 1)]
+    d_est = d + near_sigma(d, params) * z[:, 0] + far_sigma(d, params) * np.abs(z[:, 1])
+    d_est = np.maximum(d_est, 0.0)
+    b_est = np.asarray(bearings_rad, dtype=float) + math.radians(params.bearing_sigma_deg) * z[:, 2]
+    b_est = np.arctan2(np.sin(b_est), np.cos(b_est))
+    idx = np.flatnonzero(seen)
+    return CameraMeasurement(out_ids[idx], d_est[idx], b_est[idx], idx)
+
+
+def viewing_angle(landmark_xy: np.ndarray, facing_rad: np.ndarray, robot_xy: np.ndarray
+                  ) -> np.ndarray:
+    """Angle (rad, in [0, pi]) between each landmark's facing direction and the direction from
+    the landmark to the robot: the ``a`` of seeds/000 eq. 5. ``landmark_xy`` (m, 2)."""
+    v = np.asarray(robot_xy, dtype=float)[None, :] - np.asarray(landmark_xy, dtype=float)
+    ang = np.arctan2(v[:, 1], v[:, 0]) - np.asarray(facing_rad, dtype=float)
+    return np.abs(np.arctan2(np.sin(ang), np.cos(ang)))

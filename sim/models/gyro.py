@@ -1,0 +1,124 @@
+"""Yaw-rate gyroscope error (seeds/000 eq. 15, extended with the Kalibr IMU noise model).
+
+Seed (seeds/000_b0d2d08e12d78625.txt, "Gyroscope"): "a Gaussian error integrated over time"::
+
+    theta_{n+1} = theta_n + (1 +- random() * sigma_Gyroscope) * dtheta_n      (15)
+
+with ``dtheta_n`` "the relative rotation the koala did" in the step. Read: each sample's rotation
+increment is scaled by ``1 + sigma_G * N(0, 1)``, i.e. a random per-sample *scale* error
+(``scale_noise``), which integrates into a heading error whose variance grows with the rotation
+made. As with the drive error, ``scale_noise`` is the per-sample sigma at ``reference_rate_hz``
+and is rescaled at other sample rates (:func:`sim.noise.rate_scaled_sigma`) so the integrated
+error of a given rotation does not depend on the rate.
+
+Beyond the seed, the standard continuous-time IMU noise model of Kalibr (wiki "IMU Noise Model")
+and of the allan-variance tools, so that measured densities can be entered directly::
+
+    omega_m(t) = (1 + s + scale_noise * n_s) * omega(t) + b(t) + n(t)
+    n(t): white, density sigma_g = gyroscope_noise_density        [rad/s/sqrt(Hz)]
+    db/dt = sigma_bg * w(t),  sigma_bg = gyroscope_random_walk   [rad/s^2/sqrt(Hz)]
+
+discretised for a sample interval ``dt`` as Kalibr specifies: white-noise sample sigma
+``sigma_g / sqrt(dt)``; bias increment sigma ``sigma_bg * sqrt(dt)``. The integrated white noise
+is the angle random walk: heading error variance ``sigma_g^2 * T`` after T seconds (grows as
+sqrt(T)). ``b(0)`` is a turn-on bias ``N(0, turn_on_bias_sigma^2)`` drawn at reset; ``s`` a fixed
+scale-factor error. With a finite ``bias_correlation_time_s`` the bias is a Gauss–Markov process
+(Gazebo's IMU noise) with the same short-term walk density.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from sim.models._params import check_nonnegative, check_positive, params_from_dict
+from sim.noise import gauss_markov_step, rate_scaled_sigma
+
+
+@dataclass(frozen=True)
+class GyroErrorParams:
+    """``[sensors.gyro]`` error-model keys (SI units; Kalibr names for the two densities)."""
+
+    ideal: bool = False
+    gyroscope_noise_density: float = 0.0     # rad/s/sqrt(Hz), white noise (ARW)
+    gyroscope_random_walk: float = 0.0       # rad/s^2/sqrt(Hz), bias random walk
+    bias_correlation_time_s: float = math.inf  # inf: pure random walk (Kalibr)
+    turn_on_bias_sigma: float = 0.0          # rad/s, drawn once at reset
+    scale_factor_error: float = 0.0          # fixed relative scale error s
+    scale_noise: float = 0.0                 # seeds/000 eq. 15 sigma_Gyroscope, per sample
+    reference_rate_hz: float = 100.0         # sample rate at which scale_noise is per-sample
+
+    def __post_init__(self) -> None:
+        for name in ("gyroscope_noise_density", "gyroscope_random_walk", "turn_on_bias_sigma",
+                     "scale_noise"):
+            check_nonnegative(getattr(self, name), name)
+        check_positive(self.bias_correlation_time_s, "bias_correlation_time_s")
+        check_positive(self.reference_rate_hz, "reference_rate_hz")
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], section: str = "sensors.gyro") -> GyroErrorParams:
+        return params_from_dict(cls, d, section)
+
+
+@dataclass(frozen=True)
+class GyroState:
+    bias: float  # rad/s
+
+
+def initial_state(params: GyroErrorParams, rng: np.random.Generator) -> GyroState:
+    """Turn-on state: bias ~ N(0, turn_on_bias_sigma^2). Draws one variate (none when ideal)."""
+    if params.ideal:
+        return GyroState(0.0)
+    return GyroState(float(params.turn_on_bias_sigma * rng.standard_normal()))
+
+
+def measure(yaw_rate: float, dt: float, state: GyroState, params: GyroErrorParams,
+            rng: np.random.Generator) -> tuple[float, GyroState]:
+    """One gyro sample: ``(measured yaw rate rad/s, new state)``.
+
+    ``yaw_rate`` is the true mean rate over the sample interval ``dt`` (s). Bias first propagates
+    over ``dt`` (Kalibr order), then the sample is formed. Draws three normals per call.
+    """
+    if params.ideal:
+        return yaw_rate, state
+    z = rng.standard_normal(3)
+    if math.isinf(params.bias_correlation_time_s):
+        bias = state.bias + params.gyroscope_random_walk * math.sqrt(dt) * z[0]
+    else:
+        tau = params.bias_correlation_time_s
+        # Stationary sigma of the Gauss-Markov bias whose short-term walk density is sigma_bg.
+        sigma_ss = params.gyroscope_random_walk * math.sqrt(tau / 2.0)
+        phi = math.exp(-dt / tau)
+        bias = phi * state.bias + sigma_ss * math.sqrt(1.0 - phi * phi) * z[0]
+    s_step = rate_scaled_sigma(params.scale_noise, 1.0 / dt, params.reference_rate_hz)
+    rate = ((1.0 + params.scale_factor_error + s_step * z[1]) * yaw_rate + bias
+            + params.gyroscope_noise_density / math.sqrt(dt) * z[2])
+    return float(rate), GyroState(float(bias))
+
+
+def measure_batch(yaw_rates: np.ndarray, dt: float, bias0: np.ndarray, params: GyroErrorParams,
+                  rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Vectorised samples for ``R`` independent gyros over ``N`` steps (for tests, figures and
+    the bench): ``yaw_rates`` (R, N), ``bias0`` (R,). Returns ``(rates (R, N), biases (R, N))``.
+    Same model as :func:`measure` (not the same draw order)."""
+    r, n = yaw_rates.shape
+    if params.ideal:
+        return yaw_rates.copy(), np.repeat(bias0[:, None], n, axis=1)
+    if math.isinf(params.bias_correlation_time_s):
+        steps = params.gyroscope_random_walk * math.sqrt(dt) * rng.standard_normal((r, n))
+        bias = bias0[:, None] + np.cumsum(steps, axis=1)
+    else:
+        tau = params.bias_correlation_time_s
+        sigma_ss = params.gyroscope_random_walk * math.sqrt(tau / 2.0)
+        bias = np.empty((r, n))
+        b = bias0.astype(float)
+        for k in range(n):
+            b = gauss_markov_step(b, sigma_ss, tau, dt, rng)
+            bias[:, k] = b
+    s_step = rate_scaled_sigma(params.scale_noise, 1.0 / dt, params.reference_rate_hz)
+    scale = 1.0 + params.scale_factor_error + s_step * rng.standard_normal((r, n))
+    white = params.gyroscope_noise_density / math.sqrt(dt) * rng.standard_normal((r, n))
+    return scale * yaw_rates + bias + white, bias

@@ -1,0 +1,132 @@
+"""IR proximity sensors: response curve, beam of several rays, distance error, ambient light.
+
+Sources
+- seeds/004_38ad9834df6871a1.txt "Sensor Models": the Webots Khepera3_DistanceSensor uses
+  ``aperture 0.03`` rad (1.72°) and ``numberOfRays 3``; "IR Sensors have a distance error of
+  +-3.0 %" with the range table 0–5 cm +-0.0, 5 cm +-0.01 cm, 10 cm +-0.04 cm, 30 cm +-0.3 cm,
+  60 cm +-1.25 cm, 100 cm +-3 cm. We read each "+-" as one standard deviation of a Gaussian
+  (the third column of a Webots ``lookupTable`` is a standard deviation), linearly interpolated
+  between rows and held beyond the last (``sim.noise.LookupTable``).
+- Webots reference, DistanceSensor "infra-red": several rays within the aperture, each ray's
+  weight ``exp(-(t_i / (aperture * gaussian_width))^2)`` normalised over the rays (``t_i`` the
+  ray's angle from the axis); the response scaled by the reflectivity of the surface hit.
+
+Model, per sensor with rays ``i``::
+
+    d_i' = d_i + sigma(d_i) * z        (one z per sensor and reading: the table is per reading)
+    c    = sum_i w_i * rho_i * R(d_i')  (R: response table, distance -> counts; rho: reflectivity)
+    c_m  = round(clip(c * (1 - ambient_saturation * A / max_counts) + count_noise_sigma * n,
+                      0, max_counts))
+    A_m  = round(clip(ambient_counts + ambient_noise_counts * n', 0, max_counts))
+
+We average the rays' *responses* (reflected light adds), where Webots averages distances; for a
+flat wall across the beam both agree. ``A`` is the ambient light level; strong ambient light
+narrows the emitter-on/emitter-off difference the Koala measures (``ambient_saturation``).
+The noise-free companion is ``c`` with ``z = n = 0`` and no ambient effect.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from sim.models._params import check_nonnegative, check_positive, params_from_dict
+from sim.noise import LookupTable
+
+
+def _seed004_ir_table() -> LookupTable:
+    # seeds/004 "IR Sensors have a distance error of +-3.0%": [range m, sigma m].
+    return LookupTable.from_rows(
+        [[0.0, 0.0], [0.05, 0.0001], [0.10, 0.0004], [0.30, 0.003], [0.60, 0.0125], [1.00, 0.03]]
+    )
+
+
+def _default_response() -> LookupTable:
+    # Counts for a white wall vs distance (m). Shape of the K-Team proximity response (steep
+    # ~1/d^2 fall, saturated at contact); placeholder until measured with the calibration tool.
+    return LookupTable.from_rows(
+        [[0.0, 1023], [0.02, 1000], [0.04, 800], [0.06, 550], [0.08, 380], [0.10, 260],
+         [0.15, 100], [0.20, 40], [0.30, 10], [0.40, 0]]
+    )
+
+
+@dataclass(frozen=True)
+class IrErrorParams:
+    """``[sensors.ir]`` error-model keys. Distances in m, counts 0..max_counts."""
+
+    ideal: bool = False
+    response: LookupTable = field(default_factory=_default_response)
+    distance_error: LookupTable = field(default_factory=_seed004_ir_table)
+    gaussian_width: float = 1.0        # Webots DistanceSensor.gaussianWidth
+    reflectivity: float = 1.0          # walls' IR reflectivity relative to the response's white
+    count_noise_sigma: float = 0.0     # electrical noise, counts
+    ambient_counts: float = 0.0        # ambient light level A, counts
+    ambient_noise_counts: float = 0.0
+    ambient_saturation: float = 0.0    # proximity loss at full-scale ambient light, fraction
+    max_counts: int = 1023
+
+    def __post_init__(self) -> None:
+        check_positive(self.gaussian_width, "gaussian_width")
+        for name in ("reflectivity", "count_noise_sigma", "ambient_counts", "ambient_noise_counts",
+                     "ambient_saturation"):
+            check_nonnegative(getattr(self, name), name)
+        check_positive(self.max_counts, "max_counts")
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], section: str = "sensors.ir") -> IrErrorParams:
+        return params_from_dict(cls, d, section)
+
+
+def ray_weights(ray_offsets_rad: np.ndarray, gaussian_width: float) -> np.ndarray:
+    """Webots Gaussian ray weights, normalised to sum 1. The aperture is the rays' span."""
+    t = np.asarray(ray_offsets_rad, dtype=float)
+    aperture = float(t.max() - t.min()) if t.shape[0] > 1 else 0.0
+    if aperture <= 0.0:
+        return np.full(t.shape[0], 1.0 / t.shape[0])
+    w = np.exp(-((t / (aperture * gaussian_width)) ** 2))
+    return w / w.sum()
+
+
+def counts_from_distances(ray_dists_m: np.ndarray, weights: np.ndarray,
+                          reflectivity: np.ndarray | float, params: IrErrorParams) -> np.ndarray:
+    """Noise-free response ``sum_i w_i rho_i R(d_i)`` (float counts), ``ray_dists_m`` (n, r);
+    ``inf`` (no hit) gives the table's last value."""
+    d = np.where(np.isfinite(ray_dists_m), ray_dists_m, params.response.x[-1])
+    return (np.asarray(reflectivity) * params.response.value(d)) @ weights
+
+
+def range_noise_sigma(d_m: np.ndarray, params: IrErrorParams) -> np.ndarray:
+    """Distance error sigma (m) at ``d_m`` from the seed-004 table."""
+    return params.distance_error.value(d_m)
+
+
+def measure(ray_dists_m: np.ndarray, ray_offsets_rad: np.ndarray, params: IrErrorParams,
+            rng: np.random.Generator, reflectivity: np.ndarray | float | None = None
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(counts, ambient, truth_counts)`` for ``n`` sensors with ``r`` rays each.
+
+    ``ray_dists_m`` (n, r): distance along each ray to the first surface (``inf``: none within
+    range). ``ray_offsets_rad`` (r,): each ray's angle from the sensor axis. ``reflectivity``
+    overrides ``params.reflectivity`` per sensor/ray. Draws ``3 n`` normals per call.
+    """
+    rho = params.reflectivity if reflectivity is None else reflectivity
+    w = ray_weights(ray_offsets_rad, params.gaussian_width)
+    truth = counts_from_distances(ray_dists_m, w, rho, params)
+    truth_counts = np.clip(np.rint(truth), 0, params.max_counts).astype(int)
+    n = ray_dists_m.shape[0]
+    if params.ideal:
+        amb = np.full(n, int(round(min(params.ambient_counts, params.max_counts))))
+        return truth_counts.copy(), amb, truth_counts
+    z = rng.standard_normal((3, n))
+    finite = np.isfinite(ray_dists_m)
+    d_noisy = np.where(finite, ray_dists_m + range_noise_sigma(np.where(finite, ray_dists_m, 0.0),
+                                                                params) * z[0][:, None], np.inf)
+    c = counts_from_distances(np.maximum(d_noisy, 0.0), w, rho, params)
+    c = c * (1.0 - params.ambient_saturation * min(params.ambient_counts, params.max_counts)
+             / params.max_counts) + params.count_noise_sigma * z[1]
+    counts = np.clip(np.rint(c), 0, params.max_counts).astype(int)
+    amb = params.ambient_counts + params.ambient_noise_counts * z[2]
+    ambient = np.clip(np.rint(amb), 0, params.max_counts).astype(int)
+    return counts, ambient, truth_counts

@@ -1,0 +1,127 @@
+"""Shared noise primitives for the sensor and drive error models of ``sim/models/``.
+
+Pure: every function takes its state, parameters and a ``numpy.random.Generator`` and returns
+arrays; nothing here keeps state or touches a global RNG (docs/architecture.md "Randomness").
+
+Contents
+- :func:`gaussian` — zero-mean white noise of a given standard deviation (array or scalar sigma).
+- :func:`turn_on_bias` — a constant offset drawn once per run (at ``reset``).
+- :func:`random_walk_step` — one step of a Wiener process given a continuous-time density
+  (Kalibr / allan-variance convention: ``sigma * sqrt(dt)``).
+- :func:`gauss_markov_step` — one exactly discretised step of a first-order Gauss–Markov process
+  (Gazebo's ``bias_correlation_time``), which tends to :func:`random_walk_step` as tau -> inf.
+- :class:`LookupTable` — a Webots-style ``[input, output, noise]`` table, linearly interpolated.
+- :func:`rate_scaled_sigma` — rescale a per-step relative error defined at a reference step rate
+  so that the error accumulated over a distance (or angle) does not depend on the step rate.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from sim.schema import ConfigError
+
+ArrayLike = float | np.ndarray
+
+
+def gaussian(rng: np.random.Generator, sigma: ArrayLike, size: int | tuple[int, ...] | None = None
+             ) -> np.ndarray:
+    """Zero-mean Gaussian samples with standard deviation ``sigma`` (broadcast against ``size``)."""
+    sigma_arr = np.asarray(sigma, dtype=float)
+    shape = sigma_arr.shape if size is None else size
+    return sigma_arr * rng.standard_normal(shape)
+
+
+def turn_on_bias(rng: np.random.Generator, sigma: ArrayLike,
+                 size: int | tuple[int, ...] | None = None) -> np.ndarray:
+    """A bias drawn once per power-up: N(0, sigma^2). Same distribution as :func:`gaussian`; the
+    separate name documents that the caller keeps the value for the whole run."""
+    return gaussian(rng, sigma, size)
+
+
+def random_walk_step(x: ArrayLike, density: float, dt: float, rng: np.random.Generator
+                     ) -> np.ndarray:
+    """One step of a random walk ``dx/dt = density * w(t)`` with unit white noise ``w``.
+
+    ``density`` is the continuous-time noise density (e.g. Kalibr ``gyroscope_random_walk`` in
+    rad/s^2/sqrt(Hz)); the discrete increment has standard deviation ``density * sqrt(dt)``, so
+    after time T the walk has variance ``density^2 * T`` whatever ``dt`` is.
+    """
+    x_arr = np.asarray(x, dtype=float)
+    return x_arr + density * math.sqrt(dt) * rng.standard_normal(x_arr.shape)
+
+
+def gauss_markov_step(x: ArrayLike, sigma_ss: float, tau: float, dt: float,
+                      rng: np.random.Generator) -> np.ndarray:
+    """One exact step of the first-order Gauss–Markov process ``dx = -x/tau dt + q dW``.
+
+    ``sigma_ss`` is the stationary standard deviation, ``tau`` the correlation time (s).
+    Exact discretisation: ``x' = phi x + sigma_ss sqrt(1 - phi^2) n`` with ``phi = exp(-dt/tau)``.
+    ``tau = inf`` is rejected: use :func:`random_walk_step` for the undamped walk.
+    """
+    if not (tau > 0 and math.isfinite(tau)):
+        raise ValueError("gauss_markov_step needs a finite tau > 0; use random_walk_step")
+    x_arr = np.asarray(x, dtype=float)
+    phi = math.exp(-dt / tau)
+    return phi * x_arr + sigma_ss * math.sqrt(1.0 - phi * phi) * rng.standard_normal(x_arr.shape)
+
+
+def rate_scaled_sigma(sigma_ref: float, step_hz: float, reference_hz: float) -> float:
+    """Per-step relative standard deviation at ``step_hz`` equivalent to ``sigma_ref`` at
+    ``reference_hz``.
+
+    A relative error ``sigma`` applied independently to each of N steps of size ``D/N`` gives an
+    accumulated variance ``sigma^2 D^2 / N``; keeping it equal at another N requires
+    ``sigma_step = sigma_ref * sqrt(step_hz / reference_hz)``. At ``step_hz == reference_hz`` this
+    is the seed's per-step error as written (seeds/000 "Drive Control": "every time the location
+    changes the error applies").
+    """
+    return sigma_ref * math.sqrt(step_hz / reference_hz)
+
+
+@dataclass(frozen=True)
+class LookupTable:
+    """A piecewise-linear table ``input -> (output, noise)`` in the Webots ``lookupTable`` sense.
+
+    Rows are ``(x, y, noise)`` with strictly increasing ``x``. :meth:`value` and :meth:`noise`
+    interpolate linearly and hold the end rows' values beyond the table (``np.interp``).
+    What ``noise`` means (absolute sigma, relative sigma) is the caller's to say.
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    noise_col: np.ndarray
+
+    @classmethod
+    def from_rows(cls, rows: Sequence[Sequence[float]], section: str = "table") -> LookupTable:
+        """Build from ``[[x, y], ...]`` or ``[[x, y, noise], ...]`` rows (TOML arrays)."""
+        try:
+            arr = np.array([list(map(float, r)) for r in rows], dtype=float)
+        except (TypeError, ValueError) as e:
+            raise ConfigError(f"[{section}] table rows must be numbers, got {rows!r}") from e
+        if arr.ndim != 2 or arr.shape[0] < 2 or arr.shape[1] not in (2, 3):
+            raise ConfigError(f"[{section}] table needs >= 2 rows of [x, y] or [x, y, noise]")
+        if np.any(np.diff(arr[:, 0]) <= 0):
+            raise ConfigError(f"[{section}] table inputs must be strictly increasing")
+        noise = arr[:, 2] if arr.shape[1] == 3 else np.zeros(arr.shape[0])
+        if np.any(noise < 0):
+            raise ConfigError(f"[{section}] table noise must be >= 0")
+        for a in (arr[:, 0], arr[:, 1], noise):
+            a.flags.writeable = False
+        return cls(arr[:, 0].copy(), arr[:, 1].copy(), noise.copy())
+
+    def value(self, x: ArrayLike) -> np.ndarray:
+        """Interpolated output column at ``x``."""
+        return np.interp(x, self.x, self.y)
+
+    def noise(self, x: ArrayLike) -> np.ndarray:
+        """Interpolated noise column at ``x``."""
+        return np.interp(x, self.x, self.noise_col)
+
+    def rows(self) -> list[list[float]]:
+        return [[float(a), float(b), float(c)] for a, b, c in zip(self.x, self.y, self.noise_col,
+                                                                  strict=True)]
