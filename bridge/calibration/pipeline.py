@@ -55,7 +55,8 @@ class StreamResult:
     def effects(self) -> list[EffectInstance]:
         return [inst for inst, _ in self.selection.added]
 
-    def effect_params(self) -> list[dict[str, float]]:
+    def effect_params(self) -> list[tuple[dict[str, float], dict[str, float]]]:
+        """Per added effect: its parameters and their standard errors (fixed ones: none)."""
         sel = self.selection
         params = sel.params_of(sel.after)
         se = parameter_se(self.problem, sel.after)

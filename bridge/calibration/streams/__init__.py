@@ -133,7 +133,7 @@ def build_gyro(
         base_add=model.gyro_bias_rad_s,
         heading_window_s=float(f"{window:.3g}"),
         quantity="yaw rate",
-        integrate_window_s=HEADING_WINDOW_S if source != "truth_pose.theta" else None,
+        integrate_window_s=None if dense else HEADING_WINDOW_S,
         native_keys={"bias": "bias_rad_s", "scale": "scale_error"},
         declared_values={"bias": model.gyro_bias_rad_s, "scale": model.gyro_scale_error},
     )
