@@ -111,11 +111,12 @@ def build_gyro(
     extras = _extras(table, {"t", "yaw_rate"})
     split = Split.of(t)
     window = min(HEADING_WINDOW_S, (split.t2 - split.t1) / 4)
+    dense = source == "truth_pose.theta"
     problem = ScalarProblem(
         "gyro",
         "scalar",
-        "rms_rate_error",
-        "rad/s",
+        "rms_rate_error" if dense else f"heading_error_{HEADING_WINDOW_S:g}s_window_rms",
+        "rad/s" if dense else "rad",
         "sensors.gyro",
         split,
         t=t,
@@ -131,7 +132,7 @@ def build_gyro(
         reference=ref_series,
         base_gain=1.0 + model.gyro_scale_error,
         base_add=model.gyro_bias_rad_s,
-        heading_window_s=float(f"{window:.3g}"),
+        heading_window_s=float(f"{window:.3g}") if dense else None,
         quantity="yaw rate",
         integrate_window_s=None if dense else HEADING_WINDOW_S,
         native_keys={"bias": "bias_rad_s", "scale": "scale_error"},
