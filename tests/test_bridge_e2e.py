@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
 
 import can
 import cantools
@@ -257,7 +256,3 @@ def test_signals_stop_cleanly(bridge, signame: str) -> None:
     assert os.path.exists(kteam_path)
     assert b.stop(getattr(signal, signame)) == 0
     assert "Traceback" not in b.log()
-
-
-def _unused(_: Callable[..., object]) -> None:  # keep the import of Callable for type hints
-    return None
