@@ -73,10 +73,11 @@ class StreamResult:
             entry: dict[str, float] = {
                 n: float(f"{v:.6g}") for n, v in zip(inst.param_names, p, strict=True)
             }
+            errs: dict[str, float] = {}
             if inst.name in offsets:
                 for j, n in enumerate(inst.param_names):
-                    entry[f"{n}_se"] = float(f"{se[offsets[inst.name] + j]:.3g}")
-            out.append(entry)
+                    errs[n] = float(f"{se[offsets[inst.name] + j]:.3g}")
+            out.append((entry, errs))
         return out
 
 
