@@ -1,0 +1,181 @@
+"""Replay a recording's raw bus frames on the buses, with their original timing.
+
+Puts back what the robot sent, recorded by `run --record` (simulated or real robot): range frames
+on the rangefinders pty, CAN frames on socketcand/slcan/virtual, MAVLink on its UDP/TCP/pty link,
+each at its recorded time (or --speed times faster). K-Team commands are answered with the
+recorded reply to the same letter at the current replay time. The buses are those of the
+recording's configuration (`--config` replaces it, `--set` overrides a key), and the start banner
+and --endpoints-file say where clients connect, as for `run`. A recording that cannot be replayed
+(other format version, no bus channel) is refused with the reason.
+
+examples:
+  koala-bridge replay /tmp/run.mcap
+  koala-bridge replay /tmp/run.mcap --speed 4 --endpoints-file /tmp/replay.json
+  koala-bridge replay /tmp/run.mcap --wait-clients 30 --set buses.mavlink.port=14551
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from types import FrameType
+
+log = logging.getLogger(__name__)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("recording", metavar="FILE.mcap", help="a recording of `run --record`")
+    parser.add_argument(
+        "--speed",
+        type=float,
+        default=1.0,
+        metavar="X",
+        help="replay X times faster than recorded (default: 1, real time)",
+    )
+    parser.add_argument(
+        "--config",
+        type=Path,
+        help="take [buses] from this TOML file instead of the recording's configuration",
+    )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        dest="overrides",
+        help="override a config key, e.g. --set buses.mavlink.port=14551 (repeatable)",
+    )
+    parser.add_argument(
+        "--endpoints-file",
+        type=Path,
+        metavar="F",
+        help="write where clients connect, as JSON, to F (as `run` does)",
+    )
+    parser.add_argument(
+        "--bus",
+        action="append",
+        dest="buses",
+        metavar="BUS",
+        choices=("serial/kteam", "serial/rangefinders", "can", "mavlink"),
+        help="replay only this bus (repeatable; default: every recorded bus)",
+    )
+    parser.add_argument(
+        "--linger",
+        type=float,
+        default=0.5,
+        metavar="S",
+        help="keep the buses open S seconds after the last frame (default: 0.5)",
+    )
+    parser.add_argument(
+        "--wait-clients",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="before starting, wait up to S seconds for a client on each pty/TCP/socketcand bus",
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    from bridge.buses import open_buses
+    from bridge.config import (
+        BridgeSettings,
+        ConfigError,
+        apply_override,
+        load_config,
+        parse_override,
+    )
+    from bridge.endpoints import write_endpoints_file
+    from bridge.recording import RecordingError, open_recording
+    from bridge.replay import Replayer, endpoints_of, plan_replay
+
+    try:
+        rec = open_recording(args.recording)
+        plan = plan_replay(rec, tuple(args.buses) if args.buses else None)
+    except RecordingError as e:
+        print(f"koala-bridge replay: cannot replay: {e}", file=sys.stderr)
+        return 2
+    try:
+        if args.config is not None:
+            config = load_config(args.config)
+        else:
+            text = rec.metadata.get("koala-bridge", {}).get("config")
+            config = json.loads(text) if text else load_config("config/default.toml")
+        for o in args.overrides:
+            config = apply_override(config, *parse_override(o))
+        settings = BridgeSettings.from_config(config)
+        replayer_speed = float(args.speed)
+        if not replayer_speed > 0:
+            raise ConfigError(f"--speed must be > 0, got {args.speed}")
+    except (ConfigError, ValueError) as e:
+        print(f"koala-bridge replay: configuration error: {e}", file=sys.stderr)
+        return 2
+
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        stop.set()
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    buses = None
+    try:
+        try:
+            buses = open_buses(settings.buses)
+        except OSError as e:
+            print(f"koala-bridge replay: {e}", file=sys.stderr)
+            return 1
+        endpoints = endpoints_of(buses, settings)
+        print(endpoints.describe(), flush=True)
+        if args.endpoints_file:
+            print(
+                f"  Endpoints file          {write_endpoints_file(args.endpoints_file, endpoints)}"
+            )
+        counts = ", ".join(f"{b} {n}" for b, n in sorted(plan.counts.items()))
+        span = plan.t_end - plan.t0
+        print(
+            f"Replaying {rec.path.name}: {counts} frames over {span:.3f} s at speed "
+            f"{replayer_speed:g}.",
+            flush=True,
+        )
+        if args.wait_clients > 0:
+            _wait_clients(buses, plan.counts, args.wait_clients, stop)
+        replayer = Replayer(plan, buses, speed=replayer_speed, linger_s=max(0.0, args.linger))
+        stats = replayer.run(stop)
+        sent = ", ".join(f"{b} {n}" for b, n in sorted(stats.sent.items()))
+        p99 = stats.lateness_quantile(0.99) * 1e3
+        print(
+            f"Replay {'stopped' if stats.stopped_early else 'done'}: sent {sent}; "
+            f"K-Team answers {stats.kteam_answered}; lateness p99 {p99:.3f} ms.",
+            flush=True,
+        )
+    finally:
+        if buses is not None:
+            buses.close()
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    return 0
+
+
+def _wait_clients(buses, counts, timeout: float, stop: threading.Event) -> None:  # type: ignore[no-untyped-def]
+    """Wait until every connection-oriented bus to be replayed has a client (or timeout)."""
+    links = []
+    if "serial/rangefinders" in counts and buses.rangefinders is not None:
+        links.append(("rangefinders", buses.rangefinders))
+    if "serial/kteam" in counts and buses.kteam is not None:
+        links.append(("kteam", buses.kteam))
+    if "mavlink" in counts and buses.mavlink is not None and not buses.mavlink.is_datagram:
+        links.append(("mavlink", buses.mavlink))
+    if "can" in counts:
+        links += [(n, t) for n, t in buses.can.items() if n in ("can.socketcand", "can.slcan")]
+    deadline = time.monotonic() + timeout
+    waiting = [n for n, link in links if link.stats.clients == 0]
+    while waiting and time.monotonic() < deadline and not stop.is_set():
+        time.sleep(0.02)
+        waiting = [n for n, link in links if link.stats.clients == 0]
+    if waiting:
+        log.warning("no client on %s after %.1f s: starting anyway", ", ".join(waiting), timeout)
