@@ -61,6 +61,18 @@ class SegmentSet:
     def __len__(self) -> int:
         return int(self.segments.shape[0])
 
+    def subset(self, mask: np.ndarray) -> SegmentSet:
+        """The segments selected by a boolean ``(M,)`` mask (indices renumbered)."""
+        return SegmentSet(
+            segments=self.segments[mask],
+            ax=self.ax[:, mask],
+            ay=self.ay[:, mask],
+            ex=self.ex[:, mask],
+            ey=self.ey[:, mask],
+            inv_len=self.inv_len[mask],
+            inv_len2=self.inv_len2[mask],
+        )
+
 
 def merge_collinear(segments: np.ndarray) -> np.ndarray:
     """Join horizontal and vertical segments that lie on one line and touch or overlap.
@@ -134,25 +146,21 @@ def cast_rays(
     oy_ = oy[:, None]
     dx_ = dx[:, None]
     dy_ = dy[:, None]
-    wx = walls.ax - ox_                      # (R, M)
-    wy = walls.ay - oy_
-    den = dx_ * walls.ey - dy_ * walls.ex    # d x e
-    t_num = wx * walls.ey - wy * walls.ex    # (a - o) x e
-    u_num = wx * dy_ - wy * dx_              # (a - o) x d
-    # Compare without dividing: multiply by sign(den) so the valid region is den' > 0.
-    sgn = np.sign(den)
-    t_num *= sgn
-    u_num *= sgn
-    aden = np.abs(den)
-    valid = (aden > 1e-15) & (t_num >= 0.0) & (u_num >= 0.0) & (u_num <= aden)
     with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(valid, t_num / aden, np.inf)
-    idx = np.argmin(t, axis=1)
+        den = dx_ * walls.ey - dy_ * walls.ex    # d x e, (R, M)
+        wx = walls.ax - ox_
+        wy = walls.ay - oy_
+        inv = 1.0 / den                          # parallel rays: +-inf, then t, u are inf/nan
+        t = (wx * walls.ey - wy * walls.ex) * inv
+        u = (wx * dy_ - wy * dx_) * inv
+        # Misses: behind the origin, off either end of the segment, or parallel (nan).
+        t[~((t >= 0.0) & (u >= 0.0) & (u <= 1.0))] = np.inf
+    idx = t.argmin(axis=1)
     rows = np.arange(r)
     rng = t[rows, idx]
     hit = (rng <= max_range) & (rng < np.inf)
-    rng = np.where(hit, rng, np.inf)
-    cos_inc = np.minimum(aden[rows, idx] * walls.inv_len[idx], 1.0)
+    rng[~hit] = np.inf
+    cos_inc = np.minimum(np.abs(den[rows, idx]) * walls.inv_len[idx], 1.0)
     incidence = np.where(hit, np.arccos(cos_inc), np.nan)
     index = np.where(hit, idx, -1)
     return RayHits(rng, index, incidence)

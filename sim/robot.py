@@ -60,6 +60,10 @@ class RobotState:
     right_speed: float
     yaw_rate: float             # mean yaw rate over the last step, rad/s
     collided: bool = False
+    # Lower bound of (distance from the centre to the nearest wall - body radius), m; -inf when
+    # unknown. Distance to a set is 1-Lipschitz, so after a displacement of length L the bound
+    # drops by at most L: while it exceeds the next step's length no wall test is needed.
+    clearance: float = -math.inf
 
     @classmethod
     def at(cls, x: float, y: float, theta: float) -> RobotState:
@@ -145,36 +149,24 @@ def step(
 
     radius = params.body_radius_m
     length = math.hypot(motion.dx_b, motion.dy_b)
-    n_sub = max(1, math.ceil(length / (0.5 * radius)))
-    done = 0.0          # fraction of the motion completed
     collided = False
-    x, y, heading = state.x, state.y, state.heading
-    if length > 0.0 and len(walls):
-        for i in range(1, n_sub + 1):
-            d_old = point_segment_distances(walls, x, y)
-            frac = i / n_sub
-            nx, ny, nh = _pose_after(state, motion, frac)
-            if not _blocked(walls, d_old, nx, ny, radius):
-                x, y, heading, done = nx, ny, nh, frac
-                continue
-            # Bisection for the last safe fraction within this sub-step.
-            lo, hi = done, frac
-            for _ in range(30):
-                mid = 0.5 * (lo + hi)
-                mx, my, _mh = _pose_after(state, motion, mid)
-                if _blocked(walls, d_old, mx, my, radius):
-                    hi = mid
-                else:
-                    lo = mid
-                if (hi - lo) * length < 1e-7:   # 0.1 um
-                    break
-            x, y, heading = _pose_after(state, motion, lo)
-            done = lo
-            collided = True
-            break
-    else:
+    clearance = state.clearance
+    if length == 0.0 or len(walls) == 0:
         x, y, heading = _pose_after(state, motion, 1.0)
         done = 1.0
+    else:
+        if clearance <= length:
+            d_start = point_segment_distances(walls, state.x, state.y)
+            clearance = float(d_start.min()) - radius
+        if clearance > length:
+            # Free space: no wall within reach of this step (the common case).
+            x, y, heading = _pose_after(state, motion, 1.0)
+            done = 1.0
+            clearance -= length
+        else:
+            x, y, heading, done, collided = _move_near_walls(state, motion, length, radius,
+                                                             walls, d_start)
+            clearance = -math.inf
     left_m = motion.left_m * done
     right_m = motion.right_m * done
     dheading = heading - state.heading
@@ -189,4 +181,47 @@ def step(
         right_speed=right_m / dt,
         yaw_rate=dheading / dt,
         collided=collided,
+        clearance=clearance,
     )
+
+
+def _move_near_walls(
+    state: RobotState,
+    motion: Motion,
+    length: float,
+    radius: float,
+    walls: SegmentSet,
+    d_start: np.ndarray,
+) -> tuple[float, float, float, float, bool]:
+    """Sub-stepped move with wall tests (module docstring). Returns x, y, heading, the fraction
+    of the motion done, and whether a wall stopped it."""
+    # Only walls within reach of this step matter.
+    near = d_start <= radius + length + 1e-9
+    sub = walls.subset(near)
+    d_old = d_start[near]
+    n_sub = max(1, math.ceil(length / (0.5 * radius)))
+    x, y, heading, done = state.x, state.y, state.heading, 0.0
+    for i in range(1, n_sub + 1):
+        frac = i / n_sub
+        nx, ny, nh = _pose_after(state, motion, frac)
+        if not _blocked(sub, d_old, nx, ny, radius):
+            x, y, heading, done = nx, ny, nh, frac
+            d_old = point_segment_distances(sub, x, y)
+            continue
+        # Bisection for the last safe fraction within this sub-step. Pushing against a wall
+        # already touched is the common case: test the smallest step first.
+        lo, hi = done, frac
+        eps = 1e-7 / length
+        mx, my, _mh = _pose_after(state, motion, lo + eps)
+        if _blocked(sub, d_old, mx, my, radius):
+            hi = lo
+        while (hi - lo) * length > 1e-7:    # 0.1 um
+            mid = 0.5 * (lo + hi)
+            mx, my, _mh = _pose_after(state, motion, mid)
+            if _blocked(sub, d_old, mx, my, radius):
+                hi = mid
+            else:
+                lo = mid
+        x, y, heading = _pose_after(state, motion, lo)
+        return x, y, heading, lo, True
+    return x, y, heading, done, False

@@ -33,6 +33,7 @@ from sim.schema import ConfigError
 from sim.sensors.base import ErrorModelFactory
 from sim.sensors.camera import CameraSensor
 from sim.sensors.compass import CompassSensor
+from sim.sensors.fan import RayFan
 from sim.sensors.encoders import EncoderSensor
 from sim.sensors.gyro import GyroSensor
 from sim.sensors.ir import IrSensor
@@ -184,37 +185,56 @@ class Simulator:
         self.compass = CompassSensor(s.compass, self.world, self._make("compass", s.compass))
         self.camera = CameraSensor(s.camera, self.world, self.walls,
                                    self._make("camera", s.camera))
+        self._fans: dict[tuple[bool, bool], tuple[RayFan, np.ndarray, int]] = {}
 
     def _due(self, name: str) -> bool:
         return self._k % self.periods[name] == 0
+
+    def _fan_for(self, ir_due: bool, sonar_due: bool) -> tuple[RayFan, np.ndarray, int]:
+        """The rays of the range sensors due at a step as one fan (cached per combination)."""
+        key = (ir_due, sonar_due)
+        got = self._fans.get(key)
+        if got is None:
+            fans = ([self.ir.fan] if ir_due else []) + ([self.sonar.fan] if sonar_due else [])
+            maxr = ([np.full(self.ir.fan.size, self.ir.max_range_m)] if ir_due else []) + (
+                [np.full(self.sonar.fan.size, self.sonar.max_range_m)] if sonar_due else [])
+            fan = RayFan.concat(fans)
+            got = (fan, np.concatenate(maxr), self.ir.fan.size if ir_due else 0)
+            self._fans[key] = got
+        return got
 
     def _readings(self, st: RobotState) -> Readings:
         rngs = self._rngs
         ir_due = self._due("ir")
         sonar_due = self._due("sonar")
-        ir = sonar = None
-        if ir_due or sonar_due:
-            fans = []
+        cand = self.camera.candidates(st) if self._due("camera") else None
+        n_los = len(cand.index) if cand is not None else 0
+        ir = sonar = camera = None
+        if ir_due or sonar_due or n_los:
+            # One cast for every ray of this step: IR, then sonar, then camera lines of sight.
+            if ir_due or sonar_due:
+                fan, maxr, n_ir = self._fan_for(ir_due, sonar_due)
+                ox, oy, dx, dy = fan.world_rays(st.x, st.y, st.theta)
+                n_range = fan.size
+                if n_los and cand is not None:
+                    ox = np.concatenate((ox, cand.ox))
+                    oy = np.concatenate((oy, cand.oy))
+                    dx = np.concatenate((dx, cand.dx))
+                    dy = np.concatenate((dy, cand.dy))
+                    maxr = np.concatenate((maxr, cand.max_range))
+            else:
+                assert cand is not None
+                ox, oy, dx, dy, maxr = cand.ox, cand.oy, cand.dx, cand.dy, cand.max_range
+                n_ir = n_range = 0
+            hits = cast_rays(self.walls, ox, oy, dx, dy, maxr)
             if ir_due:
-                fans.append((self.ir.fan, self.ir.max_range_m))
-            if sonar_due:
-                fans.append((self.sonar.fan, self.sonar.max_range_m))
-            parts = [f.world_rays(st.x, st.y, st.theta) for f, _ in fans]
-            if len(parts) == 1:
-                ox, oy, dx, dy = parts[0]
-                max_r: float | np.ndarray = fans[0][1]
-            else:
-                ox, oy, dx, dy = (np.concatenate(a) for a in zip(*parts, strict=True))
-                max_r = np.concatenate([np.full(f.size, m) for f, m in fans])
-            hits = cast_rays(self.walls, ox, oy, dx, dy, max_r)
-            if ir_due and sonar_due:
-                n_ir = self.ir.fan.size
                 ir = self.ir.measure(_slice(hits, 0, n_ir), rngs["ir"])
-                sonar = self.sonar.measure(_slice(hits, n_ir, None), rngs["sonar"])
-            elif ir_due:
-                ir = self.ir.measure(hits, rngs["ir"])
-            else:
-                sonar = self.sonar.measure(hits, rngs["sonar"])
+            if sonar_due:
+                sonar = self.sonar.measure(_slice(hits, n_ir, n_range), rngs["sonar"])
+            if cand is not None:
+                camera = self.camera.measure_from(cand, hits.index[n_range:] >= 0, rngs["camera"])
+        elif cand is not None:
+            camera = self.camera.measure_from(cand, np.zeros(0, dtype=bool), rngs["camera"])
         t = self.t
         return Readings(
             t=t,
@@ -225,7 +245,7 @@ class Simulator:
             odometry=self.encoders.measure(st, rngs["encoders"]) if self._due("encoders") else None,
             gyro=self.gyro.measure(st, t, rngs["gyro"]) if self._due("gyro") else None,
             compass=self.compass.measure(st, rngs["compass"]) if self._due("compass") else None,
-            camera=self.camera.measure(st, rngs["camera"]) if self._due("camera") else None,
+            camera=camera,
             collided=st.collided,
         )
 

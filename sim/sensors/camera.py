@@ -1,14 +1,20 @@
 """Camera landmark observations: (id, range, bearing) of every landmark in view.
 
-Truth (pure, :func:`camera_truth`): the camera sits at ``[sensors.camera] pose`` in the body frame.
-A landmark is in view when its range from the camera lies within ``[min_range_m, max_range_m]``,
-its direction lies within ``fov_deg / 2`` of the camera axis, and no wall crosses the line of sight
-(:func:`sim.raycast.first_hit_before`). Range is measured from the camera; bearing is CCW from the
-robot's heading (radians, wrapped to (-pi, pi]). Observations are ordered by landmark id.
+Truth (pure): the camera sits at ``[sensors.camera] pose`` in the body frame. A landmark is in view
+when its range from the camera lies within ``[min_range_m, max_range_m]``, its direction lies
+within ``fov_deg / 2`` of the camera axis, and no wall crosses the line of sight. Range is
+measured from the camera; bearing is CCW from the robot's heading (radians, wrapped to
+(-pi, pi]). Observations are ordered by landmark id.
 
-Seam: ``CameraSensor.measure(state, rng)``; an error model (issue 3, seeds/000 eq. 5-14:
-perception miss vs viewing angle and distance, recognition error, distance and angular errors)
-gets :class:`CameraTruth`: the visible landmarks with, for each, the viewing angle (between the
+Two steps, so that the simulator can put the line-of-sight rays into the same ray cast as the
+range sensors: :meth:`CameraSensor.candidates` (field of view and range, scalar Python: worlds
+hold few landmarks) returns :class:`CameraCandidates` with one line-of-sight ray per candidate;
+:meth:`CameraSensor.measure_from` takes which of them a wall blocks. :meth:`CameraSensor.measure`
+does both with its own cast.
+
+Seam: with ``ideal = false`` an error model (issue 3, seeds/000 eq. 5-14: perception miss vs
+viewing angle and distance, recognition error, distance and angular errors) gets
+:class:`CameraTruth`: the visible landmarks with, for each, the viewing angle (between the
 landmark's facing direction and the direction from the landmark to the camera), its ``a_max``,
 and the ids of all landmarks of the world (to draw a wrong id from).
 """
@@ -21,11 +27,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from sim.config import CameraConfig
-from sim.raycast import SegmentSet, first_hit_before
-from sim.robot import RobotState
+from sim.raycast import SegmentSet, cast_rays
+from sim.robot import RobotState, wrap_angle
 from sim.sensors.base import ErrorModel
 from sim.types import CameraReading, LandmarkObservation
 from sim.world import World
+
+# A landmark on a wall is not hidden by that wall: the sight line stops this short of it.
+LOS_TOLERANCE_M = 1e-9
 
 
 @dataclass(frozen=True)
@@ -36,8 +45,19 @@ class CameraTruth:
     all_ids: tuple[int, ...]                         # every landmark id of the world
 
 
-def _wrap(a: np.ndarray) -> np.ndarray:
-    return np.pi - np.mod(np.pi - a, 2.0 * np.pi)
+@dataclass(frozen=True)
+class CameraCandidates:
+    """Landmarks within range and field of view, before the line-of-sight test."""
+
+    index: tuple[int, ...]          # into the sensor's landmark list (sorted by id)
+    range: tuple[float, ...]
+    bearing: tuple[float, ...]
+    viewing: tuple[float, ...]
+    ox: np.ndarray                  # (c,) line-of-sight rays: camera -> landmark
+    oy: np.ndarray
+    dx: np.ndarray
+    dy: np.ndarray
+    max_range: np.ndarray
 
 
 class CameraSensor:
@@ -55,37 +75,70 @@ class CameraSensor:
         self.walls = walls
         lms = sorted(world.landmarks, key=lambda lm: lm.id)
         self.ids = tuple(lm.id for lm in lms)
-        self.lx = np.array([lm.x for lm in lms], dtype=float)
-        self.ly = np.array([lm.y for lm in lms], dtype=float)
-        self.facing = np.radians([lm.facing_deg for lm in lms]).astype(float)
-        self.a_max = np.radians([lm.a_max_deg for lm in lms]).astype(float)
+        self.landmarks = tuple((lm.x, lm.y, math.radians(lm.facing_deg),
+                                math.radians(lm.a_max_deg)) for lm in lms)
         self.half_fov = math.radians(params.fov_deg) / 2.0
 
-    def truth(self, state: RobotState) -> CameraTruth:
+    def candidates(self, state: RobotState) -> CameraCandidates:
         p = self.params
-        if not self.ids:
-            return CameraTruth((), np.zeros(0), np.zeros(0), ())
         c, s = math.cos(state.theta), math.sin(state.theta)
         cx = state.x + c * p.pose[0] - s * p.pose[1]
         cy = state.y + s * p.pose[0] + c * p.pose[1]
-        vx = self.lx - cx
-        vy = self.ly - cy
-        rng = np.hypot(vx, vy)
-        bearing = _wrap(np.arctan2(vy, vx) - state.theta)
-        off_axis = _wrap(bearing - p.pose[2])
-        cand = (rng >= p.min_range_m) & (rng <= p.max_range_m) & (np.abs(off_axis) <= self.half_fov)
-        idx = np.nonzero(cand)[0]
-        if idx.size:
-            n = idx.size
-            blocked = first_hit_before(self.walls, np.full(n, cx), np.full(n, cy),
-                                       self.lx[idx], self.ly[idx])
-            idx = idx[~blocked]
-        obs = tuple(LandmarkObservation(self.ids[i], float(rng[i]), float(bearing[i])) for i in idx)
-        viewing = _wrap(np.arctan2(-vy[idx], -vx[idx]) - self.facing[idx])
-        return CameraTruth(obs, viewing, self.a_max[idx], self.ids)
+        idx: list[int] = []
+        rngs: list[float] = []
+        bearings: list[float] = []
+        viewing: list[float] = []
+        dxs: list[float] = []
+        dys: list[float] = []
+        for i, (lx, ly, facing, _a_max) in enumerate(self.landmarks):
+            vx = lx - cx
+            vy = ly - cy
+            d = math.hypot(vx, vy)
+            if not (p.min_range_m <= d <= p.max_range_m) or d == 0.0:
+                continue
+            direction = math.atan2(vy, vx)
+            bearing = wrap_angle(direction - state.theta)
+            if abs(wrap_angle(bearing - p.pose[2])) > self.half_fov:
+                continue
+            idx.append(i)
+            rngs.append(d)
+            bearings.append(bearing)
+            viewing.append(wrap_angle(direction + math.pi - facing))
+            dxs.append(vx / d)
+            dys.append(vy / d)
+        n = len(idx)
+        return CameraCandidates(
+            tuple(idx), tuple(rngs), tuple(bearings), tuple(viewing),
+            np.full(n, cx), np.full(n, cy), np.array(dxs), np.array(dys),
+            np.array(rngs) - LOS_TOLERANCE_M,
+        )
 
-    def measure(self, state: RobotState, rng: np.random.Generator) -> CameraReading:
-        truth = self.truth(state)
+    def truth_from(self, cand: CameraCandidates, blocked: np.ndarray) -> CameraTruth:
+        obs = []
+        viewing = []
+        a_max = []
+        for j, i in enumerate(cand.index):
+            if blocked[j]:
+                continue
+            obs.append(LandmarkObservation(self.ids[i], cand.range[j], cand.bearing[j]))
+            viewing.append(cand.viewing[j])
+            a_max.append(self.landmarks[i][3])
+        return CameraTruth(tuple(obs), np.array(viewing), np.array(a_max), self.ids)
+
+    def measure_from(
+        self, cand: CameraCandidates, blocked: np.ndarray, rng: np.random.Generator
+    ) -> CameraReading:
+        """Reading given which candidates' lines of sight a wall blocks (``(c,)`` bool)."""
+        truth = self.truth_from(cand, blocked)
         if self.error_model is None:
             return CameraReading(truth.observations, truth.observations)
         return self.error_model.measure(truth, rng)
+
+    def measure(self, state: RobotState, rng: np.random.Generator) -> CameraReading:
+        cand = self.candidates(state)
+        if cand.index:
+            hits = cast_rays(self.walls, cand.ox, cand.oy, cand.dx, cand.dy, cand.max_range)
+            blocked = hits.index >= 0
+        else:
+            blocked = np.zeros(0, dtype=bool)
+        return self.measure_from(cand, blocked, rng)

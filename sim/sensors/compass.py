@@ -41,30 +41,35 @@ class CompassTruth:
 def field_world(
     x: float,
     y: float,
-    earth_uT: np.ndarray,
-    sources_xy: np.ndarray,
-    strengths_uT: np.ndarray,
+    earth_uT: tuple[float, float, float],
+    sources: tuple[tuple[float, float, float], ...],
     min_distance_m: float,
-) -> np.ndarray:
-    """World-frame field at ``(x, y)``: Earth ``(3,)`` + sources ``(n, 2)`` of ``(n,)`` strengths."""
-    b = earth_uT.copy()
-    if strengths_uT.size:
-        vx = sources_xy[:, 0] - x
-        vy = sources_xy[:, 1] - y
-        d = np.maximum(np.hypot(vx, vy), min_distance_m)
-        mag = strengths_uT / (d * d)
-        # Unit vector towards the source; at (clamped) zero distance there is no direction.
-        dist = np.hypot(vx, vy)
-        safe = np.where(dist > 0, dist, 1.0)
-        b[0] += float(np.sum(mag * vx / safe))
-        b[1] += float(np.sum(mag * vy / safe))
-    return b
+) -> tuple[float, float, float]:
+    """World-frame field at ``(x, y)``: Earth ``(bx, by, bz)`` plus sources ``(sx, sy, strength)``.
+
+    Scalar Python on purpose: worlds hold a handful of sources, and a loop over them is several
+    times faster than numpy calls on arrays that small.
+    """
+    bx, by, bz = earth_uT
+    for sx, sy, strength in sources:
+        vx = sx - x
+        vy = sy - y
+        dist = math.hypot(vx, vy)
+        if dist == 0.0:
+            continue            # on top of the source: no direction (clamped magnitude undefined)
+        d = max(dist, min_distance_m)
+        k = strength / (d * d) / dist
+        bx += k * vx
+        by += k * vy
+    return (bx, by, bz)
 
 
-def field_body(b_world: np.ndarray, theta: float) -> np.ndarray:
+def field_body(b_world: tuple[float, float, float], theta: float) -> np.ndarray:
+    """Rotate a world-frame field into the body frame FLU (module docstring)."""
     c = math.cos(theta)
     s = math.sin(theta)
-    return np.array([c * b_world[0] + s * b_world[1], -s * b_world[0] + c * b_world[1], b_world[2]])
+    return np.array([c * b_world[0] + s * b_world[1], -s * b_world[0] + c * b_world[1],
+                     b_world[2]])
 
 
 class CompassSensor:
@@ -78,15 +83,14 @@ class CompassSensor:
     ) -> None:
         self.params = params
         self.error_model = None if params.ideal else error_model
-        self.earth = world.earth_field.vector_world()
-        self.sources_xy = np.array([[m.x, m.y] for m in world.magnetic_sources],
-                                   dtype=float).reshape(-1, 2)
-        self.strengths = np.array([m.strength_uT for m in world.magnetic_sources], dtype=float)
+        e = world.earth_field.vector_world()
+        self.earth = (float(e[0]), float(e[1]), float(e[2]))
+        self.sources = tuple((m.x, m.y, m.strength_uT) for m in world.magnetic_sources)
 
     def truth(self, state: RobotState) -> CompassTruth:
-        bw = field_world(state.x, state.y, self.earth, self.sources_xy, self.strengths,
+        bw = field_world(state.x, state.y, self.earth, self.sources,
                          self.params.min_source_distance_m)
-        return CompassTruth(field_body(bw, state.theta), bw, state.theta,
+        return CompassTruth(field_body(bw, state.theta), np.array(bw), state.theta,
                             state.left_speed, state.right_speed)
 
     def measure(self, state: RobotState, rng: np.random.Generator) -> CompassReading:

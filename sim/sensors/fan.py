@@ -32,6 +32,14 @@ class RayFan:
         ba = (poses[:, 2][:, None] + off[None, :]).reshape(-1)
         return cls(bx, by, ba, int(poses.shape[0]), int(rays))
 
+    @staticmethod
+    def concat(fans: list[RayFan]) -> RayFan:
+        """Several fans as one (for a single transform and cast); ``n``/``k`` of the first."""
+        if len(fans) == 1:
+            return fans[0]
+        return RayFan(np.concatenate([f.bx for f in fans]), np.concatenate([f.by for f in fans]),
+                      np.concatenate([f.ba for f in fans]), fans[0].n, fans[0].k)
+
     def world_rays(
         self, x: float, y: float, theta: float
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -45,4 +53,4 @@ class RayFan:
 
     @property
     def size(self) -> int:
-        return self.n * self.k
+        return int(self.bx.shape[0])

@@ -45,9 +45,9 @@ def response_counts(ranges_m: np.ndarray, params: IrConfig) -> np.ndarray:
 def ir_truth(hits: RayHits, fan: RayFan, params: IrConfig) -> IrTruth:
     n, k = fan.n, fan.k
     ray_ranges = hits.range.reshape(n, k)
-    per_ray = response_counts(ray_ranges, params)
-    counts_f = per_ray.mean(axis=1)
-    counts = np.clip(np.rint(counts_f), 0, 1023).astype(np.int64)
+    per_ray = response_counts(hits.range, params).reshape(n, k)
+    counts_f = per_ray.sum(axis=1) / k
+    counts = np.rint(counts_f).astype(np.int64)     # table values lie in 0..1023 (config)
     return IrTruth(
         counts=counts,
         counts_float=counts_f,
