@@ -37,7 +37,6 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.stats import chi2
 
 from bridge.estimation.errors import EstimationError
-from bridge.estimation.trilateration import wrap_angle
 
 FloatArray = NDArray[np.float64]
 
@@ -45,7 +44,11 @@ STATE_DIM = 4  # x, y, theta, gyro bias
 
 
 def _wrap(a: float) -> float:
-    return float(wrap_angle(a))
+    """Scalar :func:`wrap_angle` to (-pi, pi] (math, not numpy: this is on the hot path)."""
+    w = math.fmod(a + math.pi, 2.0 * math.pi)
+    if w <= 0.0:
+        w += 2.0 * math.pi
+    return w - math.pi
 
 
 # --------------------------------------------------------------------------- pure functions
