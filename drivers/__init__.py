@@ -1,0 +1,12 @@
+"""Codecs (bytes <-> typed messages) and transports (move bytes) for the Koala's buses.
+
+- :mod:`drivers.messages`: the typed messages and the error tree.
+- :mod:`drivers.kteam`: K-Team ASCII serial protocol (robot and controller sides).
+- :mod:`drivers.rangeframes`: binary IR / sonar range frames with CRC-16/CCITT-FALSE.
+- :mod:`drivers.can_codec`: CAN frames described by ``config/koala.dbc`` (cantools).
+- :mod:`drivers.mavlink_codec`: MAVLink 2 compass (HEARTBEAT, SCALED_IMU) via pymavlink.
+- :mod:`drivers.transports`: pty, TCP, UDP, loopback, socketcand, slcan and python-can backends.
+
+The same decoders read the simulated buses and a real robot's. Nothing here imports :mod:`sim`.
+Wire formats: docs/protocols.md.
+"""

@@ -17,7 +17,13 @@ __all__ = ["LoopbackTransport"]
 class LoopbackTransport(ByteTransport):
     """One end of a connected pair; the other end is :attr:`peer`."""
 
-    def __init__(self, _sock: socket.socket | None = None, _peer: LoopbackTransport | None = None):
+    def __init__(
+        self,
+        _sock: socket.socket | None = None,
+        _peer: LoopbackTransport | None = None,
+        *,
+        max_pending: int = 65536,
+    ) -> None:
         if _sock is None:
             a, b = socket.socketpair()
             _sock = a
@@ -27,6 +33,8 @@ class LoopbackTransport(ByteTransport):
         self._sock: socket.socket | None = _sock
         self.peer: LoopbackTransport = _peer
         self._stats = StatsCounter()
+        self._pending = bytearray()
+        self._max_pending = max_pending
 
     @classmethod
     def pair(cls) -> tuple[LoopbackTransport, LoopbackTransport]:
@@ -43,8 +51,10 @@ class LoopbackTransport(ByteTransport):
         return self._stats.snapshot(clients=1)
 
     def read(self, max_bytes: int = 65536) -> bytes:
+        sock = self._s()
+        self._flush()
         try:
-            data = self._s().recv(max_bytes)
+            data = sock.recv(max_bytes)
         except BlockingIOError:
             return b""
         if data:
@@ -52,13 +62,35 @@ class LoopbackTransport(ByteTransport):
         return data
 
     def write(self, data: bytes) -> int:
-        try:
-            self._s().sendall(data)
-        except (BlockingIOError, BrokenPipeError):
-            self._stats.add("dropped")
-            return 0
+        self._s()
+        self._flush()
+        if self._pending:
+            if len(self._pending) + len(data) > self._max_pending:
+                self._stats.add("dropped")
+                return 0
+            self._pending += data
+        else:
+            sent = self._send(data)
+            if sent < 0:
+                self._stats.add("dropped")
+                return 0
+            self._pending += data[sent:]
         self._stats.add("sent")
         return len(data)
+
+    def _flush(self) -> None:
+        if self._pending:
+            sent = self._send(bytes(self._pending))
+            del self._pending[: sent if sent >= 0 else len(self._pending)]
+
+    def _send(self, data: bytes) -> int:
+        """Bytes taken by the socket; -1 if the other end is gone."""
+        try:
+            return self._s().send(data)
+        except BlockingIOError:
+            return 0
+        except (BrokenPipeError, ConnectionResetError):
+            return -1
 
     def wait(self, timeout: float | None) -> bool:
         readable, _, _ = select.select([self._s()], [], [], timeout)
