@@ -45,6 +45,7 @@ from drivers.messages import Reject, RejectReason, TransportError
 log = logging.getLogger(__name__)
 
 SPIN_S = 0.002  # sleep until this close to a deadline, then spin: sleep overshoots ~0.1-1 ms
+SWITCH_INTERVAL_S = 0.0005  # GIL hand-over while replaying (CPython's default: 5 ms)
 STREAM_BUSES = ("serial/rangefinders", "can", "mavlink")
 
 
@@ -275,6 +276,10 @@ class Replayer:
             if remaining > SPIN_S:
                 # Wake up regularly to see ``stop``; finish the last SPIN_S by spinning.
                 stop.wait(min(remaining - SPIN_S, 0.1))
+            else:
+                # Spin without holding the GIL: the transports' I/O threads (socketcand) must
+                # run meanwhile, or they wait up to a GIL switch interval (5 ms).
+                self._sleep(0)
 
     def _send(self, frame: ReplayFrame) -> None:
         try:

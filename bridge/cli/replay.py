@@ -92,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
     )
     from bridge.endpoints import write_endpoints_file
     from bridge.recording import RecordingError, open_recording
-    from bridge.replay import Replayer, endpoints_of, plan_replay
+    from bridge.replay import SWITCH_INTERVAL_S, Replayer, endpoints_of, plan_replay
 
     try:
         rec = open_recording(args.recording)
@@ -144,6 +144,9 @@ def run(args: argparse.Namespace) -> int:
         )
         if args.wait_clients > 0:
             _wait_clients(buses, plan.counts, args.wait_clients, stop)
+        # The replay thread and the transports' I/O threads hand the GIL over every 0.5 ms
+        # instead of 5 ms: a frame queued for socketcand leaves within a millisecond.
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
         replayer = Replayer(plan, buses, speed=replayer_speed, linger_s=max(0.0, args.linger))
         stats = replayer.run(stop)
         sent = ", ".join(f"{b} {n}" for b, n in sorted(stats.sent.items()))
