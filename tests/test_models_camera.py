@@ -21,8 +21,9 @@ from sim.models.camera import (
     wrong_id_probability,
 )
 
-P = CameraErrorParams(p_perc=0.01, p_recog=0.02, d_min_m=0.1, d_max_m=3.0, distance_base=2.0,
-                      dist=0.05, d_mid_m=1.0, far_doubling_m=1.0, bearing_sigma_deg=2.0)
+P = CameraErrorParams(p_perc=0.01, p_recog=0.02, min_range_m=0.1, max_range_m=3.0,
+                      distance_base=2.0, dist=0.05, d_mid_m=1.0, far_doubling_m=1.0,
+                      bearing_sigma_deg=2.0)
 A120 = math.radians(120.0)
 N = 20000
 
@@ -35,12 +36,12 @@ def _one_landmark(n: int, a_deg: float, d: float, a_max: float = A120, lid: int 
 
 def test_seed_properties_of_the_miss_probability() -> None:
     # at 0 deg and near range (d_min) it is p_perc; it reaches 1 at d_max and at a_max/2
-    assert miss_probability(0.0, P.d_min_m, A120, P) == pytest.approx(P.p_perc)
-    assert miss_probability(0.0, P.d_max_m, A120, P) == pytest.approx(1.0)
+    assert miss_probability(0.0, P.min_range_m, A120, P) == pytest.approx(P.p_perc)
+    assert miss_probability(0.0, P.max_range_m, A120, P) == pytest.approx(1.0)
     assert miss_probability(A120 / 2, 0.5, A120, P) == pytest.approx(1.0)
     assert miss_probability(0.0, 0.05, A120, P) == 1.0            # closer than d_min
     # the distance term is exponential at base 2: f(mid) = (sqrt(2) - 1) / (2 - 1)
-    mid = 0.5 * (P.d_min_m + P.d_max_m)
+    mid = 0.5 * (P.min_range_m + P.max_range_m)
     assert distance_term(mid, P) == pytest.approx(math.sqrt(2) - 1)
     # omnidirectional: a_max = 10000 deg leaves the miss rate flat in angle (< 0.0013 added)
     omni = math.radians(10000.0)
@@ -88,7 +89,7 @@ def test_single_landmark_cannot_be_misrecognised() -> None:
 @pytest.mark.parametrize("d", [0.3, 1.0, 2.2])
 def test_distance_error_mean_and_spread_match_eq_10_12(d: float) -> None:
     rng = np.random.default_rng(int(d * 10))
-    params = CameraErrorParams(p_perc=0.0, p_recog=0.0, d_min_m=0.0, d_max_m=100.0,
+    params = CameraErrorParams(p_perc=0.0, p_recog=0.0, min_range_m=0.0, max_range_m=100.0,
                                dist=0.05, d_mid_m=1.0, far_doubling_m=1.0)
     m = measure(*_one_landmark(N, 0.0, d), all_ids=np.array([1]), params=params, rng=rng)
     err = m.ranges - d
@@ -105,7 +106,7 @@ def test_distance_error_mean_and_spread_match_eq_10_12(d: float) -> None:
 
 
 def test_bearing_error_is_gaussian_with_alpha_ang() -> None:
-    params = CameraErrorParams(p_perc=0.0, p_recog=0.0, d_min_m=0.0, d_max_m=100.0,
+    params = CameraErrorParams(p_perc=0.0, p_recog=0.0, min_range_m=0.0, max_range_m=100.0,
                                bearing_sigma_deg=2.0)
     m = measure(*_one_landmark(N, 0.0, 0.5, bearing=0.3), all_ids=np.array([1]), params=params,
                 rng=np.random.default_rng(8))

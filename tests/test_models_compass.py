@@ -1,43 +1,19 @@
-"""Compass (seeds/000 eq. 16–18 + hard/soft iron, motor currents, noise; sim/models/compass.py)."""
+"""Compass disturbances (hard/soft iron, motor currents, noise; sim/models/compass.py).
+
+The noise-free part (seeds/000 eq. 16–18) is the core's sim/sensors/compass.py, tested there.
+"""
 
 from __future__ import annotations
-
-import math
 
 import numpy as np
 import pytest
 from _stats import assert_mean, assert_normal_variance
 
-from sim.models.compass import (
-    CompassErrorParams,
-    field_world,
-    heading_from_field,
-    measure,
-    world_to_body,
-)
+from sim.models.compass import CompassErrorParams, measure
 from sim.schema import ConfigError
+from sim.sensors.compass import field_body as world_to_body
 
 EARTH = np.array([0.0, 20.0, -43.0])   # north along +y
-
-
-def test_sources_fall_with_inverse_square_and_add_as_vectors() -> None:
-    src = np.array([[2.0, 0.0, 4.0]])                     # 4 uT at 1 m, east of origin
-    f1 = field_world(0.0, 0.0, np.zeros(3), src)
-    assert f1 == pytest.approx([1.0, 0.0, 0.0])           # 4 / 2^2, pointing at the source
-    f2 = field_world(-2.0, 0.0, np.zeros(3), src)
-    assert np.linalg.norm(f1) / np.linalg.norm(f2) == pytest.approx(4.0)
-    two = np.array([[2.0, 0.0, 4.0], [0.0, 1.0, 3.0]])
-    tot = field_world(0.0, 0.0, EARTH, two)               # eq. 17: F_0 (Earth) + sum F_i
-    assert tot == pytest.approx(EARTH + [1.0, 3.0, 0.0])
-    # floor at min_distance_m: no infinity on top of a source
-    assert np.all(np.isfinite(field_world(2.0, 0.0, EARTH, src)))
-
-
-def test_body_rotation_and_heading() -> None:
-    for th in (0.0, 0.7, -2.5, math.pi):
-        b = world_to_body(EARTH, th)
-        assert heading_from_field(b, math.pi / 2) == pytest.approx(
-            math.atan2(math.sin(th), math.cos(th)))
 
 
 def test_hard_soft_iron_motor_and_noise_statistics() -> None:

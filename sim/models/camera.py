@@ -11,7 +11,9 @@ Perception (miss) probability, eq. 5, 6 and 8 read as::
     f(d) = (b^((d - d_min)/(d_max - d_min)) - 1) / (b - 1)   for d_min <= d <= d_max   (6)
     f(d) = 1                                                 for d < d_min or d > d_max
 
-``b`` = ``distance_base`` (2 in the seed: "exponential at base 2"; Figure 4 compares bases).
+``d_min``/``d_max`` are the camera's ``min_range_m``/``max_range_m`` (the same keys of
+``[sensors.camera]`` bound the field of view). ``b`` = ``distance_base`` (2 in the seed:
+"exponential at base 2"; Figure 4 compares bases).
 Properties kept from the text: the angle term reaches 1 at ``a = a_max / 2`` (``a_max`` is the
 full opening of the landmark's viewing cone), ``P_miss = p_perc`` at 0° and at near range
 (``d = d_min``), ``P_miss = 1`` at ``d_max`` ("reaches its maximum (1) at the maximum sight
@@ -68,8 +70,9 @@ class CameraErrorParams:
     ideal: bool = False
     p_perc: float = 0.01              # eq. 5: miss probability at 0°, near range (Figure 2)
     p_recog: float = 0.01             # eq. 9: wrong-id probability at 0°, near range
-    d_min_m: float = 0.1              # eq. 6: minimum sight distance
-    d_max_m: float = 3.0              # eq. 6: maximum sight distance (P_miss = 1 there)
+    # eq. 6 d_min / d_max (shared with the camera's field of view in [sensors.camera]):
+    min_range_m: float = 0.1          # minimum sight distance; nearer is not perceived
+    max_range_m: float = 3.0          # maximum sight distance; P_miss = 1 there
     distance_base: float = 2.0        # eq. 6: "exponential at base 2"
     dist: float = 0.05                # eq. 10–12: relative distance error (+-dist at d_mid)
     d_mid_m: float = 1.0              # eq. 11: medium sight distance
@@ -79,9 +82,9 @@ class CameraErrorParams:
     def __post_init__(self) -> None:
         check_probability(self.p_perc, "p_perc")
         check_probability(self.p_recog, "p_recog")
-        check_nonnegative(self.d_min_m, "d_min_m")
-        if not self.d_max_m > self.d_min_m:
-            raise ConfigError("'d_max_m' must be > 'd_min_m'")
+        check_nonnegative(self.min_range_m, "min_range_m")
+        if not self.max_range_m > self.min_range_m:
+            raise ConfigError("'max_range_m' must be > 'min_range_m'")
         check_positive(self.distance_base, "distance_base")
         check_nonnegative(self.dist, "dist")
         check_positive(self.d_mid_m, "d_mid_m")
@@ -103,13 +106,13 @@ def distance_term(d_m: np.ndarray | float, params: CameraErrorParams) -> np.ndar
     """``f(d)`` of seeds/000 eq. 6 as reconstructed: 0 at d_min, 1 at d_max, exponential with base
     ``distance_base`` in between (linear when the base is 1), 1 outside [d_min, d_max]."""
     d = np.asarray(d_m, dtype=float)
-    u = (d - params.d_min_m) / (params.d_max_m - params.d_min_m)
+    u = (d - params.min_range_m) / (params.max_range_m - params.min_range_m)
     b = params.distance_base
     if abs(b - 1.0) < 1e-12:
         f = u
     else:
         f = (np.power(b, np.clip(u, 0.0, 1.0)) - 1.0) / (b - 1.0)
-    return np.where((d < params.d_min_m) | (d > params.d_max_m), 1.0, f)
+    return np.where((d < params.min_range_m) | (d > params.max_range_m), 1.0, f)
 
 
 def miss_probability(a_rad: np.ndarray | float, d_m: np.ndarray | float,

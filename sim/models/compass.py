@@ -1,5 +1,5 @@
-"""Magnetic compass: Earth field plus local sources (seeds/000 eq. 16–18), and the robot's own
-disturbances (hard iron, soft iron, motor currents) with white noise.
+"""Magnetic compass: the robot's own disturbances (hard iron, soft iron, motor currents) and white
+noise on top of the Earth field plus local sources (seeds/000 eq. 16–18).
 
 Seed (seeds/000_b0d2d08e12d78625.txt, "Magnetic compass"): "The power of a magnetic field
 vanishes inverse proportional to the squared distance"::
@@ -11,8 +11,9 @@ vanishes inverse proportional to the squared distance"::
 Read: each source i contributes a horizontal vector of magnitude ``strength_i / d_i^2`` (strength
 = field at 1 m, ``sim.world.MagneticSource``) pointing from the robot towards the source (the
 extracted exponent ``2(L_M - L_K)`` is the unit direction vector fused into the power); the Earth
-field is ``F_0``; the compass sees the vector sum (:func:`field_world`). Distances are floored at
-``min_distance_m`` so a robot driving over a source does not read an infinite field.
+field is ``F_0``; the compass sees the vector sum. That noise-free part is the compass's truth,
+computed by ``sim.sensors.compass.field_world`` (distances floored at ``min_source_distance_m``);
+this module adds what the robot itself does to it.
 
 Robot disturbances (beyond the seed; the standard magnetometer model of ArduPilot's compass
 calibration / SITL ``SIM_MAG_*`` parameters)::
@@ -27,13 +28,12 @@ the load grows with speed through friction; the sign flips with the direction of
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from sim.models._params import check_nonnegative, check_positive, params_from_dict
+from sim.models._params import check_nonnegative, params_from_dict
 from sim.schema import ConfigError
 
 
@@ -51,7 +51,6 @@ class CompassErrorParams:
     motor_uT_per_A: tuple[tuple[float, ...], ...] = ((0.0, 0.0), (0.0, 0.0), (0.0, 0.0))
     motor_current_A_per_mps: float = 0.0
     noise_sigma_uT: float = 0.0
-    min_distance_m: float = 0.05
 
     def __post_init__(self) -> None:
         if np.shape(self.hard_iron_uT) != (3,):
@@ -61,33 +60,10 @@ class CompassErrorParams:
         if np.shape(self.motor_uT_per_A) != (3, 2):
             raise ConfigError("'motor_uT_per_A' must be 3 rows [left, right] (uT per A)")
         check_nonnegative(self.noise_sigma_uT, "noise_sigma_uT")
-        check_positive(self.min_distance_m, "min_distance_m")
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], section: str = "sensors.compass") -> CompassErrorParams:
         return params_from_dict(cls, d, section)
-
-
-def field_world(x: float, y: float, earth_uT: np.ndarray, sources: np.ndarray,
-                min_distance_m: float = 0.05) -> np.ndarray:
-    """Total field (uT, world frame x east / y north / z up) at ``(x, y)``: seeds/000 eq. 16–18.
-
-    ``earth_uT`` (3,) is F_0; ``sources`` (k, 3) rows ``[x, y, strength_uT at 1 m]``.
-    """
-    total = np.array(earth_uT, dtype=float)
-    if sources.shape[0]:
-        v = sources[:, :2] - np.array([x, y])
-        d = np.maximum(np.hypot(v[:, 0], v[:, 1]), min_distance_m)
-        mag = sources[:, 2] / (d * d)
-        total[:2] += (v / d[:, None] * mag[:, None]).sum(axis=0)
-    return total
-
-
-def world_to_body(field_w: np.ndarray, theta: float) -> np.ndarray:
-    """Rotate a world-frame vector into the body frame FLU of a robot with heading ``theta``."""
-    c, s = math.cos(theta), math.sin(theta)
-    return np.array([c * field_w[0] + s * field_w[1], -s * field_w[0] + c * field_w[1],
-                     field_w[2]])
 
 
 def motor_currents_A(left_mps: float, right_mps: float, params: CompassErrorParams) -> np.ndarray:
@@ -106,11 +82,3 @@ def measure(field_body_uT: np.ndarray, wheel_speeds_mps: tuple[float, float],
     return (np.asarray(params.soft_iron) @ b + np.asarray(params.hard_iron_uT)
             + np.asarray(params.motor_uT_per_A) @ i
             + params.noise_sigma_uT * rng.standard_normal(3))
-
-
-def heading_from_field(field_body_uT: np.ndarray, north_rad: float) -> float:
-    """Robot heading (rad, world frame) a level compass implies, given magnetic north's direction
-    ``north_rad`` (CCW from +x): the field points north, so its body bearing is north - theta."""
-    bearing = math.atan2(field_body_uT[1], field_body_uT[0])
-    th = north_rad - bearing
-    return math.atan2(math.sin(th), math.cos(th))

@@ -14,7 +14,7 @@ Sources
 Model, per sensor with rays ``i``::
 
     d_i' = d_i + sigma(d_i) * z        (one z per sensor and reading: the table is per reading)
-    c    = sum_i w_i * rho_i * R(d_i')  (R: response table, distance -> counts; rho: reflectivity)
+    c    = sum_i w_i * rho_i * R(d_i')  (R: [sensors.ir] response table; rho: reflectivity)
     c_m  = round(clip(c * (1 - ambient_saturation * A / max_counts) + count_noise_sigma * n,
                       0, max_counts))
     A_m  = round(clip(ambient_counts + ambient_noise_counts * n', 0, max_counts))
@@ -43,21 +43,11 @@ def _seed004_ir_table() -> LookupTable:
     )
 
 
-def _default_response() -> LookupTable:
-    # Counts for a white wall vs distance (m). Shape of the K-Team proximity response (steep
-    # ~1/d^2 fall, saturated at contact); placeholder until measured with the calibration tool.
-    return LookupTable.from_rows(
-        [[0.0, 1023], [0.02, 1000], [0.04, 800], [0.06, 550], [0.08, 380], [0.10, 260],
-         [0.15, 100], [0.20, 40], [0.30, 10], [0.40, 0]]
-    )
-
-
 @dataclass(frozen=True)
 class IrErrorParams:
     """``[sensors.ir]`` error-model keys. Distances in m, counts 0..max_counts."""
 
     ideal: bool = False
-    response: LookupTable = field(default_factory=_default_response)
     distance_error: LookupTable = field(default_factory=_seed004_ir_table)
     gaussian_width: float = 1.0        # Webots DistanceSensor.gaussianWidth
     reflectivity: float = 1.0          # walls' IR reflectivity relative to the response's white
@@ -90,11 +80,11 @@ def ray_weights(ray_offsets_rad: np.ndarray, gaussian_width: float) -> np.ndarra
 
 
 def counts_from_distances(ray_dists_m: np.ndarray, weights: np.ndarray,
-                          reflectivity: np.ndarray | float, params: IrErrorParams) -> np.ndarray:
+                          reflectivity: np.ndarray | float, response: LookupTable) -> np.ndarray:
     """Noise-free response ``sum_i w_i rho_i R(d_i)`` (float counts), ``ray_dists_m`` (n, r);
     ``inf`` (no hit) gives the table's last value."""
-    d = np.where(np.isfinite(ray_dists_m), ray_dists_m, params.response.x[-1])
-    return (np.asarray(reflectivity) * params.response.value(d)) @ weights
+    d = np.where(np.isfinite(ray_dists_m), ray_dists_m, response.x[-1])
+    return (np.asarray(reflectivity) * response.value(d)) @ weights
 
 
 def range_noise_sigma(d_m: np.ndarray, params: IrErrorParams) -> np.ndarray:
@@ -102,18 +92,21 @@ def range_noise_sigma(d_m: np.ndarray, params: IrErrorParams) -> np.ndarray:
     return params.distance_error.value(d_m)
 
 
-def measure(ray_dists_m: np.ndarray, ray_offsets_rad: np.ndarray, params: IrErrorParams,
-            rng: np.random.Generator, reflectivity: np.ndarray | float | None = None
+def measure(ray_dists_m: np.ndarray, ray_offsets_rad: np.ndarray, response: LookupTable,
+            params: IrErrorParams, rng: np.random.Generator,
+            reflectivity: np.ndarray | float | None = None
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(counts, ambient, truth_counts)`` for ``n`` sensors with ``r`` rays each.
 
     ``ray_dists_m`` (n, r): distance along each ray to the first surface (``inf``: none within
-    range). ``ray_offsets_rad`` (r,): each ray's angle from the sensor axis. ``reflectivity``
-    overrides ``params.reflectivity`` per sensor/ray. Draws ``3 n`` normals per call.
+    range). ``ray_offsets_rad`` (r,): each ray's angle from the sensor axis. ``response``: the
+    distance -> counts table of a white surface (``[sensors.ir] response_range_m`` /
+    ``response_counts``). ``reflectivity`` overrides ``params.reflectivity`` per sensor/ray.
+    Draws ``3 n`` normals per call.
     """
     rho = params.reflectivity if reflectivity is None else reflectivity
     w = ray_weights(ray_offsets_rad, params.gaussian_width)
-    truth = counts_from_distances(ray_dists_m, w, rho, params)
+    truth = counts_from_distances(ray_dists_m, w, rho, response)
     truth_counts = np.clip(np.rint(truth), 0, params.max_counts).astype(int)
     n = ray_dists_m.shape[0]
     if params.ideal:
@@ -123,7 +116,7 @@ def measure(ray_dists_m: np.ndarray, ray_offsets_rad: np.ndarray, params: IrErro
     finite = np.isfinite(ray_dists_m)
     d_noisy = np.where(finite, ray_dists_m + range_noise_sigma(np.where(finite, ray_dists_m, 0.0),
                                                                 params) * z[0][:, None], np.inf)
-    c = counts_from_distances(np.maximum(d_noisy, 0.0), w, rho, params)
+    c = counts_from_distances(np.maximum(d_noisy, 0.0), w, rho, response)
     c = c * (1.0 - params.ambient_saturation * min(params.ambient_counts, params.max_counts)
              / params.max_counts) + params.count_noise_sigma * z[1]
     counts = np.clip(np.rint(c), 0, params.max_counts).astype(int)
