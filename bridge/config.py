@@ -230,6 +230,7 @@ class BusesSettings:
 
     motor_watchdog_s: float     # 0 = off: a wheel command holds until the next one
     kteam: bool
+    kteam_max_speed: int        # largest |speed| K-Team D accepts, pulses per speed unit
     rangefinders: bool
     can: CanSettings
     mavlink: MavlinkSettings
@@ -242,13 +243,17 @@ class BusesSettings:
         if watchdog < 0:
             raise ConfigError(f"[{s}] 'motor_watchdog_s' must be >= 0 (0 = off)")
         flags = {}
-        for name in ("kteam", "rangefinders"):
+        for name, keys in (("kteam", ("enabled", "max_speed")), ("rangefinders", ("enabled",))):
             sub = _section(d, name)
-            reject_unknown(sub, ("enabled",), f"{s}.{name}")
+            reject_unknown(sub, keys, f"{s}.{name}")
             flags[name] = _get(sub, "enabled", f"{s}.{name}", bool)
+        max_speed = _get(_section(d, "kteam"), "max_speed", f"{s}.kteam", int)
+        if max_speed < 1:
+            raise ConfigError(f"[{s}.kteam] 'max_speed' must be >= 1, got {max_speed}")
         return cls(
             motor_watchdog_s=watchdog,
             kteam=flags["kteam"],
+            kteam_max_speed=max_speed,
             rangefinders=flags["rangefinders"],
             can=CanSettings.from_dict(_section(d, "can")),
             mavlink=MavlinkSettings.from_dict(_section(d, "mavlink")),

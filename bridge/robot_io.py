@@ -98,6 +98,7 @@ class RobotPort:
 
     def __init__(self, n_ir: int = 16) -> None:
         self._lock = threading.Lock()
+        self.n_ir = n_ir
         self._ticks = (0, 0)                # simulator's cumulative counts
         self._offset = (0, 0)               # set by K-Team G
         self._wheel_speeds = WheelCommand(0.0, 0.0)

@@ -40,7 +40,7 @@ from bridge.endpoints import Endpoints, SocketcandEndpoint
 from bridge.robot_io import KteamResponder, MotorArbiter, RobotPort, RobotUnits
 from bridge.zenoh_io import ZENOH_BUS, ZenohLink, pose_message, sensor_messages, status_message
 from drivers.can_codec import DEFAULT_DBC_PATH, KoalaCanCodec
-from drivers.kteam import LineSplitter, format_reply, parse_command
+from drivers.kteam import KteamLimits, LineSplitter, format_reply, parse_command
 from drivers.mavlink_codec import CompassDecoder, CompassEncoder, MavlinkIdentity
 from drivers.messages import (
     CompassSample,
@@ -103,7 +103,12 @@ class BridgeService:
         self.counters = BusCounters()
         self.arbiter = MotorArbiter(settings.buses.motor_watchdog_s)
         self.port = RobotPort(n_ir=len(self.sim.config.sensors.ir.poses))
-        self.kteam = KteamResponder(self.port, self.arbiter, self.units)
+        self.kteam = KteamResponder(
+            self.port,
+            self.arbiter,
+            self.units,
+            KteamLimits(max_speed=settings.buses.kteam_max_speed, sensors=self.port.n_ir),
+        )
         self.can_codec = KoalaCanCodec()
         mav = settings.buses.mavlink
         self.mav_encoder = CompassEncoder(MavlinkIdentity(mav.system_id, mav.component_id))
