@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 
@@ -37,6 +38,7 @@ class SegmentSet:
     ey: np.ndarray
     inv_len: np.ndarray     # (M,) 1 / |e|
     inv_len2: np.ndarray    # (M,) 1 / |e|^2
+    packed: np.ndarray      # (5, M) C-contiguous rows ax, ay, ex, ey, inv_len (compiled kernels)
 
     @classmethod
     def from_segments(cls, segments: np.ndarray, merge: bool = True) -> SegmentSet:
@@ -56,6 +58,9 @@ class SegmentSet:
             ey=ey[None, :],
             inv_len=1.0 / np.sqrt(len2),
             inv_len2=1.0 / len2,
+            packed=np.ascontiguousarray(
+                np.stack([segs[:, 0], segs[:, 1], ex, ey, 1.0 / np.sqrt(len2)])
+            ).reshape(5, -1),
         )
 
     def __len__(self) -> int:
@@ -71,6 +76,7 @@ class SegmentSet:
             ey=self.ey[:, mask],
             inv_len=self.inv_len[mask],
             inv_len2=self.inv_len2[mask],
+            packed=np.ascontiguousarray(self.packed[:, mask]),
         )
 
 
@@ -120,7 +126,7 @@ class RayHits:
     incidence: np.ndarray   # (R,) rad, angle between the ray and the hit surface normal; nan: none
 
 
-def cast_rays(
+def cast_rays_numpy(
     walls: SegmentSet,
     ox: np.ndarray,
     oy: np.ndarray,
@@ -128,7 +134,7 @@ def cast_rays(
     dy: np.ndarray,
     max_range: float | np.ndarray = np.inf,
 ) -> RayHits:
-    """First intersection of each ray with the walls.
+    """First intersection of each ray with the walls: the numpy reference of :func:`cast_rays`.
 
     Args:
         walls: prepared wall segments.
@@ -164,6 +170,129 @@ def cast_rays(
     incidence = np.where(hit, np.arccos(cos_inc), np.nan)
     index = np.where(hit, idx, -1)
     return RayHits(rng, index, incidence)
+
+
+@numba.njit(cache=True, nogil=True)
+def _first_hit(
+    seg: np.ndarray, ox: float, oy: float, dx: float, dy: float, max_range: float
+) -> tuple[float, int, float]:  # pragma: no cover - compiled; tested through cast_rays
+    """The equations of :func:`cast_rays_numpy` for one ray, skipping farther segments early.
+    ``seg`` is :attr:`SegmentSet.packed`. Returns (range, wall index, incidence)."""
+    best = np.inf
+    best_m = -1
+    best_den = 0.0
+    for m in range(seg.shape[1]):
+        ex = seg[2, m]
+        ey = seg[3, m]
+        den = dx * ey - dy * ex
+        if den == 0.0:
+            continue
+        wx = seg[0, m] - ox
+        wy = seg[1, m] - oy
+        t = (wx * ey - wy * ex) / den
+        if not (t >= 0.0 and t < best):
+            continue
+        u = (wx * dy - wy * dx) / den
+        if not (u >= 0.0 and u <= 1.0):
+            continue
+        best = t
+        best_m = m
+        best_den = den
+    if best_m >= 0 and best <= max_range:
+        return best, best_m, np.arccos(min(abs(best_den) * seg[4, best_m], 1.0))
+    return np.inf, -1, np.nan
+
+
+@numba.njit(cache=True, nogil=True)
+def _cast_kernel(
+    seg: np.ndarray, rays: np.ndarray, max_range: np.ndarray, out: np.ndarray, out_index: np.ndarray
+) -> None:  # pragma: no cover - compiled
+    # rays: (4, R) ox, oy, dx, dy. out: (2, R) range, incidence.
+    for r in range(rays.shape[1]):
+        t, m, inc = _first_hit(seg, rays[0, r], rays[1, r], rays[2, r], rays[3, r], max_range[r])
+        out[0, r] = t
+        out[1, r] = inc
+        out_index[r] = m
+
+
+@numba.njit(cache=True, nogil=True)
+def _fan_kernel(
+    seg: np.ndarray, body: np.ndarray, max_range: np.ndarray, x: float, y: float, theta: float,
+    out: np.ndarray, out_index: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    # body: (3, R) body-frame origin x, y and angle. out: (6, R) ox, oy, dx, dy, range, incidence.
+    c = np.cos(theta)
+    s = np.sin(theta)
+    for r in range(body.shape[1]):
+        bx = body[0, r]
+        by = body[1, r]
+        ox = x + c * bx - s * by
+        oy = y + s * bx + c * by
+        a = body[2, r] + theta
+        dx = np.cos(a)
+        dy = np.sin(a)
+        t, m, inc = _first_hit(seg, ox, oy, dx, dy, max_range[r])
+        out[0, r] = ox
+        out[1, r] = oy
+        out[2, r] = dx
+        out[3, r] = dy
+        out[4, r] = t
+        out[5, r] = inc
+        out_index[r] = m
+
+
+def cast_rays(
+    walls: SegmentSet,
+    ox: np.ndarray,
+    oy: np.ndarray,
+    dx: np.ndarray,
+    dy: np.ndarray,
+    max_range: float | np.ndarray = np.inf,
+) -> RayHits:
+    """First intersection of each ray with the walls (compiled with numba; the numpy
+    expression of the same equations is :func:`cast_rays_numpy`, the test reference).
+
+    Args:
+        walls: prepared wall segments.
+        ox, oy: ``(R,)`` ray origins, world frame, m.
+        dx, dy: ``(R,)`` unit ray directions.
+        max_range: scalar or ``(R,)``; hits farther than this are ignored.
+
+    Returns:
+        :class:`RayHits` with ``(R,)`` arrays: range (inf: no hit), wall index (-1: none) and
+        incidence angle (nan: none). A ray starting exactly on a wall sees it at range 0.
+    """
+    r = ox.shape[0]
+    rays = np.empty((4, r))
+    rays[0] = ox
+    rays[1] = oy
+    rays[2] = dx
+    rays[3] = dy
+    out = np.empty((2, r))
+    index = np.empty(r, dtype=np.intp)
+    mr = np.empty(r)
+    mr[:] = max_range
+    _cast_kernel(walls.packed, rays, mr, out, index)
+    return RayHits(out[0], index, out[1])
+
+
+def cast_fan(
+    walls: SegmentSet, body: np.ndarray, max_range: np.ndarray, x: float, y: float, theta: float
+) -> tuple[RayHits, np.ndarray]:
+    """Cast rays given in the body frame from a robot at ``(x, y, theta)``.
+
+    Args:
+        body: ``(3, R)`` C-contiguous: ray origin x, y (body frame FLU, m) and angle (rad).
+        max_range: ``(R,)``.
+
+    Returns:
+        The hits and the world-frame rays ``(4, R)``: origin x, y and unit direction x, y.
+    """
+    r = body.shape[1]
+    out = np.empty((6, r))
+    index = np.empty(r, dtype=np.intp)
+    _fan_kernel(walls.packed, body, max_range, x, y, theta, out, index)
+    return RayHits(out[4], index, out[5]), out[:4]
 
 
 def point_segment_distances(walls: SegmentSet, px: float, py: float) -> np.ndarray:

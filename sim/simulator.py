@@ -14,7 +14,8 @@ give bit-identical readings.
 
 Error models plug in through ``error_models`` (see :mod:`sim.sensors.base`).
 
-All range sensors due at a step share one ray cast (:func:`sim.raycast.cast_rays`).
+The rays of all range sensors due at a step go through one compiled cast
+(:func:`sim.raycast.cast_fan`); the camera's lines of sight through another.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ import numpy as np
 
 from sim import robot as kin
 from sim.config import SENSOR_NAMES, SimConfig, load_sim_config, poses_to_list
-from sim.raycast import RayHits, SegmentSet, cast_rays
+from sim.raycast import RayHits, SegmentSet, cast_fan
 from sim.robot import RobotState
 from sim.schema import ConfigError
 from sim.sensors.base import ErrorModelFactory
@@ -176,9 +177,12 @@ class Simulator:
     def _build_sensors(self) -> None:
         cfg = self.config
         s = cfg.sensors
-        self._drive_error = self._make("drive", cfg.robot.drive)
+        # The drive model needs the wheel base and dt: its factory gets the whole SimConfig.
+        self._drive_error = (None if cfg.robot.drive.ideal
+                             else self._factories["drive"](cfg, self._rngs["drive"]))
         self.ir = IrSensor(s.ir, self._make("ir", s.ir))
-        self.sonar = SonarSensor(s.sonar, self._make("sonar", s.sonar))
+        # walls: late echoes via a second surface and crosstalk need the sonar's world geometry.
+        self.sonar = SonarSensor(s.sonar, self._make("sonar", s.sonar), walls=self.walls)
         self.encoders = EncoderSensor(s.encoders, cfg.robot.ticks_per_metre,
                                       self._make("encoders", s.encoders))
         self.gyro = GyroSensor(s.gyro, self._make("gyro", s.gyro))
@@ -207,34 +211,18 @@ class Simulator:
         rngs = self._rngs
         ir_due = self._due("ir")
         sonar_due = self._due("sonar")
-        cand = self.camera.candidates(st) if self._due("camera") else None
-        n_los = len(cand.index) if cand is not None else 0
         ir = sonar = camera = None
-        if ir_due or sonar_due or n_los:
-            # One cast for every ray of this step: IR, then sonar, then camera lines of sight.
-            if ir_due or sonar_due:
-                fan, maxr, n_ir = self._fan_for(ir_due, sonar_due)
-                ox, oy, dx, dy = fan.world_rays(st.x, st.y, st.theta)
-                n_range = fan.size
-                if n_los and cand is not None:
-                    ox = np.concatenate((ox, cand.ox))
-                    oy = np.concatenate((oy, cand.oy))
-                    dx = np.concatenate((dx, cand.dx))
-                    dy = np.concatenate((dy, cand.dy))
-                    maxr = np.concatenate((maxr, cand.max_range))
-            else:
-                assert cand is not None
-                ox, oy, dx, dy, maxr = cand.ox, cand.oy, cand.dx, cand.dy, cand.max_range
-                n_ir = n_range = 0
-            hits = cast_rays(self.walls, ox, oy, dx, dy, maxr)
+        if ir_due or sonar_due:
+            # One compiled cast for the rays of every range sensor due at this step.
+            fan, maxr, n_ir = self._fan_for(ir_due, sonar_due)
+            hits, rays = cast_fan(self.walls, fan.body, maxr, st.x, st.y, st.theta)
             if ir_due:
-                ir = self.ir.measure(_slice(hits, 0, n_ir), rngs["ir"])
+                ir = self.ir.measure(_slice(hits, 0, n_ir), rngs["ir"], rays[:, :n_ir])
             if sonar_due:
-                sonar = self.sonar.measure(_slice(hits, n_ir, n_range), rngs["sonar"])
-            if cand is not None:
-                camera = self.camera.measure_from(cand, hits.index[n_range:] >= 0, rngs["camera"])
-        elif cand is not None:
-            camera = self.camera.measure_from(cand, np.zeros(0, dtype=bool), rngs["camera"])
+                sonar = self.sonar.measure(_slice(hits, n_ir, None), rngs["sonar"],
+                                           rays[:, n_ir:])
+        if self._due("camera"):
+            camera = self.camera.measure(st, rngs["camera"])
         t = self.t
         return Readings(
             t=t,

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -23,6 +23,11 @@ class RayFan:
     ba: np.ndarray      # (n*k,) body-frame ray angles
     n: int
     k: int
+    body: np.ndarray = field(init=False, repr=False)  # (3, n*k) rows bx, by, ba (C-contiguous)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "body", np.ascontiguousarray(np.stack([self.bx, self.by,
+                                                                         self.ba])))
 
     @classmethod
     def build(cls, poses: np.ndarray, rays: int, aperture_rad: float) -> RayFan:

@@ -35,6 +35,7 @@ class IrTruth:
     ray_incidence: np.ndarray   # (n, k) rad (nan: no hit)
     ray_wall: np.ndarray        # (n, k) index into the simulator's SegmentSet (-1: none)
     ambient: np.ndarray         # (n,) int
+    world_rays: np.ndarray | None = None    # (4, n, k) ox, oy, dx, dy (None: not provided)
 
 
 def response_counts(ranges_m: np.ndarray, params: IrConfig) -> np.ndarray:
@@ -42,7 +43,9 @@ def response_counts(ranges_m: np.ndarray, params: IrConfig) -> np.ndarray:
     return np.interp(ranges_m, params.response_range_m, params.response_counts, right=0.0)
 
 
-def ir_truth(hits: RayHits, fan: RayFan, params: IrConfig) -> IrTruth:
+def ir_truth(
+    hits: RayHits, fan: RayFan, params: IrConfig, world_rays: np.ndarray | None = None
+) -> IrTruth:
     n, k = fan.n, fan.k
     ray_ranges = hits.range.reshape(n, k)
     per_ray = response_counts(hits.range, params).reshape(n, k)
@@ -56,6 +59,7 @@ def ir_truth(hits: RayHits, fan: RayFan, params: IrConfig) -> IrTruth:
         ray_incidence=hits.incidence.reshape(n, k),
         ray_wall=hits.index.reshape(n, k),
         ambient=np.full(n, params.ambient_counts, dtype=np.int64),
+        world_rays=None if world_rays is None else world_rays.reshape(4, n, k),
     )
 
 
@@ -84,9 +88,11 @@ class IrSensor:
     def max_range_m(self) -> float:
         return self.params.max_range_m
 
-    def measure(self, hits: RayHits, rng: np.random.Generator) -> IrReading:
+    def measure(
+        self, hits: RayHits, rng: np.random.Generator, world_rays: np.ndarray | None = None
+    ) -> IrReading:
         """Reading from this step's hits of :attr:`fan` (cast by the caller, see simulator)."""
-        truth = ir_truth(hits, self.fan, self.params)
+        truth = ir_truth(hits, self.fan, self.params, world_rays)
         if self.error_model is None:
             return ideal_reading(truth)
         return self.error_model.measure(truth, rng)

@@ -16,13 +16,14 @@ gets the :class:`SonarTruth` with every ray's range, incidence and wall index.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from sim.config import SonarConfig
-from sim.raycast import RayHits
+from sim.raycast import RayHits, SegmentSet
 from sim.sensors.base import ErrorModel
 from sim.sensors.fan import RayFan
 from sim.types import SonarReading
@@ -34,9 +35,12 @@ class SonarTruth:
     incidence: np.ndarray       # (n,) rad, of the ray giving the first echo (nan: none)
     ray_ranges: np.ndarray      # (n, k) m (inf: nothing within max range)
     ray_incidence: np.ndarray   # (n, k) rad
-    ray_wall: np.ndarray        # (n, k) int
+    ray_wall: np.ndarray        # (n, k) int, index into ``walls`` (-1: none)
     min_range_m: float
     max_range_m: float
+    # Set only for an error model (issue 3: late echoes via a second surface, crosstalk):
+    world_rays: tuple[np.ndarray, ...] | None = None    # (ox, oy, dx, dy), each (n, k), world
+    walls: SegmentSet | None = None
 
 
 def sonar_truth(hits: RayHits, fan: RayFan, params: SonarConfig) -> SonarTruth:
@@ -60,8 +64,7 @@ def sonar_truth(hits: RayHits, fan: RayFan, params: SonarConfig) -> SonarTruth:
 
 def ideal_reading(truth: SonarTruth) -> SonarReading:
     r = truth.ranges
-    with np.errstate(invalid="ignore"):
-        ranges = np.where(r < truth.min_range_m, 0.0, r)
+    ranges = np.where(r < truth.min_range_m, 0.0, r)    # nan < x is False: no echo stays nan
     return SonarReading(ranges=ranges, truth_ranges=truth.ranges, incidence=truth.incidence)
 
 
@@ -71,18 +74,42 @@ class SonarSensor:
     name = "sonar"
 
     def __init__(
-        self, params: SonarConfig, error_model: ErrorModel[SonarTruth, SonarReading] | None = None
+        self,
+        params: SonarConfig,
+        error_model: ErrorModel[SonarTruth, SonarReading] | None = None,
+        walls: SegmentSet | None = None,
     ) -> None:
         self.params = params
         self.error_model = None if params.ideal else error_model
         self.fan = RayFan.build(params.poses, params.rays, math.radians(params.aperture_deg))
+        self.walls = walls
 
     @property
     def max_range_m(self) -> float:
         return self.params.max_range_m
 
-    def measure(self, hits: RayHits, rng: np.random.Generator) -> SonarReading:
+    def measure(
+        self,
+        hits: RayHits,
+        rng: np.random.Generator,
+        world_rays: np.ndarray | None = None,
+        pose: tuple[float, float, float] | None = None,
+    ) -> SonarReading:
+        """Reading from this step's hits of :attr:`fan` (cast by the caller: see simulator).
+
+        An error model also gets the rays' world geometry: ``world_rays`` ``(4, n*k)`` (origin x,
+        y, direction x, y, as :func:`sim.raycast.cast_fan` returns them) or, when not given,
+        rays recomputed from the robot ``pose`` (x, y, theta); and the walls.
+        """
         truth = sonar_truth(hits, self.fan, self.params)
         if self.error_model is None:
             return ideal_reading(truth)
+        shape = (self.fan.n, self.fan.k)
+        rays: tuple[np.ndarray, ...] | None = None
+        if world_rays is not None:
+            rays = tuple(a.reshape(shape) for a in world_rays)
+        elif pose is not None:
+            rays = tuple(a.reshape(shape) for a in self.fan.world_rays(*pose))
+        if rays is not None:
+            truth = dataclasses.replace(truth, world_rays=rays, walls=self.walls)
         return self.error_model.measure(truth, rng)
