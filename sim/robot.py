@@ -167,8 +167,11 @@ def step(
             x, y, heading, done, collided = _move_near_walls(state, motion, length, radius,
                                                              walls, d_start)
             clearance = -math.inf
-    left_m = motion.left_m * done
-    right_m = motion.right_m * done
+    # Ideal drive: the wheels stall with the body. With a drive-error model (issue 3) they slip
+    # against the wall: the encoders count the wheel travel the model returned.
+    wheel_frac = done if drive_error is None else 1.0
+    left_m = motion.left_m * wheel_frac
+    right_m = motion.right_m * wheel_frac
     dheading = heading - state.heading
     return RobotState(
         x=x,
