@@ -66,12 +66,19 @@ def dumps(doc: Mapping[str, Any]) -> str:
 
 def config_diff(base: Mapping[str, Any], new: Mapping[str, Any], name: str = "MODEL.toml") -> str:
     """Unified diff of the two configs as TOML (comments of the original are not kept)."""
-    return "".join(difflib.unified_diff(
-        dumps(base).splitlines(keepends=True), dumps(new).splitlines(keepends=True),
-        fromfile=f"a/{name}", tofile=f"b/{name}"))
+    return "".join(
+        difflib.unified_diff(
+            dumps(base).splitlines(keepends=True),
+            dumps(new).splitlines(keepends=True),
+            fromfile=f"a/{name}",
+            tofile=f"b/{name}",
+        )
+    )
 
 
 def write_config(path: Path, doc: Mapping[str, Any]) -> None:
-    header = ("# Written by `koala-bridge calibrate --write-config`: the declared model with the\n"
-              "# effects found in measured data added (see the report's config diff).\n")
+    header = (
+        "# Written by `koala-bridge calibrate --write-config`: the declared model with the\n"
+        "# effects found in measured data added (see the report's config diff).\n"
+    )
     Path(path).write_text(header + dumps(doc), encoding="utf-8")

@@ -36,7 +36,7 @@ Progress = Callable[[str, int, int], None]
 
 @dataclass(frozen=True)
 class Options:
-    window_s: float = 10.0
+    window_s: float = 5.0
     max_effects: int = MAX_EFFECTS
     effects: Sequence[str] | None = None  # restrict the candidate library (names), None = all
 

@@ -133,6 +133,11 @@ class StreamProblem(ABC):
         """Lag-1 autocorrelation of a residual vector in this stream's sample order."""
         return lag1_autocorrelation(r)
 
+    def independent_count(self, part: Part) -> int | None:
+        """Number of independent units in a part's residual when the stream knows it better
+        than an AR(1) model does (None: prewhiten and count residuals)."""
+        return None
+
     def config_values(self, insts: Sequence[EffectInstance], x: FloatArray) -> dict[str, Any]:
         """Config keys written for the declared model's own fitted parts (default: none)."""
         return {}

@@ -12,11 +12,14 @@ Per stream, starting from the declared model (nuisance parameters fitted):
      candidates tried in this round (Bonferroni), ``k`` the effect's parameter count;
    * **practical size**: held-out RMS drops by at least 1 %;
 
-   where ``n_f``, ``n_s`` are *effective* sample sizes ``n (1 - rho) / (1 + rho)``
-   (:func:`bridge.calibration.problem.effective_size`) so that correlated residuals do not count
-   as independent evidence. ``rho`` is the lag-1 autocorrelation of the fit-part residual of the
-   *full* model (every candidate at once): like the full-model variance of Mallows' Cp, it
-   measures the correlation of what no candidate explains, not of the structure being tested;
+   where the residual sums are of *prewhitened* residuals ``w_i = r_i - rho r_(i-1)``
+   (Cochrane & Orcutt 1949) and ``n_f``, ``n_s`` their counts, so that correlated residuals do
+   not count as independent evidence: dead-reckoning errors are close to a random walk
+   (``rho`` near 1, the test runs on increments), sensor noise is white (``rho`` near 0).
+   ``rho`` is the noise autocorrelation of the fit-part residual of the *full* model (every
+   candidate at once), like the full-model variance of Mallows' Cp, estimated from first
+   differences (:func:`bridge.calibration.problem.lag1_autocorrelation`) so slow structure
+   that no candidate explains is not mistaken for correlated noise;
 3. the passing candidate with the largest held-out statistic ``L`` is added; repeat until none
    passes (or ``max_effects``).
 
@@ -140,16 +143,37 @@ def parameter_se(problem: StreamProblem, fit: Fit) -> FloatArray:
     return np.sqrt(np.clip(np.diag(cov), 0, None))
 
 
-def judge(old: Fit, new: Fit, k: int, n_candidates: int, rho: float) -> Trial:
+def prewhiten(r: FloatArray, rho: float) -> FloatArray:
+    """AR(1) prewhitening ``r_i - rho r_(i-1)``."""
+    return r[1:] - rho * r[:-1] if rho > 0 and r.size > 1 else r
+
+
+def _ss(v: FloatArray) -> float:
+    return float(np.dot(v, v))
+
+
+def judge(
+    old: Fit,
+    new: Fit,
+    k: int,
+    n_candidates: int,
+    rho: float,
+    counts: tuple[int | None, int | None] = (None, None),
+) -> Trial:
     """Apply the stopping rule of the module docstring to one candidate."""
     name = new.insts[-1].name
     if old.r_score.size == 0 or new.r_fit.size == 0:
         return Trial(name, k, np.nan, np.nan, np.nan, np.nan, False, new)
-    nf = effective_size(new.r_fit.size, rho)
-    ns = effective_size(new.r_score.size, rho)
     tiny = 1e-300
-    dbic = nf * np.log(max(new.rss_fit, tiny) / max(old.rss_fit, tiny)) + k * np.log(nf)
-    lr = ns * np.log(max(old.rss_score, tiny) / max(new.rss_score, tiny))
+    wf_old, wf_new = prewhiten(old.r_fit, rho), prewhiten(new.r_fit, rho)
+    ws_old, ws_new = prewhiten(old.r_score, rho), prewhiten(new.r_score, rho)
+    nf, ns = max(wf_new.size, 1), max(ws_new.size, 1)
+    if counts[0] is not None and counts[1] is not None:
+        # The stream knows its independent units (odometry windows): raw sums, those counts.
+        wf_old, wf_new, ws_old, ws_new = old.r_fit, new.r_fit, old.r_score, new.r_score
+        nf, ns = max(counts[0], 1), max(counts[1], 1)
+    dbic = nf * np.log(max(_ss(wf_new), tiny) / max(_ss(wf_old), tiny)) + k * np.log(nf)
+    lr = ns * np.log(max(_ss(ws_old), tiny) / max(_ss(ws_new), tiny))
     thr = float(stats.chi2.ppf(1 - ALPHA / max(n_candidates, 1), max(k, 1)))
     gain = 1 - np.sqrt(new.rss_score / old.rss_score) if old.rss_score > 0 else 0.0
     passed = bool(dbic < 0 and lr > thr and gain >= MIN_RELATIVE_GAIN)
@@ -178,6 +202,7 @@ def select_effects(
     result = Selection(problem, current, current)
     remaining = list(candidates)
     rho = noise_autocorrelation(problem, current, remaining)
+    counts = (problem.independent_count("fit"), problem.independent_count("score"))
     result.rho = rho
     while remaining and len(result.added) < max_effects:
         trials: list[Trial] = []
@@ -185,7 +210,7 @@ def select_effects(
             insts = [*current.insts, cand]
             x0 = problem.initial_vector(insts, current.x, current.insts)
             new = fit_model(problem, insts, x0)
-            trials.append(judge(current, new, len(cand.param_names), len(remaining), rho))
+            trials.append(judge(current, new, len(cand.param_names), len(remaining), rho, counts))
             if on_trial is not None:
                 on_trial()
         result.rounds.append(trials)

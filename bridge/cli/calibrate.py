@@ -43,16 +43,38 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.epilog = EXAMPLE
     parser.add_argument("input", type=Path, help="measurement bundle directory or .mcap recording")
-    parser.add_argument("--config", type=Path, default=None, metavar="MODEL.toml",
-                        help="declared model (the bridge config); omitted: every sensor ideal")
-    parser.add_argument("--out", type=Path, required=True, metavar="DIR",
-                        help="directory for report.json, report.md and residual plots")
-    parser.add_argument("--write-config", type=Path, default=None, metavar="NEW.toml",
-                        help="write MODEL.toml with the found effects added")
-    parser.add_argument("--window-s", type=float, default=10.0,
-                        help="odometry dead-reckoning window length in seconds (default 10)")
-    parser.add_argument("--effects", default=None,
-                        help="comma-separated effect names to consider (default: all registered)")
+    parser.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        metavar="MODEL.toml",
+        help="declared model (the bridge config); omitted: every sensor ideal",
+    )
+    parser.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        metavar="DIR",
+        help="directory for report.json, report.md and residual plots",
+    )
+    parser.add_argument(
+        "--write-config",
+        type=Path,
+        default=None,
+        metavar="NEW.toml",
+        help="write MODEL.toml with the found effects added",
+    )
+    parser.add_argument(
+        "--window-s",
+        type=float,
+        default=5.0,
+        help="odometry dead-reckoning window length in seconds (default 5)",
+    )
+    parser.add_argument(
+        "--effects",
+        default=None,
+        help="comma-separated effect names to consider (default: all registered)",
+    )
     parser.add_argument("--no-plots", action="store_true", help="skip the residual PNGs")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -62,9 +84,15 @@ def _progress_bar(enabled: bool):  # type: ignore[no-untyped-def]
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     console = Console(stderr=False)
-    return Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}"
-                    "/{task.total}"), TimeElapsedColumn(), console=console,
-                    disable=not (enabled and console.is_terminal), transient=True)
+    return Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total}"),
+        TimeElapsedColumn(),
+        console=console,
+        disable=not (enabled and console.is_terminal),
+        transient=True,
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -74,8 +102,9 @@ def run(args: argparse.Namespace) -> int:
         with tempfile.TemporaryDirectory(prefix="koala-calibrate-") as tmp:
             bundle = load_input(args.input, Path(tmp))
             model = declared_model(config, bundle.meta)
-            options = Options(window_s=args.window_s,
-                              effects=args.effects.split(",") if args.effects else None)
+            options = Options(
+                window_s=args.window_s, effects=args.effects.split(",") if args.effects else None
+            )
             with _progress_bar(not args.quiet and sys.stdout.isatty()) as bar:
                 tasks: dict[str, int] = {}
 
@@ -96,15 +125,23 @@ def run(args: argparse.Namespace) -> int:
         log.error("%s", e)
         return 2
     for res in results:
-        log.info("%s %s: %.4g -> %.4g %s [%s]", res.problem.name, res.problem.metric, res.before,
-                 res.after, res.problem.unit, ", ".join(i.name for i in res.effects) or "-")
+        log.info(
+            "%s %s: %.4g -> %.4g %s [%s]",
+            res.problem.name,
+            res.problem.metric,
+            res.before,
+            res.after,
+            res.problem.unit,
+            ", ".join(i.name for i in res.effects) or "-",
+        )
     return 0
 
 
 def main(argv: list[str] | None = None) -> int:
     """Stand-alone entry (``python -m bridge.cli.calibrate``) until ``koala-bridge`` dispatches."""
-    parser = argparse.ArgumentParser(prog="koala-bridge calibrate",
-                                     description=(__doc__ or "").splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="koala-bridge calibrate", description=(__doc__ or "").splitlines()[0]
+    )
     add_arguments(parser)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")

@@ -150,6 +150,12 @@ class OdometryProblem(StreamProblem):
         e, _ = self._errors(insts, x, part)
         return float(np.sqrt(np.mean(np.sum(e**2, axis=1)))) if e.size else float("nan")
 
+    def independent_count(self, part: Part) -> int | None:
+        # Dead-reckoning errors integrate the noise twice (slip -> heading -> position), so
+        # residuals inside a window are not independent whatever their lag-1 correlation says;
+        # windows are (each starts from the reference), two coordinates each.
+        return 2 * self._windows[part].n
+
     def residual_series(
         self, insts: Sequence[EffectInstance], x: FloatArray
     ) -> tuple[FloatArray, FloatArray]:

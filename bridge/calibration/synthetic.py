@@ -1,0 +1,167 @@
+"""A small pure generator of measurement bundles from a known truth, for tests and benches.
+
+A differential-drive robot follows a smooth trajectory (speed and turn rate are sums of
+sinusoids); from it come wheel ticks, gyro yaw rate (with a temperature column), compass field,
+sonar ranges to a varying obstacle (4 sensors), and range/bearing observations of 3 mapped
+landmarks, each with white noise. :class:`Injected` names the effects put into the measurements
+that the declared model (:data:`DECLARED`) does not have. Later the simulator can feed the same
+bundle writer.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+#: The declared model the synthetic bundles are checked against (what MODEL.toml would say).
+DECLARED: Mapping[str, Any] = {
+    "robot": {"ticks_per_metre": 10000.0, "wheel_base_m": 0.30},
+    "sensors": {"gyro": {"ideal": True}, "compass": {"ideal": True}, "sonar": {"ideal": True}},
+}
+
+NOISE = {
+    "gyro": 0.005,
+    "compass_uT": 0.3,
+    "sonar": 0.01,
+    "landmark_range": 0.02,
+    "landmark_bearing": 0.01,
+}
+EARTH_UT = (0.0, 20.0, -43.0)  # horizontal field pointing along +y (north), vertical down
+SONAR_MAX_M = 5.0
+
+
+@dataclass(frozen=True)
+class Injected:
+    """Effects put into the measurements; every default is 'absent'."""
+
+    gyro_bias: float = 0.0
+    gyro_scale: float = 0.0
+    gyro_drift: float = 0.0  # rad/s per s, about the middle of the fit part
+    gyro_temperature: float = 0.0  # rad/s per degC
+    gyro_time_offset: float = 0.0  # s, gyro lags the truth
+    hard_iron: tuple[float, float] = (0.0, 0.0)  # uT
+    soft_iron: tuple[float, float] = (0.0, 0.0)  # e_xx, e_xy of S = I + E
+    tick_scale: float = 0.0  # true ticks per metre = declared (1 + tick_scale)
+    wheel_base: float = 0.0  # true wheel base = declared (1 + wheel_base)
+    wheel_ratio: float = 0.0  # D_left / D_right = 1 + wheel_ratio
+    sonar_range_dependent: float = 0.0  # m per m^2
+    sonar_glitch: float = 0.0  # probability of a max-range reading
+    sonar_quantisation: float = 0.0  # m
+    sonar_per_sensor: tuple[float, ...] = field(default_factory=tuple)  # m, one per sensor
+
+
+def _trajectory(t: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    ph = rng.uniform(0, 2 * np.pi, 4)
+    v = 0.25 + 0.1 * np.sin(2 * np.pi * t / 23 + ph[0]) + 0.05 * np.sin(2 * np.pi * t / 7 + ph[1])
+    # A steady 0.2 rad/s turn makes the heading cover full circles (compass identifiability).
+    w = 0.2 + 0.5 * np.sin(2 * np.pi * t / 11 + ph[2]) + 0.3 * np.sin(2 * np.pi * t / 5.3 + ph[3])
+    return v, w
+
+
+def _write(path: Path, header: str, cols: list[np.ndarray], fmt: str = "%.9g") -> None:
+    np.savetxt(path, np.column_stack(cols), delimiter=",", header=header, comments="", fmt=fmt)
+
+
+def make_bundle(
+    out: Path,
+    seed: int,
+    inj: Injected | None = None,
+    duration_s: float = 60.0,
+    rate_hz: float = 20.0,
+) -> Path:
+    """Write a bundle to ``out`` and return it. Same seed, same noise, whatever is injected."""
+    inj = inj or Injected()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    ss = np.random.SeedSequence(seed).spawn(6)
+    rng_traj, rng_gyro, rng_comp, rng_son, rng_lm, rng_odo = (np.random.default_rng(s) for s in ss)
+    dt = 1.0 / rate_hz
+    t = np.arange(0.0, duration_s + dt / 2, dt)
+    v, w = _trajectory(t, rng_traj)
+    theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * dt)]
+    mid = theta[:-1] + 0.5 * np.diff(theta)
+    ds = 0.5 * (v[1:] + v[:-1]) * dt
+    x = np.r_[0.0, np.cumsum(ds * np.cos(mid))] + 1.0
+    y = np.r_[0.0, np.cumsum(ds * np.sin(mid))] + 1.0
+    _write(out / "truth_pose.csv", "t,x,y,theta", [t, x, y, theta])
+
+    # Odometry: true wheel distances from the true geometry, counted with the true tick size.
+    tpm = DECLARED["robot"]["ticks_per_metre"]
+    b = DECLARED["robot"]["wheel_base_m"] * (1 + inj.wheel_base)
+    dth = np.diff(theta)
+    s_l, s_r = ds - dth * b / 2, ds + dth * b / 2
+    rho = 1 + inj.wheel_ratio
+    tpm_true = tpm * (1 + inj.tick_scale)
+    slip = rng_odo.normal(0, 2e-4, (2, ds.size)) * np.sqrt(np.abs(ds) / max(ds.mean(), 1e-9))
+    # Inverse of the calibration model: s_l = dL / tpm * 2 rho / (1 + rho), s_r = dR / tpm * 2 / (1 + rho)
+    ticks_l = np.round(np.r_[0, np.cumsum((s_l + slip[0]) * tpm_true * (1 + rho) / (2 * rho))])
+    ticks_r = np.round(np.r_[0, np.cumsum((s_r + slip[1]) * tpm_true * (1 + rho) / 2)])
+    _write(out / "odometry.csv", "t,left_ticks,right_ticks", [t, ticks_l, ticks_r], fmt="%.10g")
+
+    # Gyro with a temperature covariate.
+    t_mid_fit = 0.3 * duration_s
+    temp = 25 + 4 * np.sin(2 * np.pi * t / (0.7 * duration_s) + rng_gyro.uniform(0, 6.28))
+    w_lag = np.interp(t - inj.gyro_time_offset, t, w)
+    rate = (
+        (1 + inj.gyro_scale) * w_lag
+        + inj.gyro_bias
+        + inj.gyro_drift * (t - t_mid_fit)
+        + inj.gyro_temperature * (temp - temp[t < 0.6 * duration_s].mean())
+        + rng_gyro.normal(0, NOISE["gyro"], t.size)
+    )
+    _write(out / "gyro.csv", "t,yaw_rate,temperature_c", [t, rate, temp])
+
+    # Compass: body-frame field m = R(-theta) b_world; measured = S m + h + noise.
+    bx, by, bz = EARTH_UT
+    c, s = np.cos(theta), np.sin(theta)
+    m = np.column_stack([c * bx + s * by, -s * bx + c * by])
+    e_xx, e_xy = inj.soft_iron
+    S = np.array([[1 + e_xx, e_xy], [e_xy, 1 - e_xx]])
+    m = m @ S.T + np.asarray(inj.hard_iron) + rng_comp.normal(0, NOISE["compass_uT"], m.shape)
+    mz = bz + rng_comp.normal(0, NOISE["compass_uT"], t.size)
+    _write(out / "compass.csv", "t,mx,my,mz", [t, m[:, 0], m[:, 1], mz])
+
+    # Sonar: 4 sensors, true range to a moving obstacle, 0.2..3 m.
+    n_s = 4
+    ts = np.repeat(t, n_s)
+    sensor = np.tile(np.arange(n_s), t.size)
+    true_r = 1.6 + 1.3 * np.sin(2 * np.pi * ts / 9.0 + sensor) * np.cos(2 * np.pi * ts / 31.0)
+    true_r = np.clip(true_r + 0.1 * sensor, 0.2, 3.2)
+    meas = (
+        true_r + inj.sonar_range_dependent * true_r**2 + rng_son.normal(0, NOISE["sonar"], ts.size)
+    )
+    if inj.sonar_per_sensor:
+        meas = meas + np.asarray(inj.sonar_per_sensor)[sensor]
+    if inj.sonar_quantisation:
+        meas = inj.sonar_quantisation * np.round(meas / inj.sonar_quantisation)
+    glitch = rng_son.random(ts.size) < inj.sonar_glitch
+    meas = np.where(glitch, SONAR_MAX_M, meas)
+    _write(out / "range.csv", "t,sensor,measured,true_range", [ts, sensor, meas, true_r])
+
+    # Landmarks: 3 mapped landmarks, one observation each per 0.5 s.
+    lm = np.array([[1, 4.0, 4.0], [2, -2.0, 3.0], [3, 2.0, -3.0]])
+    _write(out / "landmark_map.csv", "id,x,y", [lm[:, 0], lm[:, 1], lm[:, 2]])
+    step = max(1, int(round(0.5 * rate_hz)))
+    idx = np.arange(0, t.size, step)
+    ti = np.repeat(t[idx], 3)
+    li = np.tile(np.arange(3), idx.size)
+    px, py, pth = np.repeat(x[idx], 3), np.repeat(y[idx], 3), np.repeat(theta[idx], 3)
+    dx, dy = lm[li, 1] - px, lm[li, 2] - py
+    rng_ = np.hypot(dx, dy) + rng_lm.normal(0, NOISE["landmark_range"], ti.size)
+    brg = np.arctan2(dy, dx) - pth + rng_lm.normal(0, NOISE["landmark_bearing"], ti.size)
+    brg = np.pi - np.mod(np.pi - brg, 2 * np.pi)
+    _write(out / "landmarks.csv", "t,landmark_id,range,bearing", [ti, lm[li, 0], rng_, brg])
+
+    meta = {
+        "name": f"synthetic-{seed}",
+        "source": "bridge.calibration.synthetic",
+        "injected": {k: v for k, v in inj.__dict__.items() if v not in (0.0, (0.0, 0.0), ())},
+        "units": {"compass.mx": "uT", "range.measured": "m"},
+    }
+    (out / "meta.json").write_text(json.dumps(meta, indent=1), encoding="utf-8")
+    return out
