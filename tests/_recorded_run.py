@@ -28,13 +28,18 @@ class RecordedRun:
 
 
 def record_run(
-    tmp: Path, duration_s: float = DURATION_S, extra: list[str] | None = None
+    tmp: Path,
+    duration_s: float = DURATION_S,
+    clock: str = "fast",
+    extra: list[str] | None = None,
 ) -> RecordedRun:
+    """Record ``duration_s`` simulation seconds; a K-Team client asks KTEAM_COMMANDS at the start
+    (on the fast clock a run must be long enough, ~10 s or more, for the client to finish)."""
     path = tmp / "run.mcap"
     endpoints_file = tmp / "endpoints.json"
     log_path = tmp / "bridge.log"
     args = [
-        "run", "--config", str(DEFAULT_CONFIG), "--clock", "fast",
+        "run", "--config", str(DEFAULT_CONFIG), "--clock", clock,
         "--duration", str(duration_s), "--record", str(path),
         "--endpoints-file", str(endpoints_file),
         "--set", f'zenoh.listen=["tcp/127.0.0.1:{free_port()}"]',
