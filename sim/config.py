@@ -1,9 +1,10 @@
-"""Typed, frozen configuration of the simulator: ``[sim]``, ``[robot]``, ``[sensors.*]``, ``[world]``.
+"""Typed, frozen simulator configuration: ``[sim]``, ``[robot]``, ``[sensors.*]``, ``[world]``.
 
 Built from plain dicts (the parsed TOML; file I/O lives in ``bridge/``) by :func:`load_sim_config`.
 Every key a run uses is written in ``config/default.toml``; nothing here hides a default that the
 file should show, so every key of these sections is *required* (error-model parameters are
-validated by their own classes). Unknown keys are :class:`~sim.schema.ConfigError` that suggest the nearest valid key.
+validated by their own classes). Unknown keys are :class:`~sim.schema.ConfigError` that
+suggest the nearest valid key.
 Top-level sections other than ``sim``, ``robot``, ``sensors`` and ``world`` belong to ``bridge/``
 and are ignored here.
 
@@ -77,7 +78,9 @@ def _int(d: Mapping[str, Any], key: str, section: str, minimum: int = 1) -> int:
 def _odd(d: Mapping[str, Any], key: str, section: str) -> int:
     n = _int(d, key, section)
     if n % 2 == 0:
-        raise ConfigError(f"[{section}] '{key}' must be odd (one ray on the sensor's axis), got {n}")
+        raise ConfigError(
+            f"[{section}] '{key}' must be odd (one ray on the sensor's axis), got {n}"
+        )
     return n
 
 
@@ -113,7 +116,8 @@ def _split_errors(
     A section such as ``[sensors.gyro]`` holds the simulator's keys (``rate_hz``, ``ideal``, ...)
     *and* the parameters of the sensor's error model (issue 3), side by side. Keys that are not
     ``own_keys`` go to the error model's params class (:data:`ERROR_PARAMS`); keys that both
-    know (``ideal``, ``min_range_m``, ...) go to both. A key known to neither is an error suggesting the nearest key of both. Returns the params
+    know (``ideal``, ``min_range_m``, ...) go to both. A key known to neither is an error
+    suggesting the nearest key of both. Returns the params
     object (or an empty mapping when no error model exists for this sensor).
     """
     cls = _error_params_class(model)
@@ -219,7 +223,7 @@ class RobotConfig:
 
 @dataclass(frozen=True, eq=False)
 class IrConfig:
-    """``[sensors.ir]``: proximity sensors, K-Team counts from a response table (range -> counts)."""
+    """``[sensors.ir]``: proximity sensors, K-Team counts from a response table range -> counts."""
 
     rate_hz: float
     ideal: bool
@@ -249,7 +253,8 @@ class IrConfig:
         counts = np.array(require(d, "response_counts", sec), dtype=float)
         if rng_m.ndim != 1 or rng_m.shape != counts.shape or rng_m.size < 2:
             raise ConfigError(
-                f"[{sec}] 'response_range_m' and 'response_counts' must be lists of equal length >= 2"
+                f"[{sec}] 'response_range_m' and 'response_counts' must be lists of equal "
+                "length >= 2"
             )
         if np.any(np.diff(rng_m) <= 0) or rng_m[0] < 0:
             raise ConfigError(f"[{sec}] 'response_range_m' must be >= 0 and strictly increasing")

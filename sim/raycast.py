@@ -323,5 +323,6 @@ def first_hit_before(
     vy = ty - oy
     dist = np.hypot(vx, vy)
     safe = np.where(dist > 0, dist, 1.0)
-    hits = cast_rays(walls, ox, oy, vx / safe, vy / safe, max_range=np.maximum(dist - tolerance_m, 0))
+    hits = cast_rays(walls, ox, oy, vx / safe, vy / safe,
+                     max_range=np.maximum(dist - tolerance_m, 0))
     return (hits.index >= 0) & (dist > 0)

@@ -37,13 +37,13 @@ import numpy as np
 from sim.config import RobotConfig
 from sim.raycast import SegmentSet, point_segment_distances
 
+_TAU = 2.0 * math.pi
+
 
 def wrap_angle(a: float) -> float:
     """Wrap an angle to (-pi, pi]."""
-    w = math.fmod(a + math.pi, 2.0 * math.pi)
-    if w <= 0.0:
-        w += 2.0 * math.pi
-    return w - math.pi
+    w = math.remainder(a, _TAU)     # in [-pi, pi], exact
+    return math.pi if w == -math.pi else w
 
 
 @dataclass(frozen=True, slots=True)

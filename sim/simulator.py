@@ -3,8 +3,8 @@
 Fixed step ``dt = [sim] dt_s``. Step ``k`` ends at simulation time ``t = k * dt`` (computed from the
 integer counter, so there is no floating-point drift). A sensor with rate ``f`` is due at every step
 ``k`` with ``k % round(1 / (f dt)) == 0`` (rates must divide ``1/dt``; the config loader checks),
-so ``reset`` (step 0) returns a reading of every sensor. :class:`~sim.types.Readings` holds the truth
-pose and the readings due at that step; the others are None.
+so ``reset`` (step 0) returns a reading of every sensor. :class:`~sim.types.Readings` holds the
+truth pose and the readings due at that step; the others are None.
 
 Randomness (Gymnasium pattern): ``reset(seed)`` builds ``numpy.random.SeedSequence(seed)`` and
 spawns one child per name of :data:`RNG_STREAMS`, in that fixed order, each feeding its own
@@ -34,8 +34,8 @@ from sim.schema import ConfigError
 from sim.sensors.base import ErrorModelFactory
 from sim.sensors.camera import CameraSensor
 from sim.sensors.compass import CompassSensor
-from sim.sensors.fan import RayFan
 from sim.sensors.encoders import EncoderSensor
+from sim.sensors.fan import RayFan
 from sim.sensors.gyro import GyroSensor
 from sim.sensors.ir import IrSensor
 from sim.sensors.sonar import SonarSensor

@@ -127,7 +127,7 @@ def test_time_is_step_count_times_dt() -> None:
     sim = make_sim()
     r = sim.reset(0)
     assert r.t == 0.0
-    for k in range(1, 1001):
+    for _ in range(1, 1001):
         r = sim.step(WheelCommand())
     assert r.t == 1000 * sim.dt
     assert sim.step_count == 1000

@@ -169,7 +169,8 @@ def test_compass_heading_matches_truth_without_local_sources(theta_deg: float) -
     bx, by, bz = r.compass.field_uT
     heading_cw_from_north = math.atan2(by, bx)         # FLU: field to the left = heading east
     theta = math.radians(90.0) - heading_cw_from_north  # CCW from east
-    assert math.remainder(theta - math.radians(theta_deg), 2 * math.pi) == pytest.approx(0, abs=1e-12)
+    err = math.remainder(theta - math.radians(theta_deg), 2 * math.pi)
+    assert err == pytest.approx(0, abs=1e-12)
     assert bz == -43.0
     assert math.hypot(bx, by) == pytest.approx(20.0)
 

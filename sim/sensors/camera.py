@@ -60,6 +60,11 @@ class CameraCandidates:
     max_range: np.ndarray
 
 
+_EMPTY = np.zeros(0)
+_EMPTY.flags.writeable = False
+_NO_CANDIDATES = CameraCandidates((), (), (), (), _EMPTY, _EMPTY, _EMPTY, _EMPTY, _EMPTY)
+
+
 class CameraSensor:
     name = "camera"
 
@@ -78,6 +83,8 @@ class CameraSensor:
         self.landmarks = tuple((lm.x, lm.y, math.radians(lm.facing_deg),
                                 math.radians(lm.a_max_deg)) for lm in lms)
         self.half_fov = math.radians(params.fov_deg) / 2.0
+        # fov_deg = 360 -> cos(pi) = -1 accepts every direction.
+        self._cos_half_fov = math.cos(self.half_fov) - 1e-12
 
     def candidates(self, state: RobotState) -> CameraCandidates:
         p = self.params
@@ -90,23 +97,28 @@ class CameraSensor:
         viewing: list[float] = []
         dxs: list[float] = []
         dys: list[float] = []
+        axis = state.theta + p.pose[2]
+        ax, ay = math.cos(axis), math.sin(axis)
         for i, (lx, ly, facing, _a_max) in enumerate(self.landmarks):
             vx = lx - cx
             vy = ly - cy
             d = math.hypot(vx, vy)
             if not (p.min_range_m <= d <= p.max_range_m) or d == 0.0:
                 continue
-            direction = math.atan2(vy, vx)
-            bearing = wrap_angle(direction - state.theta)
-            if abs(wrap_angle(bearing - p.pose[2])) > self.half_fov:
+            # Within the field of view: angle to the camera axis <= half_fov, by the dot product
+            # (cheaper than atan2 + wrap for the landmarks that are rejected).
+            if vx * ax + vy * ay < self._cos_half_fov * d:
                 continue
+            direction = math.atan2(vy, vx)
             idx.append(i)
             rngs.append(d)
-            bearings.append(bearing)
+            bearings.append(wrap_angle(direction - state.theta))
             viewing.append(wrap_angle(direction + math.pi - facing))
             dxs.append(vx / d)
             dys.append(vy / d)
         n = len(idx)
+        if n == 0:
+            return _NO_CANDIDATES
         return CameraCandidates(
             tuple(idx), tuple(rngs), tuple(bearings), tuple(viewing),
             np.full(n, cx), np.full(n, cy), np.array(dxs), np.array(dys),
@@ -114,6 +126,8 @@ class CameraSensor:
         )
 
     def truth_from(self, cand: CameraCandidates, blocked: np.ndarray) -> CameraTruth:
+        if not cand.index:
+            return CameraTruth((), _EMPTY, _EMPTY, self.ids)
         obs = []
         viewing = []
         a_max = []
@@ -140,5 +154,5 @@ class CameraSensor:
             hits = cast_rays(self.walls, cand.ox, cand.oy, cand.dx, cand.dy, cand.max_range)
             blocked = hits.index >= 0
         else:
-            blocked = np.zeros(0, dtype=bool)
+            blocked = _EMPTY.astype(bool)
         return self.measure_from(cand, blocked, rng)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from sim.config import IrConfig
@@ -43,22 +44,47 @@ def response_counts(ranges_m: np.ndarray, params: IrConfig) -> np.ndarray:
     return np.interp(ranges_m, params.response_range_m, params.response_counts, right=0.0)
 
 
+@numba.njit(cache=True, nogil=True)
+def _mean_counts(
+    ray_ranges: np.ndarray, table_r: np.ndarray, table_c: np.ndarray, n: int, k: int
+) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled; tested through ir_truth
+    # Equal to response_counts(...).reshape(n, k).mean(axis=1) and its rounding, in one pass.
+    per_ray = np.interp(ray_ranges, table_r, table_c)
+    last = table_r[-1]
+    counts_f = np.empty(n)
+    counts = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        acc = 0.0
+        for j in range(k):
+            r = ray_ranges[i * k + j]
+            acc += per_ray[i * k + j] if r <= last else 0.0
+        counts_f[i] = acc / k
+        counts[i] = np.int64(np.rint(acc / k))
+    return counts_f, counts
+
+
 def ir_truth(
-    hits: RayHits, fan: RayFan, params: IrConfig, world_rays: np.ndarray | None = None
+    hits: RayHits,
+    fan: RayFan,
+    params: IrConfig,
+    world_rays: np.ndarray | None = None,
+    ambient: np.ndarray | None = None,
 ) -> IrTruth:
+    """Noise-free IR truth from the hits of ``fan``'s rays; ``ambient`` may pass a prebuilt
+    read-only array of ``params.ambient_counts`` (it is the same at every step)."""
     n, k = fan.n, fan.k
+    counts_f, counts = _mean_counts(hits.range, params.response_range_m,
+                                    params.response_counts, n, k)
     ray_ranges = hits.range.reshape(n, k)
-    per_ray = response_counts(hits.range, params).reshape(n, k)
-    counts_f = per_ray.sum(axis=1) / k
-    counts = np.rint(counts_f).astype(np.int64)     # table values lie in 0..1023 (config)
     return IrTruth(
-        counts=counts,
+        counts=counts,                          # table values lie in 0..1023 (config)
         counts_float=counts_f,
-        axis_ranges=ray_ranges[:, k // 2].copy(),
+        axis_ranges=ray_ranges[:, k // 2],
         ray_ranges=ray_ranges,
         ray_incidence=hits.incidence.reshape(n, k),
         ray_wall=hits.index.reshape(n, k),
-        ambient=np.full(n, params.ambient_counts, dtype=np.int64),
+        ambient=(np.full(n, params.ambient_counts, dtype=np.int64) if ambient is None
+                 else ambient),
         world_rays=None if world_rays is None else world_rays.reshape(4, n, k),
     )
 
@@ -83,6 +109,8 @@ class IrSensor:
         self.params = params
         self.error_model = None if params.ideal else error_model
         self.fan = RayFan.build(params.poses, params.rays, math.radians(params.aperture_deg))
+        self._ambient = np.full(self.fan.n, params.ambient_counts, dtype=np.int64)
+        self._ambient.flags.writeable = False
 
     @property
     def max_range_m(self) -> float:
@@ -92,7 +120,7 @@ class IrSensor:
         self, hits: RayHits, rng: np.random.Generator, world_rays: np.ndarray | None = None
     ) -> IrReading:
         """Reading from this step's hits of :attr:`fan` (cast by the caller, see simulator)."""
-        truth = ir_truth(hits, self.fan, self.params, world_rays)
+        truth = ir_truth(hits, self.fan, self.params, world_rays, self._ambient)
         if self.error_model is None:
             return ideal_reading(truth)
         return self.error_model.measure(truth, rng)

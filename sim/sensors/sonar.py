@@ -20,6 +20,7 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from sim.config import SonarConfig
@@ -43,19 +44,34 @@ class SonarTruth:
     walls: SegmentSet | None = None
 
 
+@numba.njit(cache=True, nogil=True)
+def _first_echo(
+    ray_ranges: np.ndarray, ray_incidence: np.ndarray, n: int, k: int
+) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled; tested through sonar_truth
+    # Per sensor: the nearest of its k rays (first index on ties); nan when none hit.
+    ranges = np.empty(n)
+    incidence = np.empty(n)
+    for i in range(n):
+        best = np.inf
+        inc = np.nan
+        for j in range(k):
+            r = ray_ranges[i * k + j]
+            if r < best:
+                best = r
+                inc = ray_incidence[i * k + j]
+        ranges[i] = best if best < np.inf else np.nan
+        incidence[i] = inc
+    return ranges, incidence
+
+
 def sonar_truth(hits: RayHits, fan: RayFan, params: SonarConfig) -> SonarTruth:
     n, k = fan.n, fan.k
-    rr = hits.range.reshape(n, k)
-    inc = hits.incidence.reshape(n, k)
-    j = np.argmin(rr, axis=1)
-    rows = np.arange(n)
-    first = rr[rows, j]
-    found = np.isfinite(first)
+    ranges, incidence = _first_echo(hits.range, hits.incidence, n, k)
     return SonarTruth(
-        ranges=np.where(found, first, np.nan),
-        incidence=np.where(found, inc[rows, j], np.nan),
-        ray_ranges=rr,
-        ray_incidence=inc,
+        ranges=ranges,
+        incidence=incidence,
+        ray_ranges=hits.range.reshape(n, k),
+        ray_incidence=hits.incidence.reshape(n, k),
         ray_wall=hits.index.reshape(n, k),
         min_range_m=params.min_range_m,
         max_range_m=params.max_range_m,
