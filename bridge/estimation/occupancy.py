@@ -9,10 +9,14 @@ the sensor's relative error: IR 3 %, sonar 6.6 %)::
         for a in -sigma/2 .. sigma/2 step omega:      # omega: about half a cell of arc at r
             mark cell(x_s + r cos(phi + a), y_s + r sin(phi + a)) occupied
 
-Unlike the lecture's ``set grid = 1``, cells accumulate evidence in log-odds (seeds/003 A): each
-cell of the arc band gains ``l_occ`` once per reading (a set of cells, so a cell hit by many arc
-samples is not over-counted), and every cell of the cone *in front of* the band -- radii
-``0 .. d (1 - eps)`` -- gains ``l_free`` (negative). A cell in both sets counts as occupied. A
+Unlike the lecture's ``set grid = 1``, cells accumulate evidence in log-odds (seeds/003 A). A
+reading says that an obstacle is *somewhere* on its arc, not everywhere on it, so the arc band's
+``n`` distinct cells share the evidence: each gains ``l_occ * min(1, occ_share_cells / n)`` once
+per reading (the lab's "distributed evenly among matching cells"). A narrow IR beam's band is a
+cell or two and gets the full ``l_occ``; a 23 deg sonar arc at 1 m spans ~8 cells of 5 cm and each
+gets ~3/8 of it, so the free space beside a wall it saw is not painted occupied. Every cell of
+the cone *in front of* the band -- radii ``0 .. d (1 - eps)`` -- gains ``l_free`` (negative). A
+cell in both sets counts as occupied. A
 reading with no echo (nan, inf, or ``>= max_range_m``) marks nothing unless
 ``mark_free_on_no_echo``: sonar loses echoes by specular reflection (seeds/004 "Reflection
 Errors"), so a missing echo is weak evidence of free space. Log-odds are clamped to
@@ -48,14 +52,20 @@ class BeamModel:
             seeds/004).
         range_error: relative distance error ``eps`` (IR 0.03, sonar 0.066, seeds/004 tables).
         max_range_m: readings at or beyond this, and nan/inf, are "no echo".
+        min_range_m: readings below this are ignored (the Koala's sonar reads 0 under 25 cm).
     """
 
     beam_width_rad: float
     range_error: float
     max_range_m: float
+    min_range_m: float = 0.0
 
     def __post_init__(self) -> None:
-        if self.beam_width_rad < 0 or self.range_error < 0 or not self.max_range_m > 0:
+        if (
+            self.beam_width_rad < 0
+            or self.range_error < 0
+            or not self.max_range_m > self.min_range_m >= 0
+        ):
             raise EstimationError(f"invalid beam model {self}")
 
 
@@ -66,12 +76,14 @@ class OccupancyParams:
     Attributes:
         l_occ: added to a cell in a reading's obstacle band (0.85 = ln(0.7/0.3)).
         l_free: added to a cell in front of the band (-0.4 ~ ln(0.4/0.6)).
+        occ_share_cells: an arc band of ``n`` cells gives each ``l_occ * min(1, this / n)``.
         l_min, l_max: clamp of the accumulated log-odds.
         mark_free_on_no_echo: whether a no-echo reading clears its whole cone to ``max_range_m``.
     """
 
     l_occ: float = 0.85
     l_free: float = -0.4
+    occ_share_cells: float = 3.0
     l_min: float = -4.0
     l_max: float = 4.0
     mark_free_on_no_echo: bool = False
@@ -113,7 +125,8 @@ def beam_cells(
         resolution_m: cell side, metres; the grid's origin is world ``(0, 0)``.
         sensor_xy: sensor position, world frame, metres (not the robot's centre).
         phi: beam axis, rad CCW from east (robot heading + sensor yaw).
-        range_m: the reading, metres; nan/inf/``>= beam.max_range_m`` = no echo.
+        range_m: the reading, metres; nan/inf/``>= beam.max_range_m`` = no echo;
+            ``< beam.min_range_m`` = ignored.
         beam: the sensor's beam model.
         mark_free_on_no_echo: clear the cone to ``max_range_m`` on no echo.
 
@@ -123,6 +136,8 @@ def beam_cells(
     xs, ys = sensor_xy
     empty = np.zeros(0, dtype=np.int64)
     no_echo = not math.isfinite(range_m) or range_m >= beam.max_range_m
+    if not no_echo and range_m < beam.min_range_m:
+        return empty, empty
     if no_echo:
         if not mark_free_on_no_echo:
             return empty, empty
@@ -192,7 +207,8 @@ class OccupancyGrid:
             self.params.mark_free_on_no_echo,
         )
         flat = self.log_odds.reshape(-1)
-        flat[occ] += self.params.l_occ
+        if occ.size:
+            flat[occ] += self.params.l_occ * min(1.0, self.params.occ_share_cells / occ.size)
         flat[free] += self.params.l_free
         seen = self.observed.reshape(-1)
         seen[occ] = True
