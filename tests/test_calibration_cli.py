@@ -1,0 +1,123 @@
+"""The calibrate subcommand end to end: report shape, plots, written config, errors."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from bridge.calibration.bundle import load_input
+from bridge.calibration.effects import Effect, available_effects, register_effect
+from bridge.calibration.effects.hard_iron import algebraic_centre
+from bridge.calibration.effects.quantisation import lattice_step
+from bridge.calibration.errors import (
+    BundleError,
+    EffectRegistryError,
+    RecordingNotSupportedError,
+)
+from bridge.cli import calibrate as cli
+
+DATA = Path(__file__).parent / "data" / "real"
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _matplotlib_fonts_loaded() -> None:
+    """Render once before the per-test leak check takes its baseline: matplotlib's font cache
+    keeps the font files it has loaded open for the life of the process, by design."""
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots()
+    ax.set_title("t")
+    ax.plot([0, 1], [0, 1], ".")
+    fig.suptitle("x")
+    fig.savefig(io.BytesIO(), format="png")
+    plt.close(fig)
+
+
+def _args(*argv: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    cli.add_arguments(parser)
+    return parser.parse_args(list(argv))
+
+
+def test_report_shape_and_written_config(tmp_path: Path) -> None:
+    model = tmp_path / "model.toml"
+    model.write_text('[robot]\nname = "lego"\nwheel_base_m = 0.15\n', encoding="utf-8")
+    out, new = tmp_path / "out", tmp_path / "new.toml"
+    args = _args(str(DATA / "lego_brenner"), "--config", str(model), "--out", str(out),
+                 "--write-config", str(new), "--quiet")
+    assert cli.run(args) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert list(report) == ["streams"]
+    entry = report["streams"][0]
+    assert list(entry) == ["stream", "metric", "unit", "before", "after", "split", "effects"]
+    assert entry["stream"] == "odometry" and entry["unit"] == "m"
+    assert list(entry["split"]) == ["fit", "score"] and entry["split"]["fit"][1] == entry["split"]["score"][0]
+    assert all(list(e) == ["name", "params", "evidence"] for e in entry["effects"])
+    md = (out / "report.md").read_text()
+    assert "```diff" in md and "wheel_base_m" in md
+    assert (out / "residuals_odometry.png").stat().st_size > 1000
+    cfg = tomllib.loads(new.read_text())
+    assert cfg["robot"]["name"] == "lego"  # the rest of the model is kept
+    assert 0.165 < cfg["robot"]["wheel_base_m"] < 0.195
+    assert "ticks_per_metre" in cfg["robot"]
+
+
+def test_ir_config_keys(tmp_path: Path) -> None:
+    new = tmp_path / "new.toml"
+    assert cli.run(_args(str(DATA / "khepera2_ir"), "--out", str(tmp_path / "o"),
+                         "--write-config", str(new), "--no-plots", "--quiet")) == 0
+    ir = tomllib.loads(new.read_text())["sensors"]["ir"]
+    assert len(ir["per_sensor_offset_counts"]) == 8
+    assert len(ir["curve"]["range_m"]) == len(ir["curve"]["counts"]) >= 2
+
+
+def test_help_first_line_and_example() -> None:
+    assert cli.__doc__ is not None and cli.__doc__.splitlines()[0].strip()
+    parser = argparse.ArgumentParser()
+    cli.add_arguments(parser)
+    assert "example:" in parser.format_help()
+
+
+def test_bad_inputs(tmp_path: Path) -> None:
+    rec = tmp_path / "run.mcap"
+    rec.write_bytes(b"")
+    try:
+        import bridge.recording as recording
+
+        has_export = hasattr(recording, "export_bundle")
+    except ImportError:
+        has_export = False
+    if not has_export:
+        with pytest.raises(RecordingNotSupportedError, match="export"):
+            load_input(rec, tmp_path)
+    with pytest.raises(BundleError):
+        load_input(tmp_path / "missing", tmp_path)
+    assert cli.run(_args(str(tmp_path / "missing"), "--out", str(tmp_path / "o"), "--quiet")) == 2
+
+
+def test_registry_rejects_duplicates() -> None:
+    effects = available_effects()
+    assert {"bias", "scale", "bias_drift", "covariate", "range_dependent", "hard_iron",
+            "soft_iron", "tick_scale", "wheel_base", "wheel_ratio", "time_offset", "glitch",
+            "quantisation"} <= set(effects)
+    with pytest.raises(EffectRegistryError):
+        register_effect("bias")(type("OtherBias", (Effect,), {}))
+
+
+def test_helpers() -> None:
+    import numpy as np
+
+    assert lattice_step(np.array([0.1, 0.3, 0.35, 0.5, 1.0])) == pytest.approx(0.05)
+    assert lattice_step(np.random.default_rng(0).normal(size=100)) is None
+    a = np.linspace(0, 2 * np.pi, 50)
+    pts = np.column_stack([3 + 2 * np.cos(a), -1 + 2 * np.sin(a)])
+    assert np.allclose(algebraic_centre(pts), [3, -1])
