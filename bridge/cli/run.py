@@ -10,6 +10,7 @@ examples:
   koala-bridge run --endpoints-file /tmp/koala.json --set buses.mavlink.port=14551
   koala-bridge run --set 'zenoh.listen=["tcp/127.0.0.1:7500"]' --set robot.name=k2
   koala-bridge run --clock fast --duration 60 --record /tmp/run.mcap   # docs/recording.md
+  koala-bridge run --source real --config robot.toml --record /tmp/real.mcap
 """
 
 from __future__ import annotations
@@ -62,6 +63,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "VALUE is TOML)",
     )
     parser.add_argument(
+        "--source", choices=("sim", "real"), default="sim",
+        help="sim: the simulated Koala (default); real: read the robot's ports named in the "
+        "config's [real] section and publish/record them as in simulation (docs/recording.md)",
+    )
+    parser.add_argument(
         "--record", type=Path, metavar="FILE.mcap",
         help="record every Zenoh message and raw bus frame to an MCAP file (docs/recording.md)",
     )
@@ -95,7 +101,10 @@ def run(args: argparse.Namespace) -> int:
     try:
         config = resolve_config(args)
         settings = BridgeSettings.from_config(config)
-        service = BridgeService(config, settings)
+        if args.source == "real":
+            service = _real_source(config, settings)
+        else:
+            service = BridgeService(config, settings)
     except ConfigError as e:
         print(f"koala-bridge run: configuration error: {e}", file=sys.stderr)
         return 2
@@ -107,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             recorder = Recorder(
                 args.record,
-                metadata=run_metadata("sim", config, args.config),
+                metadata=run_metadata(args.source, config, args.config),
                 world=service.world_answer(),
             )
         except RecordingError as e:
@@ -134,7 +143,10 @@ def run(args: argparse.Namespace) -> int:
             print(f"  Endpoints file          {path}", flush=True)
         clock = settings.run.clock
         until = f"for {settings.run.duration_s:g} s" if settings.run.duration_s else "until Ctrl-C"
-        print(f"Simulating ({clock} clock) {until}.", flush=True)
+        if args.source == "real":
+            print(f"Reading the real robot's ports {until}.", flush=True)
+        else:
+            print(f"Simulating ({clock} clock) {until}.", flush=True)
         last = service.run(stop)
         rtf = service.clock.real_time_factor(last.t)
         print(f"Stopped at t = {last.t:.3f} s (real-time factor {rtf:.2f}).", flush=True)
@@ -146,3 +158,14 @@ def run(args: argparse.Namespace) -> int:
         for s, handler in previous.items():
             signal.signal(s, handler)
     return 0
+
+
+def _real_source(config: dict[str, Any], settings: BridgeSettings) -> Any:
+    """``--source real``: the robot's ports instead of the simulator (bridge/real_source.py)."""
+    from bridge.real_source import RealRobotSource
+    from sim.simulator import Simulator
+
+    # The world and the robot's description answer the world queryable; nothing is simulated.
+    description = Simulator(config)
+    world = {**description.world.to_dict(), "robot": description.robot_description()}
+    return RealRobotSource(config, settings, lambda: world)
