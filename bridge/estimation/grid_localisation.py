@@ -148,8 +148,9 @@ def predict(log_belief: FloatArray, model: GridModel, side: str, p_move: float) 
         out[:, 1:] += go[:, :-1]
     else:
         out[:, :-1] += go[:, 1:]
+    total = float(out.sum())  # > 0: the mass is conserved
     with np.errstate(divide="ignore"):
-        return log_normalise(np.log(out))
+        return np.log(out) - math.log(total)
 
 
 def wall_log_likelihood(

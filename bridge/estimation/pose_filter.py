@@ -146,12 +146,19 @@ def update(
         ``(x', P')``; the heading (index 2) of a pose state is wrapped.
     """
     y, S = innovation(x, P, z, R, H, hx, angle_rows)
-    K = np.linalg.solve(S.T, (P @ H.T).T).T
+    return _correct(x, P, y, S, np.atleast_2d(np.asarray(R, dtype=float)), H)
+
+
+def _correct(
+    x: FloatArray, P: FloatArray, y: FloatArray, S: FloatArray, R: FloatArray, H: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Kalman gain and Joseph-form correction from an innovation ``y`` with covariance ``S``."""
+    K = np.linalg.solve(S, H @ P).T  # = P H^T S^-1 (S and P symmetric)
     xn = x + K @ y
     if xn.size > 2:
         xn[2] = _wrap(xn[2])
     ikh = np.eye(x.size) - K @ H
-    Pn = ikh @ P @ ikh.T + K @ np.atleast_2d(np.asarray(R, dtype=float)) @ K.T
+    Pn = ikh @ P @ ikh.T + K @ R @ K.T
     return xn, 0.5 * (Pn + Pn.T)
 
 
@@ -342,7 +349,7 @@ class PoseTracker:
         ok = nis <= self._gates[y.size]
         self.counters.count(kind, ok)
         if ok:
-            self.x, self.P = update(self.x, self.P, z, R, H, hx, angle_rows)
+            self.x, self.P = _correct(self.x, self.P, y, S, R, H)
         return ok
 
     def on_compass(self, t: float, heading: float, sigma: float | None = None) -> bool:
