@@ -35,7 +35,7 @@ from typing import Protocol
 import numpy as np
 
 from sim.config import RobotConfig
-from sim.raycast import SegmentSet, point_segment_distances
+from sim.raycast import SegmentSet, point_segment_distances, sweep_circle
 
 _TAU = 2.0 * math.pi
 
@@ -120,11 +120,6 @@ def _pose_after(state: RobotState, m: Motion, frac: float) -> tuple[float, float
     return (state.x + c * dx - s * dy, state.y + s * dx + c * dy, state.heading + frac * m.dtheta)
 
 
-def _blocked(walls: SegmentSet, d_old: np.ndarray, x: float, y: float, radius: float) -> bool:
-    d_new = point_segment_distances(walls, x, y)
-    return bool(np.any((d_new < radius) & (d_new < d_old)))
-
-
 def step(
     state: RobotState,
     left_speed: float,
@@ -196,35 +191,13 @@ def _move_near_walls(
     walls: SegmentSet,
     d_start: np.ndarray,
 ) -> tuple[float, float, float, float, bool]:
-    """Sub-stepped move with wall tests (module docstring). Returns x, y, heading, the fraction
-    of the motion done, and whether a wall stopped it."""
+    """Sub-stepped move with wall tests (module docstring; compiled in
+    :func:`sim.raycast.sweep_circle`). Returns x, y, heading, the fraction of the motion done,
+    and whether a wall stopped it."""
     # Only walls within reach of this step matter.
     near = d_start <= radius + length + 1e-9
-    sub = walls.subset(near)
-    d_old = d_start[near]
-    n_sub = max(1, math.ceil(length / (0.5 * radius)))
-    x, y, heading, done = state.x, state.y, state.heading, 0.0
-    for i in range(1, n_sub + 1):
-        frac = i / n_sub
-        nx, ny, nh = _pose_after(state, motion, frac)
-        if not _blocked(sub, d_old, nx, ny, radius):
-            x, y, heading, done = nx, ny, nh, frac
-            d_old = point_segment_distances(sub, x, y)
-            continue
-        # Bisection for the last safe fraction within this sub-step. Pushing against a wall
-        # already touched is the common case: test the smallest step first.
-        lo, hi = done, frac
-        eps = 1e-7 / length
-        mx, my, _mh = _pose_after(state, motion, lo + eps)
-        if _blocked(sub, d_old, mx, my, radius):
-            hi = lo
-        while (hi - lo) * length > 1e-7:    # 0.1 um
-            mid = 0.5 * (lo + hi)
-            mx, my, _mh = _pose_after(state, motion, mid)
-            if _blocked(sub, d_old, mx, my, radius):
-                hi = mid
-            else:
-                lo = mid
-        x, y, heading = _pose_after(state, motion, lo)
-        return x, y, heading, lo, True
-    return x, y, heading, done, False
+    seg = np.ascontiguousarray(walls.packed[:, near])
+    done, collided = sweep_circle(seg, state.x, state.y, math.cos(state.theta),
+                                  math.sin(state.theta), motion.dx_b, motion.dy_b, radius)
+    x, y, heading = _pose_after(state, motion, done)
+    return x, y, heading, done, collided
