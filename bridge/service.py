@@ -119,6 +119,7 @@ class BridgeService:
         self._readers: list[threading.Thread] = []
         self._range_seq = {RangeKind.IR: 0, RangeKind.SONAR: 0}
         self._last_readings: Readings | None = None
+        self._initial: Readings | None = None
         self._write_errors: set[str] = set()
         self._drains: list[Callable[[], None]] = []
         self._last_drain = 0.0
@@ -139,6 +140,9 @@ class BridgeService:
         When this returns, every endpoint accepts clients.
         """
         try:
+            # Reset first: the first step loads compiled ray casting, so data flows as soon as
+            # the endpoints are announced.
+            self._initial = self.sim.reset(self.seed)
             self.buses = open_buses(self.settings.buses)
             self.zenoh = ZenohLink(self.settings.zenoh, self.world_answer, self.counters)
             self._start_readers()
@@ -200,7 +204,8 @@ class BridgeService:
             raise RuntimeError("open() the service before run()")
         duration = self.settings.run.duration_s if duration_s is None else duration_s
         last_step = round(duration / self.dt) if duration > 0 else None
-        r = self.sim.reset(self.seed)
+        r = self._initial if self._initial is not None else self.sim.reset(self.seed)
+        self._initial = None
         self.clock.start()
         self._emit(r, 0)
         n = 0

@@ -1,18 +1,22 @@
 """``koala-bridge``: one entry point, one module per subcommand.
 
-Subcommands are listed in :data:`SUBCOMMANDS` (name -> module) and imported only when needed, so
-``koala-bridge --help`` stays fast and a broken subcommand cannot break the others. Each module
-exposes ``add_arguments(parser)`` and ``run(args) -> int``; the first line of its docstring is its
-one-line help, the rest its description.
+Subcommands are listed in :data:`SUBCOMMANDS` (name -> module). Only the subcommand being run
+is imported; the others' one-line help is read from their source (``ast``), so
+``koala-bridge run`` does not pay for the imports of ``calibrate`` and a broken subcommand cannot
+break the others. Each module exposes ``add_arguments(parser)`` and ``run(args) -> int``; the
+first line of its docstring is its one-line help, the rest its description.
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
 import importlib
+import importlib.util
 import logging
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 from types import ModuleType
 
 SUBCOMMANDS: dict[str, str] = {
@@ -33,6 +37,24 @@ examples:
 """
 
 
+def _summary(module_name: str) -> tuple[str, str] | None:
+    """The module's docstring as (first line, rest), read from its source without importing it
+    (some subcommands import heavy libraries); None if the module does not exist (yet)."""
+    try:
+        spec = importlib.util.find_spec(module_name)
+    except ModuleNotFoundError:
+        return None
+    if spec is None or spec.origin is None:
+        return None
+    try:
+        source = Path(spec.origin).read_text(encoding="utf-8")
+        doc = ast.get_docstring(ast.parse(source)) or ""
+    except (OSError, SyntaxError, UnicodeDecodeError):
+        doc = ""
+    summary, _, rest = doc.strip().partition("\n")
+    return summary, rest
+
+
 def _load(module_name: str) -> ModuleType | None:
     """Import a subcommand module; None only if that very module does not exist (yet)."""
     try:
@@ -43,7 +65,8 @@ def _load(module_name: str) -> ModuleType | None:
         raise
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
+    """The parser; only the ``chosen`` subcommand's module is imported to add its arguments."""
     parser = argparse.ArgumentParser(
         prog="koala-bridge",
         description=(
@@ -62,25 +85,29 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", metavar="SUBCOMMAND", required=True)
     for name, module_name in SUBCOMMANDS.items():
-        module = _load(module_name)
-        if module is None:
+        summary = _summary(module_name)
+        if summary is None:
             continue
-        doc = (module.__doc__ or "").strip()
-        summary, _, rest = doc.partition("\n")
         p = sub.add_parser(
             name,
-            help=summary,
-            description=f"{summary}\n{rest}".strip(),
+            help=summary[0],
+            description=f"{summary[0]}\n{summary[1]}".strip(),
             formatter_class=argparse.RawDescriptionHelpFormatter,
             parents=[common],
         )
-        module.add_arguments(p)
-        p.set_defaults(_module=module)
+        if name == chosen:
+            module = _load(module_name)
+            if module is None:
+                continue
+            module.add_arguments(p)
+            p.set_defaults(_module=module)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    chosen = next((a for a in argv if not a.startswith("-")), None)
+    parser = build_parser(chosen if chosen in SUBCOMMANDS else None)
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=getattr(logging, args.log_level),
