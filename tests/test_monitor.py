@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
+from _mpl import fonts_loaded  # noqa: F401 - autouse fixture
 from conftest import DEFAULT_CONFIG, free_port
 from matplotlib.image import imread
 
@@ -32,15 +33,6 @@ def default_world() -> dict:
         d = World.from_dict(tomllib.load(f)["world"]).to_dict()
     d["robot"] = {"ticks_per_metre": 90284.0, "wheel_base_m": 0.3}
     return d
-
-
-@pytest.fixture(scope="module", autouse=True)
-def _fonts_loaded(tmp_path_factory: pytest.TempPathFactory) -> None:
-    """matplotlib keeps its font files open once loaded (a process-wide cache, not a leak):
-    load them before the per-test leak check takes its inventory."""
-    from bridge.snapshot import Scene, render_scene
-
-    render_scene(Scene(world=default_world()), tmp_path_factory.mktemp("fonts") / "warm.png")
 
 
 @dataclass

@@ -28,6 +28,7 @@ from bridge.monitor import (
     ZenohWatch,
     render,
     target_from_endpoints_file,
+    wait_for,
 )
 
 log = logging.getLogger(__name__)
@@ -69,6 +70,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="no live view: collect for --duration (default 2 s) and print one frame",
     )
+    parser.add_argument(
+        "--timeout",
+        type=float,
+        default=10.0,
+        metavar="S",
+        help="with --once: wait up to S seconds for the first message (default: 10)",
+    )
     parser.add_argument("--refresh-hz", type=float, default=4.0, help="redraws per second")
 
 
@@ -84,6 +92,9 @@ def run(args: argparse.Namespace) -> int:
         return 2
     with watch:
         if args.once:
+            # Collect for --duration from the first message on (the session may take a moment
+            # to reach the bridge, through a router in particular).
+            wait_for(lambda: state.total() > 0, args.timeout)
             time.sleep(args.duration if args.duration is not None else 2.0)
             console.print(render(state, header))
             return 0 if state.total() else 1
