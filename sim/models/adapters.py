@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from sim.models import _kernels
 from sim.models import camera as camera_model
 from sim.models import compass as compass_model
 from sim.models import drive as drive_model
@@ -22,7 +23,6 @@ from sim.models import gyro as gyro_model
 from sim.models import ir as ir_model
 from sim.models import sonar as sonar_model
 from sim.noise import LookupTable
-from sim.raycast import cast_rays
 from sim.robot import Motion, RobotState, arc_motion
 from sim.sensors.base import fan_offsets
 from sim.sensors.camera import CameraTruth
@@ -68,10 +68,12 @@ class IrError:
         self.params = params
         self.response = response
         self.ray_offsets = ray_offsets
+        self.weights = ir_model.ray_weights(ray_offsets, params.gaussian_width)
 
     def measure(self, truth: IrTruth, rng: np.random.Generator) -> IrReading:
         counts, ambient, truth_counts = ir_model.measure(
-            truth.ray_ranges, self.ray_offsets, self.response, self.params, rng)
+            truth.ray_ranges, self.ray_offsets, self.response, self.params, rng,
+            weights=self.weights)
         return IrReading(counts=counts, ambient=ambient, truth_counts=truth_counts,
                          truth_ranges=truth.axis_ranges)
 
@@ -82,50 +84,32 @@ class SonarError:
         self.half_aperture_rad = half_aperture_rad
 
     def measure(self, truth: SonarTruth, rng: np.random.Generator) -> SonarReading:
+        p = self.params
         geo: dict[str, Any] = {}
-        rays = getattr(truth, "world_rays", None)
-        walls = getattr(truth, "walls", None)
+        rays = truth.world_rays
         if rays is not None:
-            ox, oy, dx, dy = rays                                  # (n, k) each
-            n, k = truth.ray_ranges.shape
+            ox, oy, dx, dy = (np.ascontiguousarray(a, dtype=float) for a in rays)   # (n, k)
             rr = truth.ray_ranges
-            hit = np.isfinite(rr)
-            r0 = np.where(hit, rr, 0.0)
-            hx, hy = ox + dx * r0, oy + dy * r0
-            geo["hit_xy"] = np.where(hit[..., None], np.stack([hx, hy], axis=-1), np.nan)
-            geo["sensor_xy"] = np.stack([ox[:, k // 2], oy[:, k // 2]], axis=-1)
-            geo["sensor_heading"] = np.arctan2(dy[:, k // 2], dx[:, k // 2])
-            if walls is not None and self.params.late_echo_probability > 0 and np.any(hit):
-                geo["second_leg_m"] = _second_leg(ox, oy, dx, dy, rr, truth.ray_wall, walls,
-                                                  truth.max_range_m)
+            n, k = rr.shape
+            if (p.crosstalk_probability > 0 and n > 1
+                    and sonar_model.same_cycle(n, p.firing_groups).any()):
+                r0 = np.where(np.isfinite(rr), rr, 0.0)
+                geo["hit_xy"] = np.stack([ox + dx * r0, oy + dy * r0], axis=-1)
+                geo["sensor_xy"] = np.stack([ox[:, k // 2], oy[:, k // 2]], axis=-1)
+                geo["sensor_heading"] = np.arctan2(dy[:, k // 2], dx[:, k // 2])
+            if truth.walls is not None and p.late_echo_probability > 0:
+                # Specular path first hit -> second surface -> sensor, per ray (inf: none).
+                leg = np.empty(n * k)
+                _kernels.second_leg_kernel(
+                    truth.walls.packed, ox.ravel(), oy.ravel(), dx.ravel(), dy.ravel(),
+                    np.ascontiguousarray(rr, dtype=float).ravel(),
+                    np.ascontiguousarray(truth.ray_wall, dtype=np.intp).ravel(),
+                    truth.max_range_m, leg)
+                geo["second_leg_m"] = leg.reshape(n, k)
         m = sonar_model.measure(truth.ray_ranges, truth.ray_incidence, truth.max_range_m,
-                                self.params, rng, half_aperture_rad=self.half_aperture_rad, **geo)
-        with np.errstate(invalid="ignore"):
-            ranges = np.where(m.ranges < truth.min_range_m, 0.0, m.ranges)   # the Koala reads 0
+                                p, rng, half_aperture_rad=self.half_aperture_rad, **geo)
+        ranges = np.where(m.ranges < truth.min_range_m, 0.0, m.ranges)   # the Koala reads 0
         return SonarReading(ranges=ranges, truth_ranges=truth.ranges, incidence=truth.incidence)
-
-
-def _second_leg(ox: np.ndarray, oy: np.ndarray, dx: np.ndarray, dy: np.ndarray, rr: np.ndarray,
-                wall: np.ndarray, walls: Any, max_range: float) -> np.ndarray:
-    """Length of the specular path first hit -> second surface -> sensor (inf: none), (n, k)."""
-    hit = np.isfinite(rr) & (wall >= 0)
-    out = np.full(rr.shape, np.inf)
-    if not np.any(hit):
-        return out
-    seg = walls.segments[wall[hit]]
-    ex, ey = seg[:, 2] - seg[:, 0], seg[:, 3] - seg[:, 1]
-    ln = np.hypot(ex, ey)
-    nrm = np.stack([-ey / ln, ex / ln], axis=-1)
-    d = np.stack([dx[hit], dy[hit]], axis=-1)
-    refl = sonar_model.reflect(d, nrm)
-    px, py = ox[hit] + dx[hit] * rr[hit], oy[hit] + dy[hit] * rr[hit]
-    # Start a hair off the wall so the cast does not hit the wall it leaves.
-    sx, sy = px + 1e-6 * refl[:, 0], py + 1e-6 * refl[:, 1]
-    h2 = cast_rays(walls, sx, sy, refl[:, 0], refl[:, 1], max_range)
-    p2x, p2y = sx + refl[:, 0] * h2.range, sy + refl[:, 1] * h2.range
-    back = np.hypot(p2x - ox[hit], p2y - oy[hit])
-    out[hit] = np.where(np.isfinite(h2.range), h2.range + back, np.inf)
-    return out
 
 
 class GyroError:

@@ -54,6 +54,7 @@ from typing import Any
 
 import numpy as np
 
+from sim.models import _kernels
 from sim.models._params import (
     check_nonnegative,
     check_positive,
@@ -179,6 +180,7 @@ def measure(
     ``a_max``; ``all_ids`` are the ids of every landmark in the world (eq. 9's ``n``).
     Draws a fixed number of variates per landmark in view (6 per landmark), so the stream's use
     does not depend on the outcomes. ``ideal`` reports every landmark in view unchanged.
+    Compiled: ``sim/models/_kernels.py`` (same equations as the helpers above).
     """
     ids = np.asarray(ids, dtype=int)
     m = ids.shape[0]
@@ -187,22 +189,21 @@ def measure(
                                  np.asarray(bearings_rad, float).copy(), np.arange(m))
     u = rng.random((m, 3))           # miss, wrong id, which wrong id
     z = rng.standard_normal((m, 3))  # near, far, bearing
-    a = np.abs(np.asarray(view_angles_rad, dtype=float))
-    d = np.asarray(ranges_m, dtype=float)
-    seen = u[:, 0] >= miss_probability(a, d, a_max_rad, params)
-    wrong = u[:, 1] < wrong_id_probability(a, d, a_max_rad, params)
-    out_ids = ids.copy()
-    all_ids = np.asarray(all_ids, dtype=int)
-    if all_ids.shape[0] > 1:
-        for k in np.flatnonzero(wrong):
-            others = all_ids[all_ids != ids[k]]
-            out_ids[k] = others[min(int(u[k, 2] * others.shape[0]), others.shape[0] - 1)]
-    d_est = d + near_sigma(d, params) * z[:, 0] + far_sigma(d, params) * np.abs(z[:, 1])
-    d_est = np.maximum(d_est, 0.0)
-    b_est = np.asarray(bearings_rad, dtype=float) + math.radians(params.bearing_sigma_deg) * z[:, 2]
-    b_est = np.arctan2(np.sin(b_est), np.cos(b_est))
-    idx = np.flatnonzero(seen)
-    return CameraMeasurement(out_ids[idx], d_est[idx], b_est[idx], idx)
+    out_ids = np.empty(m, dtype=np.int64)
+    out_r = np.empty(m)
+    out_b = np.empty(m)
+    out_src = np.empty(m, dtype=np.int64)
+    p = params
+    c = _kernels.camera_kernel(
+        ids.astype(np.int64), np.ascontiguousarray(ranges_m, dtype=float),
+        np.ascontiguousarray(bearings_rad, dtype=float),
+        np.abs(np.ascontiguousarray(view_angles_rad, dtype=float)),
+        np.ascontiguousarray(np.broadcast_to(a_max_rad, (m,)), dtype=float),
+        np.asarray(all_ids, dtype=np.int64), p.p_perc, p.p_recog, p.min_range_m, p.max_range_m,
+        p.distance_base, p.dist, p.d_mid_m, p.far_doubling_m, math.radians(p.bearing_sigma_deg),
+        u, z, out_ids, out_r, out_b, out_src,
+    )
+    return CameraMeasurement(out_ids[:c], out_r[:c], out_b[:c], out_src[:c])
 
 
 def viewing_angle(landmark_xy: np.ndarray, facing_rad: np.ndarray, robot_xy: np.ndarray

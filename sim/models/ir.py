@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from sim.models import _kernels
 from sim.models._params import check_nonnegative, check_positive, params_from_dict
 from sim.noise import LookupTable
 
@@ -94,32 +95,31 @@ def range_noise_sigma(d_m: np.ndarray, params: IrErrorParams) -> np.ndarray:
 
 def measure(ray_dists_m: np.ndarray, ray_offsets_rad: np.ndarray, response: LookupTable,
             params: IrErrorParams, rng: np.random.Generator,
-            reflectivity: np.ndarray | float | None = None
+            reflectivity: np.ndarray | float | None = None, weights: np.ndarray | None = None
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(counts, ambient, truth_counts)`` for ``n`` sensors with ``r`` rays each.
 
     ``ray_dists_m`` (n, r): distance along each ray to the first surface (``inf``: none within
     range). ``ray_offsets_rad`` (r,): each ray's angle from the sensor axis. ``response``: the
     distance -> counts table of a white surface (``[sensors.ir] response_range_m`` /
-    ``response_counts``). ``reflectivity`` overrides ``params.reflectivity`` per sensor/ray.
-    Draws ``3 n`` normals per call.
+    ``response_counts``). ``reflectivity`` overrides ``params.reflectivity`` per sensor/ray;
+    ``weights`` (r,) the ray weights of :func:`ray_weights` (computed when not given).
+    Draws ``3 n`` normals per call (none when ideal). Compiled: ``sim/models/_kernels.py``.
     """
     rho = params.reflectivity if reflectivity is None else reflectivity
-    w = ray_weights(ray_offsets_rad, params.gaussian_width)
-    truth = counts_from_distances(ray_dists_m, w, rho, response)
-    truth_counts = np.clip(np.rint(truth), 0, params.max_counts).astype(int)
-    n = ray_dists_m.shape[0]
-    if params.ideal:
-        amb = np.full(n, int(round(min(params.ambient_counts, params.max_counts))))
-        return truth_counts.copy(), amb, truth_counts
-    z = rng.standard_normal((3, n))
-    finite = np.isfinite(ray_dists_m)
-    d_noisy = np.where(finite, ray_dists_m + range_noise_sigma(np.where(finite, ray_dists_m, 0.0),
-                                                                params) * z[0][:, None], np.inf)
-    c = counts_from_distances(np.maximum(d_noisy, 0.0), w, rho, response)
-    c = c * (1.0 - params.ambient_saturation * min(params.ambient_counts, params.max_counts)
-             / params.max_counts) + params.count_noise_sigma * z[1]
-    counts = np.clip(np.rint(c), 0, params.max_counts).astype(int)
-    amb = params.ambient_counts + params.ambient_noise_counts * z[2]
-    ambient = np.clip(np.rint(amb), 0, params.max_counts).astype(int)
-    return counts, ambient, truth_counts
+    w = ray_weights(ray_offsets_rad, params.gaussian_width) if weights is None else weights
+    d = np.ascontiguousarray(ray_dists_m, dtype=float)
+    n = d.shape[0]
+    rho2 = np.broadcast_to(np.asarray(rho, dtype=float), d.shape)
+    z = np.zeros((3, n)) if params.ideal else rng.standard_normal((3, n))
+    amb = min(params.ambient_counts, params.max_counts)
+    gain = 1.0 - params.ambient_saturation * amb / params.max_counts
+    counts = np.empty(n)
+    ambient = np.empty(n)
+    truth = np.empty(n)
+    _kernels.ir_kernel(d, np.ascontiguousarray(w, dtype=float), rho2, response.x, response.y,
+                       params.distance_error.x, params.distance_error.y, z, params.ideal, gain,
+                       params.count_noise_sigma, params.ambient_counts,
+                       params.ambient_noise_counts, float(params.max_counts),
+                       counts, ambient, truth)
+    return counts.astype(np.int64), ambient.astype(np.int64), truth.astype(np.int64)

@@ -31,12 +31,14 @@ Model, per sensor (rays ``k``; incidence = angle between ray and surface normal)
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
+from sim.models import _kernels
 from sim.models._params import check_nonnegative, check_probability, params_from_dict
 from sim.noise import LookupTable
 from sim.schema import ConfigError
@@ -77,8 +79,9 @@ class SonarErrorParams:
         return params_from_dict(cls, d, section)
 
 
+@functools.lru_cache(maxsize=16)
 def same_cycle(n: int, firing_groups: tuple[tuple[float, ...], ...]) -> np.ndarray:
-    """(n, n) bool: sensors i and j (i != j) are fired in the same cycle."""
+    """(n, n) bool, read-only: sensors i and j (i != j) are fired in the same cycle."""
     if not firing_groups:
         m = np.ones((n, n), dtype=bool)
     else:
@@ -89,6 +92,7 @@ def same_cycle(n: int, firing_groups: tuple[tuple[float, ...], ...]) -> np.ndarr
                     group[int(i)] = gi
         m = (group[:, None] == group[None, :]) & (group[:, None] >= 0)
     np.fill_diagonal(m, False)
+    m.flags.writeable = False
     return m
 
 
@@ -122,68 +126,52 @@ def measure(
     ``hit_xy`` (n, r, 2), world frame, for crosstalk. Draws ``4 n`` variates per call, plus
     ``n^2`` when crosstalk is modelled.
     """
-    d = np.asarray(ray_dists_m, dtype=float)
-    inc = np.asarray(incidence_rad, dtype=float)
-    n, r = d.shape
-    hit = np.isfinite(d) & (d <= max_range_m)
-    d_hit = np.where(hit, d, np.inf)
-    k_near = np.argmin(d_hit, axis=1)
-    rows = np.arange(n)
-    truth = d_hit[rows, k_near]
-    has = np.isfinite(truth)
-    truth_r = np.where(has, truth, np.nan)
-    truth_inc = np.where(has, inc[rows, k_near], np.nan)
+    d = np.ascontiguousarray(ray_dists_m, dtype=float)
+    inc = np.ascontiguousarray(incidence_rad, dtype=float)
+    n, _k = d.shape
+    out_range = np.empty(n)
+    out_truth = np.empty(n)
+    out_inc = np.empty(n)
     kind = np.zeros(n, dtype=np.int8)
-    if params.ideal:
-        kind[has] = 1
-        return SonarMeasurement(truth_r.copy(), truth_r, truth_inc, kind)
-
-    # Fixed draws first (4 n); the crosstalk draws (n^2) come last and only when crosstalk is
-    # modelled, so switching crosstalk on does not shift the other draws of the sonar's stream.
-    u_late = rng.random(n)
-    z = rng.standard_normal(n)
-    u_glitch = rng.random(n)
-    u_gval = rng.random(n)
-
-    crit = math.radians(params.critical_angle_deg)
-    direct = hit & (np.abs(inc) <= crit)
-    d_direct = np.where(direct, d, np.inf)
-    echo = d_direct.min(axis=1)
-    kind[np.isfinite(echo)] = 1
-
-    if second_leg_m is not None and params.late_echo_probability > 0:
-        leg = np.asarray(second_leg_m, dtype=float)
-        late_len = np.where(hit & np.isfinite(leg), 0.5 * (d + leg), np.inf).min(axis=1)
-        late = ((~np.isfinite(echo)) & np.isfinite(late_len)
-                & (u_late < params.late_echo_probability))
-        echo = np.where(late, late_len, echo)
-        kind[late] = 2
-
+    use_leg = second_leg_m is not None and params.late_echo_probability > 0
+    cycle = _NO_CYCLE
+    use_cross = False
     if (hit_xy is not None and sensor_xy is not None and sensor_heading is not None
             and params.crosstalk_probability > 0 and n > 1):
-        v = hit_xy[None, :, :, :] - sensor_xy[:, None, None, :]          # (i, j, k, 2)
-        dist_back = np.hypot(v[..., 0], v[..., 1])
-        ang = np.arctan2(v[..., 1], v[..., 0]) - sensor_heading[:, None, None]
-        in_cone = np.abs(np.arctan2(np.sin(ang), np.cos(ang))) <= half_aperture_rad
-        path = np.where(direct[None, :, :] & in_cone, 0.5 * (d[None, :, :] + dist_back), np.inf)
-        u_cross = rng.random((n, n))
-        heard = same_cycle(n, params.firing_groups) & (u_cross < params.crosstalk_probability)
-        cross = np.where(heard[:, :, None], path, np.inf).min(axis=(1, 2))
-        take = cross < echo
-        echo = np.where(take, cross, echo)
-        kind[take] = 3
+        cycle = same_cycle(n, params.firing_groups)
+        use_cross = bool(cycle.any())
+    z: np.ndarray
+    if params.ideal:
+        u, z, u_cross = _NO_U, _NO_Z, _NO_CYCLE_U
+    else:
+        # Fixed draws (4 n); the crosstalk draws (n^2) come last and only when two sonars share
+        # a cycle, so switching crosstalk on does not shift the other draws of the stream.
+        u = rng.random((3, n))                  # late echo, glitch, glitch value
+        z = np.asarray(rng.standard_normal(n))
+        u_cross = rng.random((n, n)) if use_cross else _NO_CYCLE_U
+    table = params.distance_error
+    _kernels.sonar_kernel(
+        d, inc, float(max_range_m), table.x, table.y, math.radians(params.critical_angle_deg),
+        params.late_echo_probability, params.crosstalk_probability, params.glitch_probability,
+        params.min_range_m, params.ideal, use_leg,
+        np.ascontiguousarray(second_leg_m, dtype=float) if use_leg else _NO_LEG,
+        use_cross,
+        np.ascontiguousarray(hit_xy, dtype=float) if use_cross else _NO_HIT,
+        np.ascontiguousarray(sensor_xy, dtype=float) if use_cross else _NO_XY,
+        np.ascontiguousarray(sensor_heading, dtype=float) if use_cross else _NO_Z,
+        float(half_aperture_rad), cycle, u, z, u_cross, out_range, out_truth, out_inc, kind,
+    )
+    return SonarMeasurement(out_range, out_truth, out_inc, kind)
 
-    has_echo = np.isfinite(echo)
-    e0 = np.where(has_echo, echo, 0.0)
-    ranges = np.where(has_echo, np.maximum(e0 + params.distance_error.value(e0) * z, 0.0), np.nan)
-    glitch = u_glitch < params.glitch_probability
-    gval = params.min_range_m + (max_range_m - params.min_range_m) * u_gval
-    ranges = np.where(glitch, gval, ranges)
-    kind[glitch] = 4
-    beyond = ranges > max_range_m
-    ranges = np.where(beyond, np.nan, ranges)
-    kind[beyond] = 0
-    return SonarMeasurement(ranges, truth_r, truth_inc, kind)
+
+# Placeholders for the kernel's unused inputs (typed, empty, read-only).
+_NO_LEG = np.empty((0, 0))
+_NO_HIT = np.empty((0, 0, 2))
+_NO_XY = np.empty((0, 2))
+_NO_Z = np.empty(0)
+_NO_U = np.empty((3, 0))
+_NO_CYCLE = np.empty((0, 0), dtype=bool)
+_NO_CYCLE_U = np.empty((0, 0))
 
 
 def reflect(directions: np.ndarray, normals: np.ndarray) -> np.ndarray:
