@@ -179,7 +179,7 @@ def wait_file(path: Path, proc: subprocess.Popen[bytes], timeout: float = 30) ->
     deadline = time.monotonic() + timeout
     while not path.exists() or not path.read_text():
         if proc.poll() is not None or time.monotonic() > deadline:
-            raise RuntimeError(f"child {proc.args} did not start")
+            raise RuntimeError(f"child {proc.args!r} did not start")
         time.sleep(0.05)
     time.sleep(0.05)
     return dict(json.loads(path.read_text()))
@@ -378,7 +378,10 @@ def bridge_latencies(events: dict[str, list[tuple[Any, float]]],
             if kind == "rtt":
                 lat.append(key)
                 continue
-            table = {"t_us": by_t_us, "ms": by_ms, "t": by_t, "ticks": by_ticks}[kind]
+            tables: dict[str, dict[Any, float]] = {
+                "t_us": by_t_us, "ms": by_ms, "t": by_t, "ticks": by_ticks
+            }
+            table = tables[kind]
             w = table.get(round(key, 6) if kind == "t" else key)
             if w is not None:
                 lat.append(when - w)
