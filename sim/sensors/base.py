@@ -14,13 +14,14 @@ the truth). Models may keep internal state (bias random walk, Gauss-Markov); the
 new ones on every ``reset``, so a run starts from the same state.
 
 How the simulator finds error models: ``Simulator(config, error_models=...)`` takes a mapping
-``{sensor name: factory}``; when it is None and any sensor (or ``[robot.drive]``) has
+``{sensor name: factory}``; when it is None and any sensor (or ``[robot.drive_error]``) has
 ``ideal = false``, the simulator imports :mod:`sim.models` and uses its ``ERROR_MODELS`` mapping.
 A factory is called at every ``reset`` as ``factory(config, rng)`` with the sensor's typed config
 (:mod:`sim.config`; its ``errors`` attribute holds the error model's validated params object)
 and the sensor's own generator (for turn-on biases); it returns the model.
-The drive-error model is registered under the name ``"drive"`` and implements
-:class:`sim.robot.DriveErrorModel` instead.
+The drive-error model is registered under the name ``"drive"``; its factory gets the whole
+:class:`sim.config.SimConfig` (it needs the wheel base and ``dt``) and the drive stream, and
+returns a :class:`sim.robot.DriveErrorModel`.
 
 Each sensor draws only from its own ``numpy.random.Generator`` (one child stream per sensor,
 :data:`sim.simulator.RNG_STREAMS`).
@@ -44,7 +45,8 @@ class ErrorModel(Protocol[TruthT, ReadingT]):
 
 
 ErrorModelFactory = Callable[[Any, np.random.Generator], Any]
-"""``factory(sensor_config, rng) -> ErrorModel`` (a DriveErrorModel for "drive")."""
+"""``factory(sensor_config, rng) -> ErrorModel`` (``factory(sim_config, rng) -> DriveErrorModel``
+for "drive")."""
 
 
 def fan_offsets(rays: int, aperture_rad: float) -> np.ndarray:
