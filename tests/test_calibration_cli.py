@@ -52,15 +52,26 @@ def test_report_shape_and_written_config(tmp_path: Path) -> None:
     model = tmp_path / "model.toml"
     model.write_text('[robot]\nname = "lego"\nwheel_base_m = 0.15\n', encoding="utf-8")
     out, new = tmp_path / "out", tmp_path / "new.toml"
-    args = _args(str(DATA / "lego_brenner"), "--config", str(model), "--out", str(out),
-                 "--write-config", str(new), "--quiet")
+    args = _args(
+        str(DATA / "lego_brenner"),
+        "--config",
+        str(model),
+        "--out",
+        str(out),
+        "--write-config",
+        str(new),
+        "--quiet",
+    )
     assert cli.run(args) == 0
     report = json.loads((out / "report.json").read_text())
     assert list(report) == ["streams"]
     entry = report["streams"][0]
     assert list(entry) == ["stream", "metric", "unit", "before", "after", "split", "effects"]
     assert entry["stream"] == "odometry" and entry["unit"] == "m"
-    assert list(entry["split"]) == ["fit", "score"] and entry["split"]["fit"][1] == entry["split"]["score"][0]
+    assert (
+        list(entry["split"]) == ["fit", "score"]
+        and entry["split"]["fit"][1] == entry["split"]["score"][0]
+    )
     assert all(list(e) == ["name", "params", "evidence"] for e in entry["effects"])
     md = (out / "report.md").read_text()
     assert "```diff" in md and "wheel_base_m" in md
@@ -73,8 +84,20 @@ def test_report_shape_and_written_config(tmp_path: Path) -> None:
 
 def test_ir_config_keys(tmp_path: Path) -> None:
     new = tmp_path / "new.toml"
-    assert cli.run(_args(str(DATA / "khepera2_ir"), "--out", str(tmp_path / "o"),
-                         "--write-config", str(new), "--no-plots", "--quiet")) == 0
+    assert (
+        cli.run(
+            _args(
+                str(DATA / "khepera2_ir"),
+                "--out",
+                str(tmp_path / "o"),
+                "--write-config",
+                str(new),
+                "--no-plots",
+                "--quiet",
+            )
+        )
+        == 0
+    )
     ir = tomllib.loads(new.read_text())["sensors"]["ir"]
     assert len(ir["per_sensor_offset_counts"]) == 8
     assert len(ir["curve"]["range_m"]) == len(ir["curve"]["counts"]) >= 2
@@ -106,9 +129,21 @@ def test_bad_inputs(tmp_path: Path) -> None:
 
 def test_registry_rejects_duplicates() -> None:
     effects = available_effects()
-    assert {"bias", "scale", "bias_drift", "covariate", "range_dependent", "hard_iron",
-            "soft_iron", "tick_scale", "wheel_base", "wheel_ratio", "time_offset", "glitch",
-            "quantisation"} <= set(effects)
+    assert {
+        "bias",
+        "scale",
+        "bias_drift",
+        "covariate",
+        "range_dependent",
+        "hard_iron",
+        "soft_iron",
+        "tick_scale",
+        "wheel_base",
+        "wheel_ratio",
+        "time_offset",
+        "glitch",
+        "quantisation",
+    } <= set(effects)
     with pytest.raises(EffectRegistryError):
         register_effect("bias")(type("OtherBias", (Effect,), {}))
 

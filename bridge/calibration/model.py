@@ -88,7 +88,7 @@ def read_config(path: Path | None) -> dict[str, Any]:
 
 
 def declared_model(config: Mapping[str, Any], meta: Mapping[str, Any]) -> DeclaredModel:
-    """Combine the config with a bundle's ``meta.json`` (meta wins) into a :class:`DeclaredModel`."""
+    """Combine the config with a bundle's ``meta.json`` (meta wins) into a DeclaredModel."""
     sources: dict[str, str] = {}
     robot = _section(config, "robot")
     meta_robot = meta.get("robot", {}) if isinstance(meta.get("robot"), Mapping) else {}

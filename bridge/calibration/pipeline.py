@@ -18,7 +18,13 @@ from bridge.calibration.effects import available_effects
 from bridge.calibration.effects.base import EffectInstance
 from bridge.calibration.model import DeclaredModel
 from bridge.calibration.problem import SecondaryMetric, StreamProblem
-from bridge.calibration.selection import MAX_EFFECTS, Selection, parameter_se, select_effects
+from bridge.calibration.selection import (
+    MAX_EFFECTS,
+    Selection,
+    fit_model,
+    parameter_se,
+    select_effects,
+)
 from bridge.calibration.streams import (
     build_compass,
     build_gyro,
@@ -39,6 +45,7 @@ class Options:
     window_s: float = 5.0
     max_effects: int = MAX_EFFECTS
     effects: Sequence[str] | None = None  # restrict the candidate library (names), None = all
+    max_rows: int = 20_000  # longer tables: select on a subset, refit on everything
 
 
 @dataclass
@@ -118,28 +125,115 @@ def run_stream(
     return StreamResult(problem, sel, before, after, secondary)
 
 
+def decimate_bundle(bundle: Bundle, max_rows: int, references: bool = False) -> Bundle:
+    """The bundle with long measurement tables cut to about ``max_rows`` rows (rows kept in
+    order): a random subset for independent readings, a regular stride for odometry, whose
+    cumulative counts stay valid on any subset. ``truth_pose`` is cut (by stride) only when
+    ``references`` is true: a gyro's reference rate needs it at full resolution."""
+    if all(len(t) <= max_rows for t in bundle.tables.values()):
+        return bundle
+    rng = np.random.default_rng(0)
+    tables = {}
+    for name, table in bundle.tables.items():
+        n = len(table)
+        if n > max_rows and (name != "truth_pose" or references):
+            keep = np.zeros(n, dtype=bool)
+            if name in ("odometry", "truth_pose"):
+                keep[:: -(-n // max_rows)] = True
+            else:
+                keep[rng.choice(n, max_rows, replace=False)] = True
+            keep[[0, -1]] = True  # keep the span, so the split is the same
+            table = table.select(keep)
+        tables[name] = table
+    return Bundle(bundle.path, tables, bundle.meta)
+
+
+def _problems(
+    bundle: Bundle,
+    model: DeclaredModel,
+    options: Options,
+    compass_heading: Any = None,
+    with_compass: bool = True,
+    odometry_bundle: Bundle | None = None,
+) -> list[StreamProblem]:
+    out: list[StreamProblem | None] = []
+    if with_compass:
+        out.append(build_compass(bundle, model))
+    else:
+        out.append(build_gyro(bundle, model, compass_heading))
+        out.append(build_odometry(odometry_bundle or bundle, model, options.window_s))
+        out.extend(build_ranges(bundle, model))
+        out.extend(build_landmarks(bundle, model))
+    return [p for p in out if p is not None]
+
+
+def refit_full(full: StreamProblem, small: StreamResult) -> StreamResult:
+    """Refit the effects selected on a decimated stream on the full stream; metrics on it."""
+    sel = small.selection
+    before = fit_model(full, [], full.nuisance_x0())
+    insts = list(sel.after.insts)
+    after = fit_model(
+        full,
+        insts,
+        full.initial_vector(insts, sel.after.x, insts) if len(sel.after.x) else full.nuisance_x0(),
+    )
+    added = list(sel.added)
+    result = Selection(full, before, after, added, sel.rounds, sel.rho)
+    b = full.metric_value(before.insts, before.x, "score")
+    a = full.metric_value(after.insts, after.x, "score")
+    secondary = full.secondary_metrics((before.insts, before.x), (after.insts, after.x))
+    return StreamResult(full, result, b, a, secondary)
+
+
 def calibrate(
     bundle: Bundle,
     model: DeclaredModel,
     options: Options | None = None,
     progress: Progress | None = None,
 ) -> list[StreamResult]:
-    """Run the loop on every stream the bundle holds; see the module docstring for the order."""
+    """Run the loop on every stream the bundle holds; see the module docstring for the order.
+
+    Streams longer than ``options.max_rows`` samples are selected on a random subset of that
+    size (estimates from 20 000 samples are far more precise than any tolerance, and the test
+    is then only more conservative); the selected effects are refitted on the full stream and
+    before/after are measured on the full held-out part.
+    """
     options = options or Options()
-    results: list[StreamResult] = []
-    compass = build_compass(bundle, model)
+    small = decimate_bundle(bundle, options.max_rows)
+    small_odometry = decimate_bundle(bundle, options.max_rows, references=True)
+
+    def run(
+        problems_small: list[StreamProblem], problems_full: list[StreamProblem]
+    ) -> list[StreamResult]:
+        out = []
+        full_by_name = {p.name: p for p in problems_full}
+        for p in problems_small:
+            res = run_stream(p, options, progress)
+            out.append(res if small is bundle else refit_full(full_by_name[p.name], res))
+        return out
+
+    results = run(
+        _problems(small, model, options),
+        _problems(bundle, model, options) if small is not bundle else [],
+    )
     compass_heading = None
-    if compass is not None:
-        res = run_stream(compass, options, progress)
-        results.append(res)
-        compass_heading = compass_heading_of(compass, res.selection)
-    gyro = build_gyro(bundle, model, compass_heading)
-    others: list[StreamProblem | None] = [gyro, build_odometry(bundle, model, options.window_s)]
-    others.extend(build_ranges(bundle, model))
-    others.extend(build_landmarks(bundle, model))
-    for problem in others:
-        if problem is not None:
-            results.append(run_stream(problem, options, progress))
+    for res in results:
+        if isinstance(res.problem, CompassProblem):
+            compass_heading = compass_heading_of(res.problem, res.selection)
+    # The decimated gyro gets the full compass heading too (it is a reference series).
+    results += run(
+        _problems(
+            small,
+            model,
+            options,
+            compass_heading,
+            with_compass=False,
+            odometry_bundle=small_odometry,
+        ),
+        _problems(bundle, model, options, compass_heading, with_compass=False)
+        if small is not bundle
+        else [],
+    )
     if not results:
         log.warning("%s: no stream with a reference to calibrate against", bundle.path)
     return results

@@ -1,4 +1,4 @@
-"""The stream problem: what every stream (gyro, compass, odometry, ranges, landmarks) gives the loop.
+"""The stream problem: what every stream (gyro, compass, odometry, ranges, ...) gives the loop.
 
 A :class:`StreamProblem` predicts a stream's measurements from the reference with the declared
 model plus a list of :class:`~bridge.calibration.effects.EffectInstance`, and returns the residual

@@ -53,7 +53,7 @@ class Injected:
     sonar_glitch: float = 0.0  # probability of a max-range reading
     sonar_quantisation: float = 0.0  # m
     sonar_per_sensor: tuple[float, ...] = field(default_factory=tuple)  # m, one per sensor
-    sonar_noise: float | None = None   # m; None: NOISE["sonar"]
+    sonar_noise: float | None = None  # m; None: NOISE["sonar"]
 
 
 def _trajectory(t: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -99,7 +99,7 @@ def make_bundle(
     rho = 1 + inj.wheel_ratio
     tpm_true = tpm * (1 + inj.tick_scale)
     slip = rng_odo.normal(0, 2e-4, (2, ds.size)) * np.sqrt(np.abs(ds) / max(ds.mean(), 1e-9))
-    # Inverse of the calibration model: s_l = dL / tpm * 2 rho / (1 + rho), s_r = dR / tpm * 2 / (1 + rho)
+    # Inverse of the calibration model: s_l = dL / tpm 2 rho / (1 + rho), s_r = dR / tpm 2 / (1 + rho)
     ticks_l = np.round(np.r_[0, np.cumsum((s_l + slip[0]) * tpm_true * (1 + rho) / (2 * rho))])
     ticks_r = np.round(np.r_[0, np.cumsum((s_r + slip[1]) * tpm_true * (1 + rho) / 2)])
     _write(out / "odometry.csv", "t,left_ticks,right_ticks", [t, ticks_l, ticks_r], fmt="%.10g")
@@ -134,8 +134,9 @@ def make_bundle(
     true_r = 1.6 + 1.3 * np.sin(2 * np.pi * ts / 9.0 + sensor) * np.cos(2 * np.pi * ts / 31.0)
     true_r = np.clip(true_r + 0.1 * sensor, 0.2, 3.2)
     meas = (
-        true_r + inj.sonar_range_dependent * true_r**2 + rng_son.normal(
-        0, NOISE["sonar"] if inj.sonar_noise is None else inj.sonar_noise, ts.size)
+        true_r
+        + inj.sonar_range_dependent * true_r**2
+        + rng_son.normal(0, NOISE["sonar"] if inj.sonar_noise is None else inj.sonar_noise, ts.size)
     )
     if inj.sonar_per_sensor:
         meas = meas + np.asarray(inj.sonar_per_sensor)[sensor]
@@ -186,44 +187,83 @@ class Case:
 CASES: Mapping[str, Case] = {
     "bias": Case(Injected(gyro_bias=0.02), {"gyro": {"bias": {"bias": (0.02, 0.002)}}}),
     "scale": Case(Injected(gyro_scale=0.05), {"gyro": {"scale": {"scale_error": (0.05, 0.005)}}}),
-    "bias_drift": Case(Injected(gyro_drift=5e-4),
-                       {"gyro": {"bias_drift": {"rate_per_s": (5e-4, 5e-5)}}}),
-    "covariate": Case(Injected(gyro_temperature=0.004),
-                      {"gyro": {"covariate:temperature_c": {"coefficient": (0.004, 4e-4)}}}),
-    "time_offset": Case(Injected(gyro_time_offset=0.1),
-                        {"gyro": {"time_offset": {"tau_s": (0.1, 0.01)}}}),
-    "hard_iron": Case(Injected(hard_iron=(8.0, -5.0)),
-                      {"compass": {"hard_iron": {"dh_x": (8.0, 0.8), "dh_y": (-5.0, 0.8)}}}),
-    "soft_iron": Case(Injected(soft_iron=(0.12, 0.05)),
-                      {"compass": {"soft_iron": {"e_xx": (-0.12, 0.012), "e_xy": (-0.05, 0.012)}}}),
-    "tick_scale": Case(Injected(tick_scale=0.05),
-                       {"odometry": {"tick_scale": {"ticks_per_metre": (10500.0, 50.0)}}}),
-    "wheel_base": Case(Injected(wheel_base=0.1),
-                       {"odometry": {"wheel_base": {"wheel_base_m": (0.33, 0.003)}}}),
-    "wheel_ratio": Case(Injected(wheel_ratio=0.02),
-                        {"odometry": {"wheel_ratio": {"ratio_left_right": (1.02, 0.002)}}}),
-    "range_dependent": Case(Injected(sonar_range_dependent=0.02),
-                            {"range": {"range_dependent": {"k_per_m2": (0.02, 0.002)}}}),
-    "glitch": Case(Injected(sonar_glitch=0.05),
-                   {"range": {"glitch": {"probability": (0.05, 0.015), "value": (5.0, 1e-9)}}}),
+    "bias_drift": Case(
+        Injected(gyro_drift=5e-4), {"gyro": {"bias_drift": {"rate_per_s": (5e-4, 5e-5)}}}
+    ),
+    "covariate": Case(
+        Injected(gyro_temperature=0.004),
+        {"gyro": {"covariate:temperature_c": {"coefficient": (0.004, 4e-4)}}},
+    ),
+    "time_offset": Case(
+        Injected(gyro_time_offset=0.1), {"gyro": {"time_offset": {"tau_s": (0.1, 0.01)}}}
+    ),
+    "hard_iron": Case(
+        Injected(hard_iron=(8.0, -5.0)),
+        {"compass": {"hard_iron": {"dh_x": (8.0, 0.8), "dh_y": (-5.0, 0.8)}}},
+    ),
+    "soft_iron": Case(
+        Injected(soft_iron=(0.12, 0.05)),
+        {"compass": {"soft_iron": {"e_xx": (-0.12, 0.012), "e_xy": (-0.05, 0.012)}}},
+    ),
+    "tick_scale": Case(
+        Injected(tick_scale=0.05),
+        {"odometry": {"tick_scale": {"ticks_per_metre": (10500.0, 50.0)}}},
+    ),
+    "wheel_base": Case(
+        Injected(wheel_base=0.1), {"odometry": {"wheel_base": {"wheel_base_m": (0.33, 0.003)}}}
+    ),
+    "wheel_ratio": Case(
+        Injected(wheel_ratio=0.02),
+        {"odometry": {"wheel_ratio": {"ratio_left_right": (1.02, 0.002)}}},
+    ),
+    "range_dependent": Case(
+        Injected(sonar_range_dependent=0.02),
+        {"range": {"range_dependent": {"k_per_m2": (0.02, 0.002)}}},
+    ),
+    "glitch": Case(
+        Injected(sonar_glitch=0.05),
+        {"range": {"glitch": {"probability": (0.05, 0.015), "value": (5.0, 1e-9)}}},
+    ),
     # Rounding explains the error only when the noise before it is small against the step.
-    "quantisation": Case(Injected(sonar_quantisation=0.05, sonar_noise=0.0005),
-                         {"range": {"quantisation": {"step": (0.05, 1e-6)}}}),
-    "offset_per": Case(Injected(sonar_per_sensor=(0.05, -0.03, 0.02, -0.04)),
-                       {"range": {"offset_per:sensor": {"offset_0": (0.05, 0.005),
-                                                        "offset_1": (-0.03, 0.005)}}}),
-    "bias+scale": Case(Injected(gyro_bias=0.02, gyro_scale=0.05),
-                       {"gyro": {"bias": {"bias": (0.02, 0.002)},
-                                 "scale": {"scale_error": (0.05, 0.005)}}}),
-    "hard+soft_iron": Case(Injected(hard_iron=(8.0, -5.0), soft_iron=(0.12, 0.05)),
-                           {"compass": {"hard_iron": {"dh_x": (8.0, 0.8), "dh_y": (-5.0, 0.8)},
-                                        "soft_iron": {"e_xx": (-0.12, 0.012)}}}),
-    "tick_scale+wheel_base": Case(Injected(tick_scale=0.05, wheel_base=0.1),
-                                  {"odometry": {"tick_scale": {"ticks_per_metre": (10500.0, 50.0)},
-                                                "wheel_base": {"wheel_base_m": (0.33, 0.003)}}}),
-    "glitch+range_dependent": Case(Injected(sonar_glitch=0.05, sonar_range_dependent=0.02),
-                                   {"range": {"glitch": {"probability": (0.05, 0.015)},
-                                              "range_dependent": {"k_per_m2": (0.02, 0.002)}}}),
+    "quantisation": Case(
+        Injected(sonar_quantisation=0.05, sonar_noise=0.0005),
+        {"range": {"quantisation": {"step": (0.05, 1e-6)}}},
+    ),
+    "offset_per": Case(
+        Injected(sonar_per_sensor=(0.05, -0.03, 0.02, -0.04)),
+        {"range": {"offset_per:sensor": {"offset_0": (0.05, 0.005), "offset_1": (-0.03, 0.005)}}},
+    ),
+    "bias+scale": Case(
+        Injected(gyro_bias=0.02, gyro_scale=0.05),
+        {"gyro": {"bias": {"bias": (0.02, 0.002)}, "scale": {"scale_error": (0.05, 0.005)}}},
+    ),
+    "hard+soft_iron": Case(
+        Injected(hard_iron=(8.0, -5.0), soft_iron=(0.12, 0.05)),
+        {
+            "compass": {
+                "hard_iron": {"dh_x": (8.0, 0.8), "dh_y": (-5.0, 0.8)},
+                "soft_iron": {"e_xx": (-0.12, 0.012)},
+            }
+        },
+    ),
+    "tick_scale+wheel_base": Case(
+        Injected(tick_scale=0.05, wheel_base=0.1),
+        {
+            "odometry": {
+                "tick_scale": {"ticks_per_metre": (10500.0, 50.0)},
+                "wheel_base": {"wheel_base_m": (0.33, 0.003)},
+            }
+        },
+    ),
+    "glitch+range_dependent": Case(
+        Injected(sonar_glitch=0.05, sonar_range_dependent=0.02),
+        {
+            "range": {
+                "glitch": {"probability": (0.05, 0.015)},
+                "range_dependent": {"k_per_m2": (0.02, 0.002)},
+            }
+        },
+    ),
 }
 
 
@@ -237,8 +277,10 @@ def check_case(case: Case, results: Any) -> list[str]:
     problems: list[str] = []
     for res in results:
         name = res.problem.name
-        found = {inst.name: params for inst, (params, _) in zip(res.effects, res.effect_params(),
-                                                                strict=True)}
+        found = {
+            inst.name: params
+            for inst, (params, _) in zip(res.effects, res.effect_params(), strict=True)
+        }
         expected = case.expect.get(name, {})
         if set(found) != set(expected):
             problems.append(f"{name}: found {sorted(found)}, expected {sorted(expected)}")
@@ -246,8 +288,10 @@ def check_case(case: Case, results: Any) -> list[str]:
         for eff, params in expected.items():
             for p, (value, tol) in params.items():
                 if abs(found[eff][p] - value) > tol:
-                    problems.append(f"{name}: {eff}.{p} = {found[eff][p]:.6g}, "
-                                    f"expected {value:.6g} +- {tol:.3g}")
+                    problems.append(
+                        f"{name}: {eff}.{p} = {found[eff][p]:.6g}, "
+                        f"expected {value:.6g} +- {tol:.3g}"
+                    )
         if expected and not res.after <= 0.5 * res.before:
             problems.append(f"{name}: held-out {res.before:.4g} -> {res.after:.4g} not halved")
     return problems

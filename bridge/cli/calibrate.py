@@ -1,4 +1,4 @@
-"""Find what the sensor model lacks in measured data; report error before/after and the config change.
+"""Find what the sensor model lacks in measured data; report the error before/after and the fix.
 
 ``koala-bridge calibrate INPUT --config MODEL.toml --out DIR [--write-config NEW.toml]``
 

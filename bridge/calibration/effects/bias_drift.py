@@ -1,6 +1,6 @@
 """``bias_drift``: a bias that changes linearly in time.
 
-    y = ... + d * (t - t_ref)        params: d (stream unit per second); t_ref = middle of the fit part
+    y = ... + d * (t - t_ref)      params: d (unit per second); t_ref = middle of the fit part
 
 A random-walk bias cannot be predicted into held-out data beyond its last value, so the loop
 tests the linear form; a random walk shows up as residual autocorrelation in the report.

@@ -1,0 +1,113 @@
+"""Bench of ``koala-bridge calibrate`` (kept out of the pytest suite).
+
+Default: a 1-hour, 100 Hz synthetic recording of all streams (odometry, gyro, compass, 4 sonars,
+landmarks at 2 Hz) with a few injected effects is written once, then calibrated on one core
+(BLAS threads 1, CPU affinity one core). Prints the time to load/parse the bundle (the floor),
+the time of the whole calibration including that load, and their ratio. Target: <= 10 s.
+
+``--rates N``: runs every case of ``bridge.calibration.synthetic.CASES`` plus clean bundles on
+N seeds each and prints the detection and false-positive rates quoted in docs/calibration.md.
+
+    .venv/bin/python bench/bench_calibrate.py            # the 1-hour bench
+    .venv/bin/python bench/bench_calibrate.py --rates 50
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+from bridge.calibration.bundle import load_bundle  # noqa: E402
+from bridge.calibration.model import declared_model  # noqa: E402
+from bridge.calibration.pipeline import calibrate  # noqa: E402
+from bridge.calibration.synthetic import (  # noqa: E402
+    CASES,
+    DECLARED,
+    Injected,
+    check_case,
+    make_bundle,
+)
+
+
+def bench_hour(workdir: Path) -> int:
+    inj = Injected(gyro_bias=0.01, hard_iron=(5.0, -3.0), wheel_base=0.05, sonar_glitch=0.02)
+    t0 = time.monotonic()
+    bundle_dir = make_bundle(workdir / "hour", seed=1, inj=inj, duration_s=3600.0, rate_hz=100.0)
+    gen = time.monotonic() - t0
+    rows = {f.name: sum(1 for _ in f.open()) - 1 for f in sorted(bundle_dir.glob("*.csv"))}
+    print(f"generated in {gen:.1f} s: " + ", ".join(f"{k} {v}" for k, v in rows.items()))
+    t0 = time.monotonic()
+    load_bundle(bundle_dir)
+    floor = time.monotonic() - t0
+    t0 = time.monotonic()
+    bundle = load_bundle(bundle_dir)
+    results = calibrate(bundle, declared_model(DECLARED, bundle.meta))
+    total = time.monotonic() - t0
+    for r in results:
+        print(
+            f"  {r.problem.name:17s} {r.problem.metric:28s} {r.before:10.4g} -> {r.after:10.4g}"
+            f"  [{', '.join(i.name for i in r.effects)}]"
+        )
+    print(
+        f"load/parse floor {floor:.2f} s; calibrate (incl. load) {total:.2f} s; "
+        f"ratio {total / floor:.1f}x; target <= 10 s: {'ok' if total <= 10 else 'MISSED'}"
+    )
+    return 0 if total <= 10 else 1
+
+
+def rates(n: int, workdir: Path) -> int:
+    cases = dict(CASES)
+    detected = trials = 0
+    for name, case in cases.items():
+        ok = 0
+        for seed in range(1000, 1000 + n):
+            bundle = load_bundle(make_bundle(workdir / "b", seed, case.inject))
+            problems = check_case(case, calibrate(bundle, declared_model(DECLARED, bundle.meta)))
+            ok += not problems
+        detected += ok
+        trials += n
+        print(f"{name:24s} {ok}/{n}")
+    fp = 0
+    for seed in range(2000, 2000 + n):
+        bundle = load_bundle(make_bundle(workdir / "b", seed, Injected()))
+        results = calibrate(bundle, declared_model(DECLARED, bundle.meta))
+        fp += any(r.effects for r in results)
+    print(
+        f"detection (named, params in tolerance, held-out halved, nothing else): "
+        f"{detected}/{trials} = {100 * detected / trials:.1f} %"
+    )
+    print(
+        f"false positive (clean bundle, any effect added on any of 6 streams): "
+        f"{fp}/{n} = {100 * fp / n:.1f} %"
+    )
+    return 0
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
+    parser.add_argument(
+        "--rates",
+        type=int,
+        default=0,
+        metavar="N",
+        help="detection / false-positive rates over N seeds instead",
+    )
+    args = parser.parse_args()
+    if hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
+    with tempfile.TemporaryDirectory(prefix="bench-calibrate-") as tmp:
+        if args.rates:
+            return rates(args.rates, Path(tmp))
+        return bench_hour(Path(tmp))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
