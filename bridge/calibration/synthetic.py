@@ -99,7 +99,7 @@ def make_bundle(
     rho = 1 + inj.wheel_ratio
     tpm_true = tpm * (1 + inj.tick_scale)
     slip = rng_odo.normal(0, 2e-4, (2, ds.size)) * np.sqrt(np.abs(ds) / max(ds.mean(), 1e-9))
-    # Inverse of the calibration model: s_l = dL / tpm 2 rho / (1 + rho), s_r = dR / tpm 2 / (1 + rho)
+    # Inverse of the model: s_l = dL / tpm 2 rho / (1 + rho), s_r = dR / tpm 2 / (1 + rho)
     ticks_l = np.round(np.r_[0, np.cumsum((s_l + slip[0]) * tpm_true * (1 + rho) / (2 * rho))])
     ticks_r = np.round(np.r_[0, np.cumsum((s_r + slip[1]) * tpm_true * (1 + rho) / 2)])
     _write(out / "odometry.csv", "t,left_ticks,right_ticks", [t, ticks_l, ticks_r], fmt="%.10g")

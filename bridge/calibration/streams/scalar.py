@@ -4,7 +4,7 @@ Gyro yaw rate (reference: rate of the reference heading), range sensors (referen
 landmark range and bearing (reference: geometry of the reference pose and the landmark map).
 Forward model, with the declared values and every effect's hook::
 
-    y_hat = gain * curve(u(t - tau)) + add(t, covariates, u)    then, if quantised, q round(y_hat / q)
+    y_hat = gain * curve(u(t - tau)) + add(t, covariates, u);  quantised: q round(y_hat / q)
 
 ``gain`` starts at 1 + declared scale error, ``add`` at the declared bias, ``curve`` is the
 identity unless the stream measures raw counts (IR), where it is the declared response curve or,
