@@ -78,8 +78,14 @@ class PtyTransport(ByteTransport):
         return self._fd()
 
     def has_client(self) -> bool:
-        """True while some process has the slave open (the master reports no hang-up)."""
-        events = self._poll.poll(0)
+        """True while some process has the slave open (the master reports no hang-up).
+
+        Uses its own poll object: ``wait`` may be blocked in ``self._poll`` on another thread,
+        and a poll object refuses concurrent use.
+        """
+        poller = select.poll()
+        poller.register(self._fd(), select.POLLIN)
+        events = poller.poll(0)
         return not any(ev & select.POLLHUP for _, ev in events)
 
     def read(self, max_bytes: int = 65536) -> bytes:
