@@ -28,6 +28,8 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_CONFIG = REPO / "config" / "default.toml"
+IDEAL_SECTIONS = ("robot.drive_error", "sensors.ir", "sensors.sonar", "sensors.encoders",
+                  "sensors.gyro", "sensors.compass", "sensors.camera")
 
 
 # -- ports -------------------------------------------------------------------------------------
@@ -180,7 +182,9 @@ def bridge(tmp_path: Path) -> Iterator[Callable[..., BridgeProcess]]:
     """Factory: ``bridge(clock="fast", sets=[...], extra=[...])`` -> a started BridgeProcess.
 
     Every port is a free one (Zenoh listen, MAVLink UDP, socketcand 0 = chosen by the OS), so
-    tests run side by side with ``make run``. ``sets`` are extra ``--set`` overrides.
+    tests run side by side with ``make run``. With ``ideal`` (the default) every sensor and the
+    drive are noise-free whatever the config file says, so tests can compare exactly.
+    ``sets`` are extra ``--set`` overrides.
     """
     started: list[BridgeProcess] = []
 
@@ -190,6 +194,7 @@ def bridge(tmp_path: Path) -> Iterator[Callable[..., BridgeProcess]]:
         extra: list[str] | None = None,
         config: Path = DEFAULT_CONFIG,
         timeout: float = 30.0,
+        ideal: bool = True,
     ) -> BridgeProcess:
         n = len(started)
         endpoints_file = tmp_path / f"endpoints-{n}.json"
@@ -203,6 +208,9 @@ def bridge(tmp_path: Path) -> Iterator[Callable[..., BridgeProcess]]:
             "--set", f"buses.mavlink.port={mavlink_port}",
             "--set", "buses.can.socketcand_port=0",
         ]
+        if ideal:
+            for section in IDEAL_SECTIONS:
+                args += ["--set", f"{section}.ideal=true"]
         for s in sets or []:
             args += ["--set", s]
         args += extra or []
