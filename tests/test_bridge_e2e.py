@@ -256,3 +256,25 @@ def test_signals_stop_cleanly(bridge, signame: str) -> None:
     assert os.path.exists(kteam_path)
     assert b.stop(getattr(signal, signame)) == 0
     assert "Traceback" not in b.log()
+
+
+def test_every_endpoint_accepts_clients_as_soon_as_the_file_exists(bridge) -> None:
+    import json
+    import os
+    import socket
+
+    b = bridge()
+    ep = b.endpoints
+    assert json.loads(b.endpoints_file.read_text()) == ep
+    assert set(ep) == {"serial", "can", "mavlink", "zenoh"}
+    assert os.path.isabs(ep["can"]["dbc"]) and cantools.database.load_file(ep["can"]["dbc"])
+    for path in (ep["serial"]["kteam"], ep["serial"]["rangefinders"], ep["can"]["slcan"]):
+        with open_serial(path):
+            pass
+    sc = ep["can"]["socketcand"]
+    with socket.create_connection((sc["host"], sc["port"]), timeout=2) as s:
+        assert s.recv(16).startswith(b"< hi >")
+    host, port = ep["zenoh"]["endpoints"][0].removeprefix("tcp/").rsplit(":", 1)
+    socket.create_connection((host, int(port)), timeout=2).close()
+    assert ep["mavlink"]["url"] == f"udpin:127.0.0.1:{b.mavlink_port}"
+    assert ep["zenoh"]["prefix"] == "koala/koala"
