@@ -8,8 +8,9 @@ that many simulation seconds pass without any command, when the wheels are set t
 :class:`KteamResponder` answers K-Team ASCII commands from the latest simulator readings
 (docs/protocols.md, "K-Team ASCII"). Units of the Koala (Koala 2.5 User Manual):
 
-- speed: encoder pulses per ``speed_unit_s`` (10 ms on the Koala), so with 90'284 pulses/m
-  (``[robot] ticks_per_metre``), ``D,10,10`` drives both wheels at 10 * 100 / 90284 = 0.0111 m/s;
+- speed: encoder pulses per ``speed_unit_s`` (10 ms on the Koala), so with ``N`` pulses per metre
+  (``[robot] ticks_per_metre``), ``D,10,10`` drives both wheels at 10 / 0.01 / N m/s (with the
+  classic Koala's 22'222 pulses/m: 45 mm/s; with the Koala 2.5's 90'284: 11.1 mm/s);
 - position: encoder pulses, cumulative, signed 32-bit. ``G,l,r`` sets the counters; the offset it
   introduces applies to every bus that reports them (K-Team ``H``, CAN ``WheelOdometry``), as the
   robot has one pair of counters. Zenoh ``sensors/odometry`` carries the simulator's counts since

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import math
 import time
+import tomllib
+from pathlib import Path
 
 import can
 import cantools
@@ -19,7 +21,13 @@ import serial
 from drivers.messages import RangeKind
 from drivers.rangeframes import RangeFrameDecoder
 
-TICKS_PER_METRE = 90284.0
+REPO = Path(__file__).resolve().parents[1]
+
+
+def config_ticks_per_metre() -> float:
+    """``[robot] ticks_per_metre`` of the config the bridge runs on."""
+    with open(REPO / "config" / "default.toml", "rb") as f:
+        return float(tomllib.load(f)["robot"]["ticks_per_metre"])
 
 
 def kteam(port: serial.Serial, command: str) -> str:
@@ -58,7 +66,7 @@ def test_kteam_drive_moves_the_robot_and_ticks_match_distance(bridge, zenoh_watc
         assert kteam(port, "B").startswith("b,")
         assert kteam(port, "G,0,0") == "g"
         start = wait_still(watch)
-        assert kteam(port, "D,60,60") == "d"
+        assert kteam(port, "D,30,30") == "d"
         moved = watch.wait_for("truth/pose", lambda m: m["x"] > start["x"] + 0.15)
         assert abs(moved["y"] - start["y"]) < 1e-6  # straight line east
         assert kteam(port, "D,0,0") == "d"
@@ -67,9 +75,10 @@ def test_kteam_drive_moves_the_robot_and_ticks_match_distance(bridge, zenoh_watc
         assert kteam(port, "E") == "e,0,0"
     distance = math.hypot(end["x"] - start["x"], end["y"] - start["y"])
     assert 0.15 < distance < 1.0
+    ticks_per_metre = watch.query("world")["robot"]["ticks_per_metre"]
     # Ideal encoders: ticks / ticks_per_metre is the distance each wheel rolled.
-    assert left / TICKS_PER_METRE == pytest.approx(distance, abs=2e-3)
-    assert right / TICKS_PER_METRE == pytest.approx(distance, abs=2e-3)
+    assert left / ticks_per_metre == pytest.approx(distance, abs=2e-3)
+    assert right / ticks_per_metre == pytest.approx(distance, abs=2e-3)
     # Zenoh odometry agrees with the serial counters (G,0,0 was sent at rest at `start`).
     odo = watch.after("sensors/odometry", end["t"])
     assert odo["left_ticks"] - left == odo["right_ticks"] - right
@@ -111,7 +120,7 @@ def test_world_queryable_answers_world_and_robot(bridge, zenoh_watch) -> None:
     assert answer["cols"] == 6 and answer["rows"] == 6 and answer["cell_m"] == 0.5
     assert answer["walls"] and answer["landmarks"]
     robot = answer["robot"]
-    assert robot["ticks_per_metre"] == TICKS_PER_METRE
+    assert robot["ticks_per_metre"] == config_ticks_per_metre()
     assert robot["wheel_base_m"] > 0
     assert len(robot["sensors"]["ir"]["poses"]) == 16
 
@@ -152,9 +161,10 @@ def test_can_socketcand_motor_command_moves_robot_and_odometry_follows(bridge, z
             pass
         last = recv_named(bus, db, "WheelOdometry")
         gyro = recv_named(bus, db, "Gyro")
+    ticks_per_metre = watch.query("world")["robot"]["ticks_per_metre"]
     distance = end["x"] - start["x"]
     for side in ("left_ticks", "right_ticks"):
-        assert (last[side] - first[side]) / TICKS_PER_METRE == pytest.approx(distance, abs=2e-3)
+        assert (last[side] - first[side]) / ticks_per_metre == pytest.approx(distance, abs=2e-3)
     assert gyro["yaw_rate"] == pytest.approx(0.0, abs=1e-4)
 
 
