@@ -85,12 +85,12 @@ def _odd(d: Mapping[str, Any], key: str, section: str) -> int:
 
 
 # Error-model parameter classes (issue 3, owned by sim/models/), imported lazily by name so that
-# sim/config.py does not depend on them: module, class. Each has ``from_dict(d, section)``.
+# sim/config.py does not depend on them: module, class. Each has ``from_dict(d, section)`` and a
+# ``FROM_SENSOR`` tuple of the fields it reads from the sensor's own keys. The encoders have none.
 ERROR_PARAMS: Mapping[str, tuple[str, str]] = MappingProxyType({
     "drive": ("sim.models.drive", "DriveErrorParams"),
     "ir": ("sim.models.ir", "IrErrorParams"),
     "sonar": ("sim.models.sonar", "SonarErrorParams"),
-    "encoders": ("sim.models.encoders", "EncoderErrorParams"),
     "gyro": ("sim.models.gyro", "GyroErrorParams"),
     "compass": ("sim.models.compass", "CompassErrorParams"),
     "camera": ("sim.models.camera", "CameraErrorParams"),
@@ -108,25 +108,45 @@ def _error_params_class(model: str) -> Any | None:
     return getattr(module, spec[1], None)
 
 
+def _model_keys(own_keys: Sequence[str], model: str) -> list[str]:
+    """The keys a section may hold: the sensor's own and its error model's (not FROM_SENSOR)."""
+    cls = _error_params_class(model)
+    if cls is None:
+        return list(own_keys)
+    from_sensor = set(getattr(cls, "FROM_SENSOR", ()))
+    return list(own_keys) + [f.name for f in dataclasses.fields(cls)
+                             if f.name not in from_sensor and f.name not in own_keys]
+
+
+def _check_keys(d: Mapping[str, Any], own_keys: Sequence[str], section: str, model: str) -> None:
+    """Unknown keys first (suggesting the nearest valid one), before any missing-key error."""
+    reject_unknown(d, _model_keys(own_keys, model), section)
+
+
 def _split_errors(
-    d: Mapping[str, Any], own_keys: Sequence[str], section: str, model: str
+    d: Mapping[str, Any],
+    own_keys: Sequence[str],
+    section: str,
+    model: str,
+    shared: Mapping[str, Any],
 ) -> Any:
     """Validate a section that mixes this module's keys with an error model's keys.
 
     A section such as ``[sensors.gyro]`` holds the simulator's keys (``rate_hz``, ``ideal``, ...)
-    *and* the parameters of the sensor's error model (issue 3), side by side. Keys that are not
-    ``own_keys`` go to the error model's params class (:data:`ERROR_PARAMS`); keys that both
-    know (``ideal``, ``min_range_m``, ...) go to both. A key known to neither is an error
-    suggesting the nearest key of both. Returns the params
-    object (or an empty mapping when no error model exists for this sensor).
+    *and* the parameters of the sensor's error model (issue 3), side by side. Each key has one
+    owner: keys in ``own_keys`` belong to the sensor (validated here); the others go to the error
+    model's params class (:data:`ERROR_PARAMS`). A value both need (``ideal``, ``min_range_m``,
+    ...) is owned by the sensor: the params class lists it in ``FROM_SENSOR`` and receives the
+    sensor's already validated value from ``shared``. A key known to neither is an error
+    suggesting the nearest valid key. Returns the params object (an empty mapping when no error
+    model exists for this sensor).
     """
+    _check_keys(d, own_keys, section, model)
     cls = _error_params_class(model)
-    fields = [f.name for f in dataclasses.fields(cls)] if cls is not None else []
-    allowed = list(own_keys) + [f for f in fields if f not in own_keys]
-    reject_unknown(d, allowed, section)
     if cls is None:
         return _empty()
-    rest = {k: v for k, v in d.items() if k in fields}   # shared keys (ideal, ...) go to both
+    rest: dict[str, Any] = {k: v for k, v in d.items() if k not in own_keys}
+    rest.update({k: shared[k] for k in getattr(cls, "FROM_SENSOR", ())})
     return cls.from_dict(rest, section)
 
 
@@ -178,8 +198,10 @@ class DriveConfig:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> DriveConfig:
         sec = "robot.drive_error"
-        errors = _split_errors(d, ["ideal"], sec, "drive")
-        return cls(ideal=_bool(d, "ideal", sec), errors=errors)
+        _check_keys(d, ["ideal"], sec, "drive")
+        ideal = _bool(d, "ideal", sec)
+        errors = _split_errors(d, ["ideal"], sec, "drive", {"ideal": ideal})
+        return cls(ideal=ideal, errors=errors)
 
 
 @dataclass(frozen=True)
@@ -233,6 +255,7 @@ class IrConfig:
     response_range_m: np.ndarray        # (k,) increasing
     response_counts: np.ndarray         # (k,) counts at those ranges (linear interpolation)
     ambient_counts: int                 # ambient light reading (K-Team 'O')
+    max_counts: int                     # full scale of the counts (K-Team: 10 bits, 1023)
     errors: Any = field(default_factory=_empty)
 
     @property
@@ -242,13 +265,9 @@ class IrConfig:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> IrConfig:
         sec = "sensors.ir"
-        errors = _split_errors(
-            d,
-            ["rate_hz", "ideal", "poses", "rays", "aperture_deg", "response_range_m",
-             "response_counts", "ambient_counts"],
-            sec,
-            "ir",
-        )
+        own = ["rate_hz", "ideal", "poses", "rays", "aperture_deg", "response_range_m",
+               "response_counts", "ambient_counts", "max_counts"]
+        _check_keys(d, own, sec, "ir")
         rng_m = np.array(require(d, "response_range_m", sec), dtype=float)
         counts = np.array(require(d, "response_counts", sec), dtype=float)
         if rng_m.ndim != 1 or rng_m.shape != counts.shape or rng_m.size < 2:
@@ -258,22 +277,28 @@ class IrConfig:
             )
         if np.any(np.diff(rng_m) <= 0) or rng_m[0] < 0:
             raise ConfigError(f"[{sec}] 'response_range_m' must be >= 0 and strictly increasing")
-        if np.any(counts < 0) or np.any(counts > 1023):
-            raise ConfigError(f"[{sec}] 'response_counts' must lie in 0..1023")
+        full = _int(d, "max_counts", sec)
+        if np.any(counts < 0) or np.any(counts > full):
+            raise ConfigError(f"[{sec}] 'response_counts' must lie in 0..max_counts ({full})")
         ambient = _int(d, "ambient_counts", sec, minimum=0)
-        if ambient > 1023:
-            raise ConfigError(f"[{sec}] 'ambient_counts' must lie in 0..1023, got {ambient}")
+        if ambient > full:
+            raise ConfigError(
+                f"[{sec}] 'ambient_counts' must lie in 0..max_counts ({full}), got {ambient}")
         for a in (rng_m, counts):
             a.flags.writeable = False
+        ideal = _bool(d, "ideal", sec)
+        errors = _split_errors(d, own, sec, "ir", {"ideal": ideal, "ambient_counts": ambient,
+                                                   "max_counts": full})
         return cls(
             rate_hz=positive(require(d, "rate_hz", sec), "rate_hz", sec),
-            ideal=_bool(d, "ideal", sec),
+            ideal=ideal,
             poses=_poses(require(d, "poses", sec), "poses", sec),
             rays=_odd(d, "rays", sec),
             aperture_deg=_nonneg(d, "aperture_deg", sec),
             response_range_m=rng_m,
             response_counts=counts,
             ambient_counts=ambient,
+            max_counts=full,
             errors=errors,
         )
 
@@ -294,19 +319,23 @@ class SonarConfig:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> SonarConfig:
         sec = "sensors.sonar"
+        _check_keys(d, ["rate_hz", "ideal", "poses", "rays", "aperture_deg", "min_range_m",
+                        "max_range_m"], sec, "sonar")
+        lo = _nonneg(d, "min_range_m", sec)
+        hi = positive(require(d, "max_range_m", sec), "max_range_m", sec)
+        if lo >= hi:
+            raise ConfigError(f"[{sec}] 'min_range_m' must be < 'max_range_m'")
+        ideal = _bool(d, "ideal", sec)
         errors = _split_errors(
             d,
             ["rate_hz", "ideal", "poses", "rays", "aperture_deg", "min_range_m", "max_range_m"],
             sec,
             "sonar",
+            {"ideal": ideal, "min_range_m": lo, "max_range_m": hi},
         )
-        lo = _nonneg(d, "min_range_m", sec)
-        hi = positive(require(d, "max_range_m", sec), "max_range_m", sec)
-        if lo >= hi:
-            raise ConfigError(f"[{sec}] 'min_range_m' must be < 'max_range_m'")
         return cls(
             rate_hz=positive(require(d, "rate_hz", sec), "rate_hz", sec),
-            ideal=_bool(d, "ideal", sec),
+            ideal=ideal,
             poses=_poses(require(d, "poses", sec), "poses", sec),
             rays=_odd(d, "rays", sec),
             aperture_deg=_nonneg(d, "aperture_deg", sec),
@@ -326,10 +355,19 @@ class BasicSensorConfig:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], sec: str, model: str) -> BasicSensorConfig:
-        errors = _split_errors(d, ["rate_hz", "ideal"], sec, model)
+        _check_keys(d, ["rate_hz", "ideal"], sec, model)
+        ideal = _bool(d, "ideal", sec)
+        errors = _split_errors(d, ["rate_hz", "ideal"], sec, model, {"ideal": ideal})
+        if not ideal and _error_params_class(model) is None:
+            raise ConfigError(
+                f"[{sec}] 'ideal' must be true: the {model} have no error model of their own "
+                "(their errors come from [robot.drive_error]: the counts are whole ticks of the "
+                "commanded wheel rotation, from which the truth pose drifts); see "
+                "config/README.md"
+            )
         return cls(
             rate_hz=positive(require(d, "rate_hz", sec), "rate_hz", sec),
-            ideal=_bool(d, "ideal", sec),
+            ideal=ideal,
             errors=errors,
         )
 
@@ -346,10 +384,13 @@ class CompassConfig:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> CompassConfig:
         sec = "sensors.compass"
-        errors = _split_errors(d, ["rate_hz", "ideal", "min_source_distance_m"], sec, "compass")
+        _check_keys(d, ["rate_hz", "ideal", "min_source_distance_m"], sec, "compass")
+        ideal = _bool(d, "ideal", sec)
+        errors = _split_errors(d, ["rate_hz", "ideal", "min_source_distance_m"], sec, "compass",
+                               {"ideal": ideal})
         return cls(
             rate_hz=positive(require(d, "rate_hz", sec), "rate_hz", sec),
-            ideal=_bool(d, "ideal", sec),
+            ideal=ideal,
             min_source_distance_m=positive(
                 require(d, "min_source_distance_m", sec), "min_source_distance_m", sec
             ),
@@ -372,22 +413,26 @@ class CameraConfig:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> CameraConfig:
         sec = "sensors.camera"
+        _check_keys(d, ["rate_hz", "ideal", "pose", "fov_deg", "min_range_m", "max_range_m"],
+                    sec, "camera")
+        lo = _nonneg(d, "min_range_m", sec)
+        hi = positive(require(d, "max_range_m", sec), "max_range_m", sec)
+        if lo >= hi:
+            raise ConfigError(f"[{sec}] 'min_range_m' must be < 'max_range_m'")
+        ideal = _bool(d, "ideal", sec)
         errors = _split_errors(
             d,
             ["rate_hz", "ideal", "pose", "fov_deg", "min_range_m", "max_range_m"],
             sec,
             "camera",
+            {"ideal": ideal, "min_range_m": lo, "max_range_m": hi},
         )
-        lo = _nonneg(d, "min_range_m", sec)
-        hi = positive(require(d, "max_range_m", sec), "max_range_m", sec)
-        if lo >= hi:
-            raise ConfigError(f"[{sec}] 'min_range_m' must be < 'max_range_m'")
         fov = positive(require(d, "fov_deg", sec), "fov_deg", sec)
         if fov > 360:
             raise ConfigError(f"[{sec}] 'fov_deg' must be <= 360, got {fov}")
         return cls(
             rate_hz=positive(require(d, "rate_hz", sec), "rate_hz", sec),
-            ideal=_bool(d, "ideal", sec),
+            ideal=ideal,
             pose=_pose(require(d, "pose", sec), "pose", sec),
             fov_deg=fov,
             min_range_m=lo,

@@ -58,7 +58,7 @@ def test_all_models_on_differ_from_truth_all_ideal_do_not() -> None:
 
 
 def test_drive_error_moves_truth_but_encoders_count_the_commanded_rotation() -> None:
-    cfg = config_with_world(box_world())
+    cfg = config_with_world(box_world(), ideal=True)
     cfg["robot"]["drive_error"].update(ideal=False, drive_error=0.5)
     sim = Simulator(cfg)
     r0 = sim.reset(5)
@@ -91,7 +91,7 @@ def test_same_seed_bit_identical_with_all_models() -> None:
 def _oblique_sonar(late: float) -> Readings:
     """2 m x 2 m box; the robot faces the east wall at 50 deg incidence: every ray of the front
     sonar is beyond the 22.5 deg critical angle; the specular path goes on to the north wall."""
-    cfg = config_with_world(box_world(cols=4, rows=4, x=1.5, y=1.0, theta_deg=50.0))
+    cfg = config_with_world(box_world(cols=4, rows=4, x=1.5, y=1.0, theta_deg=50.0), ideal=True)
     for name in MODELS:
         cfg["sensors"][name]["ideal"] = name != "sonar"
     s = cfg["sensors"]["sonar"]

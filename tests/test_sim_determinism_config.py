@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
+import tomllib
 import math
 from typing import Any
 
 import numpy as np
 import pytest
-from test_sim_support import default_config
+from test_sim_support import DEFAULT, IDEAL, default_config, ideal_config
 
 from sim.config import load_sim_config
 from sim.schema import ConfigError
@@ -24,8 +26,9 @@ def _flatten(r: Readings) -> list[Any]:
         if v is None:
             out.append(None)
             continue
-        for f in vars(v).values():
-            out.append(f.tobytes() if isinstance(f, np.ndarray) else f)
+        for f in dataclasses.fields(v):
+            x = getattr(v, f.name)
+            out.append(x.tobytes() if isinstance(x, np.ndarray) else x)
     return out
 
 
@@ -51,7 +54,7 @@ def test_reset_restarts_the_run() -> None:
 
 
 def test_ideal_sensors_do_not_depend_on_the_seed() -> None:
-    cfg = default_config()
+    cfg = ideal_config()
     assert _run(cfg, 1, 200) == _run(cfg, 2, 200)
 
 
@@ -67,7 +70,7 @@ class _NoisyGyro:
 
 
 def _noisy_cfg() -> dict:
-    cfg = copy.deepcopy(default_config())
+    cfg = copy.deepcopy(ideal_config())
     cfg["sensors"]["gyro"]["ideal"] = False
     return cfg
 
@@ -96,7 +99,7 @@ def test_error_model_seam_and_seed_dependence() -> None:
 
 
 def test_enabling_one_model_does_not_change_other_streams() -> None:
-    ideal = Simulator(default_config())
+    ideal = Simulator(ideal_config())
     noisy = Simulator(_noisy_cfg(), error_models=FACTORIES)
     ideal.reset(4)
     noisy.reset(4)
@@ -114,7 +117,10 @@ def test_robot_description_is_json_ready() -> None:
     sim = Simulator(default_config())
     d = json.loads(json.dumps(sim.robot_description()))
     assert d["wheel_base_m"] == pytest.approx(0.285)
-    assert d["ticks_per_metre"] == pytest.approx(90284.0)
+    assert d["ticks_per_metre"] == pytest.approx(1 / 0.045e-3)       # classic Koala, koala.c
+    # D,127,127 (pulses per 10 ms) is the full wheel speed: 127 x 4.5 mm/s
+    assert 127 / d["ticks_per_metre"] / d["speed_unit_s"] == pytest.approx(
+        d["max_wheel_speed_mps"], rel=1e-6)
     assert len(d["sensors"]["ir"]["poses"]) == 16
     assert len(d["sensors"]["sonar"]["poses"]) == 9
     p = d["sensors"]["ir"]["poses"][0]
@@ -167,3 +173,46 @@ def test_other_top_level_sections_are_ignored() -> None:
     cfg = copy.deepcopy(default_config())
     cfg["zenoh"] = {"anything": 1}
     assert load_sim_config(cfg).robot.name == "koala"
+
+
+def test_default_runs_every_model_and_ideal_toml_differs_only_in_the_switches() -> None:
+    with DEFAULT.open("rb") as f:
+        default = tomllib.load(f)
+    with IDEAL.open("rb") as f:
+        ideal = tomllib.load(f)
+    tables = [("robot", "drive_error")] + [("sensors", n) for n in default["sensors"]]
+    for path in tables:
+        d, i = default[path[0]][path[1]], ideal[path[0]][path[1]]
+        assert i["ideal"] is True, path
+        assert d["ideal"] is (path == ("sensors", "encoders")), path   # encoders: no model
+        d["ideal"] = i["ideal"] = None
+    assert default == ideal
+
+
+def test_encoders_have_no_error_model() -> None:
+    cfg = copy.deepcopy(default_config())
+    cfg["sensors"]["encoders"]["ideal"] = False
+    with pytest.raises(ConfigError, match=r"sensors\.encoders.*drive_error"):
+        load_sim_config(cfg)
+
+
+def test_shared_keys_have_one_owner() -> None:
+    cfg = load_sim_config(default_config())
+    s = cfg.sensors
+    # the sensor's validated values reach its model's params
+    assert s.sonar.errors.min_range_m == s.sonar.min_range_m
+    assert (s.camera.errors.min_range_m, s.camera.errors.max_range_m) == (
+        s.camera.min_range_m, s.camera.max_range_m)
+    assert (s.ir.errors.ambient_counts, s.ir.errors.max_counts) == (
+        s.ir.ambient_counts, s.ir.max_counts)
+    for sensor in (s.ir, s.sonar, s.gyro, s.compass, s.camera):
+        assert sensor.errors.ideal is sensor.ideal is False
+    # a model key is validated by the model, with a suggestion when misspelt
+    bad = copy.deepcopy(default_config())
+    bad["sensors"]["sonar"]["glitch_probabilty"] = 0.1
+    with pytest.raises(ConfigError, match="did you mean 'glitch_probability'"):
+        load_sim_config(bad)
+    bad = copy.deepcopy(default_config())
+    bad["sensors"]["ir"]["ambient_counts"] = 2000
+    with pytest.raises(ConfigError, match="max_counts"):
+        load_sim_config(bad)

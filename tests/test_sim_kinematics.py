@@ -16,7 +16,7 @@ from sim.types import WheelCommand
 
 
 def make_sim(**world_kw: object) -> Simulator:
-    return Simulator(config_with_world(box_world(**world_kw)))
+    return Simulator(config_with_world(box_world(**world_kw), ideal=True))
 
 
 def drive(sim: Simulator, left: float, right: float, seconds: float):
@@ -66,7 +66,7 @@ def test_arc_follows_the_circle() -> None:
 
 
 def test_exact_arc_is_independent_of_dt() -> None:
-    params = load_sim_config(config_with_world(box_world())).robot
+    params = load_sim_config(config_with_world(box_world(), ideal=True)).robot
     walls = SegmentSet.from_segments(np.zeros((0, 4)))
     a = kin.RobotState.at(0, 0, 0.3)
     for _ in range(100):
@@ -105,7 +105,7 @@ def test_wall_stops_the_robot_and_reports_collision() -> None:
 
 
 def test_no_tunnelling_through_a_thin_wall_with_a_huge_step() -> None:
-    params = load_sim_config(config_with_world(box_world())).robot
+    params = load_sim_config(config_with_world(box_world(), ideal=True)).robot
     walls = SegmentSet.from_segments(np.array([[1.0, -1.0, 1.0, 1.0]]))
     s = kin.step(kin.RobotState.at(0.0, 0.0, 0.0), 0.6, 0.6, 10.0, params, walls)  # 6 m in 1 step
     assert s.collided

@@ -14,7 +14,7 @@ from sim.types import WheelCommand
 
 
 def make_sim(world: dict) -> Simulator:
-    return Simulator(config_with_world(world))
+    return Simulator(config_with_world(world, ideal=True))
 
 
 # ---------------------------------------------------------------------- raycast

@@ -1,4 +1,6 @@
-"""Helpers for the simulator tests (no tests here): configs built from config/default.toml."""
+"""Helpers for the simulator tests (no tests here): configs built from config/default.toml (every
+error model on) and config/ideal.toml (every model off). A test that compares readings with exact
+geometry says so by using :func:`ideal_config` (or ``ideal=True``)."""
 
 from __future__ import annotations
 
@@ -7,17 +9,27 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-DEFAULT = Path(__file__).resolve().parents[1] / "config" / "default.toml"
+CONFIG = Path(__file__).resolve().parents[1] / "config"
+DEFAULT = CONFIG / "default.toml"
+IDEAL = CONFIG / "ideal.toml"
 
 
 def default_config() -> dict[str, Any]:
+    """config/default.toml: every error model on."""
     with DEFAULT.open("rb") as f:
         return tomllib.load(f)
 
 
-def config_with_world(world: dict[str, Any], **sim: Any) -> dict[str, Any]:
-    """The default config with another ``[world]`` (and ``[sim]`` overrides)."""
-    cfg = copy.deepcopy(default_config())
+def ideal_config() -> dict[str, Any]:
+    """config/ideal.toml: the default world and robot with every sensor and the drive ideal."""
+    with IDEAL.open("rb") as f:
+        return tomllib.load(f)
+
+
+def config_with_world(world: dict[str, Any], *, ideal: bool, **sim: Any) -> dict[str, Any]:
+    """A config with another ``[world]`` (and ``[sim]`` overrides), from config/ideal.toml when
+    ``ideal`` (every caller says which), else from config/default.toml (every model on)."""
+    cfg = copy.deepcopy(ideal_config() if ideal else default_config())
     cfg["world"] = world
     cfg["sim"].update(sim)
     return cfg

@@ -50,7 +50,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -67,6 +67,9 @@ from sim.schema import ConfigError
 @dataclass(frozen=True)
 class CameraErrorParams:
     """``[sensors.camera]`` error-model keys. Distances in m, angles in degrees."""
+
+    # Keys of the sensor's table that the sensor's config owns and hands over (sim/config.py).
+    FROM_SENSOR: ClassVar[tuple[str, ...]] = ("ideal", "min_range_m", "max_range_m")
 
     ideal: bool = False
     p_perc: float = 0.01              # eq. 5: miss probability at 0°, near range (Figure 2)

@@ -29,7 +29,7 @@ the load grows with speed through friction; the sign flips with the direction of
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -44,6 +44,9 @@ def _identity() -> tuple[tuple[float, ...], ...]:
 @dataclass(frozen=True)
 class CompassErrorParams:
     """``[sensors.compass]`` error-model keys. Field in microtesla, body frame FLU."""
+
+    # Keys of the sensor's table that the sensor's config owns and hands over (sim/config.py).
+    FROM_SENSOR: ClassVar[tuple[str, ...]] = ("ideal",)
 
     ideal: bool = False
     hard_iron_uT: tuple[float, ...] = (0.0, 0.0, 0.0)

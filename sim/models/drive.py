@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -52,6 +52,9 @@ from sim.schema import ConfigError
 @dataclass(frozen=True)
 class DriveErrorParams:
     """``[robot.drive_error]``. Units: fractions (relative sigma), Hz."""
+
+    # Keys of the sensor's table that the sensor's config owns and hands over (sim/config.py).
+    FROM_SENSOR: ClassVar[tuple[str, ...]] = ("ideal",)
 
     ideal: bool = False
     drive_error: float = 0.0          # seeds/000 eq. 3–4 "Drive": relative sigma per wheel step

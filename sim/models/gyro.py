@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -41,6 +41,9 @@ from sim.noise import gauss_markov_step, rate_scaled_sigma
 @dataclass(frozen=True)
 class GyroErrorParams:
     """``[sensors.gyro]`` error-model keys (SI units; Kalibr names for the two densities)."""
+
+    # Keys of the sensor's table that the sensor's config owns and hands over (sim/config.py).
+    FROM_SENSOR: ClassVar[tuple[str, ...]] = ("ideal",)
 
     ideal: bool = False
     gyroscope_noise_density: float = 0.0     # rad/s/sqrt(Hz), white noise (ARW)

@@ -28,7 +28,7 @@ The noise-free companion is ``c`` with ``z = n = 0`` and no ambient effect.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -47,6 +47,9 @@ def _seed004_ir_table() -> LookupTable:
 @dataclass(frozen=True)
 class IrErrorParams:
     """``[sensors.ir]`` error-model keys. Distances in m, counts 0..max_counts."""
+
+    # Keys of the sensor's table that the sensor's config owns and hands over (sim/config.py).
+    FROM_SENSOR: ClassVar[tuple[str, ...]] = ("ideal", "ambient_counts", "max_counts")
 
     ideal: bool = False
     distance_error: LookupTable = field(default_factory=_seed004_ir_table)

@@ -34,7 +34,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -54,6 +54,9 @@ def _seed004_us_table() -> LookupTable:
 @dataclass(frozen=True)
 class SonarErrorParams:
     """``[sensors.sonar]`` error-model keys."""
+
+    # Keys of the sensor's table that the sensor's config owns and hands over (sim/config.py).
+    FROM_SENSOR: ClassVar[tuple[str, ...]] = ("ideal", "min_range_m")
 
     ideal: bool = False
     distance_error: LookupTable = field(default_factory=_seed004_us_table)

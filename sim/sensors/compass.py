@@ -43,7 +43,7 @@ def field_world(
     y: float,
     earth_uT: tuple[float, float, float],
     sources: tuple[tuple[float, float, float], ...],
-    min_distance_m: float,
+    min_source_distance_m: float,
 ) -> tuple[float, float, float]:
     """World-frame field at ``(x, y)``: Earth ``(bx, by, bz)`` plus sources ``(sx, sy, strength)``.
 
@@ -57,7 +57,7 @@ def field_world(
         dist = math.hypot(vx, vy)
         if dist == 0.0:
             continue            # on top of the source: no direction (clamped magnitude undefined)
-        d = max(dist, min_distance_m)
+        d = max(dist, min_source_distance_m)
         k = strength / (d * d) / dist
         bx += k * vx
         by += k * vy
