@@ -79,7 +79,9 @@ def record(tmp: Path, duration: float) -> Path:
     return path
 
 
-def replay_and_receive(path: Path, tmp: Path, speed: float) -> tuple[dict[str, list], str]:
+def replay_and_receive(
+    path: Path, tmp: Path, speed: float, fifo_priority: int = 0
+) -> tuple[dict[str, list], str]:
     mav_port = _free_port(socket.SOCK_DGRAM)
     udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     udp.bind(("127.0.0.1", mav_port))
@@ -87,9 +89,11 @@ def replay_and_receive(path: Path, tmp: Path, speed: float) -> tuple[dict[str, l
     endpoints_file = tmp / "replay.json"
     log_path = tmp / "replay.log"
     with log_path.open("wb") as log:
+        fifo = ["--fifo-priority", str(fifo_priority)] if fifo_priority else []
         proc = subprocess.Popen(
             _koala(
                 "replay",
+                *fifo,
                 str(path),
                 "--speed",
                 str(speed),
@@ -101,6 +105,8 @@ def replay_and_receive(path: Path, tmp: Path, speed: float) -> tuple[dict[str, l
                 f"buses.mavlink.port={mav_port}",
                 "--set",
                 "buses.can.slcan=false",
+                "--linger",  # the client drains the last frames before the ports close
+                "2",
             ),
             cwd=REPO,
             stdout=log,
@@ -165,6 +171,14 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--duration", type=float, default=60.0)
     parser.add_argument("--speed", type=float, default=1.0)
+    parser.add_argument(
+        "--fifo-priority",
+        type=int,
+        default=0,
+        metavar="P",
+        help="replay --fifo-priority P (SCHED_FIFO; needs CAP_SYS_NICE); the client side can be "
+        "raised too by starting this script under chrt -f",
+    )
     args = parser.parse_args(argv)
     # Three reader threads share this process's GIL: hand it over every 0.5 ms (default 5 ms),
     # or a reader waits for it and the measurement shows the client's delay, not the replay's.
@@ -173,8 +187,9 @@ def main(argv: list[str] | None = None) -> int:
         tmp = Path(d)
         path = record(tmp, args.duration)
         rec = open_recording(path)
-        got, log = replay_and_receive(path, tmp, args.speed)
-    print(f"recording: {args.duration:g} s, replay speed {args.speed:g}")
+        got, log = replay_and_receive(path, tmp, args.speed, args.fifo_priority)
+    fifo = f", replay under SCHED_FIFO {args.fifo_priority}" if args.fifo_priority else ""
+    print(f"recording: {args.duration:g} s, replay speed {args.speed:g}{fifo}")
     print(f"{'bus':<22}{'frames':>8}{'in order':>10}{'p50 ms':>9}{'p99 ms':>9}{'max ms':>9}")
     all_err = []
     ok = True

@@ -5,12 +5,15 @@ from __future__ import annotations
 
 import csv
 import json
-from collections.abc import Iterator
+import signal
+import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import can
 import pytest
 from _recorded_run import DURATION_S, KTEAM_COMMANDS, RecordedRun, record_run
+from conftest import BridgeProcess
 from mcap.reader import make_reader
 
 from bridge.export import export_bundle
@@ -150,3 +153,25 @@ def test_bundle_agrees_one_for_one_with_the_recording(rec: Recording, tmp_path: 
     assert meta["seed"] == json.loads(rec.metadata["koala-bridge"]["config"])["sim"]["seed"]
     assert meta["config_path"].endswith("default.toml")
     assert (out / "landmark_map.csv").exists() and (out / "landmarks.csv").exists()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM], ids=["SIGKILL", "SIGTERM"])
+def test_run_killed_while_recording_leaves_a_readable_file(
+    sig: int, bridge: Callable[..., BridgeProcess], tmp_path: Path
+) -> None:
+    path = tmp_path / "killed.mcap"
+    b = bridge(clock="realtime", extra=["--record", str(path)])
+    deadline = time.monotonic() + 20
+    while path.stat().st_size < 40_000 and time.monotonic() < deadline:  # a few chunks
+        time.sleep(0.1)
+    b.stop(sig)
+    rec = open_recording(path)
+    assert rec.complete == (sig == signal.SIGTERM)
+    gyro = rec.topic("sensors/gyro")
+    assert len(gyro) > 50
+    assert [m.sequence for m in gyro] == list(range(len(gyro)))
+    if sig == signal.SIGTERM:
+        with path.open("rb") as f:
+            summary = make_reader(f).get_summary()
+        assert summary is not None and summary.statistics is not None
+        assert summary.statistics.message_count == len(rec.messages)
