@@ -3,6 +3,7 @@ pty, socketcand and UDP endpoints and publishes on Zenoh exactly what the robot 
 
 from __future__ import annotations
 
+import argparse
 import json
 import subprocess
 import threading
@@ -13,8 +14,11 @@ from typing import Any
 
 import can
 import pytest
+from _mpl import fonts_loaded  # noqa: F401 - autouse fixture
 from conftest import DEFAULT_CONFIG, REPO, BridgeProcess, bridge_command, free_port
 
+from bridge.cli import monitor as monitor_cli
+from bridge.cli import snapshot as snapshot_cli
 from bridge.monitor import ZenohWatch
 from bridge.real_source import RealPorts
 from bridge.recording import FROM_ROBOT, Recording, open_recording
@@ -31,7 +35,7 @@ from drivers.messages import (
 from drivers.rangeframes import NO_ECHO, decode_range_frame
 from sim.schema import ConfigError
 
-REAL_SECONDS = 3.0
+REAL_SECONDS = 5.0
 
 
 def contiguous_in(part: Sequence[Any], whole: Sequence[Any]) -> bool:
@@ -72,6 +76,12 @@ def robot_sent(rec: Recording) -> dict[str, list[Any]]:
     return out
 
 
+def _args(module: Any, argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    module.add_arguments(parser)
+    return parser.parse_args(argv)
+
+
 def zenoh_values(key: str, msg: dict[str, Any]) -> Any:
     return {
         "ir": lambda: msg["counts"],
@@ -83,7 +93,7 @@ def zenoh_values(key: str, msg: dict[str, Any]) -> Any:
 
 
 def test_real_driver_mode_publishes_what_the_robot_sent(
-    bridge: Callable[..., BridgeProcess], tmp_path: Path
+    bridge: Callable[..., BridgeProcess], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     robot_rec = tmp_path / "robot.mcap"
     robot = bridge(clock="realtime", extra=["--record", str(robot_rec)])
@@ -138,11 +148,21 @@ mavlink = "udpin:127.0.0.1:{robot.mavlink_port}"
             time.sleep(0.02)
         with ZenohWatch([zenoh_endpoint], "koala/koala", on_message) as watch:
             world = watch.query_json("world")
+            # monitor and snapshot work unchanged against the real-driver mode
+            assert monitor_cli.run(_args(monitor_cli, [
+                "--connect", zenoh_endpoint, "--once", "--duration", "1"])) == 0
+            png = tmp_path / "real.png"
+            assert snapshot_cli.run(_args(snapshot_cli, [
+                "--out", str(png), "--connect", zenoh_endpoint, "--listen", "0.3",
+                "--timeout", "1"])) == 0
             assert real.wait(timeout=60) == 0, log_path.read_text()
     finally:
         if real.poll() is None:
             real.kill()
             real.wait()
+    monitor_out = capsys.readouterr().out
+    assert "sensors/compass" in monitor_out and "sensors/sonar" in monitor_out
+    assert png.stat().st_size > 10_000
     assert robot.stop() == 0
     assert world is not None and world["robot"]["ticks_per_metre"] > 0
 
