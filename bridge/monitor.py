@@ -155,6 +155,10 @@ class MonitorState:
             if isinstance(t, int | float) and (not s.sim or t > s.sim[-1]):
                 s.sim.append(float(t))
 
+    def now(self) -> float:
+        """The state's clock (monotonic seconds)."""
+        return self._clock()
+
     def last(self, suffix: str) -> Any:
         with self._lock:
             s = self.streams.get(suffix)
@@ -282,7 +286,7 @@ def render_status(streams: Mapping[str, StreamStats]) -> Table:
 
 
 def render(state: MonitorState, header: str = "") -> Group:
-    now = state._clock()
+    now = state.now()
     streams = state.snapshot()
     parts: list[Any] = []
     if header:
