@@ -125,3 +125,105 @@ class LookupTable:
     def rows(self) -> list[list[float]]:
         return [[float(a), float(b), float(c)] for a, b, c in zip(self.x, self.y, self.noise_col,
                                                                   strict=True)]
+
+
+class BlockStream:
+    """One sensor's random numbers, drawn in blocks: what the simulator hands its error models.
+
+    Per-call draws from a ``numpy.random.Generator`` cost about a microsecond each, more than the
+    compiled models they feed; so the simulator draws standard normals and uniforms in blocks and
+    hands them out in order. Normals and uniforms come from two child streams of the sensor's
+    generator (``Generator.spawn``), each a plain sequence: the k-th normal a model uses is the
+    k-th normal of its stream whatever the block size and however the model interleaves normals
+    and uniforms. The streams belong to one sensor only (docs/architecture.md "Randomness"), so
+    enabling one model never changes another sensor's numbers, and the same seed gives the same
+    numbers.
+
+    Compiled models take :meth:`normals` / :meth:`uniforms` (1-D views of the next ``n``
+    values); scalar models :meth:`normal_list` / :meth:`uniform_list` (Python floats, cheaper in
+    scalar arithmetic). :meth:`standard_normal` and :meth:`random` mirror the ``Generator``
+    methods of those names, so the pure model functions accept either.
+    """
+
+    __slots__ = ("_n_rng", "_u_rng", "_block", "_n", "_n_list", "_ni", "_u", "_u_list", "_ui")
+
+    def __init__(self, rng: np.random.Generator, block: int = 2048) -> None:
+        self._n_rng, self._u_rng = rng.spawn(2)
+        self._block = block
+        self._n = self._u = np.empty(0)
+        self._n_list: list[float] = []
+        self._u_list: list[float] = []
+        self._ni = self._ui = 0
+
+    def _refill_normals(self, need: int) -> None:
+        # Keep the values not handed out yet: the sequence stays the same whatever the block size.
+        fresh = self._n_rng.standard_normal(max(self._block, need))
+        self._n = np.concatenate([self._n[self._ni:], fresh])
+        self._n_list = self._n.tolist()
+        self._n.flags.writeable = False
+        self._ni = 0
+
+    def _refill_uniforms(self, need: int) -> None:
+        fresh = self._u_rng.random(max(self._block, need))
+        self._u = np.concatenate([self._u[self._ui:], fresh])
+        self._u_list = self._u.tolist()
+        self._u.flags.writeable = False
+        self._ui = 0
+
+    def normals(self, n: int) -> np.ndarray:
+        """The next ``n`` standard normals (a read-only view; copy to keep)."""
+        i = self._ni
+        if i + n > self._n.shape[0]:
+            self._refill_normals(n)
+            i = 0
+        self._ni = i + n
+        return self._n[i:i + n]
+
+    def uniforms(self, n: int) -> np.ndarray:
+        """The next ``n`` uniforms on [0, 1)."""
+        i = self._ui
+        if i + n > self._u.shape[0]:
+            self._refill_uniforms(n)
+            i = 0
+        self._ui = i + n
+        return self._u[i:i + n]
+
+    def normal_list(self, n: int) -> list[float]:
+        """The next ``n`` standard normals as Python floats."""
+        i = self._ni
+        if i + n > self._n.shape[0]:
+            self._refill_normals(n)
+            i = 0
+        self._ni = i + n
+        return self._n_list[i:i + n]
+
+    def uniform_list(self, n: int) -> list[float]:
+        i = self._ui
+        if i + n > self._u.shape[0]:
+            self._refill_uniforms(n)
+            i = 0
+        self._ui = i + n
+        return self._u_list[i:i + n]
+
+    def standard_normal(self, size: int | tuple[int, ...] | None = None) -> ArrayLike:
+        """``Generator.standard_normal`` from this stream (a float when ``size`` is None)."""
+        if size is None:
+            return self.normal_list(1)[0]
+        if isinstance(size, int):
+            return self.normals(size)
+        shape = tuple(size)
+        return self.normals(math.prod(shape)).reshape(shape)
+
+    def random(self, size: int | tuple[int, ...] | None = None) -> ArrayLike:
+        """``Generator.random`` from this stream (a float when ``size`` is None)."""
+        if size is None:
+            return self.uniform_list(1)[0]
+        if isinstance(size, int):
+            return self.uniforms(size)
+        shape = tuple(size)
+        return self.uniforms(math.prod(shape)).reshape(shape)
+
+
+Variates = np.random.Generator | BlockStream
+"""What a model draws from: a ``Generator`` (tests, figures) or a :class:`BlockStream` (the
+simulator)."""

@@ -173,11 +173,13 @@ def cast_rays_numpy(
 
 
 @numba.njit(cache=True, nogil=True)
-def _first_hit(
+def first_hit(
     seg: np.ndarray, ox: float, oy: float, dx: float, dy: float, max_range: float
 ) -> tuple[float, int, float]:  # pragma: no cover - compiled; tested through cast_rays
-    """The equations of :func:`cast_rays_numpy` for one ray, skipping farther segments early.
-    ``seg`` is :attr:`SegmentSet.packed`. Returns (range, wall index, incidence)."""
+    """The equations of :func:`cast_rays_numpy` for one ray, skipping farther segments early
+    (compiled; callable from other compiled kernels, e.g. the sonar's specular second leg).
+    ``seg`` is :attr:`SegmentSet.packed`. Returns (range, wall index, incidence); (inf, -1, nan)
+    when nothing lies within ``max_range``."""
     best = np.inf
     best_m = -1
     best_den = 0.0
@@ -209,7 +211,7 @@ def _cast_kernel(
 ) -> None:  # pragma: no cover - compiled
     # rays: (4, R) ox, oy, dx, dy. out: (2, R) range, incidence.
     for r in range(rays.shape[1]):
-        t, m, inc = _first_hit(seg, rays[0, r], rays[1, r], rays[2, r], rays[3, r], max_range[r])
+        t, m, inc = first_hit(seg, rays[0, r], rays[1, r], rays[2, r], rays[3, r], max_range[r])
         out[0, r] = t
         out[1, r] = inc
         out_index[r] = m
@@ -231,7 +233,7 @@ def _fan_kernel(
         a = body[2, r] + theta
         dx = np.cos(a)
         dy = np.sin(a)
-        t, m, inc = _first_hit(seg, ox, oy, dx, dy, max_range[r])
+        t, m, inc = first_hit(seg, ox, oy, dx, dy, max_range[r])
         out[0, r] = ox
         out[1, r] = oy
         out[2, r] = dx
@@ -276,22 +278,33 @@ def cast_rays(
     return RayHits(out[0], index, out[1])
 
 
-def cast_fan(
+def cast_fan_arrays(
     walls: SegmentSet, body: np.ndarray, max_range: np.ndarray, x: float, y: float, theta: float
-) -> tuple[RayHits, np.ndarray]:
-    """Cast rays given in the body frame from a robot at ``(x, y, theta)``.
+) -> tuple[np.ndarray, np.ndarray]:
+    """Cast rays given in the body frame from a robot at ``(x, y, theta)``: the simulator's one
+    compiled call per step for every range sensor due.
 
     Args:
         body: ``(3, R)`` C-contiguous: ray origin x, y (body frame FLU, m) and angle (rad).
         max_range: ``(R,)``.
 
     Returns:
-        The hits and the world-frame rays ``(4, R)``: origin x, y and unit direction x, y.
+        ``(6, R)`` rows: world-frame origin x, y, unit direction x, y, range (inf: no hit within
+        max range), incidence (nan: none); and the ``(R,)`` wall index (-1: none).
     """
     r = body.shape[1]
     out = np.empty((6, r))
     index = np.empty(r, dtype=np.intp)
     _fan_kernel(walls.packed, body, max_range, x, y, theta, out, index)
+    return out, index
+
+
+def cast_fan(
+    walls: SegmentSet, body: np.ndarray, max_range: np.ndarray, x: float, y: float, theta: float
+) -> tuple[RayHits, np.ndarray]:
+    """:func:`cast_fan_arrays` as :class:`RayHits` and the world-frame rays ``(4, R)``: origin
+    x, y and unit direction x, y."""
+    out, index = cast_fan_arrays(walls, body, max_range, x, y, theta)
     return RayHits(out[4], index, out[5]), out[:4]
 
 

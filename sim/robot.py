@@ -35,6 +35,7 @@ from typing import Protocol
 import numpy as np
 
 from sim.config import RobotConfig
+from sim.noise import Variates
 from sim.raycast import SegmentSet, point_segment_distances, sweep_circle
 
 _TAU = 2.0 * math.pi
@@ -85,7 +86,7 @@ class Motion:
 class DriveErrorModel(Protocol):
     """Seam for drive errors (seeds/000 eq. 1-4) and wheel slip; implemented in ``sim/models``."""
 
-    def perturb(self, ideal: Motion, state: RobotState, rng: np.random.Generator) -> Motion:
+    def perturb(self, ideal: Motion, state: RobotState, rng: Variates) -> Motion:
         """Return the motion that really happens given the ideal one (pure but for ``rng``)."""
         ...
 
@@ -127,7 +128,7 @@ def step(
     dt: float,
     params: RobotConfig,
     walls: SegmentSet,
-    rng: np.random.Generator | None = None,
+    rng: Variates | None = None,
     drive_error: DriveErrorModel | None = None,
 ) -> RobotState:
     """Advance the robot by one fixed step ``dt`` at the given wheel surface speeds (m/s).

@@ -16,7 +16,8 @@ class ConfigError(ValueError):
 
 
 def reject_unknown(d: Mapping[str, Any], allowed: Iterable[str], section: str) -> None:
-    """Raise :class:`ConfigError` for any key of ``d`` not in ``allowed``, suggesting the nearest."""
+    """Raise :class:`ConfigError` for any key of ``d`` not in ``allowed``, suggesting the
+    nearest."""
     allowed = list(allowed)
     for key in d:
         if key not in allowed:

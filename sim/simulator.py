@@ -10,12 +10,16 @@ Randomness (Gymnasium pattern): ``reset(seed)`` builds ``numpy.random.SeedSequen
 spawns one child per name of :data:`RNG_STREAMS`, in that fixed order, each feeding its own
 ``numpy.random.Generator``; enabling an error model for one sensor never changes another sensor's
 draws. New streams must be appended to the end of :data:`RNG_STREAMS`. The same config and seed
-give bit-identical readings.
+give bit-identical readings. Factories draw turn-on state (biases) from the sensor's
+``Generator``; per-step draws come from a :class:`sim.noise.BlockStream` on it (normals and
+uniforms drawn in blocks from two child streams), which is what ``measure`` receives.
 
 Error models plug in through ``error_models`` (see :mod:`sim.sensors.base`).
 
 The rays of all range sensors due at a step go through one compiled cast
-(:func:`sim.raycast.cast_fan`); the camera's lines of sight through another.
+(:func:`sim.raycast.cast_fan_arrays`); each range sensor then reads its slice of it in one
+compiled call (truth and error model fused). The camera tests its lines of sight in its own
+compiled call.
 """
 
 from __future__ import annotations
@@ -28,7 +32,8 @@ import numpy as np
 
 from sim import robot as kin
 from sim.config import SENSOR_NAMES, SimConfig, load_sim_config, poses_to_list
-from sim.raycast import RayHits, SegmentSet, cast_fan
+from sim.noise import BlockStream
+from sim.raycast import SegmentSet, cast_fan_arrays
 from sim.robot import RobotState
 from sim.schema import ConfigError
 from sim.sensors.base import ErrorModelFactory
@@ -67,6 +72,7 @@ class Simulator:
         self._k = 0
         self._state: RobotState | None = None
         self._rngs: dict[str, np.random.Generator] = {}
+        self._streams: dict[str, BlockStream] = {}
 
     # ------------------------------------------------------------------ public API
     @property
@@ -84,6 +90,7 @@ class Simulator:
         children = np.random.SeedSequence(seed).spawn(len(RNG_STREAMS))
         self._rngs = {name: np.random.Generator(np.random.PCG64(ss))
                       for name, ss in zip(RNG_STREAMS, children, strict=True)}
+        self._streams = {name: BlockStream(rng) for name, rng in self._rngs.items()}
         self._build_sensors()
         start = self.world.start
         if start is None:
@@ -100,7 +107,7 @@ class Simulator:
             raise RuntimeError("call reset() before step()")
         self._state = kin.step(
             self._state, command.left, command.right, self.dt, self.config.robot, self.walls,
-            self._rngs["drive"], self._drive_error,
+            self._streams["drive"], self._drive_error,
         )
         self._k += 1
         return self._readings(self._state)
@@ -148,7 +155,7 @@ class Simulator:
         self, given: Mapping[str, ErrorModelFactory] | None
     ) -> Mapping[str, ErrorModelFactory]:
         cfg = self.config
-        wanted = [n for n in SENSOR_NAMES if not getattr(cfg.sensors, n).ideal]
+        wanted = [n for n in SENSOR_NAMES if n != "encoders" and not getattr(cfg.sensors, n).ideal]
         if not cfg.robot.drive.ideal:
             wanted.insert(0, "drive")
         if not wanted:
@@ -183,60 +190,52 @@ class Simulator:
         self.ir = IrSensor(s.ir, self._make("ir", s.ir))
         # walls: late echoes via a second surface and crosstalk need the sonar's world geometry.
         self.sonar = SonarSensor(s.sonar, self._make("sonar", s.sonar), walls=self.walls)
-        self.encoders = EncoderSensor(s.encoders, cfg.robot.ticks_per_metre,
-                                      self._make("encoders", s.encoders))
+        self.encoders = EncoderSensor(s.encoders, cfg.robot.ticks_per_metre)   # no error model
         self.gyro = GyroSensor(s.gyro, self._make("gyro", s.gyro))
         self.compass = CompassSensor(s.compass, self.world, self._make("compass", s.compass))
         self.camera = CameraSensor(s.camera, self.world, self.walls,
                                    self._make("camera", s.camera))
-        self._fans: dict[tuple[bool, bool], tuple[RayFan, np.ndarray, int]] = {}
+        self._fans: dict[tuple[bool, bool], tuple[np.ndarray, np.ndarray, int]] = {}
 
-    def _due(self, name: str) -> bool:
-        return self._k % self.periods[name] == 0
-
-    def _fan_for(self, ir_due: bool, sonar_due: bool) -> tuple[RayFan, np.ndarray, int]:
-        """The rays of the range sensors due at a step as one fan (cached per combination)."""
+    def _fan_for(self, ir_due: bool, sonar_due: bool) -> tuple[np.ndarray, np.ndarray, int]:
+        """The rays of the range sensors due at a step as one fan (cached per combination):
+        body rays (3, R), max ranges (R,), and where the sonar's rays start."""
         key = (ir_due, sonar_due)
         got = self._fans.get(key)
         if got is None:
             fans = ([self.ir.fan] if ir_due else []) + ([self.sonar.fan] if sonar_due else [])
             maxr = ([np.full(self.ir.fan.size, self.ir.max_range_m)] if ir_due else []) + (
                 [np.full(self.sonar.fan.size, self.sonar.max_range_m)] if sonar_due else [])
-            fan = RayFan.concat(fans)
-            got = (fan, np.concatenate(maxr), self.ir.fan.size if ir_due else 0)
+            got = (RayFan.concat(fans).body, np.concatenate(maxr),
+                   self.ir.fan.size if ir_due else 0)
             self._fans[key] = got
         return got
 
     def _readings(self, st: RobotState) -> Readings:
-        rngs = self._rngs
-        ir_due = self._due("ir")
-        sonar_due = self._due("sonar")
-        ir = sonar = camera = None
+        streams = self._streams
+        k = self._k
+        p = self.periods
+        ir_due = k % p["ir"] == 0
+        sonar_due = k % p["sonar"] == 0
+        ir = sonar = None
         if ir_due or sonar_due:
             # One compiled cast for the rays of every range sensor due at this step.
-            fan, maxr, n_ir = self._fan_for(ir_due, sonar_due)
-            hits, rays = cast_fan(self.walls, fan.body, maxr, st.x, st.y, st.theta)
+            body, maxr, sonar_start = self._fan_for(ir_due, sonar_due)
+            rays, index = cast_fan_arrays(self.walls, body, maxr, st.x, st.y, st.theta)
             if ir_due:
-                ir = self.ir.measure(_slice(hits, 0, n_ir), rngs["ir"], rays[:, :n_ir])
+                ir = self.ir.measure(rays, index, 0, streams["ir"])
             if sonar_due:
-                sonar = self.sonar.measure(_slice(hits, n_ir, None), rngs["sonar"],
-                                           rays[:, n_ir:])
-        if self._due("camera"):
-            camera = self.camera.measure(st, rngs["camera"])
-        t = self.t
+                sonar = self.sonar.measure(rays, index, sonar_start, streams["sonar"])
+        t = k * self.dt
         return Readings(
-            t=t,
-            pose=Pose(st.x, st.y, st.theta),
-            wheel_speeds=WheelCommand(st.left_speed, st.right_speed),
-            ir=ir,
-            sonar=sonar,
-            odometry=self.encoders.measure(st, rngs["encoders"]) if self._due("encoders") else None,
-            gyro=self.gyro.measure(st, t, rngs["gyro"]) if self._due("gyro") else None,
-            compass=self.compass.measure(st, rngs["compass"]) if self._due("compass") else None,
-            camera=camera,
-            collided=st.collided,
+            t,
+            Pose(st.x, st.y, st.theta),
+            WheelCommand(st.left_speed, st.right_speed),
+            ir,
+            sonar,
+            self.encoders.measure(st) if k % p["encoders"] == 0 else None,
+            self.gyro.measure(st, t, streams["gyro"]) if k % p["gyro"] == 0 else None,
+            self.compass.measure(st, streams["compass"]) if k % p["compass"] == 0 else None,
+            self.camera.measure(st, streams["camera"]) if k % p["camera"] == 0 else None,
+            st.collided,
         )
-
-
-def _slice(hits: RayHits, start: int, stop: int | None) -> RayHits:
-    return RayHits(hits.range[start:stop], hits.index[start:stop], hits.incidence[start:stop])

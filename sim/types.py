@@ -12,14 +12,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Pose:
     x: float
     y: float
     theta: float
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class WheelCommand:
     """Commanded wheel surface speeds, m/s (positive = forward)."""
 
@@ -27,7 +27,7 @@ class WheelCommand:
     right: float = 0.0
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class IrReading:
     counts: np.ndarray          # (n,) int, K-Team proximity counts 0..1023, larger = closer
     ambient: np.ndarray         # (n,) int, ambient light counts 0..1023 (K-Team 'O')
@@ -35,45 +35,45 @@ class IrReading:
     truth_ranges: np.ndarray    # (n,) float m, distance along the sensor axis (inf: nothing)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class SonarReading:
     ranges: np.ndarray          # (n,) float m; nan = no echo
     truth_ranges: np.ndarray    # (n,) float m; nan = nothing within max range
     incidence: np.ndarray       # (n,) float rad, angle between beam and surface normal (nan: none)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class OdometryReading:
     left_ticks: int             # cumulative encoder counts
     right_ticks: int
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class GyroReading:
     yaw_rate: float             # rad/s, CCW positive
     truth_yaw_rate: float
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class CompassReading:
     field_uT: np.ndarray        # (3,) body frame FLU, microtesla
     truth_field_uT: np.ndarray  # (3,) noise-free (Earth + local sources, no robot disturbance)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class LandmarkObservation:
     id: int
     range: float                # m
     bearing: float              # rad, CCW from the robot's heading
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class CameraReading:
     observations: tuple[LandmarkObservation, ...]
     truth: tuple[LandmarkObservation, ...]  # every landmark in the field of view, true values
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Readings:
     """What one simulation step produced: the truth pose and every reading due at this step."""
 

@@ -50,7 +50,7 @@ for walls) and cell lines (``|`` for walls, ``#`` inside a cell to block it). Wi
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -142,11 +142,12 @@ class World:
 
     def __post_init__(self) -> None:
         segs = []
+        m = self.cell_m
         for kind, c, r in sorted(self.edges):
             if kind == "h":
-                segs.append((c * self.cell_m, r * self.cell_m, (c + 1) * self.cell_m, r * self.cell_m))
+                segs.append((c * m, r * m, (c + 1) * m, r * m))
             else:
-                segs.append((c * self.cell_m, r * self.cell_m, c * self.cell_m, (r + 1) * self.cell_m))
+                segs.append((c * m, r * m, c * m, (r + 1) * m))
         arr = np.array(segs, dtype=float).reshape(-1, 4)
         arr.flags.writeable = False
         object.__setattr__(self, "segments", arr)
@@ -231,7 +232,8 @@ class World:
             blocked.add((int(b[0]), int(b[1])))
         for c, r in blocked:
             if not (0 <= c < cols and 0 <= r < rows):
-                raise ConfigError(f"[world] blocked cell {(c, r)} is outside the {cols}x{rows} grid")
+                raise ConfigError(
+                    f"[world] blocked cell {(c, r)} is outside the {cols}x{rows} grid")
             edges.update(side_edge(c, r, s) for s in SIDES)
         landmarks = tuple(_landmark(x, i) for i, x in enumerate(d.get("landmarks", [])))
         ids = [lm.id for lm in landmarks]

@@ -5,8 +5,8 @@ from __future__ import annotations
 import copy
 import dataclasses
 import json
-import tomllib
 import math
+import tomllib
 from typing import Any
 
 import numpy as np
@@ -14,6 +14,7 @@ import pytest
 from test_sim_support import DEFAULT, IDEAL, default_config, ideal_config
 
 from sim.config import load_sim_config
+from sim.noise import BlockStream
 from sim.schema import ConfigError
 from sim.simulator import RNG_STREAMS, Simulator
 from sim.types import GyroReading, Readings, WheelCommand
@@ -65,8 +66,9 @@ class _NoisyGyro:
         self.sigma = sigma
         self.bias = float(rng.normal())            # turn-on state drawn at reset
 
-    def measure(self, truth: Any, rng: np.random.Generator) -> GyroReading:
-        return GyroReading(truth.yaw_rate + self.bias + self.sigma * rng.normal(), truth.yaw_rate)
+    def measure(self, truth: Any, variates: BlockStream) -> GyroReading:
+        noise = self.sigma * float(variates.standard_normal())
+        return GyroReading(truth.yaw_rate + self.bias + noise, truth.yaw_rate)
 
 
 def _noisy_cfg() -> dict:

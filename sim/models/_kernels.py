@@ -16,7 +16,7 @@ import math
 import numba
 import numpy as np
 
-from sim.raycast import _first_hit
+from sim.raycast import first_hit
 
 
 @numba.njit(cache=True, nogil=True)
@@ -41,6 +41,8 @@ def ir_kernel(d: np.ndarray, w: np.ndarray, rho: np.ndarray, rx: np.ndarray, ry:
               count_sigma: float, ambient: float, ambient_sigma: float, max_counts: float,
               out_counts: np.ndarray, out_ambient: np.ndarray, out_truth: np.ndarray
               ) -> None:  # pragma: no cover - compiled
+    """``d`` (n, k) ray ranges; ``z`` (3 n,) normals: distance, count and ambient noise of sensor
+    ``i`` at ``z[i]``, ``z[n + i]``, ``z[2 n + i]`` (unused when ``ideal``). Outputs int64 (n,)."""
     n, k = d.shape
     last = rx[rx.shape[0] - 1]
     for i in range(n):
@@ -50,21 +52,21 @@ def ir_kernel(d: np.ndarray, w: np.ndarray, rho: np.ndarray, rx: np.ndarray, ry:
             dj = d[i, j]
             if math.isfinite(dj):
                 dt = dj
-                dn = max(dj + interp(dj, ex, ey) * z[0, i], 0.0)
+                dn = dj if ideal else max(dj + interp(dj, ex, ey) * z[i], 0.0)
             else:
                 dt = last
                 dn = last
             ct += w[j] * rho[i, j] * interp(dt, rx, ry)
             c += w[j] * rho[i, j] * interp(dn, rx, ry)
-        out_truth[i] = min(max(np.rint(ct), 0.0), max_counts)
+        out_truth[i] = np.int64(min(max(np.rint(ct), 0.0), max_counts))
         if ideal:
             out_counts[i] = out_truth[i]
-            out_ambient[i] = min(max(np.rint(ambient), 0.0), max_counts)
+            out_ambient[i] = np.int64(min(max(np.rint(ambient), 0.0), max_counts))
         else:
-            c = c * gain + count_sigma * z[1, i]
-            out_counts[i] = min(max(np.rint(c), 0.0), max_counts)
-            a = ambient + ambient_sigma * z[2, i]
-            out_ambient[i] = min(max(np.rint(a), 0.0), max_counts)
+            c = c * gain + count_sigma * z[n + i]
+            out_counts[i] = np.int64(min(max(np.rint(c), 0.0), max_counts))
+            a = ambient + ambient_sigma * z[2 * n + i]
+            out_ambient[i] = np.int64(min(max(np.rint(a), 0.0), max_counts))
 
 
 # ------------------------------------------------------------------------------------- sonar
@@ -76,6 +78,9 @@ def sonar_kernel(d: np.ndarray, inc: np.ndarray, max_range: float, tx: np.ndarra
                  half_ap: float, cycle: np.ndarray, u: np.ndarray, z: np.ndarray,
                  u_cross: np.ndarray, out_range: np.ndarray, out_truth: np.ndarray,
                  out_inc: np.ndarray, out_kind: np.ndarray) -> None:  # pragma: no cover
+    """``d``, ``inc`` (n, k); variates ``u`` (3 n,): late echo, glitch, glitch value of sensor
+    ``i`` at ``u[i]``, ``u[n + i]``, ``u[2 n + i]``; ``z`` (n,) distance noise; ``u_cross``
+    (n n,) pair ``(i, j)`` at ``i n + j``. Unused when ``ideal``."""
     n, k = d.shape
     echo = np.empty(n)
     for i in range(n):
@@ -102,7 +107,7 @@ def sonar_kernel(d: np.ndarray, inc: np.ndarray, max_range: float, tx: np.ndarra
             out_kind[i] = 1 if bi >= 0 else 0
             continue
         kind = 1 if e < np.inf else 0
-        if kind == 0 and bi >= 0 and use_leg and u[0, i] < p_late:
+        if kind == 0 and bi >= 0 and use_leg and u[i] < p_late:
             late = np.inf
             for j in range(k):
                 if d[i, j] <= max_range and math.isfinite(leg[i, j]):
@@ -119,7 +124,7 @@ def sonar_kernel(d: np.ndarray, inc: np.ndarray, max_range: float, tx: np.ndarra
             best = echo[i]
             took = False
             for jj in range(n):
-                if jj == i or not cycle[i, jj] or not (u_cross[i, jj] < p_cross):
+                if jj == i or not cycle[i, jj] or not (u_cross[i * n + jj] < p_cross):
                     continue
                 for q in range(k):
                     if not (d[jj, q] <= max_range and abs(inc[jj, q]) <= crit):
@@ -142,8 +147,8 @@ def sonar_kernel(d: np.ndarray, inc: np.ndarray, max_range: float, tx: np.ndarra
         r = np.nan
         if e < np.inf:
             r = max(e + interp(e, tx, ty) * z[i], 0.0)
-        if u[1, i] < p_glitch:
-            r = min_range + (max_range - min_range) * u[2, i]
+        if u[n + i] < p_glitch:
+            r = min_range + (max_range - min_range) * u[2 * n + i]
             out_kind[i] = 4
         if r > max_range:
             r = np.nan
@@ -170,10 +175,70 @@ def second_leg_kernel(seg: np.ndarray, ox: np.ndarray, oy: np.ndarray, dx: np.nd
         # Start a hair off the wall so the cast does not hit the wall it leaves.
         sx = ox[r] + dx[r] * rr[r] + 1e-6 * rx
         sy = oy[r] + dy[r] * rr[r] + 1e-6 * ry
-        t, _m2, _inc = _first_hit(seg, sx, sy, rx, ry, max_range)
+        t, _m2, _inc = first_hit(seg, sx, sy, rx, ry, max_range)
         if t < np.inf:
             back = math.hypot(sx + rx * t - ox[r], sy + ry * t - oy[r])
             out[r] = t + back
+
+
+@numba.njit(cache=True, nogil=True)
+def sonar_ring_kernel(seg: np.ndarray, rays: np.ndarray, index: np.ndarray, start: int, n: int,
+                      k: int, max_range: float, min_reading: float, tx: np.ndarray,
+                      ty: np.ndarray, crit: float, p_late: float, p_cross: float,
+                      p_glitch: float, glitch_min: float, ideal: bool, use_leg: bool,
+                      use_cross: bool, cycle: np.ndarray, half_ap: float, u: np.ndarray,
+                      z: np.ndarray, u_cross: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    # pragma: no cover - compiled
+    """The sonar ring from the simulator's cast, in one call: ``rays`` (6, R) rows origin x, y,
+    direction x, y, range, incidence (:func:`sim.raycast.cast_fan`), ``index`` (R,) wall hit;
+    the ring's rays start at ``start``. Computes the specular second legs (``use_leg``) and the
+    crosstalk geometry (``use_cross``) and runs :func:`sonar_kernel`; readings nearer than
+    ``min_reading`` become 0 (the Koala's "too close"). Returns ranges, truth ranges, truth
+    incidence, kind."""
+    nk = n * k
+    d = np.empty((n, k))
+    inc = np.empty((n, k))
+    for r in range(nk):
+        d[r // k, r % k] = rays[4, start + r]
+        inc[r // k, r % k] = rays[5, start + r]
+    leg = np.empty((n, k)) if use_leg else np.empty((0, 0))
+    if use_leg:
+        ox = np.ascontiguousarray(rays[0, start:start + nk])
+        oy = np.ascontiguousarray(rays[1, start:start + nk])
+        dx = np.ascontiguousarray(rays[2, start:start + nk])
+        dy = np.ascontiguousarray(rays[3, start:start + nk])
+        rr = np.ascontiguousarray(rays[4, start:start + nk])
+        wall = np.ascontiguousarray(index[start:start + nk])
+        flat = np.empty(nk)
+        second_leg_kernel(seg, ox, oy, dx, dy, rr, wall, max_range, flat)
+        for r in range(nk):
+            leg[r // k, r % k] = flat[r]
+    hit_xy = np.empty((n, k, 2)) if use_cross else np.empty((0, 0, 2))
+    sensor_xy = np.empty((n, 2)) if use_cross else np.empty((0, 2))
+    heading = np.empty(n) if use_cross else np.empty(0)
+    if use_cross:
+        for i in range(n):
+            for j in range(k):
+                r = start + i * k + j
+                t = rays[4, r] if math.isfinite(rays[4, r]) else 0.0
+                hit_xy[i, j, 0] = rays[0, r] + rays[2, r] * t
+                hit_xy[i, j, 1] = rays[1, r] + rays[3, r] * t
+            c = start + i * k + k // 2
+            sensor_xy[i, 0] = rays[0, c]
+            sensor_xy[i, 1] = rays[1, c]
+            heading[i] = math.atan2(rays[3, c], rays[2, c])
+    out_range = np.empty(n)
+    out_truth = np.empty(n)
+    out_inc = np.empty(n)
+    kind = np.zeros(n, dtype=np.int8)
+    sonar_kernel(d, inc, max_range, tx, ty, crit, p_late, p_cross, p_glitch, glitch_min, ideal,
+                 use_leg, leg, use_cross, hit_xy, sensor_xy, heading, half_ap, cycle, u, z,
+                 u_cross, out_range, out_truth, out_inc, kind)
+    for i in range(n):
+        if out_range[i] < min_reading:          # nan stays nan: no echo
+            out_range[i] = 0.0
+    return out_range, out_truth, out_inc, kind
 
 
 # ------------------------------------------------------------------------------------ camera

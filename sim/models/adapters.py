@@ -1,9 +1,13 @@
 """Glue between the simulator's sensor seams (``sim/sensors/base.py``) and the pure error models.
 
 Each class here is a thin stateful wrapper: it holds the validated params (the sensor config's
-``errors``), any per-run state (the gyro's bias), and implements ``measure(truth, rng)`` (or
-``perturb`` for the drive) by calling the pure functions of ``sim/models/*``. :data:`ERROR_MODELS`
-maps sensor names to factories ``factory(config, rng)``, called by the simulator at every reset.
+``errors``), any per-run state (the gyro's bias), and implements ``measure(truth, variates)`` (or
+``perturb`` for the drive) by calling the pure functions of ``sim/models/*`` -- their ``*_with``
+forms, which take the variates drawn, or the compiled kernels directly -- with the same draws,
+in the same order, as the pure ``measure`` functions the statistical tests hold. ``variates`` is
+the sensor's :class:`sim.noise.BlockStream` in the simulator (any ``Generator`` also works).
+:data:`ERROR_MODELS` maps sensor names to factories ``factory(config, rng)``, called by the
+simulator at every reset.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ from sim.models import drive as drive_model
 from sim.models import gyro as gyro_model
 from sim.models import ir as ir_model
 from sim.models import sonar as sonar_model
-from sim.noise import LookupTable
+from sim.noise import BlockStream, LookupTable, Variates, rate_scaled_sigma
 from sim.robot import Motion, RobotState, arc_motion
 from sim.sensors.base import fan_offsets
 from sim.sensors.camera import CameraTruth
@@ -52,64 +56,76 @@ class DriveError:
         self.params = params
         self.wheel_base_m = wheel_base_m
         self.dt = dt
+        self.sigma = rate_scaled_sigma(params.drive_error, 1.0 / dt, params.reference_rate_hz)
 
-    def perturb(self, ideal: Motion, state: RobotState, rng: np.random.Generator) -> Motion:
-        left, right = drive_model.perturb_wheel_steps(
-            ideal.left_m, ideal.right_m, 1.0 / self.dt, self.params, rng,
-            in_contact=state.collided,
-        )
+    def perturb(self, ideal: Motion, state: RobotState, rng: Variates) -> Motion:
+        if self.params.ideal:
+            return ideal
+        if isinstance(rng, BlockStream):
+            eps = rng.normal_list(2)
+            u = rng.uniform_list(2)
+        else:
+            eps = rng.standard_normal(2).tolist()
+            u = rng.random(2).tolist()
+        left, right = drive_model.perturb_wheel_steps_with(
+            ideal.left_m, ideal.right_m, self.sigma, self.params, eps[0], eps[1], u[0], u[1],
+            state.collided)
         real = arc_motion(left / self.dt, right / self.dt, self.wheel_base_m, self.dt)
         return Motion(real.dx_b, real.dy_b, real.dtheta, ideal.left_m, ideal.right_m)
 
 
 class IrError:
     def __init__(self, params: ir_model.IrErrorParams, response: LookupTable,
-                 ray_offsets: np.ndarray) -> None:
+                 ray_offsets: np.ndarray, n_sensors: int) -> None:
         self.params = params
         self.response = response
         self.ray_offsets = ray_offsets
-        self.weights = ir_model.ray_weights(ray_offsets, params.gaussian_width)
+        self.weights = np.ascontiguousarray(ir_model.ray_weights(ray_offsets,
+                                                                 params.gaussian_width))
+        self.rho = np.full((n_sensors, ray_offsets.shape[0]), params.reflectivity)
+        self.n_draws = 0 if params.ideal else 3 * n_sensors
 
-    def measure(self, truth: IrTruth, rng: np.random.Generator) -> IrReading:
-        counts, ambient, truth_counts = ir_model.measure(
-            truth.ray_ranges, self.ray_offsets, self.response, self.params, rng,
-            weights=self.weights)
+    def measure(self, truth: IrTruth, rng: Variates) -> IrReading:
+        z = np.asarray(rng.standard_normal(self.n_draws)) if self.n_draws else _NONE
+        counts, ambient, truth_counts = ir_model.measure_with(
+            truth.ray_ranges, self.weights, self.rho, self.response, self.params, z)
         return IrReading(counts=counts, ambient=ambient, truth_counts=truth_counts,
                          truth_ranges=truth.axis_ranges)
 
 
 class SonarError:
-    def __init__(self, params: sonar_model.SonarErrorParams, half_aperture_rad: float) -> None:
+    """The sonar model on the simulator's cast: one compiled call (second legs, crosstalk
+    geometry, echoes, noise) with the variates of :func:`sim.models.sonar.measure` pre-drawn."""
+
+    def __init__(self, params: sonar_model.SonarErrorParams, half_aperture_rad: float,
+                 n_sensors: int) -> None:
         self.params = params
         self.half_aperture_rad = half_aperture_rad
+        p = params
+        self.cycle = sonar_model.same_cycle(n_sensors, p.firing_groups)
+        self.use_cross = bool(p.crosstalk_probability > 0 and n_sensors > 1 and self.cycle.any())
+        self.crit = math.radians(p.critical_angle_deg)
 
-    def measure(self, truth: SonarTruth, rng: np.random.Generator) -> SonarReading:
+    def measure(self, truth: SonarTruth, rng: Variates) -> SonarReading:
         p = self.params
-        geo: dict[str, Any] = {}
-        rays = truth.world_rays
-        if rays is not None:
-            ox, oy, dx, dy = (np.ascontiguousarray(a, dtype=float) for a in rays)   # (n, k)
-            rr = truth.ray_ranges
-            n, k = rr.shape
-            if (p.crosstalk_probability > 0 and n > 1
-                    and sonar_model.same_cycle(n, p.firing_groups).any()):
-                r0 = np.where(np.isfinite(rr), rr, 0.0)
-                geo["hit_xy"] = np.stack([ox + dx * r0, oy + dy * r0], axis=-1)
-                geo["sensor_xy"] = np.stack([ox[:, k // 2], oy[:, k // 2]], axis=-1)
-                geo["sensor_heading"] = np.arctan2(dy[:, k // 2], dx[:, k // 2])
-            if truth.walls is not None and p.late_echo_probability > 0:
-                # Specular path first hit -> second surface -> sensor, per ray (inf: none).
-                leg = np.empty(n * k)
-                _kernels.second_leg_kernel(
-                    truth.walls.packed, ox.ravel(), oy.ravel(), dx.ravel(), dy.ravel(),
-                    np.ascontiguousarray(rr, dtype=float).ravel(),
-                    np.ascontiguousarray(truth.ray_wall, dtype=np.intp).ravel(),
-                    truth.max_range_m, leg)
-                geo["second_leg_m"] = leg.reshape(n, k)
-        m = sonar_model.measure(truth.ray_ranges, truth.ray_incidence, truth.max_range_m,
-                                p, rng, half_aperture_rad=self.half_aperture_rad, **geo)
-        ranges = np.where(m.ranges < truth.min_range_m, 0.0, m.ranges)   # the Koala reads 0
-        return SonarReading(ranges=ranges, truth_ranges=truth.ranges, incidence=truth.incidence)
+        n = truth.n
+        if p.ideal:
+            u, z, u_cross = _NONE, _NONE, _NONE
+        else:
+            # The draws of sim.models.sonar.measure, in its order: 3 n uniforms, n normals, and
+            # n^2 uniforms only when two sonars share a firing cycle.
+            u = np.asarray(rng.random(3 * n))
+            z = np.asarray(rng.standard_normal(n))
+            u_cross = np.asarray(rng.random(n * n)) if self.use_cross else _NONE
+        use_leg = truth.walls is not None and p.late_echo_probability > 0
+        seg = truth.walls.packed if truth.walls is not None else _NO_SEG
+        table = p.distance_error
+        ranges, truth_ranges, incidence, _kind = _kernels.sonar_ring_kernel(
+            seg, truth.rays, truth.index, truth.start, n, truth.k, truth.max_range_m,
+            truth.min_range_m, table.x, table.y, self.crit, p.late_echo_probability,
+            p.crosstalk_probability, p.glitch_probability, p.min_range_m, p.ideal, use_leg,
+            self.use_cross, self.cycle, self.half_aperture_rad, u, z, u_cross)
+        return SonarReading(ranges=ranges, truth_ranges=truth_ranges, incidence=incidence)
 
 
 class GyroError:
@@ -117,11 +133,15 @@ class GyroError:
                  rng: np.random.Generator) -> None:
         self.params = params
         self.period = 1.0 / rate_hz
-        self.state = gyro_model.initial_state(params, rng)    # turn-on bias
+        self.bias = gyro_model.initial_state(params, rng).bias    # turn-on bias
 
-    def measure(self, truth: GyroTruth, rng: np.random.Generator) -> GyroReading:
+    def measure(self, truth: GyroTruth, rng: Variates) -> GyroReading:
+        if self.params.ideal:
+            return GyroReading(yaw_rate=truth.yaw_rate, truth_yaw_rate=truth.yaw_rate)
         dt = truth.interval_s if truth.interval_s > 0 else self.period
-        rate, self.state = gyro_model.measure(truth.yaw_rate, dt, self.state, self.params, rng)
+        z = rng.normal_list(3) if isinstance(rng, BlockStream) else rng.standard_normal(3).tolist()
+        rate, self.bias = gyro_model.measure_with(truth.yaw_rate, dt, self.bias, self.params,
+                                                  z[0], z[1], z[2])
         return GyroReading(yaw_rate=rate, truth_yaw_rate=truth.yaw_rate)
 
 
@@ -129,28 +149,45 @@ class CompassError:
     def __init__(self, params: compass_model.CompassErrorParams) -> None:
         self.params = params
 
-    def measure(self, truth: CompassTruth, rng: np.random.Generator) -> CompassReading:
-        b = compass_model.measure(truth.field_body_uT, (truth.left_speed, truth.right_speed),
-                                  self.params, rng)
-        return CompassReading(field_uT=b, truth_field_uT=truth.field_body_uT)
+    def measure(self, truth: CompassTruth, rng: Variates) -> CompassReading:
+        if self.params.ideal:
+            return CompassReading(field_uT=truth.field_body_uT, truth_field_uT=truth.field_body_uT)
+        n = rng.normal_list(3) if isinstance(rng, BlockStream) else rng.standard_normal(3).tolist()
+        b = compass_model.measure_with(truth.field_body_uT.tolist(), truth.left_speed,
+                                       truth.right_speed, self.params, n)
+        return CompassReading(field_uT=np.array(b), truth_field_uT=truth.field_body_uT)
 
 
 class CameraError:
     def __init__(self, params: camera_model.CameraErrorParams) -> None:
         self.params = params
+        self.bearing_sigma = math.radians(params.bearing_sigma_deg)
 
-    def measure(self, truth: CameraTruth, rng: np.random.Generator) -> CameraReading:
-        obs = truth.observations
-        m = camera_model.measure(
-            np.array([o.id for o in obs], dtype=int),
-            np.array([o.range for o in obs], dtype=float),
-            np.array([o.bearing for o in obs], dtype=float),
-            truth.viewing_angle, truth.a_max, np.array(truth.all_ids, dtype=int),
-            self.params, rng,
-        )
-        measured = tuple(LandmarkObservation(int(i), float(r), float(b))
-                         for i, r, b in zip(m.ids, m.ranges, m.bearings, strict=True))
-        return CameraReading(observations=measured, truth=obs)
+    def measure(self, truth: CameraTruth, rng: Variates) -> CameraReading:
+        m = truth.ids.shape[0]
+        p = self.params
+        if p.ideal or m == 0:
+            return CameraReading(observations=truth.observations, truth=truth.observations)
+        # The draws of sim.models.camera.measure: (m, 3) uniforms then (m, 3) normals.
+        u = np.asarray(rng.random((m, 3)))
+        z = np.asarray(rng.standard_normal((m, 3)))
+        out_ids = np.empty(m, dtype=np.int64)
+        out_r = np.empty(m)
+        out_b = np.empty(m)
+        out_src = np.empty(m, dtype=np.int64)
+        c = _kernels.camera_kernel(
+            truth.ids, truth.ranges, truth.bearings, np.abs(truth.viewing_angle), truth.a_max,
+            truth.all_ids, p.p_perc, p.p_recog, p.min_range_m, p.max_range_m, p.distance_base,
+            p.dist, p.d_mid_m, p.far_doubling_m, self.bearing_sigma, u, z, out_ids, out_r,
+            out_b, out_src)
+        measured = tuple(LandmarkObservation(i, r, b) for i, r, b in
+                         zip(out_ids[:c].tolist(), out_r[:c].tolist(), out_b[:c].tolist(),
+                             strict=True))
+        return CameraReading(observations=measured, truth=truth.observations)
+
+
+_NONE = np.zeros(0)
+_NO_SEG = np.zeros((5, 0))
 
 
 # ------------------------------------------------------------------------------ factories
@@ -160,13 +197,15 @@ def _drive(cfg: Any, rng: np.random.Generator) -> DriveError:
 
 
 def _ir(cfg: Any, rng: np.random.Generator) -> IrError:
+    # The response table is the IR core's ([sensors.ir] response_range_m -> response_counts).
     table = LookupTable.from_rows(
         np.stack([cfg.response_range_m, cfg.response_counts], axis=1).tolist(), "sensors.ir")
-    return IrError(cfg.errors, table, fan_offsets(cfg.rays, math.radians(cfg.aperture_deg)))
+    return IrError(cfg.errors, table, fan_offsets(cfg.rays, math.radians(cfg.aperture_deg)),
+                   int(cfg.poses.shape[0]))
 
 
 def _sonar(cfg: Any, rng: np.random.Generator) -> SonarError:
-    return SonarError(cfg.errors, 0.5 * math.radians(cfg.aperture_deg))
+    return SonarError(cfg.errors, 0.5 * math.radians(cfg.aperture_deg), int(cfg.poses.shape[0]))
 
 
 def _gyro(cfg: Any, rng: np.random.Generator) -> GyroError:

@@ -61,6 +61,7 @@ from sim.models._params import (
     check_probability,
     params_from_dict,
 )
+from sim.noise import Variates
 from sim.schema import ConfigError
 
 
@@ -174,7 +175,7 @@ def measure(
     a_max_rad: np.ndarray,
     all_ids: np.ndarray,
     params: CameraErrorParams,
-    rng: np.random.Generator,
+    rng: Variates,
 ) -> CameraMeasurement:
     """Apply perception, recognition, distance and bearing errors to the landmarks in view.
 
@@ -190,8 +191,8 @@ def measure(
     if params.ideal or m == 0:
         return CameraMeasurement(ids.copy(), np.asarray(ranges_m, float).copy(),
                                  np.asarray(bearings_rad, float).copy(), np.arange(m))
-    u = rng.random((m, 3))           # miss, wrong id, which wrong id
-    z = rng.standard_normal((m, 3))  # near, far, bearing
+    u = np.asarray(rng.random((m, 3)))           # miss, wrong id, which wrong id
+    z = np.asarray(rng.standard_normal((m, 3)))  # near, far, bearing
     out_ids = np.empty(m, dtype=np.int64)
     out_r = np.empty(m)
     out_b = np.empty(m)

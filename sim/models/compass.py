@@ -28,12 +28,14 @@ the load grows with speed through friction; the sign flips with the direction of
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
 
 from sim.models._params import check_nonnegative, params_from_dict
+from sim.noise import Variates
 from sim.schema import ConfigError
 
 
@@ -75,7 +77,7 @@ def motor_currents_A(left_mps: float, right_mps: float, params: CompassErrorPara
 
 
 def measure(field_body_uT: np.ndarray, wheel_speeds_mps: tuple[float, float],
-            params: CompassErrorParams, rng: np.random.Generator) -> np.ndarray:
+            params: CompassErrorParams, rng: Variates) -> np.ndarray:
     """Measured field (uT, body FLU) from the true one: ``S B + b_hard + M i + n``.
     Draws three normals per call (none when ideal)."""
     b = np.asarray(field_body_uT, dtype=float)
@@ -84,4 +86,18 @@ def measure(field_body_uT: np.ndarray, wheel_speeds_mps: tuple[float, float],
     i = motor_currents_A(wheel_speeds_mps[0], wheel_speeds_mps[1], params)
     return (np.asarray(params.soft_iron) @ b + np.asarray(params.hard_iron_uT)
             + np.asarray(params.motor_uT_per_A) @ i
-            + params.noise_sigma_uT * rng.standard_normal(3))
+            + params.noise_sigma_uT * np.asarray(rng.standard_normal(3)))
+
+
+def measure_with(b: Sequence[float], left_mps: float, right_mps: float,
+                 params: CompassErrorParams, n: Sequence[float]) -> list[float]:
+    """:func:`measure` for one sample in scalar arithmetic, the three standard normals ``n``
+    given: the simulator's path (numpy calls on 3-vectors cost more than the arithmetic)."""
+    il = params.motor_current_A_per_mps * left_mps
+    ir = params.motor_current_A_per_mps * right_mps
+    s = params.soft_iron
+    h = params.hard_iron_uT
+    m = params.motor_uT_per_A
+    sig = params.noise_sigma_uT
+    return [s[r][0] * b[0] + s[r][1] * b[1] + s[r][2] * b[2] + h[r] + m[r][0] * il
+            + m[r][1] * ir + sig * n[r] for r in range(3)]

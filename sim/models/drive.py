@@ -26,7 +26,7 @@ Step rate: the seed applies ``Drive`` per simulator step. ``drive_error`` is tha
 sigma *at* ``reference_rate_hz``; at another step rate the per-step sigma is rescaled by
 :func:`sim.noise.rate_scaled_sigma` so that the error accumulated over a given distance is the same
 (variance ``drive_error^2 * d_step_ref * D`` for a distance D covered in steps of length
-``d_step_ref = v / reference_rate_hz``). With the default config (200 Hz step, reference 200 Hz)
+``d_step_ref = v / reference_rate_hz``). With the default config (100 Hz step, reference 100 Hz)
 the model is the seed's, as written.
 
 Wall slip (beyond the seed): while the robot is in contact with a wall its wheels slip; each
@@ -45,7 +45,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from sim.models._params import check_nonnegative, check_positive, params_from_dict
-from sim.noise import rate_scaled_sigma
+from sim.noise import Variates, rate_scaled_sigma
 from sim.schema import ConfigError
 
 
@@ -78,7 +78,7 @@ def perturb_wheel_steps(
     right_m: float,
     step_hz: float,
     params: DriveErrorParams,
-    rng: np.random.Generator,
+    rng: Variates,
     in_contact: bool = False,
 ) -> tuple[float, float]:
     """Realised wheel displacements (m) for commanded ones, one simulator step.
@@ -91,16 +91,26 @@ def perturb_wheel_steps(
     """
     if params.ideal:
         return left_m, right_m
-    eps = rng.standard_normal(2)
-    u = rng.random(2)
+    eps = np.asarray(rng.standard_normal(2))
+    u = np.asarray(rng.random(2))
     sigma = rate_scaled_sigma(params.drive_error, step_hz, params.reference_rate_hz)
-    left = left_m * (1.0 + sigma * eps[0])
-    right = right_m * (1.0 + sigma * eps[1])
+    return perturb_wheel_steps_with(left_m, right_m, sigma, params, float(eps[0]), float(eps[1]),
+                                    float(u[0]), float(u[1]), in_contact)
+
+
+def perturb_wheel_steps_with(
+    left_m: float, right_m: float, sigma: float, params: DriveErrorParams,
+    eps_left: float, eps_right: float, u_left: float, u_right: float, in_contact: bool,
+) -> tuple[float, float]:
+    """:func:`perturb_wheel_steps` with the variates given (two standard normals, two uniforms)
+    and the per-step ``sigma`` already rate-scaled: the simulator's path."""
+    left = left_m * (1.0 + sigma * eps_left)
+    right = right_m * (1.0 + sigma * eps_right)
     if in_contact:
         lo, hi = params.wall_traction_min, params.wall_traction_max
-        left *= lo + (hi - lo) * u[0]
-        right *= lo + (hi - lo) * u[1]
-    return float(left), float(right)
+        left *= lo + (hi - lo) * u_left
+        right *= lo + (hi - lo) * u_right
+    return left, right
 
 
 def integrate_wheel_steps(

@@ -35,7 +35,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from sim.models._params import check_nonnegative, check_positive, params_from_dict
-from sim.noise import gauss_markov_step, rate_scaled_sigma
+from sim.noise import Variates, gauss_markov_step, rate_scaled_sigma
 
 
 @dataclass(frozen=True)
@@ -79,7 +79,7 @@ def initial_state(params: GyroErrorParams, rng: np.random.Generator) -> GyroStat
 
 
 def measure(yaw_rate: float, dt: float, state: GyroState, params: GyroErrorParams,
-            rng: np.random.Generator) -> tuple[float, GyroState]:
+            rng: Variates) -> tuple[float, GyroState]:
     """One gyro sample: ``(measured yaw rate rad/s, new state)``.
 
     ``yaw_rate`` is the true mean rate over the sample interval ``dt`` (s). Bias first propagates
@@ -87,19 +87,28 @@ def measure(yaw_rate: float, dt: float, state: GyroState, params: GyroErrorParam
     """
     if params.ideal:
         return yaw_rate, state
-    z = rng.standard_normal(3)
+    z = np.asarray(rng.standard_normal(3))
+    rate, bias = measure_with(yaw_rate, dt, state.bias, params, float(z[0]), float(z[1]),
+                              float(z[2]))
+    return rate, GyroState(bias)
+
+
+def measure_with(yaw_rate: float, dt: float, bias: float, params: GyroErrorParams,
+                 z_bias: float, z_scale: float, z_white: float) -> tuple[float, float]:
+    """:func:`measure` with the three standard normals given (bias step, scale noise, white
+    noise) and the bias as a float: ``(measured yaw rate, new bias)``. The simulator's path."""
     if math.isinf(params.bias_correlation_time_s):
-        bias = state.bias + params.gyroscope_random_walk * math.sqrt(dt) * z[0]
+        bias = bias + params.gyroscope_random_walk * math.sqrt(dt) * z_bias
     else:
         tau = params.bias_correlation_time_s
         # Stationary sigma of the Gauss-Markov bias whose short-term walk density is sigma_bg.
         sigma_ss = params.gyroscope_random_walk * math.sqrt(tau / 2.0)
         phi = math.exp(-dt / tau)
-        bias = phi * state.bias + sigma_ss * math.sqrt(1.0 - phi * phi) * z[0]
+        bias = phi * bias + sigma_ss * math.sqrt(1.0 - phi * phi) * z_bias
     s_step = rate_scaled_sigma(params.scale_noise, 1.0 / dt, params.reference_rate_hz)
-    rate = ((1.0 + params.scale_factor_error + s_step * z[1]) * yaw_rate + bias
-            + params.gyroscope_noise_density / math.sqrt(dt) * z[2])
-    return float(rate), GyroState(float(bias))
+    rate = ((1.0 + params.scale_factor_error + s_step * z_scale) * yaw_rate + bias
+            + params.gyroscope_noise_density / math.sqrt(dt) * z_white)
+    return float(rate), float(bias)
 
 
 def measure_batch(yaw_rates: np.ndarray, dt: float, bias0: np.ndarray, params: GyroErrorParams,

@@ -34,7 +34,7 @@ import numpy as np
 
 from sim.models import _kernels
 from sim.models._params import check_nonnegative, check_positive, params_from_dict
-from sim.noise import LookupTable
+from sim.noise import LookupTable, Variates
 
 
 def _seed004_ir_table() -> LookupTable:
@@ -97,10 +97,10 @@ def range_noise_sigma(d_m: np.ndarray, params: IrErrorParams) -> np.ndarray:
 
 
 def measure(ray_dists_m: np.ndarray, ray_offsets_rad: np.ndarray, response: LookupTable,
-            params: IrErrorParams, rng: np.random.Generator,
+            params: IrErrorParams, rng: Variates,
             reflectivity: np.ndarray | float | None = None, weights: np.ndarray | None = None
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(counts, ambient, truth_counts)`` for ``n`` sensors with ``r`` rays each.
+    """``(counts, ambient, truth_counts)``, int64, for ``n`` sensors with ``r`` rays each.
 
     ``ray_dists_m`` (n, r): distance along each ray to the first surface (``inf``: none within
     range). ``ray_offsets_rad`` (r,): each ray's angle from the sensor axis. ``response``: the
@@ -113,16 +113,28 @@ def measure(ray_dists_m: np.ndarray, ray_offsets_rad: np.ndarray, response: Look
     w = ray_weights(ray_offsets_rad, params.gaussian_width) if weights is None else weights
     d = np.ascontiguousarray(ray_dists_m, dtype=float)
     n = d.shape[0]
-    rho2 = np.broadcast_to(np.asarray(rho, dtype=float), d.shape)
-    z = np.zeros((3, n)) if params.ideal else rng.standard_normal((3, n))
+    rho2 = np.ascontiguousarray(np.broadcast_to(np.asarray(rho, dtype=float), d.shape))
+    z = _NO_Z if params.ideal else np.asarray(rng.standard_normal(3 * n))
+    return measure_with(d, np.ascontiguousarray(w, dtype=float), rho2, response, params, z)
+
+
+def measure_with(d: np.ndarray, w: np.ndarray, rho: np.ndarray, response: LookupTable,
+                 params: IrErrorParams, z: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`measure` with the variates given: ``z`` (3 n,) standard normals (distance, count,
+    ambient noise of each sensor; ignored when ideal), ``d``/``rho`` (n, r) and ``w`` (r,)
+    C-contiguous. The simulator's path (pre-drawn blocks, weights computed once)."""
+    n = d.shape[0]
     amb = min(params.ambient_counts, params.max_counts)
     gain = 1.0 - params.ambient_saturation * amb / params.max_counts
-    counts = np.empty(n)
-    ambient = np.empty(n)
-    truth = np.empty(n)
-    _kernels.ir_kernel(d, np.ascontiguousarray(w, dtype=float), rho2, response.x, response.y,
-                       params.distance_error.x, params.distance_error.y, z, params.ideal, gain,
-                       params.count_noise_sigma, params.ambient_counts,
-                       params.ambient_noise_counts, float(params.max_counts),
-                       counts, ambient, truth)
-    return counts.astype(np.int64), ambient.astype(np.int64), truth.astype(np.int64)
+    counts = np.empty(n, dtype=np.int64)
+    ambient = np.empty(n, dtype=np.int64)
+    truth = np.empty(n, dtype=np.int64)
+    _kernels.ir_kernel(d, w, rho, response.x, response.y, params.distance_error.x,
+                       params.distance_error.y, z, params.ideal, gain, params.count_noise_sigma,
+                       params.ambient_counts, params.ambient_noise_counts,
+                       float(params.max_counts), counts, ambient, truth)
+    return counts, ambient, truth
+
+
+_NO_Z = np.zeros(0)

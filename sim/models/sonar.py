@@ -40,7 +40,7 @@ import numpy as np
 
 from sim.models import _kernels
 from sim.models._params import check_nonnegative, check_probability, params_from_dict
-from sim.noise import LookupTable
+from sim.noise import LookupTable, Variates
 from sim.schema import ConfigError
 
 
@@ -112,7 +112,7 @@ def measure(
     incidence_rad: np.ndarray,
     max_range_m: float,
     params: SonarErrorParams,
-    rng: np.random.Generator,
+    rng: Variates,
     *,
     second_leg_m: np.ndarray | None = None,
     sensor_xy: np.ndarray | None = None,
@@ -145,13 +145,13 @@ def measure(
         use_cross = bool(cycle.any())
     z: np.ndarray
     if params.ideal:
-        u, z, u_cross = _NO_U, _NO_Z, _NO_CYCLE_U
+        u, z, u_cross = _NO_Z, _NO_Z, _NO_Z
     else:
         # Fixed draws (4 n); the crosstalk draws (n^2) come last and only when two sonars share
         # a cycle, so switching crosstalk on does not shift the other draws of the stream.
-        u = rng.random((3, n))                  # late echo, glitch, glitch value
+        u = np.asarray(rng.random(3 * n))       # late echo, glitch, glitch value
         z = np.asarray(rng.standard_normal(n))
-        u_cross = rng.random((n, n)) if use_cross else _NO_CYCLE_U
+        u_cross = np.asarray(rng.random(n * n)) if use_cross else _NO_Z
     table = params.distance_error
     _kernels.sonar_kernel(
         d, inc, float(max_range_m), table.x, table.y, math.radians(params.critical_angle_deg),
@@ -172,9 +172,7 @@ _NO_LEG = np.empty((0, 0))
 _NO_HIT = np.empty((0, 0, 2))
 _NO_XY = np.empty((0, 2))
 _NO_Z = np.empty(0)
-_NO_U = np.empty((3, 0))
 _NO_CYCLE = np.empty((0, 0), dtype=bool)
-_NO_CYCLE_U = np.empty((0, 0))
 
 
 def reflect(directions: np.ndarray, normals: np.ndarray) -> np.ndarray:

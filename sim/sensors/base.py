@@ -34,14 +34,17 @@ from typing import Any, Protocol, TypeVar
 
 import numpy as np
 
+from sim.noise import Variates
+
 TruthT = TypeVar("TruthT", contravariant=True)
 ReadingT = TypeVar("ReadingT", covariant=True)
 
 
 class ErrorModel(Protocol[TruthT, ReadingT]):
-    """Turns a sensor's noise-free truth into a measurement, drawing from ``rng`` only."""
+    """Turns a sensor's noise-free truth into a measurement, drawing from ``variates`` only (the
+    sensor's :class:`sim.noise.BlockStream` in the simulator; any ``Generator`` in tests)."""
 
-    def measure(self, truth: TruthT, rng: np.random.Generator) -> ReadingT: ...
+    def measure(self, truth: TruthT, variates: Variates) -> ReadingT: ...
 
 
 ErrorModelFactory = Callable[[Any, np.random.Generator], Any]

@@ -1,19 +1,13 @@
 """Camera landmark observations: (id, range, bearing) of every landmark in view.
 
-Truth (pure): the camera sits at ``[sensors.camera] pose`` in the body frame. A landmark is in view
-when its range from the camera lies within ``[min_range_m, max_range_m]``, its direction lies
-within ``fov_deg / 2`` of the camera axis, and no wall crosses the line of sight. Range is
-measured from the camera; bearing is CCW from the robot's heading (radians, wrapped to
-(-pi, pi]). Observations are ordered by landmark id.
+Truth (pure, :func:`visible_landmarks`): the camera sits at ``[sensors.camera] pose`` in the body
+frame. A landmark is in view when its range from the camera lies within
+``[min_range_m, max_range_m]``, its direction lies within ``fov_deg / 2`` of the camera axis, and
+no wall crosses the line of sight. Range is measured from the camera; bearing is CCW from the
+robot's heading (radians, wrapped to (-pi, pi]). Observations are ordered by landmark id.
 
-Two steps, so that the simulator can put the line-of-sight rays into the same ray cast as the
-range sensors: :meth:`CameraSensor.candidates` (field of view and range, scalar Python: worlds
-hold few landmarks) returns :class:`CameraCandidates` with one line-of-sight ray per candidate;
-:meth:`CameraSensor.measure_from` takes which of them a wall blocks. :meth:`CameraSensor.measure`
-does both with its own cast.
-
-Seam: with ``ideal = false`` an error model (issue 3, seeds/000 eq. 5-14: perception miss vs
-viewing angle and distance, recognition error, distance and angular errors) gets
+Seam: with ``ideal = false`` an error model (seeds/000 eq. 5-14: perception miss vs viewing angle
+and distance, recognition error, distance and angular errors; ``sim/models/camera.py``) gets
 :class:`CameraTruth`: the visible landmarks with, for each, the viewing angle (between the
 landmark's facing direction and the direction from the landmark to the camera), its ``a_max``,
 and the ids of all landmarks of the world (to draw a wrong id from).
@@ -24,10 +18,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from sim.config import CameraConfig
-from sim.raycast import SegmentSet, cast_rays
+from sim.noise import Variates
+from sim.raycast import SegmentSet, first_hit
 from sim.robot import RobotState, wrap_angle
 from sim.sensors.base import ErrorModel
 from sim.types import CameraReading, LandmarkObservation
@@ -37,32 +33,48 @@ from sim.world import World
 LOS_TOLERANCE_M = 1e-9
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class CameraTruth:
     observations: tuple[LandmarkObservation, ...]   # every landmark in view, true values
+    ids: np.ndarray                                  # (v,) int64, per observation
+    ranges: np.ndarray                               # (v,) m
+    bearings: np.ndarray                             # (v,) rad
     viewing_angle: np.ndarray                        # (v,) rad, per observation
     a_max: np.ndarray                                # (v,) rad, per observation
-    all_ids: tuple[int, ...]                         # every landmark id of the world
+    all_ids: np.ndarray                              # (L,) int64, every landmark id of the world
 
 
-@dataclass(frozen=True)
-class CameraCandidates:
-    """Landmarks within range and field of view, before the line-of-sight test."""
-
-    index: tuple[int, ...]          # into the sensor's landmark list (sorted by id)
-    range: tuple[float, ...]
-    bearing: tuple[float, ...]
-    viewing: tuple[float, ...]
-    ox: np.ndarray                  # (c,) line-of-sight rays: camera -> landmark
-    oy: np.ndarray
-    dx: np.ndarray
-    dy: np.ndarray
-    max_range: np.ndarray
-
-
-_EMPTY = np.zeros(0)
-_EMPTY.flags.writeable = False
-_NO_CANDIDATES = CameraCandidates((), (), (), (), _EMPTY, _EMPTY, _EMPTY, _EMPTY, _EMPTY)
+@numba.njit(cache=True, nogil=True)
+def visible_landmarks(
+    landmarks: np.ndarray, seg: np.ndarray, cx: float, cy: float, ax: float, ay: float,
+    min_range: float, max_range: float, cos_half_fov: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Landmarks ``(L, 4)`` rows ``[x, y, facing, a_max]`` seen from a camera at ``(cx, cy)``
+    with unit axis ``(ax, ay)``: within range, within the field of view (by the dot product:
+    ``v . a >= cos(fov / 2) |v|``) and not hidden by a wall (``seg``:
+    :attr:`sim.raycast.SegmentSet.packed`). Returns their row indices, ranges and world-frame
+    directions (rad)."""
+    m = landmarks.shape[0]
+    idx = np.empty(m, dtype=np.int64)
+    rng = np.empty(m)
+    direction = np.empty(m)
+    c = 0
+    for i in range(m):
+        vx = landmarks[i, 0] - cx
+        vy = landmarks[i, 1] - cy
+        d = math.hypot(vx, vy)
+        if not (min_range <= d <= max_range) or d == 0.0:
+            continue
+        if vx * ax + vy * ay < cos_half_fov * d:
+            continue
+        _t, wall, _inc = first_hit(seg, cx, cy, vx / d, vy / d, max(d - 1e-9, 0.0))
+        if wall >= 0:
+            continue
+        idx[c] = i
+        rng[c] = d
+        direction[c] = math.atan2(vy, vx)
+        c += 1
+    return idx[:c], rng[:c], direction[:c]
 
 
 class CameraSensor:
@@ -80,79 +92,36 @@ class CameraSensor:
         self.walls = walls
         lms = sorted(world.landmarks, key=lambda lm: lm.id)
         self.ids = tuple(lm.id for lm in lms)
+        self._all_ids = np.array(self.ids, dtype=np.int64)
         self.landmarks = tuple((lm.x, lm.y, math.radians(lm.facing_deg),
                                 math.radians(lm.a_max_deg)) for lm in lms)
+        self._lm = np.array(self.landmarks, dtype=float).reshape(-1, 4)
         self.half_fov = math.radians(params.fov_deg) / 2.0
         # fov_deg = 360 -> cos(pi) = -1 accepts every direction.
         self._cos_half_fov = math.cos(self.half_fov) - 1e-12
 
-    def candidates(self, state: RobotState) -> CameraCandidates:
+    def truth(self, state: RobotState) -> CameraTruth:
         p = self.params
         c, s = math.cos(state.theta), math.sin(state.theta)
         cx = state.x + c * p.pose[0] - s * p.pose[1]
         cy = state.y + s * p.pose[0] + c * p.pose[1]
-        idx: list[int] = []
-        rngs: list[float] = []
-        bearings: list[float] = []
-        viewing: list[float] = []
-        dxs: list[float] = []
-        dys: list[float] = []
         axis = state.theta + p.pose[2]
-        ax, ay = math.cos(axis), math.sin(axis)
-        for i, (lx, ly, facing, _a_max) in enumerate(self.landmarks):
-            vx = lx - cx
-            vy = ly - cy
-            d = math.hypot(vx, vy)
-            if not (p.min_range_m <= d <= p.max_range_m) or d == 0.0:
-                continue
-            # Within the field of view: angle to the camera axis <= half_fov, by the dot product
-            # (cheaper than atan2 + wrap for the landmarks that are rejected).
-            if vx * ax + vy * ay < self._cos_half_fov * d:
-                continue
-            direction = math.atan2(vy, vx)
-            idx.append(i)
-            rngs.append(d)
-            bearings.append(wrap_angle(direction - state.theta))
-            viewing.append(wrap_angle(direction + math.pi - facing))
-            dxs.append(vx / d)
-            dys.append(vy / d)
-        n = len(idx)
-        if n == 0:
-            return _NO_CANDIDATES
-        return CameraCandidates(
-            tuple(idx), tuple(rngs), tuple(bearings), tuple(viewing),
-            np.full(n, cx), np.full(n, cy), np.array(dxs), np.array(dys),
-            np.array(rngs) - LOS_TOLERANCE_M,
-        )
-
-    def truth_from(self, cand: CameraCandidates, blocked: np.ndarray) -> CameraTruth:
-        if not cand.index:
-            return CameraTruth((), _EMPTY, _EMPTY, self.ids)
+        idx, rng, direction = visible_landmarks(
+            self._lm, self.walls.packed, cx, cy, math.cos(axis), math.sin(axis), p.min_range_m,
+            p.max_range_m, self._cos_half_fov)
         obs = []
+        bearings = []
         viewing = []
-        a_max = []
-        for j, i in enumerate(cand.index):
-            if blocked[j]:
-                continue
-            obs.append(LandmarkObservation(self.ids[i], cand.range[j], cand.bearing[j]))
-            viewing.append(cand.viewing[j])
-            a_max.append(self.landmarks[i][3])
-        return CameraTruth(tuple(obs), np.array(viewing), np.array(a_max), self.ids)
+        for i, d, a in zip(idx.tolist(), rng.tolist(), direction.tolist(), strict=True):
+            b = wrap_angle(a - state.theta)
+            obs.append(LandmarkObservation(self.ids[i], d, b))
+            bearings.append(b)
+            viewing.append(wrap_angle(a + math.pi - self.landmarks[i][2]))
+        return CameraTruth(tuple(obs), self._all_ids[idx], rng, np.array(bearings),
+                           np.array(viewing), self._lm[idx, 3], self._all_ids)
 
-    def measure_from(
-        self, cand: CameraCandidates, blocked: np.ndarray, rng: np.random.Generator
-    ) -> CameraReading:
-        """Reading given which candidates' lines of sight a wall blocks (``(c,)`` bool)."""
-        truth = self.truth_from(cand, blocked)
+    def measure(self, state: RobotState, variates: Variates) -> CameraReading:
+        truth = self.truth(state)
         if self.error_model is None:
             return CameraReading(truth.observations, truth.observations)
-        return self.error_model.measure(truth, rng)
-
-    def measure(self, state: RobotState, rng: np.random.Generator) -> CameraReading:
-        cand = self.candidates(state)
-        if cand.index:
-            hits = cast_rays(self.walls, cand.ox, cand.oy, cand.dx, cand.dy, cand.max_range)
-            blocked = hits.index >= 0
-        else:
-            blocked = _EMPTY.astype(bool)
-        return self.measure_from(cand, blocked, rng)
+        return self.error_model.measure(truth, variates)

@@ -11,8 +11,8 @@ a negative strength). The world-frame vector (x east, y north, z up) is rotated 
 
 A level compass's heading, clockwise from magnetic north, is ``atan2(b_y, b_x)`` in FLU.
 
-Seam: ``CompassSensor.measure(state, rng)``; an error model (issue 3: hard/soft iron, motor-current
-disturbance) gets :class:`CompassTruth`, which includes the wheel speeds.
+Seam: ``CompassSensor.measure(state, variates)``; an error model (issue 3: hard/soft iron,
+motor-current disturbance) gets :class:`CompassTruth`, which includes the wheel speeds.
 """
 
 from __future__ import annotations
@@ -23,16 +23,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from sim.config import CompassConfig
+from sim.noise import Variates
 from sim.robot import RobotState
 from sim.sensors.base import ErrorModel
 from sim.types import CompassReading
 from sim.world import World
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True, eq=False)
 class CompassTruth:
-    field_body_uT: np.ndarray     # (3,) FLU
-    field_world_uT: np.ndarray    # (3,) x east, y north, z up
+    field_body_uT: np.ndarray                   # (3,) FLU
+    field_world_uT: tuple[float, float, float]  # x east, y north, z up
     theta: float
     left_speed: float             # m/s, for motor-current disturbances
     right_speed: float
@@ -90,11 +91,11 @@ class CompassSensor:
     def truth(self, state: RobotState) -> CompassTruth:
         bw = field_world(state.x, state.y, self.earth, self.sources,
                          self.params.min_source_distance_m)
-        return CompassTruth(field_body(bw, state.theta), np.array(bw), state.theta,
+        return CompassTruth(field_body(bw, state.theta), bw, state.theta,
                             state.left_speed, state.right_speed)
 
-    def measure(self, state: RobotState, rng: np.random.Generator) -> CompassReading:
+    def measure(self, state: RobotState, variates: Variates) -> CompassReading:
         truth = self.truth(state)
         if self.error_model is None:
             return CompassReading(truth.field_body_uT, truth.field_body_uT)
-        return self.error_model.measure(truth, rng)
+        return self.error_model.measure(truth, variates)

@@ -5,8 +5,9 @@ Truth (pure, :func:`mean_yaw_rate`): the mean yaw rate over the interval since t
 rate-integrating gyro with an anti-aliasing filter reports. Summing ``yaw_rate * interval`` over
 the samples therefore gives the heading change exactly.
 
-Seam: ``GyroSensor.measure(state, rng)``; an error model (issue 3, seeds/000 eq. 15: scale error,
-turn-on bias, angle random walk, bias random walk) gets :class:`GyroTruth` (rate and interval).
+Seam: ``GyroSensor.measure(state, t, variates)``; an error model (issue 3, seeds/000 eq. 15:
+scale error, turn-on bias, angle random walk, bias random walk) gets :class:`GyroTruth` (rate and
+interval).
 The sensor object keeps the heading of its previous sample; the simulator builds a new one on
 every reset.
 """
@@ -15,15 +16,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-
 from sim.config import BasicSensorConfig
+from sim.noise import Variates
 from sim.robot import RobotState
 from sim.sensors.base import ErrorModel
 from sim.types import GyroReading
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class GyroTruth:
     yaw_rate: float         # rad/s, mean over the interval
     interval_s: float       # time since the previous sample (0 at the first sample)
@@ -47,7 +47,7 @@ class GyroSensor:
         self._prev_heading: float | None = None
         self._prev_t = 0.0
 
-    def measure(self, state: RobotState, t: float, rng: np.random.Generator) -> GyroReading:
+    def measure(self, state: RobotState, t: float, variates: Variates) -> GyroReading:
         if self._prev_heading is None:
             truth = GyroTruth(0.0, 0.0, state.heading)
         else:
@@ -58,4 +58,4 @@ class GyroSensor:
         self._prev_t = t
         if self.error_model is None:
             return GyroReading(truth.yaw_rate, truth.yaw_rate)
-        return self.error_model.measure(truth, rng)
+        return self.error_model.measure(truth, variates)

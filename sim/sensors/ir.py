@@ -1,42 +1,49 @@
 """Infrared proximity sensors (16 on the Koala): K-Team counts 0..1023, larger = closer.
 
-Truth (pure, :func:`ir_truth`): each sensor casts ``rays`` rays over its aperture
+Truth (pure, :func:`ir_counts`): each sensor casts ``rays`` rays over its aperture
 (``[sensors.ir]``); each ray's range maps to counts through the response table
 ``response_range_m -> response_counts`` (linear interpolation, 0 beyond the last range, as Webots'
 distance-sensor lookup table does); the sensor's counts are the mean over its rays. The axis
 ray's range is the sensor's ``truth_ranges`` value (inf: nothing within the table's last range).
 Ambient light is the constant ``ambient_counts`` (no light sources are simulated yet).
 
-Seam: ``IrSensor.measure(hits, rng)``; with ``ideal = false`` an error model (issue 3: reflectivity,
-distance error table of seeds/004 +-3 %, ambient light) gets the :class:`IrTruth` -- per-ray
-ranges, incidence angles and hit wall indices -- and returns an :class:`~sim.types.IrReading`.
+Seam: ``IrSensor.measure(rays, index, start, variates)`` takes the simulator's cast of this
+step (:func:`sim.raycast.cast_fan_arrays`); with ``ideal = false`` the error model (seeds/004:
+reflectivity, distance error table +-3 %, ambient light; ``sim/models/ir.py``) gets the
+:class:`IrTruth` -- per-ray ranges -- and returns an :class:`~sim.types.IrReading`.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numba
 import numpy as np
 
 from sim.config import IrConfig
-from sim.raycast import RayHits
+from sim.noise import Variates
 from sim.sensors.base import ErrorModel
 from sim.sensors.fan import RayFan
 from sim.types import IrReading
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class IrTruth:
-    counts: np.ndarray          # (n,) int, noise-free counts
-    counts_float: np.ndarray    # (n,) float, before rounding
+    """What an IR error model starts from: views of the step's cast, nothing computed yet."""
+
+    ray_ranges: np.ndarray      # (n, k) m, inf: nothing within the response table's range
     axis_ranges: np.ndarray     # (n,) m, along each sensor's axis (inf: nothing)
-    ray_ranges: np.ndarray      # (n, k) m
-    ray_incidence: np.ndarray   # (n, k) rad (nan: no hit)
-    ray_wall: np.ndarray        # (n, k) index into the simulator's SegmentSet (-1: none)
-    ambient: np.ndarray         # (n,) int
-    world_rays: np.ndarray | None = None    # (4, n, k) ox, oy, dx, dy (None: not provided)
+    ambient: np.ndarray         # (n,) int, the constant ambient reading
+    params: IrConfig
+
+    @cached_property
+    def counts(self) -> np.ndarray:
+        """(n,) int, the ideal sensor's counts (mean of the rays' responses)."""
+        n, k = self.ray_ranges.shape
+        return ir_counts(np.ascontiguousarray(self.ray_ranges).reshape(-1),
+                         self.params.response_range_m, self.params.response_counts, n, k)
 
 
 def response_counts(ranges_m: np.ndarray, params: IrConfig) -> np.ndarray:
@@ -45,57 +52,21 @@ def response_counts(ranges_m: np.ndarray, params: IrConfig) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def _mean_counts(
+def ir_counts(
     ray_ranges: np.ndarray, table_r: np.ndarray, table_c: np.ndarray, n: int, k: int
-) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled; tested through ir_truth
-    # Equal to response_counts(...).reshape(n, k).mean(axis=1) and its rounding, in one pass.
-    per_ray = np.interp(ray_ranges, table_r, table_c)
+) -> np.ndarray:  # pragma: no cover - compiled; tested through the simulator
+    """Per sensor, ``rint(mean over its k rays of response_counts(range))`` (int64, (n,));
+    ``ray_ranges`` (n k,) sensor-major."""
     last = table_r[-1]
-    counts_f = np.empty(n)
     counts = np.empty(n, dtype=np.int64)
     for i in range(n):
         acc = 0.0
         for j in range(k):
             r = ray_ranges[i * k + j]
-            acc += per_ray[i * k + j] if r <= last else 0.0
-        counts_f[i] = acc / k
+            if r <= last:
+                acc += np.interp(r, table_r, table_c)
         counts[i] = np.int64(np.rint(acc / k))
-    return counts_f, counts
-
-
-def ir_truth(
-    hits: RayHits,
-    fan: RayFan,
-    params: IrConfig,
-    world_rays: np.ndarray | None = None,
-    ambient: np.ndarray | None = None,
-) -> IrTruth:
-    """Noise-free IR truth from the hits of ``fan``'s rays; ``ambient`` may pass a prebuilt
-    read-only array of ``params.ambient_counts`` (it is the same at every step)."""
-    n, k = fan.n, fan.k
-    counts_f, counts = _mean_counts(hits.range, params.response_range_m,
-                                    params.response_counts, n, k)
-    ray_ranges = hits.range.reshape(n, k)
-    return IrTruth(
-        counts=counts,                          # table values lie in 0..1023 (config)
-        counts_float=counts_f,
-        axis_ranges=ray_ranges[:, k // 2],
-        ray_ranges=ray_ranges,
-        ray_incidence=hits.incidence.reshape(n, k),
-        ray_wall=hits.index.reshape(n, k),
-        ambient=(np.full(n, params.ambient_counts, dtype=np.int64) if ambient is None
-                 else ambient),
-        world_rays=None if world_rays is None else world_rays.reshape(4, n, k),
-    )
-
-
-def ideal_reading(truth: IrTruth) -> IrReading:
-    return IrReading(
-        counts=truth.counts,
-        ambient=truth.ambient,
-        truth_counts=truth.counts,
-        truth_ranges=truth.axis_ranges,
-    )
+    return counts
 
 
 class IrSensor:
@@ -117,10 +88,16 @@ class IrSensor:
         return self.params.max_range_m
 
     def measure(
-        self, hits: RayHits, rng: np.random.Generator, world_rays: np.ndarray | None = None
+        self, rays: np.ndarray, index: np.ndarray, start: int, variates: Variates
     ) -> IrReading:
-        """Reading from this step's hits of :attr:`fan` (cast by the caller, see simulator)."""
-        truth = ir_truth(hits, self.fan, self.params, world_rays, self._ambient)
+        """Reading from this step's cast (:func:`sim.raycast.cast_fan_arrays` of a fan whose rays
+        ``start..`` are :attr:`fan`'s): ``rays`` (6, R) rows ox, oy, dx, dy, range, incidence."""
+        n, k = self.fan.n, self.fan.k
+        rr = rays[4, start:start + n * k]
+        axis = rr[k // 2::k]
         if self.error_model is None:
-            return ideal_reading(truth)
-        return self.error_model.measure(truth, rng)
+            p = self.params
+            counts = ir_counts(rr, p.response_range_m, p.response_counts, n, k)
+            return IrReading(counts, self._ambient, counts, axis)
+        return self.error_model.measure(
+            IrTruth(rr.reshape(n, k), axis, self._ambient, self.params), variates)
