@@ -55,7 +55,7 @@ class Collector:
         while not self._stop.is_set():
             try:
                 frames = self._read()
-            except (OSError, can.CanError):  # the replay closed its end
+            except (OSError, ValueError, can.CanError):  # the replay closed its end
                 return
             for frame in frames:
                 self.frames.append((time.monotonic(), frame))
@@ -130,6 +130,8 @@ def test_replay_feeds_clients_the_recorded_frames_in_order(
             missing = kteam.read_until(b"\r\n")
             assert proc.wait(timeout=60) == 0, log_path.read_text()
             time.sleep(0.3)
+            for c in collectors:  # before the clients close under them
+                c.stop()
     finally:
         for c in collectors:
             c.stop()
