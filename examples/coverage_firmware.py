@@ -1,0 +1,530 @@
+#!/usr/bin/env python3
+"""A Koala firmware that localises itself and covers every cell -- talking only to the buses.
+
+The reference example of "firmware connects unchanged": it opens the robot's links exactly as it
+would on a real Koala, with the project's codecs (the same ones that read a real robot):
+
+* K-Team ASCII serial (pyserial): ``N`` for the 16 IR proximity counts, ``D`` for wheel speeds;
+* CAN through python-can's ``socketcand`` interface, decoded with the DBC: ``WheelOdometry``
+  ticks and ``Gyro`` yaw rate;
+* MAVLink 2 (UDP): ``SCALED_IMU`` magnetometer (the compass).
+
+Where to connect comes from the bridge's ``--endpoints-file``; what the robot is (wheel base,
+ticks per metre, IR poses, sensor rates) from the config file the robot was built with; what the
+world is (the grid, its walls, magnetic north) from a world file -- the lab's "Key values"
+(seeds/003 A-D) are the program's parameters. Nothing is read from Zenoh or from the simulator.
+
+What it does (seeds/003, Lab 4):
+
+1. *Find landmarks / calibrate*: one turn on the spot. The gyro tracks the turn; the horizontal
+   magnetic field draws a circle whose centre is the magnetometer's hard-iron offset; the compass
+   then gives the absolute heading.
+2. *Statistical wall localisation*: from a uniform prior, read the walls around the cell with the
+   IR ring (twice per stop), update the histogram filter, move to a side seen open (not straight
+   back), predict; until one cell holds ``--p-name`` of the belief.
+3. *Full-grid navigation*: from that cell, the lab's order -- left, up, down, right, else back the
+   way it came -- until every reachable cell is visited. Moves are closed-loop on an EKF
+   (odometry + gyro + compass) to the next cell centre; the grid filter keeps running.
+
+It prints a JSON report (``--report`` also writes it to a file) and exits 0 when every reachable
+cell was visited, 1 otherwise.
+
+example::
+
+    koala-bridge run --clock fast --endpoints-file /tmp/koala.json --config my.toml &
+    python examples/coverage_firmware.py --endpoints-file /tmp/koala.json --config my.toml \\
+        --world config/worlds/lab_walls_1.toml
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import socket
+import sys
+import time
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import can
+import numpy as np
+import serial
+
+from bridge.estimation import (
+    GridLocaliser,
+    GridParams,
+    PoseTracker,
+    PoseTrackerParams,
+    heading_from_field,
+    walls_from_ir,
+)
+from drivers.can_codec import KoalaCanCodec, load_koala_dbc
+from drivers.kteam import LineSplitter, format_command, parse_reply
+from drivers.mavlink_codec import CompassDecoder
+from drivers.messages import (
+    CompassSample,
+    GyroFrame,
+    KteamCommand,
+    KteamReply,
+    WheelOdometryFrame,
+)
+from sim.world import SIDE_STEP, SIDES, World
+
+log = logging.getLogger("coverage_firmware")
+
+SIDE_HEADING = {"E": 0.0, "N": math.pi / 2, "W": math.pi, "S": -math.pi / 2}
+OPPOSITE = {"N": "S", "S": "N", "E": "W", "W": "E"}
+LAB_ORDER = ("W", "N", "S", "E")  # seeds/003 "Full grid navigation": left, up, down, right
+
+
+def wrap(a: float) -> float:
+    return math.remainder(a, math.tau)
+
+
+# --------------------------------------------------------------------------- parameters
+
+
+@dataclass(frozen=True)
+class RobotParams:
+    """What the firmware knows about its robot, from the robot's config file."""
+
+    ticks_per_metre: float
+    wheel_base_m: float
+    max_speed_units: int  # K-Team D range, pulse / 10 ms
+    ir_poses: np.ndarray  # (16, 3) body frame [x, y, yaw rad]
+    encoders_rate_hz: float
+    gyro_rate_hz: float
+
+    @classmethod
+    def from_config(cls, d: Mapping[str, Any]) -> RobotParams:
+        ir = np.array(d["sensors"]["ir"]["poses"], dtype=float)
+        ir[:, 2] = np.radians(ir[:, 2])
+        return cls(
+            ticks_per_metre=float(d["robot"]["ticks_per_metre"]),
+            wheel_base_m=float(d["robot"]["wheel_base_m"]),
+            max_speed_units=int(d["buses"]["kteam"]["max_speed"]),
+            ir_poses=ir,
+            encoders_rate_hz=float(d["sensors"]["encoders"]["rate_hz"]),
+            gyro_rate_hz=float(d["sensors"]["gyro"]["rate_hz"]),
+        )
+
+
+# --------------------------------------------------------------------------- the buses
+
+
+class Links:
+    """The robot's three links, opened from the endpoints file as on a real Koala."""
+
+    def __init__(self, endpoints: Mapping[str, Any]) -> None:
+        kteam = endpoints["serial"]["kteam"]
+        sc = endpoints["can"]["socketcand"]
+        mav_url = endpoints["mavlink"]["url"]
+        if not (kteam and sc and mav_url):
+            raise SystemExit("the firmware needs the K-Team serial, socketcand and MAVLink buses")
+        self.serial = serial.Serial(kteam, 115200, timeout=0)
+        self.lines = LineSplitter()
+        self.can = can.Bus(
+            interface="socketcand", host=sc["host"], port=sc["port"], channel=sc["channel"]
+        )
+        self.codec = KoalaCanCodec(load_koala_dbc(endpoints["can"]["dbc"]))
+        self.compass = CompassDecoder()
+        kind, host, port = mav_url.split(":")
+        if kind == "udpin":
+            self.mav = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            self.mav.bind((host, int(port)))
+        elif kind == "tcp":
+            self.mav = socket.create_connection((host, int(port)))
+        else:
+            raise SystemExit(f"unsupported MAVLink connection {mav_url!r} (udpin: or tcp:)")
+        self.mav_datagrams = kind == "udpin"
+        self.mav.setblocking(False)
+
+    def can_frames(self) -> list[WheelOdometryFrame | GyroFrame]:
+        out: list[WheelOdometryFrame | GyroFrame] = []
+        while (msg := self.can.recv(0.0)) is not None:
+            frame = self.codec.decode(msg)
+            if isinstance(frame, WheelOdometryFrame | GyroFrame):
+                out.append(frame)
+        return out
+
+    def compass_samples(self) -> list[CompassSample]:
+        out: list[CompassSample] = []
+        while True:
+            try:
+                data = self.mav.recv(65536)
+            except BlockingIOError:
+                return out
+            if not data:
+                return out
+            parsed = (self.compass.feed_datagram(data) if self.mav_datagrams
+                      else self.compass.feed(data))
+            out += [s for s in parsed if isinstance(s, CompassSample)]
+
+    def kteam_replies(self) -> list[KteamReply]:
+        data = self.serial.read(self.serial.in_waiting or 1)
+        out: list[KteamReply] = []
+        for line in self.lines.feed(data):
+            if isinstance(line, bytes):
+                reply = parse_reply(line)
+                if isinstance(reply, KteamReply):
+                    out.append(reply)
+        return out
+
+    def send(self, command: KteamCommand) -> None:
+        self.serial.write(format_command(command))
+
+    def close(self) -> None:
+        try:
+            self.send(KteamCommand("D", (0, 0)))
+            self.serial.flush()
+        finally:
+            self.serial.close()
+            self.can.shutdown()
+            self.mav.close()
+
+
+# --------------------------------------------------------------------------- the firmware
+
+
+class CoverageFirmware:
+    """Calibrate, localise, cover. Time is *robot* time: encoder frames / their rate."""
+
+    def __init__(self, links: Links, robot: RobotParams, world: World, args: argparse.Namespace):
+        self.links = links
+        self.robot = robot
+        self.world = world
+        self.args = args
+        self.rng = np.random.default_rng(args.seed)
+        self.tracker = PoseTracker(PoseTrackerParams(
+            wheel_base_m=robot.wheel_base_m, ticks_per_metre=robot.ticks_per_metre,
+            compass_sigma_rad=math.radians(args.compass_sigma_deg),
+        ))
+        # Start-relative frame until localised: origin at the (unknown) start cell's centre.
+        self.tracker.reset(0.0, 0.0, 0.0, np.diag([1e-6, 1e-6, math.pi**2]))
+        self.grid = GridLocaliser(world, GridParams(p_move=args.p_move, p_hit=0.9, p_clear=0.7))
+        self.north = math.radians(world.earth_field.north_deg)
+        self.t = 0.0
+        self.n_odo = 0
+        self.n_gyro = 0
+        self.hard_iron: np.ndarray | None = None
+        self.spin_fields: list[tuple[float, np.ndarray]] = []
+        self.collect_fields = False
+        self.ir: tuple[int, ...] | None = None
+        self.last_units: tuple[int, int] | None = None
+        self.last_send_t = -math.inf
+        self.wall_deadline = time.monotonic() + args.timeout_s
+        self.resyncs = 0
+
+    # -- plumbing ------------------------------------------------------------------------
+    def poll(self) -> None:
+        """Drain every link; feed the pose tracker in arrival order."""
+        for frame in self.links.can_frames():
+            if isinstance(frame, GyroFrame):
+                self.n_gyro += 1
+                self.tracker.on_gyro(self.n_gyro / self.robot.gyro_rate_hz, frame.yaw_rate)
+            else:
+                self.n_odo += 1
+                self.t = self.n_odo / self.robot.encoders_rate_hz
+                self.tracker.on_odometry(self.t, frame.left_ticks, frame.right_ticks)
+        for s in self.links.compass_samples():
+            field = np.array([s.x_ut, s.y_ut, s.z_ut])
+            if self.collect_fields:
+                self.spin_fields.append((self.tracker.pose[2], field))
+            if self.hard_iron is not None:
+                heading = heading_from_field(field, self.north, self.hard_iron)
+                self.tracker.on_compass(self.t, heading)
+        for reply in self.links.kteam_replies():
+            if reply.letter == "n":
+                self.ir = reply.ints
+        if time.monotonic() > self.wall_deadline:
+            raise TimeoutError("wall-clock timeout")
+        if self.t > self.args.max_sim_s:
+            raise TimeoutError("robot-time budget exhausted")
+
+    def drive(self, v: float, w: float) -> None:
+        """Wheel speeds for forward speed ``v`` (m/s) and turn rate ``w`` (rad/s), via K-Team D;
+        re-sent every 0.2 s of robot time so a motor watchdog stays fed."""
+        b = self.robot.wheel_base_m
+        scale = self.robot.ticks_per_metre / 100.0  # m/s -> pulse / 10 ms
+        lim = self.robot.max_speed_units
+        units = tuple(
+            max(-lim, min(lim, round(s * scale))) for s in (v - w * b / 2, v + w * b / 2)
+        )
+        if units != self.last_units or self.t - self.last_send_t > 0.2:
+            self.links.send(KteamCommand("D", units))
+            self.last_units = units  # type: ignore[assignment]
+            self.last_send_t = self.t
+
+    def wait(self, seconds: float) -> None:
+        """Poll for ``seconds`` of robot time, keeping the current wheel command."""
+        end = self.t + seconds
+        while self.t < end:
+            self.poll()
+            if self.last_units is not None:
+                self.drive_units_keepalive()
+            time.sleep(0.0005)
+
+    def drive_units_keepalive(self) -> None:
+        if self.t - self.last_send_t > 0.2 and self.last_units is not None:
+            self.links.send(KteamCommand("D", self.last_units))
+            self.last_send_t = self.t
+
+    def stop(self) -> None:
+        self.drive(0.0, 0.0)
+        self.wait(0.2)
+
+    def read_ir(self) -> tuple[int, ...]:
+        """One fresh ``N`` reading."""
+        self.ir = None
+        self.links.send(KteamCommand("N"))
+        while self.ir is None:
+            self.poll()
+            time.sleep(0.0005)
+        return self.ir
+
+    # -- motion primitives ---------------------------------------------------------------
+    def turn_to(self, heading: float, tolerance: float = 0.03) -> None:
+        end = self.t + 20.0
+        while self.t < end:
+            self.poll()
+            err = wrap(heading - self.tracker.pose[2])
+            if abs(err) < tolerance:
+                break
+            self.drive(0.0, math.copysign(min(0.8, max(0.12, 2.0 * abs(err))), err))
+            time.sleep(0.0005)
+        self.stop()
+
+    def drive_to(self, x: float, y: float) -> bool:
+        """Closed-loop drive to ``(x, y)`` on the EKF pose; False on timeout (blocked)."""
+        px, py, th = self.tracker.pose
+        d0 = math.hypot(x - px, y - py)
+        if d0 > 0.05:
+            self.turn_to(math.atan2(y - py, x - px))
+        end = self.t + d0 / 0.03 + 5.0
+        vmax = self.args.speed_mps
+        while self.t < end:
+            self.poll()
+            px, py, th = self.tracker.pose
+            dx, dy = x - px, y - py
+            along = dx * math.cos(th) + dy * math.sin(th)
+            dist = math.hypot(dx, dy)
+            if along < 0.005 or dist < 0.008:
+                self.stop()
+                return True
+            err = wrap(math.atan2(dy, dx) - th) if dist > 0.05 else 0.0
+            if abs(err) > 0.4:
+                self.turn_to(math.atan2(dy, dx))
+                continue
+            self.drive(min(vmax, max(0.02, 0.8 * along)), max(-0.4, min(0.4, 2.0 * err)))
+            time.sleep(0.0005)
+        self.stop()
+        return False
+
+    # -- Lab 4 ---------------------------------------------------------------------------
+    def calibrate(self) -> None:
+        """One turn on the spot: gyro-tracked; hard iron = centre of the field circle."""
+        self.wait(0.3)
+        start = self.tracker.pose[2]
+        turned, last = 0.0, start
+        self.collect_fields = True
+        end = self.t + 40.0
+        while turned < 2 * math.pi + 0.3 and self.t < end:
+            self.poll()
+            th = self.tracker.pose[2]
+            turned += abs(wrap(th - last))
+            last = th
+            self.drive(0.0, 0.6)
+            time.sleep(0.0005)
+        self.collect_fields = False
+        self.stop()
+        rel = np.array([h for h, _ in self.spin_fields])
+        xy = np.array([f[:2] for _, f in self.spin_fields])
+        a = np.column_stack([2 * xy, np.ones(len(xy))])
+        sol, *_ = np.linalg.lstsq(a, np.sum(xy**2, axis=1), rcond=None)
+        self.hard_iron = np.array([sol[0], sol[1], 0.0])
+        absolute = np.array([heading_from_field(f, self.north, self.hard_iron)
+                             for _, f in self.spin_fields])
+        d = absolute - rel
+        offset = math.atan2(float(np.mean(np.sin(d))), float(np.mean(np.cos(d))))
+        x, y, th = self.tracker.pose
+        self.tracker.reset(x, y, th + offset, np.diag([1e-6, 1e-6, math.radians(3) ** 2]),
+                           t=self.t, gyro_bias=self.tracker.gyro_bias)
+        log.info("hard iron %.2f %.2f uT, heading %.1f deg", sol[0], sol[1],
+                 math.degrees(th + offset))
+
+    def read_walls(self, n: int) -> list[tuple[bool | None, ...]]:
+        out: list[tuple[bool | None, ...]] = []
+        for _ in range(n):
+            self.wait(0.06)  # IR samples at 20 Hz: a fresh one per reading
+            counts = self.read_ir()
+            out.append(walls_from_ir(counts, self.tracker.pose[2], self.robot.ir_poses,
+                                     self.args.ir_threshold, cell_m=self.world.cell_m))
+        return out
+
+    def move(self, target_xy: tuple[float, float], side: str) -> bool:
+        self.grid.move(side)
+        return self.drive_to(*target_xy)
+
+    def localise(self) -> tuple[tuple[int, int], int]:
+        """Wall localisation from a uniform prior; returns (cell, moves)."""
+        cm = self.world.cell_m
+        rel = (0, 0)
+        last: str | None = None
+        for moves in range(self.args.max_localise_moves + 1):
+            readings = self.read_walls(self.args.readings_per_stop)
+            for walls in readings:
+                self.grid.observe(walls)
+            guess = self.grid.guess()
+            p = self.grid.probability(guess)
+            log.info("localising: move %d, guess %s p=%.3f walls %s", moves, guess, p,
+                     readings[-1])
+            if p >= self.args.p_name:
+                # Shift the start-relative EKF frame onto the world.
+                gx, gy = self.world.cell_centre(*guess)
+                self.tracker.x[0] += gx - rel[0] * cm
+                self.tracker.x[1] += gy - rel[1] * cm
+                return guess, moves
+            seen = readings[-1]
+            open_sides = [s for s, z in zip(SIDES, seen, strict=True) if z is False]
+            open_sides = open_sides or list(SIDES)
+            onward = [s for s in open_sides if last is None or s != OPPOSITE[last]] or open_sides
+            side = onward[int(self.rng.integers(len(onward)))]
+            dc, dr = SIDE_STEP[side]
+            target = (rel[0] + dc, rel[1] + dr)
+            if self.move((target[0] * cm, target[1] * cm), side):
+                rel = target
+            else:
+                self.drive_to(rel[0] * cm, rel[1] * cm)  # blocked: back to the centre
+            last = side
+        raise RuntimeError("not localised within the move budget")
+
+    def cover(self, start: tuple[int, int]) -> list[tuple[int, int]]:
+        """The lab's full-grid navigation from ``start``; returns the cells in visit order."""
+        w = self.world
+        cell = start
+        visited = {cell}
+        order = [cell]
+        history: list[str] = []
+        while True:
+            for side in LAB_ORDER:
+                n = (cell[0] + SIDE_STEP[side][0], cell[1] + SIDE_STEP[side][1])
+                if w.can_move(*cell, side) and n not in visited:
+                    history.append(side)
+                    break
+            else:
+                if not history:
+                    return order
+                side = OPPOSITE[history.pop()]
+                n = (cell[0] + SIDE_STEP[side][0], cell[1] + SIDE_STEP[side][1])
+            if not self.move(w.cell_centre(*n), side):
+                log.warning("move %s from %s blocked; retrying from the centre", side, cell)
+                self.drive_to(*w.cell_centre(*cell))
+                continue
+            cell = n
+            visited.add(cell)
+            order.append(cell)
+            for walls in self.read_walls(1):
+                self.grid.observe(walls)
+            guess = self.grid.guess()
+            if guess != cell and self.grid.probability(guess) > 0.9:
+                # The filter is sure we are elsewhere: trust it, re-anchor the EKF, re-plan.
+                log.warning("grid filter says %s, plan says %s: re-anchoring", guess, cell)
+                self.resyncs += 1
+                gx, gy = w.cell_centre(*guess)
+                cx, cy = w.cell_centre(*cell)
+                self.tracker.x[0] += gx - cx
+                self.tracker.x[1] += gy - cy
+                cell = guess
+                visited.add(cell)
+                order.append(cell)
+                history.clear()
+
+    def run(self) -> dict[str, Any]:
+        self.calibrate()
+        start, moves = self.localise()
+        log.info("localised in %s after %d moves", start, moves)
+        order = self.cover(start)
+        self.stop()
+        reachable = _reachable(self.world, start)
+        return {
+            "localised_cell": list(start),
+            "localisation_moves": moves,
+            "visited": [list(c) for c in order],
+            "reachable": len(reachable),
+            "complete": reachable <= set(order),
+            "robot_time_s": round(self.t, 2),
+            "resyncs": self.resyncs,
+            "gated_out": self.tracker.counters.rejected,
+        }
+
+
+def _reachable(world: World, start: tuple[int, int]) -> set[tuple[int, int]]:
+    seen, todo = {start}, [start]
+    while todo:
+        c = todo.pop()
+        for s in SIDES:
+            n = (c[0] + SIDE_STEP[s][0], c[1] + SIDE_STEP[s][1])
+            if world.can_move(*c, s) and n not in seen:
+                seen.add(n)
+                todo.append(n)
+    return seen
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="example:\n  python examples/coverage_firmware.py --endpoints-file "
+               "/tmp/koala.json --config config/default.toml --world "
+               "config/worlds/lab_walls_1.toml",
+    )
+    ap.add_argument("--endpoints-file", type=Path, required=True,
+                    help="the JSON the bridge wrote (koala-bridge run --endpoints-file)")
+    ap.add_argument("--config", type=Path, required=True,
+                    help="the robot's config (robot, sensors, buses.kteam tables)")
+    ap.add_argument("--world", type=Path, required=True,
+                    help="the map: a TOML file with a [world] table")
+    ap.add_argument("--seed", type=int, default=0, help="exploration choices (default 0)")
+    ap.add_argument("--p-name", type=float, default=0.98,
+                    help="belief at which a cell is taken as the robot's (default 0.98)")
+    ap.add_argument("--p-move", type=float, default=0.95,
+                    help="grid filter's move success probability (default 0.95)")
+    ap.add_argument("--readings-per-stop", type=int, default=2, help="(default 2)")
+    ap.add_argument("--ir-threshold", type=float, default=40.0,
+                    help="IR counts meaning 'wall at the cell side' (default 40)")
+    ap.add_argument("--compass-sigma-deg", type=float, default=3.0, help="(default 3)")
+    ap.add_argument("--speed-mps", type=float, default=0.1, help="top speed (default 0.1)")
+    ap.add_argument("--max-localise-moves", type=int, default=40, help="(default 40)")
+    ap.add_argument("--max-sim-s", type=float, default=1500.0,
+                    help="robot-time budget, s (default 1500)")
+    ap.add_argument("--timeout-s", type=float, default=300.0,
+                    help="wall-clock budget, s (default 300)")
+    ap.add_argument("--report", type=Path, help="also write the JSON report here")
+    ap.add_argument("--log-level", default="INFO")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=args.log_level, stream=sys.stderr,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    logging.getLogger("can").setLevel(logging.ERROR)  # python-can socketcand is chatty
+
+    endpoints = json.loads(args.endpoints_file.read_text())
+    robot = RobotParams.from_config(tomllib.loads(args.config.read_text()))
+    world = World.from_dict(tomllib.loads(args.world.read_text())["world"])
+    links = Links(endpoints)
+    try:
+        report = CoverageFirmware(links, robot, world, args).run()
+    finally:
+        links.close()
+    text = json.dumps(report)
+    print(text, flush=True)
+    if args.report:
+        args.report.write_text(text + "\n")
+    return 0 if report["complete"] else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
