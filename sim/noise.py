@@ -145,33 +145,37 @@ class BlockStream:
     methods of those names, so the pure model functions accept either.
     """
 
-    __slots__ = ("_n_rng", "_u_rng", "_block", "_n", "_n_list", "_ni", "_u", "_u_list", "_ui")
+    __slots__ = ("_n_rng", "_u_rng", "_block", "_n", "_n_list", "_ni", "_u", "_u_list", "_ui",
+                 "_n_next", "_u_next")
 
-    def __init__(self, rng: np.random.Generator, block: int = 2048) -> None:
+    def __init__(self, rng: np.random.Generator, block: int = 4096) -> None:
         self._n_rng, self._u_rng = rng.spawn(2)
         self._block = block
+        # Blocks grow from 64 to ``block`` values: a reset stays cheap for a sensor that draws
+        # little (the values do not depend on the block sizes).
+        self._n_next = self._u_next = min(64, block)
         self._n = self._u = np.empty(0)
-        self._n_list: list[float] = []
-        self._u_list: list[float] = []
+        self._n_list: list[float] | None = None       # built on first scalar use of a block
+        self._u_list: list[float] | None = None
         self._ni = self._ui = 0
 
     def _refill_normals(self, need: int) -> None:
         # Keep the values not handed out yet: the sequence stays the same whatever the block size.
-        fresh = self._n_rng.standard_normal(max(self._block, need))
+        fresh = self._n_rng.standard_normal(max(self._n_next, need))
+        self._n_next = min(2 * self._n_next, self._block)
         self._n = np.concatenate([self._n[self._ni:], fresh])
-        self._n_list = self._n.tolist()
-        self._n.flags.writeable = False
+        self._n_list = None
         self._ni = 0
 
     def _refill_uniforms(self, need: int) -> None:
-        fresh = self._u_rng.random(max(self._block, need))
+        fresh = self._u_rng.random(max(self._u_next, need))
+        self._u_next = min(2 * self._u_next, self._block)
         self._u = np.concatenate([self._u[self._ui:], fresh])
-        self._u_list = self._u.tolist()
-        self._u.flags.writeable = False
+        self._u_list = None
         self._ui = 0
 
     def normals(self, n: int) -> np.ndarray:
-        """The next ``n`` standard normals (a read-only view; copy to keep)."""
+        """The next ``n`` standard normals (a view into the block: do not write to it)."""
         i = self._ni
         if i + n > self._n.shape[0]:
             self._refill_normals(n)
@@ -180,7 +184,7 @@ class BlockStream:
         return self._n[i:i + n]
 
     def uniforms(self, n: int) -> np.ndarray:
-        """The next ``n`` uniforms on [0, 1)."""
+        """The next ``n`` uniforms on [0, 1) (a view into the block: do not write to it)."""
         i = self._ui
         if i + n > self._u.shape[0]:
             self._refill_uniforms(n)
@@ -195,15 +199,22 @@ class BlockStream:
             self._refill_normals(n)
             i = 0
         self._ni = i + n
-        return self._n_list[i:i + n]
+        lst = self._n_list
+        if lst is None:
+            lst = self._n_list = self._n.tolist()
+        return lst[i:i + n]
 
     def uniform_list(self, n: int) -> list[float]:
+        """The next ``n`` uniforms on [0, 1) as Python floats."""
         i = self._ui
         if i + n > self._u.shape[0]:
             self._refill_uniforms(n)
             i = 0
         self._ui = i + n
-        return self._u_list[i:i + n]
+        lst = self._u_list
+        if lst is None:
+            lst = self._u_list = self._u.tolist()
+        return lst[i:i + n]
 
     def standard_normal(self, size: int | tuple[int, ...] | None = None) -> ArrayLike:
         """``Generator.standard_normal`` from this stream (a float when ``size`` is None)."""

@@ -100,17 +100,19 @@ def limit_wheel_speeds(left: float, right: float, max_speed: float) -> tuple[flo
 
 def arc_motion(v_left: float, v_right: float, wheel_base: float, dt: float) -> Motion:
     """Exact body-frame displacement of one step at constant wheel speeds (module docstring)."""
-    v = 0.5 * (v_left + v_right)
+    dx, dy, dth = arc_displacement(v_left, v_right, wheel_base, dt)
+    return Motion(dx, dy, dth, v_left * dt, v_right * dt)
+
+
+def arc_displacement(v_left: float, v_right: float, wheel_base: float, dt: float
+                     ) -> tuple[float, float, float]:
+    """``(dx_b, dy_b, dtheta)`` of :func:`arc_motion`."""
+    s = 0.5 * (v_left + v_right) * dt
     dth = (v_right - v_left) / wheel_base * dt
-    s = v * dt
     if abs(dth) < 1e-9:
         # Series of sin(x)/x and (1 - cos x)/x; exact to double precision here.
-        dx = s * (1.0 - dth * dth / 6.0)
-        dy = s * 0.5 * dth
-    else:
-        dx = s * math.sin(dth) / dth
-        dy = s * (1.0 - math.cos(dth)) / dth
-    return Motion(dx, dy, dth, v_left * dt, v_right * dt)
+        return s * (1.0 - dth * dth / 6.0), s * 0.5 * dth, dth
+    return s * math.sin(dth) / dth, s * (1.0 - math.cos(dth)) / dth, dth
 
 
 def _pose_after(state: RobotState, m: Motion, frac: float) -> tuple[float, float, float]:

@@ -36,13 +36,22 @@ def interp(x: float, xs: np.ndarray, ys: np.ndarray) -> float:  # pragma: no cov
 
 # ---------------------------------------------------------------------------------------- IR
 @numba.njit(cache=True, nogil=True)
-def ir_kernel(d: np.ndarray, w: np.ndarray, rho: np.ndarray, rx: np.ndarray, ry: np.ndarray,
-              ex: np.ndarray, ey: np.ndarray, z: np.ndarray, ideal: bool, gain: float,
-              count_sigma: float, ambient: float, ambient_sigma: float, max_counts: float,
-              out_counts: np.ndarray, out_ambient: np.ndarray, out_truth: np.ndarray
+def ir_kernel(d: np.ndarray, z: np.ndarray, w: np.ndarray, rho: np.ndarray, rx: np.ndarray,
+              ry: np.ndarray, ex: np.ndarray, ey: np.ndarray, fp: np.ndarray, out: np.ndarray
               ) -> None:  # pragma: no cover - compiled
     """``d`` (n, k) ray ranges; ``z`` (3 n,) normals: distance, count and ambient noise of sensor
-    ``i`` at ``z[i]``, ``z[n + i]``, ``z[2 n + i]`` (unused when ``ideal``). Outputs int64 (n,)."""
+    ``i`` at ``z[i]``, ``z[n + i]``, ``z[2 n + i]`` (unused when ideal). ``fp``: ideal (0/1),
+    gain, count sigma, ambient, ambient sigma, max counts. ``out`` (3, n) int64: counts,
+    ambient, truth counts."""
+    ideal = fp[0] != 0.0
+    gain = fp[1]
+    count_sigma = fp[2]
+    ambient = fp[3]
+    ambient_sigma = fp[4]
+    max_counts = fp[5]
+    out_counts = out[0]
+    out_ambient = out[1]
+    out_truth = out[2]
     n, k = d.shape
     last = rx[rx.shape[0] - 1]
     for i in range(n):
@@ -157,63 +166,76 @@ def sonar_kernel(d: np.ndarray, inc: np.ndarray, max_range: float, tx: np.ndarra
 
 
 @numba.njit(cache=True, nogil=True)
+def _second_leg(seg: np.ndarray, ox: float, oy: float, dx: float, dy: float, rr: float, m: int,
+                max_range: float) -> float:  # pragma: no cover - compiled
+    """Specular path of one ray: first hit (range ``rr`` on wall ``m``) -> second surface ->
+    back to the origin; its length beyond the first hit (inf: none)."""
+    if m < 0 or not math.isfinite(rr):
+        return np.inf
+    il = seg[4, m]
+    nx = -seg[3, m] * il
+    ny = seg[2, m] * il
+    dot = dx * nx + dy * ny
+    rx = dx - 2.0 * dot * nx
+    ry = dy - 2.0 * dot * ny
+    # Start a hair off the wall so the cast does not hit the wall it leaves.
+    sx = ox + dx * rr + 1e-6 * rx
+    sy = oy + dy * rr + 1e-6 * ry
+    t, _m2, _inc = first_hit(seg, sx, sy, rx, ry, max_range)
+    if t < np.inf:
+        return t + math.hypot(sx + rx * t - ox, sy + ry * t - oy)
+    return np.inf
+
+
+@numba.njit(cache=True, nogil=True)
 def second_leg_kernel(seg: np.ndarray, ox: np.ndarray, oy: np.ndarray, dx: np.ndarray,
                       dy: np.ndarray, rr: np.ndarray, wall: np.ndarray, max_range: float,
                       out: np.ndarray) -> None:  # pragma: no cover - compiled
-    """Specular path first hit -> second surface -> sensor, per ray (flat arrays); inf: none."""
+    """:func:`_second_leg` per ray (flat arrays); inf: none."""
     for r in range(rr.shape[0]):
-        out[r] = np.inf
-        m = wall[r]
-        if m < 0 or not math.isfinite(rr[r]):
-            continue
-        il = seg[4, m]
-        nx = -seg[3, m] * il
-        ny = seg[2, m] * il
-        dot = dx[r] * nx + dy[r] * ny
-        rx = dx[r] - 2.0 * dot * nx
-        ry = dy[r] - 2.0 * dot * ny
-        # Start a hair off the wall so the cast does not hit the wall it leaves.
-        sx = ox[r] + dx[r] * rr[r] + 1e-6 * rx
-        sy = oy[r] + dy[r] * rr[r] + 1e-6 * ry
-        t, _m2, _inc = first_hit(seg, sx, sy, rx, ry, max_range)
-        if t < np.inf:
-            back = math.hypot(sx + rx * t - ox[r], sy + ry * t - oy[r])
-            out[r] = t + back
+        out[r] = _second_leg(seg, ox[r], oy[r], dx[r], dy[r], rr[r], wall[r], max_range)
 
 
 @numba.njit(cache=True, nogil=True)
 def sonar_ring_kernel(seg: np.ndarray, rays: np.ndarray, index: np.ndarray, start: int, n: int,
-                      k: int, max_range: float, min_reading: float, tx: np.ndarray,
-                      ty: np.ndarray, crit: float, p_late: float, p_cross: float,
-                      p_glitch: float, glitch_min: float, ideal: bool, use_leg: bool,
-                      use_cross: bool, cycle: np.ndarray, half_ap: float, u: np.ndarray,
-                      z: np.ndarray, u_cross: np.ndarray
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    # pragma: no cover - compiled
+                      k: int, fp: np.ndarray, flags: np.ndarray, tx: np.ndarray, ty: np.ndarray,
+                      cycle: np.ndarray, u: np.ndarray, z: np.ndarray, out: np.ndarray
+                      ) -> None:  # pragma: no cover - compiled
     """The sonar ring from the simulator's cast, in one call: ``rays`` (6, R) rows origin x, y,
-    direction x, y, range, incidence (:func:`sim.raycast.cast_fan`), ``index`` (R,) wall hit;
-    the ring's rays start at ``start``. Computes the specular second legs (``use_leg``) and the
-    crosstalk geometry (``use_cross``) and runs :func:`sonar_kernel`; readings nearer than
-    ``min_reading`` become 0 (the Koala's "too close"). Returns ranges, truth ranges, truth
-    incidence, kind."""
-    nk = n * k
+    direction x, y, range, incidence (:func:`sim.raycast.cast_fan_arrays`), ``index`` (R,) wall
+    hit; the ring's rays start at ``start``. Computes the specular second legs and the crosstalk
+    geometry when needed and runs :func:`sonar_kernel`; readings nearer than ``min_reading``
+    become 0 (the Koala's "too close"). Writes ``out`` (3, n): ranges, truth ranges, truth
+    incidence. Few arguments and one output: each costs time at every call.
+
+    ``fp``: max_range, min_reading, critical angle (rad), p_late, p_cross, p_glitch, glitch
+    minimum, half aperture (rad). ``flags``: ideal, use_leg, use_cross. ``u``: the 3 n uniforms
+    of :func:`sonar_kernel` followed, with crosstalk, by its n^2 ``u_cross``; ``z`` (n,)."""
+    max_range = fp[0]
+    ideal = flags[0] != 0
+    use_leg = flags[1] != 0
+    use_cross = flags[2] != 0
+    crit = fp[2]
     d = np.empty((n, k))
     inc = np.empty((n, k))
-    for r in range(nk):
-        d[r // k, r % k] = rays[4, start + r]
-        inc[r // k, r % k] = rays[5, start + r]
     leg = np.empty((n, k)) if use_leg else np.empty((0, 0))
-    if use_leg:
-        ox = np.ascontiguousarray(rays[0, start:start + nk])
-        oy = np.ascontiguousarray(rays[1, start:start + nk])
-        dx = np.ascontiguousarray(rays[2, start:start + nk])
-        dy = np.ascontiguousarray(rays[3, start:start + nk])
-        rr = np.ascontiguousarray(rays[4, start:start + nk])
-        wall = np.ascontiguousarray(index[start:start + nk])
-        flat = np.empty(nk)
-        second_leg_kernel(seg, ox, oy, dx, dy, rr, wall, max_range, flat)
-        for r in range(nk):
-            leg[r // k, r % k] = flat[r]
+    for i in range(n):
+        direct = False
+        for j in range(k):
+            r = start + i * k + j
+            d[i, j] = rays[4, r]
+            inc[i, j] = rays[5, r]
+            if d[i, j] <= max_range and abs(inc[i, j]) <= crit:
+                direct = True
+        if not use_leg:
+            continue
+        # sonar_kernel reads a sensor's second legs only for a late echo (no direct echo and
+        # u < p_late): cast the specular paths for those sensors only.
+        late = not ideal and not direct and u[i] < fp[3]
+        for j in range(k):
+            r = start + i * k + j
+            leg[i, j] = (_second_leg(seg, rays[0, r], rays[1, r], rays[2, r], rays[3, r],
+                                     rays[4, r], index[r], max_range) if late else np.inf)
     hit_xy = np.empty((n, k, 2)) if use_cross else np.empty((0, 0, 2))
     sensor_xy = np.empty((n, 2)) if use_cross else np.empty((0, 2))
     heading = np.empty(n) if use_cross else np.empty(0)
@@ -228,17 +250,13 @@ def sonar_ring_kernel(seg: np.ndarray, rays: np.ndarray, index: np.ndarray, star
             sensor_xy[i, 0] = rays[0, c]
             sensor_xy[i, 1] = rays[1, c]
             heading[i] = math.atan2(rays[3, c], rays[2, c])
-    out_range = np.empty(n)
-    out_truth = np.empty(n)
-    out_inc = np.empty(n)
     kind = np.zeros(n, dtype=np.int8)
-    sonar_kernel(d, inc, max_range, tx, ty, crit, p_late, p_cross, p_glitch, glitch_min, ideal,
-                 use_leg, leg, use_cross, hit_xy, sensor_xy, heading, half_ap, cycle, u, z,
-                 u_cross, out_range, out_truth, out_inc, kind)
+    sonar_kernel(d, inc, max_range, tx, ty, fp[2], fp[3], fp[4], fp[5], fp[6], ideal, use_leg,
+                 leg, use_cross, hit_xy, sensor_xy, heading, fp[7], cycle, u[:3 * n], z,
+                 u[3 * n:], out[0], out[1], out[2], kind)
     for i in range(n):
-        if out_range[i] < min_reading:          # nan stays nan: no echo
-            out_range[i] = 0.0
-    return out_range, out_truth, out_inc, kind
+        if out[0, i] < fp[1]:                   # nan stays nan: no echo
+            out[0, i] = 0.0
 
 
 # ------------------------------------------------------------------------------------ camera
@@ -253,38 +271,53 @@ def _distance_term(d: float, dmin: float, dmax: float, base: float) -> float:
 
 
 @numba.njit(cache=True, nogil=True)
-def camera_kernel(ids: np.ndarray, d: np.ndarray, b: np.ndarray, a: np.ndarray,
-                  amax: np.ndarray, all_ids: np.ndarray, p_perc: float, p_recog: float,
-                  dmin: float, dmax: float, base: float, dist: float, dmid: float,
-                  fdoub: float, bsig: float, u: np.ndarray, z: np.ndarray, out_ids: np.ndarray,
-                  out_r: np.ndarray, out_b: np.ndarray, out_src: np.ndarray
-                  ) -> int:  # pragma: no cover - compiled
-    m = ids.shape[0]
+def camera_kernel(rows: np.ndarray, all_ids: np.ndarray, fp: np.ndarray, u: np.ndarray,
+                  z: np.ndarray, out: np.ndarray) -> int:  # pragma: no cover - compiled
+    """``rows`` (m, 5): per landmark in view its true id, range, bearing, viewing angle, a_max
+    (:class:`sim.sensors.camera.CameraTruth`). ``fp``: p_perc, p_recog, d_min, d_max, distance
+    base, dist, d_mid, far doubling, bearing sigma (rad). Variates of landmark ``q``: uniforms
+    ``u[3q:3q+3]`` (miss, wrong id, which id), normals ``z[3q:3q+3]`` (near, far, bearing).
+    Writes the perceived landmarks into ``out`` (m, 4): reported id, range, bearing, source row;
+    returns their number."""
+    p_perc = fp[0]
+    p_recog = fp[1]
+    dmin = fp[2]
+    dmax = fp[3]
+    base = fp[4]
+    dist = fp[5]
+    dmid = fp[6]
+    fdoub = fp[7]
+    bsig = fp[8]
+    m = rows.shape[0]
     n_all = all_ids.shape[0]
     c = 0
-    for k in range(m):
-        ang = 4.0 * a[k] * a[k] / (amax[k] * amax[k])
-        f = _distance_term(d[k], dmin, dmax, base)
-        if u[k, 0] < min(1.0, ang + p_perc + f):
+    for q in range(m):
+        true_id = np.int64(rows[q, 0])
+        d = rows[q, 1]
+        a = abs(rows[q, 3])
+        amax = rows[q, 4]
+        ang = 4.0 * a * a / (amax * amax)
+        f = _distance_term(d, dmin, dmax, base)
+        if u[3 * q] < min(1.0, ang + p_perc + f):
             continue                                   # not perceived
-        lid = ids[k]
-        if n_all > 1 and u[k, 1] < min(1.0, ang + p_recog + f):
-            j = min(int(u[k, 2] * (n_all - 1)), n_all - 2)
+        lid = true_id
+        if n_all > 1 and u[3 * q + 1] < min(1.0, ang + p_recog + f):
+            j = min(int(u[3 * q + 2] * (n_all - 1)), n_all - 2)
             # the j-th id of all_ids skipping the true one
             seen = 0
-            for q in range(n_all):
-                if all_ids[q] == ids[k]:
+            for i in range(n_all):
+                if all_ids[i] == true_id:
                     continue
                 if seen == j:
-                    lid = all_ids[q]
+                    lid = all_ids[i]
                     break
                 seen += 1
-        near = dist * d[k]
-        far = dist * dmid * 2.0 ** ((d[k] - dmid) / fdoub)
-        out_ids[c] = lid
-        out_r[c] = max(d[k] + near * z[k, 0] + far * abs(z[k, 1]), 0.0)
-        bb = b[k] + bsig * z[k, 2]
-        out_b[c] = math.atan2(math.sin(bb), math.cos(bb))
-        out_src[c] = k
+        near = dist * d
+        far = dist * dmid * 2.0 ** ((d - dmid) / fdoub)
+        out[c, 0] = lid
+        out[c, 1] = max(d + near * z[3 * q] + far * abs(z[3 * q + 1]), 0.0)
+        bb = rows[q, 2] + bsig * z[3 * q + 2]
+        out[c, 2] = math.atan2(math.sin(bb), math.cos(bb))
+        out[c, 3] = q
         c += 1
     return c

@@ -27,7 +27,7 @@ from sim.models import gyro as gyro_model
 from sim.models import ir as ir_model
 from sim.models import sonar as sonar_model
 from sim.noise import BlockStream, LookupTable, Variates, rate_scaled_sigma
-from sim.robot import Motion, RobotState, arc_motion
+from sim.robot import Motion, RobotState, arc_displacement
 from sim.sensors.base import fan_offsets
 from sim.sensors.camera import CameraTruth
 from sim.sensors.compass import CompassTruth
@@ -70,8 +70,9 @@ class DriveError:
         left, right = drive_model.perturb_wheel_steps_with(
             ideal.left_m, ideal.right_m, self.sigma, self.params, eps[0], eps[1], u[0], u[1],
             state.collided)
-        real = arc_motion(left / self.dt, right / self.dt, self.wheel_base_m, self.dt)
-        return Motion(real.dx_b, real.dy_b, real.dtheta, ideal.left_m, ideal.right_m)
+        dt = self.dt
+        dx, dy, dth = arc_displacement(left / dt, right / dt, self.wheel_base_m, dt)
+        return Motion(dx, dy, dth, ideal.left_m, ideal.right_m)
 
 
 class IrError:
@@ -83,13 +84,17 @@ class IrError:
         self.weights = np.ascontiguousarray(ir_model.ray_weights(ray_offsets,
                                                                  params.gaussian_width))
         self.rho = np.full((n_sensors, ray_offsets.shape[0]), params.reflectivity)
+        self.n = n_sensors
         self.n_draws = 0 if params.ideal else 3 * n_sensors
+        self.constants = ir_model.kernel_constants(self.weights, self.rho, response, params)
 
     def measure(self, truth: IrTruth, rng: Variates) -> IrReading:
+        # ir_model.measure_with, with the kernel's constant arguments computed once.
         z = np.asarray(rng.standard_normal(self.n_draws)) if self.n_draws else _NONE
-        counts, ambient, truth_counts = ir_model.measure_with(
-            truth.ray_ranges, self.weights, self.rho, self.response, self.params, z)
-        return IrReading(counts=counts, ambient=ambient, truth_counts=truth_counts,
+        out = np.empty((3, self.n), dtype=np.int64)
+        w, rho, rx, ry, ex, ey, fp = self.constants
+        _kernels.ir_kernel(truth.ray_ranges, z, w, rho, rx, ry, ex, ey, fp, out)
+        return IrReading(counts=out[0], ambient=out[1], truth_counts=out[2],
                          truth_ranges=truth.axis_ranges)
 
 
@@ -98,34 +103,40 @@ class SonarError:
     geometry, echoes, noise) with the variates of :func:`sim.models.sonar.measure` pre-drawn."""
 
     def __init__(self, params: sonar_model.SonarErrorParams, half_aperture_rad: float,
-                 n_sensors: int) -> None:
-        self.params = params
+                 n_sensors: int, min_range_m: float, max_range_m: float) -> None:
+        self.params = p = params
         self.half_aperture_rad = half_aperture_rad
-        p = params
+        self.n = n_sensors
         self.cycle = sonar_model.same_cycle(n_sensors, p.firing_groups)
         self.use_cross = bool(p.crosstalk_probability > 0 and n_sensors > 1 and self.cycle.any())
-        self.crit = math.radians(p.critical_angle_deg)
+        self.table_x = p.distance_error.x
+        self.table_y = p.distance_error.y
+        self.fp = np.array([max_range_m, min_range_m, math.radians(p.critical_angle_deg),
+                            p.late_echo_probability, p.crosstalk_probability,
+                            p.glitch_probability, p.min_range_m, half_aperture_rad])
+        # The draws of sim.models.sonar.measure: 3 n uniforms and n normals, and n^2 uniforms
+        # more when two sonars share a firing cycle (uniforms and normals are separate streams,
+        # so the 3 n + n^2 uniforms are one contiguous draw).
+        self.n_uniforms = 0 if p.ideal else 3 * n_sensors + (n_sensors ** 2 if self.use_cross
+                                                              else 0)
+        self.n_normals = 0 if p.ideal else n_sensors
 
     def measure(self, truth: SonarTruth, rng: Variates) -> SonarReading:
         p = self.params
         n = truth.n
-        if p.ideal:
-            u, z, u_cross = _NONE, _NONE, _NONE
-        else:
-            # The draws of sim.models.sonar.measure, in its order: 3 n uniforms, n normals, and
-            # n^2 uniforms only when two sonars share a firing cycle.
-            u = np.asarray(rng.random(3 * n))
-            z = np.asarray(rng.standard_normal(n))
-            u_cross = np.asarray(rng.random(n * n)) if self.use_cross else _NONE
         use_leg = truth.walls is not None and p.late_echo_probability > 0
+        flags = _FLAGS[(p.ideal, use_leg, self.use_cross)]
+        u = np.asarray(rng.random(self.n_uniforms)) if self.n_uniforms else _NONE
+        z = np.asarray(rng.standard_normal(self.n_normals)) if self.n_normals else _NONE
         seg = truth.walls.packed if truth.walls is not None else _NO_SEG
-        table = p.distance_error
-        ranges, truth_ranges, incidence, _kind = _kernels.sonar_ring_kernel(
-            seg, truth.rays, truth.index, truth.start, n, truth.k, truth.max_range_m,
-            truth.min_range_m, table.x, table.y, self.crit, p.late_echo_probability,
-            p.crosstalk_probability, p.glitch_probability, p.min_range_m, p.ideal, use_leg,
-            self.use_cross, self.cycle, self.half_aperture_rad, u, z, u_cross)
-        return SonarReading(ranges=ranges, truth_ranges=truth_ranges, incidence=incidence)
+        out = np.empty((3, n))
+        _kernels.sonar_ring_kernel(seg, truth.rays, truth.index, truth.start, n, truth.k, self.fp,
+                                   flags, self.table_x, self.table_y, self.cycle, u, z, out)
+        return SonarReading(ranges=out[0], truth_ranges=out[1], incidence=out[2])
+
+
+_FLAGS = {(a, b, c): np.array([a, b, c], dtype=np.int64)
+          for a in (False, True) for b in (False, True) for c in (False, True)}
 
 
 class GyroError:
@@ -134,55 +145,53 @@ class GyroError:
         self.params = params
         self.period = 1.0 / rate_hz
         self.bias = gyro_model.initial_state(params, rng).bias    # turn-on bias
+        self._dt = self.period
+        self._constants = gyro_model.step_constants(params, self.period)
 
     def measure(self, truth: GyroTruth, rng: Variates) -> GyroReading:
         if self.params.ideal:
             return GyroReading(yaw_rate=truth.yaw_rate, truth_yaw_rate=truth.yaw_rate)
         dt = truth.interval_s if truth.interval_s > 0 else self.period
+        if dt != self._dt:
+            self._dt = dt
+            self._constants = gyro_model.step_constants(self.params, dt)
         z = rng.normal_list(3) if isinstance(rng, BlockStream) else rng.standard_normal(3).tolist()
-        rate, self.bias = gyro_model.measure_with(truth.yaw_rate, dt, self.bias, self.params,
-                                                  z[0], z[1], z[2])
+        rate, self.bias = gyro_model.measure_with(truth.yaw_rate, self.bias, self.params,
+                                                  self._constants, z[0], z[1], z[2])
         return GyroReading(yaw_rate=rate, truth_yaw_rate=truth.yaw_rate)
 
 
 class CompassError:
     def __init__(self, params: compass_model.CompassErrorParams) -> None:
         self.params = params
+        self.coeffs = compass_model.coefficients(params)
 
     def measure(self, truth: CompassTruth, rng: Variates) -> CompassReading:
         if self.params.ideal:
             return CompassReading(field_uT=truth.field_body_uT, truth_field_uT=truth.field_body_uT)
         n = rng.normal_list(3) if isinstance(rng, BlockStream) else rng.standard_normal(3).tolist()
-        b = compass_model.measure_with(truth.field_body_uT.tolist(), truth.left_speed,
-                                       truth.right_speed, self.params, n)
+        b = compass_model.measure_with(truth.field_body, truth.left_speed, truth.right_speed,
+                                       self.coeffs, n)
         return CompassReading(field_uT=np.array(b), truth_field_uT=truth.field_body_uT)
 
 
 class CameraError:
     def __init__(self, params: camera_model.CameraErrorParams) -> None:
         self.params = params
-        self.bearing_sigma = math.radians(params.bearing_sigma_deg)
+        self.fp = camera_model.kernel_constants(params)
 
     def measure(self, truth: CameraTruth, rng: Variates) -> CameraReading:
-        m = truth.ids.shape[0]
-        p = self.params
-        if p.ideal or m == 0:
+        # camera_model.measure on the truth's rows, with its draws (3 uniforms and 3 normals per
+        # landmark in view).
+        m = truth.rows.shape[0]
+        if self.params.ideal or m == 0:
             return CameraReading(observations=truth.observations, truth=truth.observations)
-        # The draws of sim.models.camera.measure: (m, 3) uniforms then (m, 3) normals.
-        u = np.asarray(rng.random((m, 3)))
-        z = np.asarray(rng.standard_normal((m, 3)))
-        out_ids = np.empty(m, dtype=np.int64)
-        out_r = np.empty(m)
-        out_b = np.empty(m)
-        out_src = np.empty(m, dtype=np.int64)
-        c = _kernels.camera_kernel(
-            truth.ids, truth.ranges, truth.bearings, np.abs(truth.viewing_angle), truth.a_max,
-            truth.all_ids, p.p_perc, p.p_recog, p.min_range_m, p.max_range_m, p.distance_base,
-            p.dist, p.d_mid_m, p.far_doubling_m, self.bearing_sigma, u, z, out_ids, out_r,
-            out_b, out_src)
-        measured = tuple(LandmarkObservation(i, r, b) for i, r, b in
-                         zip(out_ids[:c].tolist(), out_r[:c].tolist(), out_b[:c].tolist(),
-                             strict=True))
+        u = np.asarray(rng.random(3 * m))
+        z = np.asarray(rng.standard_normal(3 * m))
+        out = np.empty((m, 4))
+        c = _kernels.camera_kernel(truth.rows, truth.all_ids, self.fp, u, z, out)
+        measured = tuple(LandmarkObservation(int(i), r, b) for i, r, b, _s in
+                         out[:c].tolist())
         return CameraReading(observations=measured, truth=truth.observations)
 
 
@@ -198,14 +207,15 @@ def _drive(cfg: Any, rng: np.random.Generator) -> DriveError:
 
 def _ir(cfg: Any, rng: np.random.Generator) -> IrError:
     # The response table is the IR core's ([sensors.ir] response_range_m -> response_counts).
-    table = LookupTable.from_rows(
-        np.stack([cfg.response_range_m, cfg.response_counts], axis=1).tolist(), "sensors.ir")
+    table = LookupTable(cfg.response_range_m, cfg.response_counts,
+                        np.zeros(cfg.response_range_m.shape[0]))
     return IrError(cfg.errors, table, fan_offsets(cfg.rays, math.radians(cfg.aperture_deg)),
                    int(cfg.poses.shape[0]))
 
 
 def _sonar(cfg: Any, rng: np.random.Generator) -> SonarError:
-    return SonarError(cfg.errors, 0.5 * math.radians(cfg.aperture_deg), int(cfg.poses.shape[0]))
+    return SonarError(cfg.errors, 0.5 * math.radians(cfg.aperture_deg), int(cfg.poses.shape[0]),
+                      cfg.min_range_m, cfg.max_range_m)
 
 
 def _gyro(cfg: Any, rng: np.random.Generator) -> GyroError:

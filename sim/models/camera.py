@@ -191,23 +191,24 @@ def measure(
     if params.ideal or m == 0:
         return CameraMeasurement(ids.copy(), np.asarray(ranges_m, float).copy(),
                                  np.asarray(bearings_rad, float).copy(), np.arange(m))
-    u = np.asarray(rng.random((m, 3)))           # miss, wrong id, which wrong id
-    z = np.asarray(rng.standard_normal((m, 3)))  # near, far, bearing
-    out_ids = np.empty(m, dtype=np.int64)
-    out_r = np.empty(m)
-    out_b = np.empty(m)
-    out_src = np.empty(m, dtype=np.int64)
+    rows = np.column_stack([ids.astype(float), np.asarray(ranges_m, dtype=float),
+                            np.asarray(bearings_rad, dtype=float),
+                            np.asarray(view_angles_rad, dtype=float),
+                            np.broadcast_to(np.asarray(a_max_rad, dtype=float), (m,))])
+    u = np.asarray(rng.random(3 * m))           # per landmark: miss, wrong id, which wrong id
+    z = np.asarray(rng.standard_normal(3 * m))  # per landmark: near, far, bearing
+    out = np.empty((m, 4))
+    c = _kernels.camera_kernel(rows, np.asarray(all_ids, dtype=np.int64),
+                               kernel_constants(params), u, z, out)
+    return CameraMeasurement(out[:c, 0].astype(np.int64), out[:c, 1], out[:c, 2],
+                             out[:c, 3].astype(np.int64))
+
+
+def kernel_constants(params: CameraErrorParams) -> np.ndarray:
+    """``fp`` of ``_kernels.camera_kernel`` (fixed for a run)."""
     p = params
-    c = _kernels.camera_kernel(
-        ids.astype(np.int64), np.ascontiguousarray(ranges_m, dtype=float),
-        np.ascontiguousarray(bearings_rad, dtype=float),
-        np.abs(np.ascontiguousarray(view_angles_rad, dtype=float)),
-        np.ascontiguousarray(np.broadcast_to(a_max_rad, (m,)), dtype=float),
-        np.asarray(all_ids, dtype=np.int64), p.p_perc, p.p_recog, p.min_range_m, p.max_range_m,
-        p.distance_base, p.dist, p.d_mid_m, p.far_doubling_m, math.radians(p.bearing_sigma_deg),
-        u, z, out_ids, out_r, out_b, out_src,
-    )
-    return CameraMeasurement(out_ids[:c], out_r[:c], out_b[:c], out_src[:c])
+    return np.array([p.p_perc, p.p_recog, p.min_range_m, p.max_range_m, p.distance_base, p.dist,
+                     p.d_mid_m, p.far_doubling_m, math.radians(p.bearing_sigma_deg)])
 
 
 def viewing_angle(landmark_xy: np.ndarray, facing_rad: np.ndarray, robot_xy: np.ndarray

@@ -89,15 +89,24 @@ def measure(field_body_uT: np.ndarray, wheel_speeds_mps: tuple[float, float],
             + params.noise_sigma_uT * np.asarray(rng.standard_normal(3)))
 
 
+def coefficients(params: CompassErrorParams) -> tuple[float, ...]:
+    """The constants of :func:`measure_with`, flat: S (row-major), b_hard, M (row-major),
+    motor_current_A_per_mps, noise_sigma_uT."""
+    return (*(x for row in params.soft_iron for x in row), *params.hard_iron_uT,
+            *(x for row in params.motor_uT_per_A for x in row), params.motor_current_A_per_mps,
+            params.noise_sigma_uT)
+
+
 def measure_with(b: Sequence[float], left_mps: float, right_mps: float,
-                 params: CompassErrorParams, n: Sequence[float]) -> list[float]:
-    """:func:`measure` for one sample in scalar arithmetic, the three standard normals ``n``
-    given: the simulator's path (numpy calls on 3-vectors cost more than the arithmetic)."""
-    il = params.motor_current_A_per_mps * left_mps
-    ir = params.motor_current_A_per_mps * right_mps
-    s = params.soft_iron
-    h = params.hard_iron_uT
-    m = params.motor_uT_per_A
-    sig = params.noise_sigma_uT
-    return [s[r][0] * b[0] + s[r][1] * b[1] + s[r][2] * b[2] + h[r] + m[r][0] * il
-            + m[r][1] * ir + sig * n[r] for r in range(3)]
+                 coeffs: Sequence[float], n: Sequence[float]) -> tuple[float, float, float]:
+    """:func:`measure` for one sample in scalar arithmetic: ``b`` the true field (3 floats),
+    ``coeffs`` of :func:`coefficients`, ``n`` three standard normals. The simulator's path
+    (numpy calls on 3-vectors cost more than the arithmetic)."""
+    (s00, s01, s02, s10, s11, s12, s20, s21, s22, h0, h1, h2,
+     m00, m01, m10, m11, m20, m21, k, sig) = coeffs
+    bx, by, bz = b
+    il = k * left_mps
+    ir = k * right_mps
+    return (s00 * bx + s01 * by + s02 * bz + h0 + m00 * il + m01 * ir + sig * n[0],
+            s10 * bx + s11 * by + s12 * bz + h1 + m10 * il + m11 * ir + sig * n[1],
+            s20 * bx + s21 * by + s22 * bz + h2 + m20 * il + m21 * ir + sig * n[2])

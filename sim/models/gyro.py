@@ -88,27 +88,38 @@ def measure(yaw_rate: float, dt: float, state: GyroState, params: GyroErrorParam
     if params.ideal:
         return yaw_rate, state
     z = np.asarray(rng.standard_normal(3))
-    rate, bias = measure_with(yaw_rate, dt, state.bias, params, float(z[0]), float(z[1]),
-                              float(z[2]))
+    rate, bias = measure_with(yaw_rate, state.bias, params, step_constants(params, dt),
+                              float(z[0]), float(z[1]), float(z[2]))
     return rate, GyroState(bias)
 
 
-def measure_with(yaw_rate: float, dt: float, bias: float, params: GyroErrorParams,
-                 z_bias: float, z_scale: float, z_white: float) -> tuple[float, float]:
-    """:func:`measure` with the three standard normals given (bias step, scale noise, white
-    noise) and the bias as a float: ``(measured yaw rate, new bias)``. The simulator's path."""
+def step_constants(params: GyroErrorParams, dt: float) -> tuple[float, float, float, float]:
+    """For a sample interval ``dt``: the bias decay ``phi`` (1 for the random walk), the sigma of
+    the bias step, the per-sample scale sigma and the white-noise sample sigma (module doc)."""
     if math.isinf(params.bias_correlation_time_s):
-        bias = bias + params.gyroscope_random_walk * math.sqrt(dt) * z_bias
+        phi = 1.0
+        bias_sigma = params.gyroscope_random_walk * math.sqrt(dt)
     else:
         tau = params.bias_correlation_time_s
         # Stationary sigma of the Gauss-Markov bias whose short-term walk density is sigma_bg.
         sigma_ss = params.gyroscope_random_walk * math.sqrt(tau / 2.0)
         phi = math.exp(-dt / tau)
-        bias = phi * bias + sigma_ss * math.sqrt(1.0 - phi * phi) * z_bias
+        bias_sigma = sigma_ss * math.sqrt(1.0 - phi * phi)
     s_step = rate_scaled_sigma(params.scale_noise, 1.0 / dt, params.reference_rate_hz)
+    return phi, bias_sigma, s_step, params.gyroscope_noise_density / math.sqrt(dt)
+
+
+def measure_with(yaw_rate: float, bias: float, params: GyroErrorParams,
+                 constants: tuple[float, float, float, float],
+                 z_bias: float, z_scale: float, z_white: float) -> tuple[float, float]:
+    """:func:`measure` with the constants of :func:`step_constants` and the three standard
+    normals given (bias step, scale noise, white noise), the bias as a float:
+    ``(measured yaw rate, new bias)``. The simulator's path."""
+    phi, bias_sigma, s_step, white_sigma = constants
+    bias = phi * bias + bias_sigma * z_bias
     rate = ((1.0 + params.scale_factor_error + s_step * z_scale) * yaw_rate + bias
-            + params.gyroscope_noise_density / math.sqrt(dt) * z_white)
-    return float(rate), float(bias)
+            + white_sigma * z_white)
+    return rate, bias
 
 
 def measure_batch(yaw_rates: np.ndarray, dt: float, bias0: np.ndarray, params: GyroErrorParams,

@@ -123,18 +123,26 @@ def measure_with(d: np.ndarray, w: np.ndarray, rho: np.ndarray, response: Lookup
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`measure` with the variates given: ``z`` (3 n,) standard normals (distance, count,
     ambient noise of each sensor; ignored when ideal), ``d``/``rho`` (n, r) and ``w`` (r,)
-    C-contiguous. The simulator's path (pre-drawn blocks, weights computed once)."""
-    n = d.shape[0]
+    C-contiguous."""
+    out = np.empty((3, d.shape[0]), dtype=np.int64)
+    w_, rho_, rx, ry, ex, ey, fp = kernel_constants(w, rho, response, params)
+    _kernels.ir_kernel(d, z, w_, rho_, rx, ry, ex, ey, fp, out)
+    return out[0], out[1], out[2]
+
+
+KernelConstants = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                        np.ndarray]
+
+
+def kernel_constants(w: np.ndarray, rho: np.ndarray, response: LookupTable,
+                     params: IrErrorParams) -> KernelConstants:
+    """The arguments of ``_kernels.ir_kernel`` between the variates and the outputs (fixed for a
+    run: the simulator computes them once)."""
     amb = min(params.ambient_counts, params.max_counts)
     gain = 1.0 - params.ambient_saturation * amb / params.max_counts
-    counts = np.empty(n, dtype=np.int64)
-    ambient = np.empty(n, dtype=np.int64)
-    truth = np.empty(n, dtype=np.int64)
-    _kernels.ir_kernel(d, w, rho, response.x, response.y, params.distance_error.x,
-                       params.distance_error.y, z, params.ideal, gain, params.count_noise_sigma,
-                       params.ambient_counts, params.ambient_noise_counts,
-                       float(params.max_counts), counts, ambient, truth)
-    return counts, ambient, truth
+    fp = np.array([float(params.ideal), gain, params.count_noise_sigma, params.ambient_counts,
+                   params.ambient_noise_counts, float(params.max_counts)])
+    return (w, rho, response.x, response.y, params.distance_error.x, params.distance_error.y, fp)
 
 
 _NO_Z = np.zeros(0)

@@ -24,7 +24,7 @@ import numpy as np
 from sim.config import CameraConfig
 from sim.noise import Variates
 from sim.raycast import SegmentSet, first_hit
-from sim.robot import RobotState, wrap_angle
+from sim.robot import RobotState
 from sim.sensors.base import ErrorModel
 from sim.types import CameraReading, LandmarkObservation
 from sim.world import World
@@ -36,45 +36,75 @@ LOS_TOLERANCE_M = 1e-9
 @dataclass(frozen=True, eq=False)
 class CameraTruth:
     observations: tuple[LandmarkObservation, ...]   # every landmark in view, true values
-    ids: np.ndarray                                  # (v,) int64, per observation
-    ranges: np.ndarray                               # (v,) m
-    bearings: np.ndarray                             # (v,) rad
-    viewing_angle: np.ndarray                        # (v,) rad, per observation
-    a_max: np.ndarray                                # (v,) rad, per observation
-    all_ids: np.ndarray                              # (L,) int64, every landmark id of the world
+    rows: np.ndarray        # (v, 5) per observation: id, range, bearing, viewing angle, a_max
+    all_ids: np.ndarray     # (L,) int64, every landmark id of the world
+
+    @property
+    def ids(self) -> np.ndarray:
+        return self.rows[:, 0].astype(np.int64)
+
+    @property
+    def viewing_angle(self) -> np.ndarray:
+        """(v,) rad, between the landmark's facing and the direction landmark -> camera."""
+        return self.rows[:, 3]
+
+    @property
+    def a_max(self) -> np.ndarray:
+        """(v,) rad, each landmark's full viewing cone."""
+        return self.rows[:, 4]
+
+
+_TAU = 2.0 * math.pi
+
+
+@numba.njit(cache=True, nogil=True)
+def _wrap(a: float) -> float:  # pragma: no cover - compiled
+    # sim.robot.wrap_angle: to (-pi, pi]
+    w = a - _TAU * np.rint(a / _TAU)
+    if w > math.pi:
+        w -= _TAU
+    elif w <= -math.pi:
+        w += _TAU
+    return w
 
 
 @numba.njit(cache=True, nogil=True)
 def visible_landmarks(
-    landmarks: np.ndarray, seg: np.ndarray, cx: float, cy: float, ax: float, ay: float,
-    min_range: float, max_range: float, cos_half_fov: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
-    """Landmarks ``(L, 4)`` rows ``[x, y, facing, a_max]`` seen from a camera at ``(cx, cy)``
-    with unit axis ``(ax, ay)``: within range, within the field of view (by the dot product:
-    ``v . a >= cos(fov / 2) |v|``) and not hidden by a wall (``seg``:
-    :attr:`sim.raycast.SegmentSet.packed`). Returns their row indices, ranges and world-frame
-    directions (rad)."""
-    m = landmarks.shape[0]
-    idx = np.empty(m, dtype=np.int64)
-    rng = np.empty(m)
-    direction = np.empty(m)
+    landmarks: np.ndarray, seg: np.ndarray, cx: float, cy: float, theta: float, axis: float,
+    min_range: float, max_range: float, cos_half_fov: float, out: np.ndarray,
+) -> int:  # pragma: no cover - compiled
+    """Landmarks ``(L, 5)`` rows ``[id, x, y, facing, a_max]`` seen from a camera at
+    ``(cx, cy)`` whose axis points at ``axis`` (robot heading ``theta``): within range, within
+    the field of view (by the dot product: ``v . a >= cos(fov / 2) |v|``) and not hidden by a
+    wall (``seg``: :attr:`sim.raycast.SegmentSet.packed`). Writes one row per visible landmark
+    into ``out`` (L, 5): id, range, bearing (CCW from the heading), viewing angle (between the
+    landmark's facing and the direction landmark -> camera), a_max; returns their number."""
+    ax = math.cos(axis)
+    ay = math.sin(axis)
     c = 0
-    for i in range(m):
-        vx = landmarks[i, 0] - cx
-        vy = landmarks[i, 1] - cy
+    for i in range(landmarks.shape[0]):
+        vx = landmarks[i, 1] - cx
+        vy = landmarks[i, 2] - cy
         d = math.hypot(vx, vy)
         if not (min_range <= d <= max_range) or d == 0.0:
             continue
         if vx * ax + vy * ay < cos_half_fov * d:
             continue
-        _t, wall, _inc = first_hit(seg, cx, cy, vx / d, vy / d, max(d - 1e-9, 0.0))
+        _t, wall, _inc = first_hit(seg, cx, cy, vx / d, vy / d, max(d - LOS_TOLERANCE_M, 0.0))
         if wall >= 0:
             continue
-        idx[c] = i
-        rng[c] = d
-        direction[c] = math.atan2(vy, vx)
+        direction = math.atan2(vy, vx)
+        out[c, 0] = landmarks[i, 0]
+        out[c, 1] = d
+        out[c, 2] = _wrap(direction - theta)
+        out[c, 3] = _wrap(direction + math.pi - landmarks[i, 3])
+        out[c, 4] = landmarks[i, 4]
         c += 1
-    return idx[:c], rng[:c], direction[:c]
+    return c
+
+
+_NO_OBS: tuple[LandmarkObservation, ...] = ()
+_NOTHING = CameraReading(_NO_OBS, _NO_OBS)
 
 
 class CameraSensor:
@@ -93,35 +123,36 @@ class CameraSensor:
         lms = sorted(world.landmarks, key=lambda lm: lm.id)
         self.ids = tuple(lm.id for lm in lms)
         self._all_ids = np.array(self.ids, dtype=np.int64)
-        self.landmarks = tuple((lm.x, lm.y, math.radians(lm.facing_deg),
-                                math.radians(lm.a_max_deg)) for lm in lms)
-        self._lm = np.array(self.landmarks, dtype=float).reshape(-1, 4)
+        self._lm = np.array([(lm.id, lm.x, lm.y, math.radians(lm.facing_deg),
+                              math.radians(lm.a_max_deg)) for lm in lms], dtype=float
+                            ).reshape(-1, 5)
         self.half_fov = math.radians(params.fov_deg) / 2.0
         # fov_deg = 360 -> cos(pi) = -1 accepts every direction.
         self._cos_half_fov = math.cos(self.half_fov) - 1e-12
 
-    def truth(self, state: RobotState) -> CameraTruth:
+    def _visible(self, state: RobotState) -> np.ndarray:
         p = self.params
         c, s = math.cos(state.theta), math.sin(state.theta)
-        cx = state.x + c * p.pose[0] - s * p.pose[1]
-        cy = state.y + s * p.pose[0] + c * p.pose[1]
-        axis = state.theta + p.pose[2]
-        idx, rng, direction = visible_landmarks(
-            self._lm, self.walls.packed, cx, cy, math.cos(axis), math.sin(axis), p.min_range_m,
-            p.max_range_m, self._cos_half_fov)
-        obs = []
-        bearings = []
-        viewing = []
-        for i, d, a in zip(idx.tolist(), rng.tolist(), direction.tolist(), strict=True):
-            b = wrap_angle(a - state.theta)
-            obs.append(LandmarkObservation(self.ids[i], d, b))
-            bearings.append(b)
-            viewing.append(wrap_angle(a + math.pi - self.landmarks[i][2]))
-        return CameraTruth(tuple(obs), self._all_ids[idx], rng, np.array(bearings),
-                           np.array(viewing), self._lm[idx, 3], self._all_ids)
+        out = np.empty((self._lm.shape[0], 5))
+        m = visible_landmarks(
+            self._lm, self.walls.packed, state.x + c * p.pose[0] - s * p.pose[1],
+            state.y + s * p.pose[0] + c * p.pose[1], state.theta, state.theta + p.pose[2],
+            p.min_range_m, p.max_range_m, self._cos_half_fov, out)
+        return out[:m]
+
+    def truth(self, state: RobotState) -> CameraTruth:
+        """The landmarks in view with what an error model needs (module docstring)."""
+        return self._truth(self._visible(state))
+
+    def _truth(self, vis: np.ndarray) -> CameraTruth:
+        obs = tuple(LandmarkObservation(int(i), d, b) for i, d, b, _v, _a in vis.tolist())
+        return CameraTruth(obs, vis, self._all_ids)
 
     def measure(self, state: RobotState, variates: Variates) -> CameraReading:
-        truth = self.truth(state)
+        vis = self._visible(state)
+        if vis.shape[0] == 0:
+            return _NOTHING         # nothing in view: no model draws anything either
         if self.error_model is None:
-            return CameraReading(truth.observations, truth.observations)
-        return self.error_model.measure(truth, variates)
+            obs = tuple(LandmarkObservation(int(i), d, b) for i, d, b, _v, _a in vis.tolist())
+            return CameraReading(obs, obs)
+        return self.error_model.measure(self._truth(vis), variates)

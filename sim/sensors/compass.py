@@ -33,6 +33,7 @@ from sim.world import World
 @dataclass(frozen=True, slots=True, eq=False)
 class CompassTruth:
     field_body_uT: np.ndarray                   # (3,) FLU
+    field_body: tuple[float, float, float]      # the same as floats (scalar models)
     field_world_uT: tuple[float, float, float]  # x east, y north, z up
     theta: float
     left_speed: float             # m/s, for motor-current disturbances
@@ -65,12 +66,12 @@ def field_world(
     return (bx, by, bz)
 
 
-def field_body(b_world: tuple[float, float, float], theta: float) -> np.ndarray:
+def field_body(b_world: tuple[float, float, float], theta: float
+               ) -> tuple[float, float, float]:
     """Rotate a world-frame field into the body frame FLU (module docstring)."""
     c = math.cos(theta)
     s = math.sin(theta)
-    return np.array([c * b_world[0] + s * b_world[1], -s * b_world[0] + c * b_world[1],
-                     b_world[2]])
+    return (c * b_world[0] + s * b_world[1], -s * b_world[0] + c * b_world[1], b_world[2])
 
 
 class CompassSensor:
@@ -91,11 +92,13 @@ class CompassSensor:
     def truth(self, state: RobotState) -> CompassTruth:
         bw = field_world(state.x, state.y, self.earth, self.sources,
                          self.params.min_source_distance_m)
-        return CompassTruth(field_body(bw, state.theta), bw, state.theta,
-                            state.left_speed, state.right_speed)
+        b = field_body(bw, state.theta)
+        return CompassTruth(np.array(b), b, bw, state.theta, state.left_speed, state.right_speed)
 
     def measure(self, state: RobotState, variates: Variates) -> CompassReading:
-        truth = self.truth(state)
         if self.error_model is None:
-            return CompassReading(truth.field_body_uT, truth.field_body_uT)
-        return self.error_model.measure(truth, variates)
+            bw = field_world(state.x, state.y, self.earth, self.sources,
+                             self.params.min_source_distance_m)
+            b = np.array(field_body(bw, state.theta))
+            return CompassReading(b, b)
+        return self.error_model.measure(self.truth(state), variates)

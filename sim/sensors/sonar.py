@@ -73,8 +73,10 @@ class SonarTruth:
         return tuple(self._rows(i) for i in range(4))
 
     @cached_property
-    def _first(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return first_echo(self.rays, self.start, self.n, self.k, self.min_range_m)
+    def _first(self) -> np.ndarray:
+        out = np.empty((3, self.n))
+        first_echo(self.rays, self.start, self.n, self.k, self.min_range_m, out)
+        return out
 
     @property
     def ranges(self) -> np.ndarray:
@@ -89,14 +91,14 @@ class SonarTruth:
 
 @numba.njit(cache=True, nogil=True)
 def first_echo(
-    rays: np.ndarray, start: int, n: int, k: int, min_range: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    rays: np.ndarray, start: int, n: int, k: int, min_range: float, out: np.ndarray
+) -> None:  # pragma: no cover - compiled
     """Per sensor: the nearest of its k rays (first index on ties); ``rays`` as in
-    :class:`SonarTruth`. Returns the ideal reading (0 nearer than ``min_range``, nan: no echo),
-    the truth ranges (nan: none) and their incidence (nan: none)."""
-    reading = np.empty(n)
-    ranges = np.empty(n)
-    incidence = np.empty(n)
+    :class:`SonarTruth`. Writes ``out`` (3, n): the ideal reading (0 nearer than ``min_range``,
+    nan: no echo), the truth ranges (nan: none) and their incidence (nan: none)."""
+    reading = out[0]
+    ranges = out[1]
+    incidence = out[2]
     for i in range(n):
         best = np.inf
         inc = np.nan
@@ -108,7 +110,6 @@ def first_echo(
         ranges[i] = best if best < np.inf else np.nan
         incidence[i] = inc
         reading[i] = 0.0 if best < min_range else ranges[i]
-    return reading, ranges, incidence
 
 
 class SonarSensor:
@@ -138,9 +139,9 @@ class SonarSensor:
         ``start..`` are :attr:`fan`'s)."""
         p = self.params
         if self.error_model is None:
-            reading, ranges, incidence = first_echo(rays, start, self.fan.n, self.fan.k,
-                                                    p.min_range_m)
-            return SonarReading(ranges=reading, truth_ranges=ranges, incidence=incidence)
+            out = np.empty((3, self.fan.n))
+            first_echo(rays, start, self.fan.n, self.fan.k, p.min_range_m, out)
+            return SonarReading(ranges=out[0], truth_ranges=out[1], incidence=out[2])
         truth = SonarTruth(rays, index, start, self.fan.n, self.fan.k, p.min_range_m,
                            p.max_range_m, self.walls)
         return self.error_model.measure(truth, variates)
