@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 from _stats import assert_normal_variance
 
-from sim.noise import LookupTable, gauss_markov_step, random_walk_step, rate_scaled_sigma
+from sim.noise import (
+    BlockStream,
+    LookupTable,
+    gauss_markov_step,
+    random_walk_step,
+    rate_scaled_sigma,
+)
 from sim.schema import ConfigError
 
 
@@ -54,3 +60,22 @@ def test_lookup_table_interpolates_and_holds_ends() -> None:
         LookupTable.from_rows([[0.0, 1.0], [0.0, 2.0]])
     with pytest.raises(ConfigError):
         LookupTable.from_rows([[0.0, 1.0]])
+
+
+def test_block_stream_is_the_same_sequence_whatever_the_blocks_and_the_mix() -> None:
+    small = BlockStream(np.random.default_rng(7), block=5)
+    big = BlockStream(np.random.default_rng(7), block=4096)
+    # small draws normals and uniforms interleaved, in odd sizes, as arrays and as floats
+    got_n: list[float] = []
+    got_u: list[float] = []
+    for i in range(60):
+        got_n += small.normals(i % 4 + 1).tolist() if i % 2 else small.normal_list(i % 3 + 1)
+        got_u += small.uniforms(i % 5 + 1).tolist() if i % 3 else small.uniform_list(2)
+    assert got_n == big.normals(len(got_n)).tolist()
+    assert got_u == big.uniforms(len(got_u)).tolist()
+    # the Generator-like methods read the same streams
+    a = BlockStream(np.random.default_rng(7))
+    assert np.array_equal(a.standard_normal((2, 3)).ravel(), np.array(got_n[:6]))
+    assert float(a.random()) == got_u[0]
+    # normals and uniforms are two independent child streams of the sensor's generator
+    assert set(got_n).isdisjoint(got_u)
