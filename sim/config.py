@@ -16,8 +16,10 @@ Seam for error models (issue 3): every sensor section and ``[robot.drive_error]`
 (bool) and, side by side with the simulator's keys, the parameters of that sensor's error model
 (``[sensors.gyro] gyroscope_noise_density = ...``). The error model's params class
 (:data:`ERROR_PARAMS`, in ``sim/models/``, imported lazily) validates and types them; the result is
-the sensor config's ``errors`` attribute. With ``ideal = true`` the sensor reports its noise-free
-value whatever those parameters say.
+the sensor config's ``errors`` attribute. A value both need (``ideal``, ``min_range_m``, ...) has
+one key, owned and validated here and handed to the params class (its ``FROM_SENSOR`` fields).
+With ``ideal = true`` the sensor reports its noise-free value whatever those parameters say. The
+encoders have no error model: ``[sensors.encoders] ideal = false`` is a config error.
 """
 
 from __future__ import annotations
