@@ -171,18 +171,18 @@ def step(
     left_m = motion.left_m * wheel_frac
     right_m = motion.right_m * wheel_frac
     dheading = heading - state.heading
-    return RobotState(
-        x=x,
-        y=y,
-        theta=wrap_angle(heading),
-        heading=heading,
-        left_travel_m=state.left_travel_m + left_m,
-        right_travel_m=state.right_travel_m + right_m,
-        left_speed=left_m / dt,
-        right_speed=right_m / dt,
-        yaw_rate=dheading / dt,
-        collided=collided,
-        clearance=clearance,
+    return RobotState(          # positional: x, y, theta, heading, travel, speeds, yaw rate, ...
+        x,
+        y,
+        wrap_angle(heading),
+        heading,
+        state.left_travel_m + left_m,
+        state.right_travel_m + right_m,
+        left_m / dt,
+        right_m / dt,
+        dheading / dt,
+        collided,
+        clearance,
     )
 
 
