@@ -111,7 +111,7 @@ TOPIC_SCHEMAS: dict[str, dict[str, Any]] = {
     "sensors/ir": _sensor(
         "koala.sensors.Ir",
         {"counts": _INTS, "ambient": _INTS},
-        {"counts": _INTS, "ranges": _array(_NUM_OR_NULL)},
+        {"counts": _INTS, "ranges": _array(_NUM_OR_NULL), "incidence": _array(_NUM_OR_NULL)},
     ),
     "sensors/sonar": _sensor(
         "koala.sensors.Sonar",

@@ -5,7 +5,7 @@ simulation seconds, world frame x east / y north / theta CCW from +x, body frame
 
 =====================  ==========================================================================
 ``truth/pose``          ``{t, x, y, theta}``
-``sensors/ir``          ``{t, counts[16], ambient[16], truth: {counts}}``
+``sensors/ir``          ``{t, counts[16], ambient[16], truth: {counts, ranges, incidence}}``
 ``sensors/sonar``       ``{t, ranges[n] (m, null = no echo), truth: {ranges, incidence}}``
 ``sensors/odometry``    ``{t, left_ticks, right_ticks, truth: {left_ticks, right_ticks}}``
 ``sensors/gyro``        ``{t, yaw_rate (rad/s, CCW+), truth: {yaw_rate}}``
@@ -17,6 +17,11 @@ simulation seconds, world frame x east / y north / theta CCW from +x, body frame
 
 The message builders are pure functions of a :class:`sim.types.Readings`; :class:`ZenohLink`
 owns the session. Non-finite numbers (no echo, nothing in range) are sent as ``null``.
+
+Range truth: ``ranges`` (m) along each sensor's axis (IR) or to the nearest surface of the beam
+(sonar), ``null`` where nothing is within the sensor's maximum range; ``incidence`` (rad) the
+angle between that ray and the surface normal, ``null`` where there is no surface (or, for IR,
+where the caller did not supply it).
 """
 
 from __future__ import annotations
@@ -25,9 +30,10 @@ import json
 import logging
 import math
 import threading
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
+import numpy as np
 import zenoh
 
 from bridge.config import ZenohSettings
@@ -62,16 +68,27 @@ def pose_message(r: Readings) -> dict[str, Any]:
     return {"t": r.t, "x": r.pose.x, "y": r.pose.y, "theta": r.pose.theta}
 
 
-def sensor_messages(r: Readings) -> dict[str, dict[str, Any]]:
-    """``{key suffix: message}`` for every sensor reading due in ``r`` (see module table)."""
+def sensor_messages(
+    r: Readings, ir_incidence: Sequence[float] | np.ndarray | None = None
+) -> dict[str, dict[str, Any]]:
+    """``{key suffix: message}`` for every sensor reading due in ``r`` (see module table).
+
+    ``ir_incidence`` (n,) rad: incidence of each IR sensor's axis ray (nan: none), which the
+    simulator's :class:`~sim.types.IrReading` does not carry; None publishes ``null``s.
+    """
     out: dict[str, dict[str, Any]] = {}
     t = r.t
     if r.ir is not None:
+        n = len(r.ir.counts)
         out["sensors/ir"] = {
             "t": t,
             "counts": _ints(r.ir.counts),
             "ambient": _ints(r.ir.ambient),
-            "truth": {"counts": _ints(r.ir.truth_counts)},
+            "truth": {
+                "counts": _ints(r.ir.truth_counts),
+                "ranges": _nums(r.ir.truth_ranges),
+                "incidence": [None] * n if ir_incidence is None else _nums(ir_incidence),
+            },
         }
     if r.sonar is not None:
         out["sensors/sonar"] = {
@@ -186,6 +203,11 @@ class ZenohLink:
 
     def publish(self, suffix: str, message: Mapping[str, Any]) -> None:
         """Put ``message`` as JSON on ``<prefix>/<suffix>``."""
+        self.publish_json(suffix, encode(message))
+
+    def publish_json(self, suffix: str, payload: bytes) -> None:
+        """Put ``payload``, already JSON, on ``<prefix>/<suffix>`` as it is (a replay puts the
+        recorded bytes back)."""
         with self._lock:
             pub = self._publishers.get(suffix)
             if pub is None:
@@ -193,7 +215,7 @@ class ZenohLink:
                     f"{self.prefix}/{suffix}", encoding=zenoh.Encoding.APPLICATION_JSON
                 )
                 self._publishers[suffix] = pub
-        pub.put(encode(message))
+        pub.put(payload)
         self._counters.sent(ZENOH_BUS)
 
     def publish_readings(self, r: Readings, with_pose: bool) -> None:

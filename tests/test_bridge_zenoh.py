@@ -58,12 +58,29 @@ def test_sensor_messages_carry_truth_with_the_same_field_names() -> None:
         assert msg["t"] == 1.25
         assert "truth" in msg
         for key in msg["truth"]:
-            assert key in msg or key == "incidence"
+            assert key in msg or key in ("ranges", "incidence")  # IR: counts measured, ranges true
     assert m["sensors/sonar"]["ranges"] == [0.5, None]      # null = no echo
     assert m["sensors/sonar"]["truth"]["incidence"] == [0.1, None]
+    ir = m["sensors/ir"]["truth"]
+    assert ir["counts"] == [6] * 16
+    assert ir["ranges"] == [None] * 16 and ir["incidence"] == [None] * 16  # nothing in range
     assert m["sensors/compass"]["truth"] == {"mx": 19.0, "my": 0.0, "mz": -43.0}
     assert m["sensors/camera"]["observations"] == [{"id": 2, "range": 1.5, "bearing": -0.25}]
     json.loads(encode(m["sensors/sonar"]))  # strict JSON: no NaN literal
+
+
+def test_ir_truth_carries_axis_ranges_and_the_given_incidence() -> None:
+    r = readings()
+    ranges = np.full(16, np.inf)
+    ranges[:2] = [0.05, 0.2]
+    ir = IrReading(r.ir.counts, r.ir.ambient, r.ir.truth_counts, ranges)
+    incidence = np.full(16, np.nan)
+    incidence[:2] = [0.0, 0.3]
+    m = sensor_messages(Readings(r.t, r.pose, r.wheel_speeds, ir=ir), ir_incidence=incidence)
+    truth = m["sensors/ir"]["truth"]
+    assert truth["ranges"] == [0.05, 0.2] + [None] * 14
+    assert truth["incidence"] == [0.0, 0.3] + [None] * 14
+    json.loads(encode(m["sensors/ir"]))
 
 
 def test_only_due_readings_are_published() -> None:

@@ -59,9 +59,14 @@ def write_synthetic_recording(path: Path, seconds: float = 2.0, seed: int = 5) -
                     "truth": {"ranges": [_none_if_nan(v) for v in true.tolist()],
                               "incidence": [0.1, 0.2, 0.3, None]},
                 })
+                ir_ranges = [None] * 16
+                ir_ranges[4:6] = rng.uniform(0.02, 0.25, size=2).tolist()
+                ir_incidence = [None] * 16
+                ir_incidence[4:6] = [0.0, 0.7]
                 rec.record("sensors/ir", t, {
                     "t": t, "counts": rng.integers(0, 1024, 16).tolist(), "ambient": [0] * 16,
-                    "truth": {"counts": [0] * 16},
+                    "truth": {"counts": [0] * 16, "ranges": ir_ranges,
+                              "incidence": ir_incidence},
                 })
             if k % 10 == 0:
                 obs = [{"id": 1, "range": 1.5 + t, "bearing": -0.2}, {"id": 3, "range": 2.0,
@@ -110,17 +115,18 @@ def test_bundle_agrees_one_for_one(recording: Path, tmp_path: Path) -> None:
     for m in sorted(rec.topic("sensors/sonar") + rec.topic("sensors/ir"),
                     key=lambda m: m.log_time_ns):
         msg = m.json()
-        if m.topic == "/sensors/sonar":
-            for i, r in enumerate(msg["ranges"]):
-                tr = msg["truth"]["ranges"][i]
-                expected.append((msg["t"], "sonar", i, r, tr, msg["truth"]["incidence"][i]))
-        else:
-            for i, c in enumerate(msg["counts"]):
-                expected.append((msg["t"], "ir", i, c, None, None))
+        truth = msg["truth"]
+        kind, measured = (("sonar", msg["ranges"]) if m.topic == "/sensors/sonar"
+                          else ("ir", msg["counts"]))
+        for i, value in enumerate(measured):
+            expected.append((msg["t"], kind, i, value, truth["ranges"][i],
+                             truth["incidence"][i]))
     got = [(float(r["t"]), r["kind"], int(r["sensor"]), _num(r["measured"]),
             _num(r["true_range"]), _num(r["incidence_angle"])) for r in rows]
     assert got == expected
     assert any(g[3] is None for g in got) and any(g[4] is None for g in got)  # no echo kept
+    ir_true = [g[4] for g in got if g[1] == "ir" and g[4] is not None]
+    assert ir_true and all(0.02 <= r <= 0.25 for r in ir_true)  # IR rows get true_range
 
     cam = [m.json() for m in rec.topic("sensors/camera")]
     obs = [(msg["t"], o) for msg in cam for o in msg["observations"]]

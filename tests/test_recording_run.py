@@ -149,6 +149,14 @@ def test_bundle_agrees_one_for_one_with_the_recording(rec: Recording, tmp_path: 
     assert [int(r["measured"]) for r in ranges if r["kind"] == "ir"] == [
         c for m in ir for c in m["counts"]
     ]
+    # IR rows carry the axis range and incidence of the message's truth companion.
+    def cell(v: float | None) -> str:
+        return "" if v is None else repr(v)
+
+    assert [(r["true_range"], r["incidence_angle"]) for r in ranges if r["kind"] == "ir"] == [
+        (cell(rng), cell(inc)) for m in ir
+        for rng, inc in zip(m["truth"]["ranges"], m["truth"]["incidence"], strict=True)
+    ]
     meta = json.loads((out / "meta.json").read_text())
     assert meta["seed"] == json.loads(rec.metadata["koala-bridge"]["config"])["sim"]["seed"]
     assert meta["config_path"].endswith("default.toml")
