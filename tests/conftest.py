@@ -297,6 +297,21 @@ class ZenohWatch:
                     raise AssertionError(f"no {key} message matched in {timeout} s; last {last}")
                 self._cond.wait(remaining)
 
+    def collect(self, wanted: dict[str, int], timeout: float = 60.0) -> dict[str, list[dict]]:
+        """Wait until at least ``wanted[key]`` messages of each key have arrived; return them
+        all (a copy), per key."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while True:
+                short = {k: (len(self.messages.get(k, [])), n) for k, n in wanted.items()
+                         if len(self.messages.get(k, [])) < n}
+                if not short:
+                    return {k: list(self.messages.get(k, [])) for k in wanted}
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise AssertionError(f"too few messages after {timeout} s (got, want): {short}")
+                self._cond.wait(remaining)
+
     def after(self, key: str, t: float, timeout: float = 20.0) -> dict[str, Any]:
         """The first ``key`` message with simulation time ``t`` or later."""
         return self.wait_for(key, lambda m: m["t"] >= t, timeout)
