@@ -19,7 +19,13 @@ import os
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+from drivers.can_codec import DEFAULT_DBC_PATH
+
+if TYPE_CHECKING:
+    from bridge.buses import OpenBuses
+    from bridge.config import BridgeSettings
 
 
 @dataclass(frozen=True)
@@ -95,13 +101,42 @@ class Endpoints:
                 else ""
             )
         )
-        lines.append(
-            f"  Zenoh                   {', '.join(self.zenoh_endpoints) or off}"
-            f"  prefix {self.zenoh_prefix}/"
-        )
+        if self.zenoh_prefix:
+            where = ", ".join(self.zenoh_endpoints) or "(no listen endpoint: see [zenoh] connect)"
+            lines.append(f"  Zenoh                   {where}  prefix {self.zenoh_prefix}/")
+        else:
+            lines.append(f"  Zenoh                   {off}")
         for name, where in sorted(self.extra.items()):
             lines.append(f"  {name:<23} {where}")
         return "\n".join(lines)
+
+
+def endpoints_of(buses: OpenBuses, settings: BridgeSettings, zenoh: bool = True) -> Endpoints:
+    """Where clients connect to ``buses`` opened from ``settings`` (``run`` and ``replay``).
+
+    ``zenoh``: whether a Zenoh session listens on ``[zenoh] listen`` under ``[zenoh] prefix``.
+    """
+    socketcand = None
+    if "can.socketcand" in buses.can:
+        ep = buses.can["can.socketcand"].endpoint
+        socketcand = SocketcandEndpoint(str(ep.host), int(ep.port or 0), str(ep.channel))
+    mav_url = None
+    if buses.mavlink is not None:
+        ep = buses.mavlink.transport.endpoint
+        mav_url = settings.buses.mavlink.client_url(pty_path=ep.path, bound_port=ep.port)
+    return Endpoints(
+        kteam=buses.kteam.transport.endpoint.path if buses.kteam else None,
+        rangefinders=buses.rangefinders.transport.endpoint.path if buses.rangefinders else None,
+        socketcand=socketcand,
+        slcan=buses.can["can.slcan"].endpoint.path if "can.slcan" in buses.can else None,
+        dbc=str(DEFAULT_DBC_PATH.resolve()),
+        mavlink_url=mav_url,
+        zenoh_endpoints=settings.zenoh.listen if zenoh else (),
+        zenoh_prefix=settings.zenoh.prefix if zenoh else "",
+        virtual_can_channel=(
+            buses.can["can.virtual"].endpoint.channel if "can.virtual" in buses.can else None
+        ),
+    )
 
 
 def write_endpoints_file(path: str | os.PathLike[str], endpoints: Endpoints) -> Path:

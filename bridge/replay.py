@@ -11,6 +11,11 @@ K-Team ASCII is request/response, so its replies are not replayed as a stream: a
 the client is answered with the latest recorded reply to the same letter at the current replay
 time (``h,...`` for ``H``), or with the K-Team error reply if the recording has none.
 
+The recorded Zenoh messages (``truth/pose``, ``sensors/*``, ``status``, ``estimate/*``, ...) go
+back out on a Zenoh session at their times too, byte for byte, under ``[zenoh] prefix``, and the
+session answers ``<prefix>/world`` with the recording's world: ``monitor`` and ``snapshot`` work
+during a replay as during a run.
+
 :func:`plan_replay` refuses, with a message naming the reason, a recording it cannot replay:
 another format version, no bus channel, no frame from the robot.
 """
@@ -28,8 +33,6 @@ from typing import Any
 import can
 
 from bridge.buses import LockedByteLink, OpenBuses
-from bridge.config import BridgeSettings
-from bridge.endpoints import Endpoints, SocketcandEndpoint
 from bridge.recording import (
     BUSES,
     FORMAT_VERSION,
@@ -38,7 +41,7 @@ from bridge.recording import (
     Recording,
     UnsupportedRecordingError,
 )
-from drivers.can_codec import DEFAULT_DBC_PATH
+from bridge.zenoh_io import ZenohLink
 from drivers.kteam import LineSplitter, error_reply, format_reply, parse_command
 from drivers.messages import Reject, RejectReason, TransportError
 
@@ -47,17 +50,20 @@ log = logging.getLogger(__name__)
 SPIN_S = 0.002  # sleep until this close to a deadline, then spin: sleep overshoots ~0.1-1 ms
 SWITCH_INTERVAL_S = 0.0005  # GIL hand-over while replaying (CPython's default: 5 ms)
 STREAM_BUSES = ("serial/rangefinders", "can", "mavlink")
+ZENOH = "zenoh"  # the pseudo-bus of replayed Zenoh messages in plans and statistics
 
 
 @dataclass(frozen=True)
 class ReplayFrame:
-    """One frame to put back on a bus at recorded time ``t`` (simulation seconds)."""
+    """One frame to put back on a bus at recorded time ``t`` (simulation seconds); for
+    ``bus == "zenoh"``, a recorded JSON payload to publish on ``<prefix>/<key>``."""
 
     t: float
     bus: str
     data: bytes
     can_id: int | None = None
     extended: bool = False
+    key: str | None = None
 
 
 @dataclass
@@ -71,9 +77,12 @@ class ReplayPlan:
     t_end: float
 
 
-def plan_replay(rec: Recording, buses: tuple[str, ...] | None = None) -> ReplayPlan:
+def plan_replay(
+    rec: Recording, buses: tuple[str, ...] | None = None, zenoh: bool = True
+) -> ReplayPlan:
     """The frames to replay from ``rec``; raises :class:`UnsupportedRecordingError` with the
-    reason if there is nothing this version can replay. ``buses`` limits the buses replayed."""
+    reason if there is nothing this version can replay. ``buses`` limits the buses replayed;
+    ``zenoh`` adds the recorded Zenoh messages (bus ``"zenoh"``, counted under that name)."""
     name = rec.path.name
     if rec.profile != PROFILE and rec.format_version is None:
         raise UnsupportedRecordingError(
@@ -97,8 +106,11 @@ def plan_replay(rec: Recording, buses: tuple[str, ...] | None = None) -> ReplayP
     replies: dict[str, tuple[list[float], list[bytes]]] = {}
     counts: dict[str, int] = {}
     unknown: set[str] = set()
+    zenoh_frames: list[ReplayFrame] = []
     for m in rec.messages:
         if not m.topic.startswith("/bus/"):
+            if zenoh:
+                zenoh_frames.append(ReplayFrame(m.t, ZENOH, m.data, key=m.topic.lstrip("/")))
             continue
         bus = m.topic[len("/bus/") :]
         if bus not in BUSES:
@@ -131,6 +143,9 @@ def plan_replay(rec: Recording, buses: tuple[str, ...] | None = None) -> ReplayP
             f"{name} holds no frame sent by the robot (dir = from_robot) on "
             f"{', '.join(sorted(wanted))}: nothing to replay"
         )
+    if zenoh_frames:
+        frames += zenoh_frames
+        counts[ZENOH] = len(zenoh_frames)
     frames.sort(key=lambda f: f.t)  # stable: equal times keep file order
     for letter, (ts, ls) in list(replies.items()):
         order = sorted(range(len(ts)), key=ts.__getitem__)
@@ -138,29 +153,6 @@ def plan_replay(rec: Recording, buses: tuple[str, ...] | None = None) -> ReplayP
     times = [f.t for f in frames] + [ts[0] for ts, _ in replies.values() if ts]
     t_end = max([f.t for f in frames] + [ts[-1] for ts, _ in replies.values() if ts])
     return ReplayPlan(frames, replies, counts, min(times), t_end)
-
-
-def endpoints_of(buses: OpenBuses, settings: BridgeSettings) -> Endpoints:
-    """Where clients connect to the replayed buses (same shape as ``run``'s endpoints file)."""
-    socketcand = None
-    if "can.socketcand" in buses.can:
-        ep = buses.can["can.socketcand"].endpoint
-        socketcand = SocketcandEndpoint(str(ep.host), int(ep.port or 0), str(ep.channel))
-    mav_url = None
-    if buses.mavlink is not None:
-        ep = buses.mavlink.transport.endpoint
-        mav_url = settings.buses.mavlink.client_url(pty_path=ep.path, bound_port=ep.port)
-    return Endpoints(
-        kteam=buses.kteam.transport.endpoint.path if buses.kteam else None,
-        rangefinders=buses.rangefinders.transport.endpoint.path if buses.rangefinders else None,
-        socketcand=socketcand,
-        slcan=buses.can["can.slcan"].endpoint.path if "can.slcan" in buses.can else None,
-        dbc=str(DEFAULT_DBC_PATH.resolve()),
-        mavlink_url=mav_url,
-        virtual_can_channel=(
-            buses.can["can.virtual"].endpoint.channel if "can.virtual" in buses.can else None
-        ),
-    )
 
 
 @dataclass
@@ -191,11 +183,13 @@ class Replayer:
         linger_s: float = 0.5,
         monotonic: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
+        zenoh: ZenohLink | None = None,
     ) -> None:
         if not speed > 0:
             raise ValueError(f"speed must be > 0, got {speed!r}")
         self.plan = plan
         self.buses = buses
+        self.zenoh = zenoh
         self.speed = speed
         self.linger_s = linger_s
         self._monotonic = monotonic
@@ -212,6 +206,7 @@ class Replayer:
             "serial/rangefinders": self.buses.rangefinders is not None,
             "mavlink": self.buses.mavlink is not None,
             "can": bool(self.buses.can),
+            ZENOH: self.zenoh is not None,
         }[bus]
 
     def replay_time(self) -> float:
@@ -283,7 +278,12 @@ class Replayer:
 
     def _send(self, frame: ReplayFrame) -> None:
         try:
-            if frame.bus == "can":
+            if frame.bus == ZENOH:
+                if self.zenoh is None:
+                    return
+                assert frame.key is not None
+                self.zenoh.publish_json(frame.key, frame.data)
+            elif frame.bus == "can":
                 if not self.buses.can:
                     return
                 msg = can.Message(

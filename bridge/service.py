@@ -27,7 +27,6 @@ import math
 import threading
 import time
 from collections.abc import Callable, Mapping
-from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
@@ -36,10 +35,10 @@ from bridge.buses import LockedByteLink, OpenBuses, open_buses
 from bridge.clock import Clock, make_clock
 from bridge.config import BridgeSettings
 from bridge.counters import BusCounters
-from bridge.endpoints import Endpoints, SocketcandEndpoint
+from bridge.endpoints import Endpoints, endpoints_of
 from bridge.robot_io import KteamResponder, MotorArbiter, RobotPort, RobotUnits
 from bridge.zenoh_io import ZENOH_BUS, ZenohLink, pose_message, sensor_messages, status_message
-from drivers.can_codec import DEFAULT_DBC_PATH, KoalaCanCodec
+from drivers.can_codec import KoalaCanCodec
 from drivers.kteam import KteamLimits, LineSplitter, format_reply, parse_command
 from drivers.mavlink_codec import CompassDecoder, CompassEncoder, MavlinkIdentity
 from drivers.messages import (
@@ -151,7 +150,7 @@ class BridgeService:
         except BaseException:
             self.close()
             raise
-        self.endpoints = self._endpoints()
+        self.endpoints = endpoints_of(self.buses, self.settings)
         return self.endpoints
 
     def close(self) -> None:
@@ -172,30 +171,6 @@ class BridgeService:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-    def _endpoints(self) -> Endpoints:
-        b = self.buses
-        socketcand = None
-        if "can.socketcand" in b.can:
-            ep = b.can["can.socketcand"].endpoint
-            socketcand = SocketcandEndpoint(str(ep.host), int(ep.port or 0), str(ep.channel))
-        slcan = b.can["can.slcan"].endpoint.path if "can.slcan" in b.can else None
-        virtual = b.can["can.virtual"].endpoint.channel if "can.virtual" in b.can else None
-        mav_url = None
-        if b.mavlink is not None:
-            ep = b.mavlink.transport.endpoint
-            mav_url = self.settings.buses.mavlink.client_url(pty_path=ep.path, bound_port=ep.port)
-        return Endpoints(
-            kteam=b.kteam.transport.endpoint.path if b.kteam else None,
-            rangefinders=b.rangefinders.transport.endpoint.path if b.rangefinders else None,
-            socketcand=socketcand,
-            slcan=slcan,
-            dbc=str(Path(DEFAULT_DBC_PATH).resolve()),
-            mavlink_url=mav_url,
-            zenoh_endpoints=self.settings.zenoh.listen,
-            zenoh_prefix=self.settings.zenoh.prefix,
-            virtual_can_channel=virtual,
-        )
 
     # -- simulation loop ---------------------------------------------------------------------
 

@@ -38,6 +38,7 @@ import zenoh
 
 from bridge.config import ZenohSettings
 from bridge.counters import BusCounters
+from drivers.messages import TransportError
 from sim.types import LandmarkObservation, Readings
 
 log = logging.getLogger(__name__)
@@ -215,7 +216,10 @@ class ZenohLink:
                     f"{self.prefix}/{suffix}", encoding=zenoh.Encoding.APPLICATION_JSON
                 )
                 self._publishers[suffix] = pub
-        pub.put(payload)
+        try:
+            pub.put(payload)
+        except zenoh.ZError as e:
+            raise TransportError(f"zenoh: cannot publish {self.prefix}/{suffix}: {e}") from e
         self._counters.sent(ZENOH_BUS)
 
     def publish_readings(self, r: Readings, with_pose: bool) -> None:

@@ -20,9 +20,10 @@ import can
 import pytest
 import serial
 from _recorded_run import RecordedRun, record_run
-from conftest import REPO, bridge_command, free_port
+from conftest import REPO, BridgeProcess, bridge_command, free_port
 from mcap.writer import Writer
 
+from bridge.cli import monitor as monitor_cli
 from bridge.cli import replay as replay_cli
 from bridge.recording import FROM_ROBOT, Recorder, open_recording
 from bridge.replay import plan_replay
@@ -38,6 +39,12 @@ def run3(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RecordedRun]:
 def _args(argv: list[str]) -> argparse.Namespace:
     parser = argparse.ArgumentParser()
     replay_cli.add_arguments(parser)
+    return parser.parse_args(argv)
+
+
+def monitor_args(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    monitor_cli.add_arguments(parser)
     return parser.parse_args(argv)
 
 
@@ -85,6 +92,7 @@ def test_replay_feeds_clients_the_recorded_frames_in_order(
                 "replay", str(run3.path), "--speed", "3", "--wait-clients", "20",
                 "--endpoints-file", str(endpoints_file),
                 "--set", f"buses.mavlink.port={mav_port}", "--set", "buses.can.slcan=false",
+                "--set", f'zenoh.listen=["tcp/127.0.0.1:{free_port()}"]',
             ),
             cwd=REPO, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
         )
@@ -149,6 +157,57 @@ def test_replay_feeds_clients_the_recorded_frames_in_order(
     assert counters == replies[b"H\r"]
     assert missing.startswith(b"z,")
     assert "Replay done" in log_path.read_text()
+
+
+def test_replay_republishes_the_recorded_zenoh_messages_for_monitor(
+    run3: RecordedRun, tmp_path: Path, zenoh_watch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    rec = open_recording(run3.path)
+    recorded: dict[str, list[dict]] = {}
+    for m in rec.messages:
+        if not m.topic.startswith("/bus/"):
+            recorded.setdefault(m.topic[1:], []).append(m.json())
+    assert {"truth/pose", "sensors/gyro", "sensors/ir", "status"} <= recorded.keys()
+    zenoh_endpoint = f"tcp/127.0.0.1:{free_port()}"
+    endpoints_file = tmp_path / "replay.json"
+    log_path = tmp_path / "replay.log"
+    with log_path.open("wb") as log:
+        proc = subprocess.Popen(
+            bridge_command(
+                "replay", str(run3.path), "--endpoints-file", str(endpoints_file),
+                "--bus", "can", "--set", "buses.can.slcan=false",
+                "--set", "buses.can.socketcand=false", "--set", "buses.mavlink.enabled=false",
+                "--set", f'zenoh.listen=["{zenoh_endpoint}"]',
+            ),
+            cwd=REPO, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+        )
+    try:
+        deadline = time.monotonic() + 30
+        while not endpoints_file.exists():
+            assert proc.poll() is None, log_path.read_text()
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+        ep = json.loads(endpoints_file.read_text())
+        assert ep["zenoh"]["endpoints"] == [zenoh_endpoint]
+        watch = zenoh_watch(BridgeProcess(proc, ep, endpoints_file, log_path, zenoh_endpoint, 0))
+        assert watch.query("world") == rec.world
+        assert monitor_cli.run(monitor_args([
+            "--connect", zenoh_endpoint, "--prefix", ep["zenoh"]["prefix"],
+            "--once", "--duration", "1"])) == 0
+        assert proc.wait(timeout=60) == 0, log_path.read_text()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    out = capsys.readouterr().out
+    assert "sensors/gyro" in out and "truth/pose" in out
+    time.sleep(0.2)
+    for key, want in recorded.items():
+        got = watch.messages.get(key, [])
+        # The watch connected after the replay started: what it got is the recording's tail,
+        # message for message.
+        assert len(got) >= len(want) // 2, (key, len(got), len(want))
+        assert got == want[len(want) - len(got):], key
 
 
 def test_refuses_a_recording_without_bus_channels(

@@ -3,15 +3,21 @@
 Puts back what the robot sent, recorded by `run --record` (simulated or real robot): range frames
 on the rangefinders pty, CAN frames on socketcand/slcan/virtual, MAVLink on its UDP/TCP/pty link,
 each at its recorded time (or --speed times faster). K-Team commands are answered with the
-recorded reply to the same letter at the current replay time. The buses are those of the
-recording's configuration (`--config` replaces it, `--set` overrides a key), and the start banner
-and --endpoints-file say where clients connect, as for `run`. A recording that cannot be replayed
-(other format version, no bus channel) is refused with the reason.
+recorded reply to the same letter at the current replay time. The recorded Zenoh messages
+(truth, sensors, status, estimates) are published again at their times, and the `world`
+queryable answers, so `koala-bridge monitor` and `snapshot` work during a replay (--no-zenoh:
+buses only). The buses are those of the recording's configuration (`--config` replaces it,
+`--set` overrides a key), and the start banner and --endpoints-file say where clients connect,
+as for `run`. A recording that cannot be replayed (other format version, no bus channel) is
+refused with the reason.
 
 examples:
+  koala-bridge run --clock fast --duration 60 --record /tmp/run.mcap   # make a recording
   koala-bridge replay /tmp/run.mcap
   koala-bridge replay /tmp/run.mcap --speed 4 --endpoints-file /tmp/replay.json
   koala-bridge replay /tmp/run.mcap --wait-clients 30 --set buses.mavlink.port=14551
+  koala-bridge replay /tmp/run.mcap --set 'zenoh.listen=["tcp/127.0.0.1:7500"]' &
+  koala-bridge monitor --connect tcp/127.0.0.1:7500                     # watch the replay
 """
 
 from __future__ import annotations
@@ -67,6 +73,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="replay only this bus (repeatable; default: every recorded bus)",
     )
     parser.add_argument(
+        "--no-zenoh",
+        action="store_true",
+        help="do not publish the recorded Zenoh messages (no Zenoh session is opened)",
+    )
+    parser.add_argument(
         "--fifo-priority",
         type=int,
         default=0,
@@ -99,13 +110,16 @@ def run(args: argparse.Namespace) -> int:
         load_config,
         parse_override,
     )
-    from bridge.endpoints import write_endpoints_file
+    from bridge.endpoints import endpoints_of, write_endpoints_file
     from bridge.recording import RecordingError, open_recording
-    from bridge.replay import SWITCH_INTERVAL_S, Replayer, endpoints_of, plan_replay
+    from bridge.replay import SWITCH_INTERVAL_S, Replayer, plan_replay
+    from bridge.zenoh_io import ZenohLink
 
     try:
         rec = open_recording(args.recording)
-        plan = plan_replay(rec, tuple(args.buses) if args.buses else None)
+        plan = plan_replay(
+            rec, tuple(args.buses) if args.buses else None, zenoh=not args.no_zenoh
+        )
     except RecordingError as e:
         print(f"koala-bridge replay: cannot replay: {e}", file=sys.stderr)
         return 2
@@ -134,13 +148,17 @@ def run(args: argparse.Namespace) -> int:
     if args.fifo_priority:
         _set_fifo_priority(args.fifo_priority)
     buses = None
+    zenoh = None
+    world = rec.world or {}
     try:
         try:
             buses = open_buses(settings.buses)
+            if not args.no_zenoh:
+                zenoh = ZenohLink(settings.zenoh, lambda: world)
         except OSError as e:
             print(f"koala-bridge replay: {e}", file=sys.stderr)
             return 1
-        endpoints = endpoints_of(buses, settings)
+        endpoints = endpoints_of(buses, settings, zenoh=zenoh is not None)
         print(endpoints.describe(), flush=True)
         if args.endpoints_file:
             print(
@@ -158,7 +176,9 @@ def run(args: argparse.Namespace) -> int:
         # The replay thread and the transports' I/O threads hand the GIL over every 0.5 ms
         # instead of 5 ms: a frame queued for socketcand leaves within a millisecond.
         sys.setswitchinterval(SWITCH_INTERVAL_S)
-        replayer = Replayer(plan, buses, speed=replayer_speed, linger_s=max(0.0, args.linger))
+        replayer = Replayer(
+            plan, buses, speed=replayer_speed, linger_s=max(0.0, args.linger), zenoh=zenoh
+        )
         stats = replayer.run(stop)
         sent = ", ".join(f"{b} {n}" for b, n in sorted(stats.sent.items()))
         p99 = stats.lateness_quantile(0.99) * 1e3
@@ -168,6 +188,8 @@ def run(args: argparse.Namespace) -> int:
             flush=True,
         )
     finally:
+        if zenoh is not None:
+            zenoh.close()
         if buses is not None:
             buses.close()
         for s, handler in previous.items():
