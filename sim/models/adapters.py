@@ -120,12 +120,14 @@ class SonarError:
         self.n_uniforms = 0 if p.ideal else 3 * n_sensors + (n_sensors ** 2 if self.use_cross
                                                               else 0)
         self.n_normals = 0 if p.ideal else n_sensors
+        # ideal, use_leg (late echoes need the walls), use_cross
+        self.flags = np.array([p.ideal, p.late_echo_probability > 0, self.use_cross],
+                              dtype=np.int64)
+        self.flags_no_walls = np.array([p.ideal, False, self.use_cross], dtype=np.int64)
 
     def measure(self, truth: SonarTruth, rng: Variates) -> SonarReading:
-        p = self.params
         n = truth.n
-        use_leg = truth.walls is not None and p.late_echo_probability > 0
-        flags = _FLAGS[(p.ideal, use_leg, self.use_cross)]
+        flags = self.flags if truth.walls is not None else self.flags_no_walls
         u = np.asarray(rng.random(self.n_uniforms)) if self.n_uniforms else _NONE
         z = np.asarray(rng.standard_normal(self.n_normals)) if self.n_normals else _NONE
         seg = truth.walls.packed if truth.walls is not None else _NO_SEG
@@ -133,10 +135,6 @@ class SonarError:
         _kernels.sonar_ring_kernel(seg, truth.rays, truth.index, truth.start, n, truth.k, self.fp,
                                    flags, self.table_x, self.table_y, self.cycle, u, z, out)
         return SonarReading(ranges=out[0], truth_ranges=out[1], incidence=out[2])
-
-
-_FLAGS = {(a, b, c): np.array([a, b, c], dtype=np.int64)
-          for a in (False, True) for b in (False, True) for c in (False, True)}
 
 
 class GyroError:

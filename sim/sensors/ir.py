@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import cached_property
 
 import numba
 import numpy as np
@@ -29,7 +28,7 @@ from sim.sensors.fan import RayFan
 from sim.types import IrReading
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, slots=True, eq=False)
 class IrTruth:
     """What an IR error model starts from: views of the step's cast, nothing computed yet."""
 
@@ -38,7 +37,7 @@ class IrTruth:
     ambient: np.ndarray         # (n,) int, the constant ambient reading
     params: IrConfig
 
-    @cached_property
+    @property
     def counts(self) -> np.ndarray:
         """(n,) int, the ideal sensor's counts (mean of the rays' responses)."""
         n, k = self.ray_ranges.shape
