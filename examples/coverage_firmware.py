@@ -61,6 +61,7 @@ from bridge.estimation import (
     PoseTracker,
     PoseTrackerParams,
     heading_from_field,
+    sensor_sides,
     walls_from_ir,
 )
 from drivers.can_codec import KoalaCanCodec, load_koala_dbc
@@ -97,6 +98,8 @@ class RobotParams:
     wheel_base_m: float
     max_speed_units: int  # K-Team D range, pulse / 10 ms
     ir_poses: np.ndarray  # (16, 3) body frame [x, y, yaw rad]
+    ir_response_m: np.ndarray  # response curve: range (m) ...
+    ir_response_counts: np.ndarray  # ... -> counts (decreasing)
     encoders_rate_hz: float
     gyro_rate_hz: float
 
@@ -109,6 +112,8 @@ class RobotParams:
             wheel_base_m=float(d["robot"]["wheel_base_m"]),
             max_speed_units=int(d["buses"]["kteam"]["max_speed"]),
             ir_poses=ir,
+            ir_response_m=np.array(d["sensors"]["ir"]["response_range_m"], dtype=float),
+            ir_response_counts=np.array(d["sensors"]["ir"]["response_counts"], dtype=float),
             encoders_rate_hz=float(d["sensors"]["encoders"]["rate_hz"]),
             gyro_rate_hz=float(d["sensors"]["gyro"]["rate_hz"]),
         )
@@ -219,6 +224,8 @@ class CoverageFirmware:
         self.last_send_t = -math.inf
         self.wall_deadline = time.monotonic() + args.timeout_s
         self.resyncs = 0
+        self.last_counts: tuple[int, ...] | None = None
+        self.wall_fixes = 0
 
     # -- plumbing ------------------------------------------------------------------------
     def poll(self) -> None:
@@ -362,9 +369,40 @@ class CoverageFirmware:
         for _ in range(n):
             self.wait(0.06)  # IR samples at 20 Hz: a fresh one per reading
             counts = self.read_ir()
+            self.last_counts = counts
             out.append(walls_from_ir(counts, self.tracker.pose[2], self.robot.ir_poses,
                                      self.args.ir_threshold, cell_m=self.world.cell_m))
         return out
+
+    def correct_from_walls(self, cell: tuple[int, int]) -> None:
+        """Map-based position fix at a stop: a sensor facing a known wall of ``cell`` within
+        20 deg of its normal measures the robot's coordinate across that wall (IR counts to
+        range by the robot's response curve)."""
+        if self.last_counts is None:
+            return
+        x, y, th = self.tracker.pose
+        poses = self.robot.ir_poses
+        sides = sensor_sides(th, poses, self.world.cell_m, math.radians(20.0))
+        cm = self.world.cell_m
+        c, s = math.cos(th), math.sin(th)
+        for i, k in enumerate(sides):
+            counts = self.last_counts[i]
+            if k is None or not self.world.has_wall(*cell, SIDES[k]) or not 40 <= counts < 1000:
+                continue
+            r = float(np.interp(counts, self.robot.ir_response_counts[::-1],
+                                self.robot.ir_response_m[::-1]))
+            bx, by, yaw = poses[i]
+            ox, oy = c * bx - s * by, s * bx + c * by
+            phi = th + yaw
+            side = SIDES[k]
+            sigma = 0.004 + 0.05 * r
+            if side in ("N", "S"):
+                wall_y = (cell[1] + (1 if side == "N" else 0)) * cm
+                ok = self.tracker.on_coordinate(self.t, 1, wall_y - r * math.sin(phi) - oy, sigma)
+            else:
+                wall_x = (cell[0] + (1 if side == "E" else 0)) * cm
+                ok = self.tracker.on_coordinate(self.t, 0, wall_x - r * math.cos(phi) - ox, sigma)
+            self.wall_fixes += int(ok)
 
     def move(self, target_xy: tuple[float, float], side: str) -> bool:
         self.grid.move(side)
@@ -404,35 +442,47 @@ class CoverageFirmware:
         raise RuntimeError("not localised within the move budget")
 
     def cover(self, start: tuple[int, int]) -> list[tuple[int, int]]:
-        """The lab's full-grid navigation from ``start``; returns the cells in visit order."""
+        """The lab's full-grid navigation from ``start``: left, up, down, right into an unvisited
+        cell, else back the way it came; returns the cells in visit order. If the plan had to be
+        re-anchored (the grid filter disagreed), the way back is lost: the robot then takes the
+        shortest path to the nearest unvisited cell."""
         w = self.world
         cell = start
+        reachable = _reachable(w, start)
         visited = {cell}
         order = [cell]
         history: list[str] = []
+        doubt = 0
+        self.correct_from_walls(cell)
         while True:
-            for side in LAB_ORDER:
-                n = (cell[0] + SIDE_STEP[side][0], cell[1] + SIDE_STEP[side][1])
-                if w.can_move(*cell, side) and n not in visited:
-                    history.append(side)
-                    break
-            else:
-                if not history:
-                    return order
+            side = next((s for s in LAB_ORDER if w.can_move(*cell, s)
+                         and _step(cell, s) not in visited), None)
+            if side is not None:
+                history.append(side)
+            elif history:
                 side = OPPOSITE[history.pop()]
-                n = (cell[0] + SIDE_STEP[side][0], cell[1] + SIDE_STEP[side][1])
+            else:
+                path = _path_to_nearest(w, cell, reachable - visited)
+                if not path:
+                    return order
+                side = path[0]
+            n = _step(cell, side)
             if not self.move(w.cell_centre(*n), side):
-                log.warning("move %s from %s blocked; retrying from the centre", side, cell)
+                log.warning("move %s from %s blocked; back to the centre", side, cell)
                 self.drive_to(*w.cell_centre(*cell))
+                if history and history[-1] == side:
+                    history.pop()
                 continue
             cell = n
             visited.add(cell)
             order.append(cell)
             for walls in self.read_walls(1):
                 self.grid.observe(walls)
+            self.correct_from_walls(cell)
             guess = self.grid.guess()
-            if guess != cell and self.grid.probability(guess) > 0.9:
-                # The filter is sure we are elsewhere: trust it, re-anchor the EKF, re-plan.
+            doubt = doubt + 1 if guess != cell and self.grid.probability(guess) > 0.95 else 0
+            if doubt >= 2:
+                # Two stops in a row the filter is sure we are elsewhere: trust it, re-anchor.
                 log.warning("grid filter says %s, plan says %s: re-anchoring", guess, cell)
                 self.resyncs += 1
                 gx, gy = w.cell_centre(*guess)
@@ -443,6 +493,7 @@ class CoverageFirmware:
                 visited.add(cell)
                 order.append(cell)
                 history.clear()
+                doubt = 0
 
     def run(self) -> dict[str, Any]:
         self.calibrate()
@@ -459,8 +510,34 @@ class CoverageFirmware:
             "complete": reachable <= set(order),
             "robot_time_s": round(self.t, 2),
             "resyncs": self.resyncs,
+            "wall_fixes": self.wall_fixes,
             "gated_out": self.tracker.counters.rejected,
         }
+
+
+def _step(cell: tuple[int, int], side: str) -> tuple[int, int]:
+    return (cell[0] + SIDE_STEP[side][0], cell[1] + SIDE_STEP[side][1])
+
+
+def _path_to_nearest(
+    world: World, start: tuple[int, int], goals: set[tuple[int, int]]
+) -> list[str]:
+    """Sides of a shortest path from ``start`` to the nearest of ``goals`` (breadth first)."""
+    prev: dict[tuple[int, int], tuple[tuple[int, int], str] | None] = {start: None}
+    queue = [start]
+    for c in queue:
+        if c in goals:
+            path: list[str] = []
+            while (link := prev[c]) is not None:
+                c, side = link[0], link[1]
+                path.append(side)
+            return path[::-1]
+        for s in SIDES:
+            n = _step(c, s)
+            if world.can_move(*c, s) and n not in prev:
+                prev[n] = (c, s)
+                queue.append(n)
+    return []
 
 
 def _reachable(world: World, start: tuple[int, int]) -> set[tuple[int, int]]:

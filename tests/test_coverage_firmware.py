@@ -104,8 +104,10 @@ def run_once(tmp: Path, world_name: str, seed: int, timeout_s: float = 240.0) ->
             bridge.wait()
         if bridge.stderr:
             bridge.stderr.close()
+    (tmp / f"firmware_{world_name}_{seed}.log").write_text(fw.stderr)
     assert fw.returncode in (0, 1), fw.stderr[-3000:]
     result = json.loads(report.read_text())
+    result["firmware_log"] = fw.stderr[-4000:]
     world = World.from_dict(
         tomllib.loads((ROOT / "config" / "worlds" / f"{world_name}.toml").read_text())["world"]
     )
@@ -142,7 +144,10 @@ def main() -> None:
                           f"localised {r['localised_cell']} after {r['localisation_moves']} "
                           f"moves, {len(r['truth_visited'])}/{len(r['free_cells'])} cells, "
                           f"robot time {r['robot_time_s']} s, resyncs {r['resyncs']}, "
-                          f"wall {time.monotonic() - t0:.0f} s", flush=True)
+                          f"wall fixes {r['wall_fixes']}, wall {time.monotonic() - t0:.0f} s",
+                          flush=True)
+                    if not ok:
+                        print(r["firmware_log"], flush=True)
                 except Exception as e:  # report and go on with the next run
                     print(f"{world} seed {seed}: FAILED {e!r}", flush=True)
 

@@ -184,3 +184,13 @@ def test_tracker_integrates_ticks_and_gyro_and_falls_back_to_odometry() -> None:
     trk.on_odometry(t, left - d, right + d)
     assert trk.pose[2] == pytest.approx(math.pi / 2, abs=1e-3)
     assert trk.pose_cov.shape == (3, 3)
+
+
+def test_tracker_coordinate_fix_moves_only_that_coordinate() -> None:
+    trk = PoseTracker(PoseTrackerParams(wheel_base_m=0.285, ticks_per_metre=90284.0))
+    trk.reset(1.0, 1.0, 0.0, np.diag([0.02**2, 0.02**2, 1e-4]))
+    assert trk.on_coordinate(0.0, 1, 1.03, 0.02)
+    x, y, _ = trk.pose
+    assert x == pytest.approx(1.0) and y == pytest.approx(1.015)
+    assert trk.pose_cov[1, 1] == pytest.approx(0.5 * 0.02**2)
+    assert not trk.on_coordinate(0.0, 0, 2.0, 0.01)  # 50 sigma away: gated

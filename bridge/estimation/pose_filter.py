@@ -373,6 +373,12 @@ class PoseTracker:
         R = np.diag([sigma_range**2, sigma_bearing**2])
         return self._gated_update("landmark", [range_m, bearing], R, H, hx, (1,))
 
+    def on_coordinate(self, t: float, axis: int, value: float, sigma: float) -> bool:
+        """One world coordinate of the robot's centre (``axis`` 0: x, 1: y), metres -- e.g. from
+        a range sensor facing a known wall, which fixes the coordinate across the wall only."""
+        H = POSITION_H[axis : axis + 1]
+        return self._gated_update("coordinate", [value], np.array([[sigma * sigma]]), H)
+
     def on_position(self, t: float, xy: ArrayLike, cov: ArrayLike) -> bool:
         """A position fix ``[x, y]`` with its ``(2, 2)`` covariance (e.g. from ``wls_fix``)."""
         return self._gated_update("position", xy, np.asarray(cov, dtype=float), POSITION_H)
