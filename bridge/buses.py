@@ -11,6 +11,7 @@ the simulation loop writes while a reader thread reads.
 
 from __future__ import annotations
 
+import errno
 import logging
 import select
 import threading
@@ -116,11 +117,33 @@ class OpenBuses:
         self.can.clear()
 
 
+#: The configuration key that moves a bus to another port, for the "port in use" hint.
+PORT_KEYS = {"mavlink": "buses.mavlink.port", "can.socketcand": "buses.can.socketcand_port"}
+
+
+def address_in_use(e: BaseException) -> bool:
+    """Whether ``e`` (or an exception it was raised from) says the address is already in use."""
+    seen: BaseException | None = e
+    while seen is not None:
+        if isinstance(seen, OSError) and seen.errno == errno.EADDRINUSE:
+            return True
+        if "address already in use" in str(seen).lower():
+            return True
+        seen = seen.__cause__
+    return False
+
+
 def _open(name: str, factory: Callable[[], object]) -> object:
     try:
         return factory()
     except (TransportError, OSError) as e:
-        raise BusOpenError(f"cannot open bus {name}: {e}") from e
+        hint = ""
+        if name in PORT_KEYS and address_in_use(e):
+            hint = (
+                f" (another koala-bridge running? --set {PORT_KEYS[name]}=N picks another "
+                "port, 0 any free one)"
+            )
+        raise BusOpenError(f"cannot open bus {name}: {e}{hint}") from e
 
 
 def open_buses(settings: BusesSettings) -> OpenBuses:

@@ -13,6 +13,8 @@ Command-line overrides use dotted keys and TOML values, e.g.
 from __future__ import annotations
 
 import copy
+import difflib
+import math
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -35,6 +37,10 @@ __all__ = [
 ]
 
 MAVLINK_TRANSPORTS = ("udp", "tcp", "pty")
+
+#: The top-level tables of a configuration: sim/ reads the first four (sim/config.py), the bridge
+#: the others (``[real]``: bridge/real_source.py, for ``run --source real``).
+SECTIONS = ("sim", "robot", "sensors", "world", "run", "buses", "zenoh", "real")
 
 
 def load_config(path: str | Path) -> dict[str, Any]:
@@ -86,14 +92,16 @@ def apply_override(config: Mapping[str, Any], parts: list[str], value: Any) -> d
     return out
 
 
-def _section(config: Mapping[str, Any], name: str) -> Mapping[str, Any]:
+def _section(config: Mapping[str, Any], name: str, parent: str = "") -> Mapping[str, Any]:
+    """The table at dotted ``name`` below ``config`` (whose own name is ``parent``)."""
+    where = f"{parent}.{name}" if parent else name
     node: Any = config
     for part in name.split("."):
         if not isinstance(node, Mapping):
-            raise ConfigError(f"[{name}] must be a table")
+            raise ConfigError(f"[{where}] must be a table")
         node = node.get(part, {})
     if not isinstance(node, Mapping):
-        raise ConfigError(f"[{name}] must be a table, got {node!r}")
+        raise ConfigError(f"[{where}] must be a table, got {node!r}")
     return node
 
 
@@ -141,8 +149,11 @@ class RunSettings:
             choices = ", ".join(CLOCK_NAMES)
             raise ConfigError(f"[{s}] 'clock' must be one of {choices}, got {clock!r}")
         duration = float(_get(d, "duration_s", s, (int, float)))
-        if duration < 0:
-            raise ConfigError(f"[{s}] 'duration_s' must be >= 0 (0 = run until stopped)")
+        if not (math.isfinite(duration) and duration >= 0):
+            raise ConfigError(
+                f"[{s}] 'duration_s' must be a finite number >= 0 (0 = run until stopped), "
+                f"got {duration}"
+            )
         return cls(clock, duration, _get(d, "endpoints_file", s, str))
 
 
@@ -244,10 +255,10 @@ class BusesSettings:
             raise ConfigError(f"[{s}] 'motor_watchdog_s' must be >= 0 (0 = off)")
         flags = {}
         for name, keys in (("kteam", ("enabled", "max_speed")), ("rangefinders", ("enabled",))):
-            sub = _section(d, name)
+            sub = _section(d, name, s)
             reject_unknown(sub, keys, f"{s}.{name}")
             flags[name] = _get(sub, "enabled", f"{s}.{name}", bool)
-        max_speed = _get(_section(d, "kteam"), "max_speed", f"{s}.kteam", int)
+        max_speed = _get(_section(d, "kteam", s), "max_speed", f"{s}.kteam", int)
         if max_speed < 1:
             raise ConfigError(f"[{s}.kteam] 'max_speed' must be >= 1, got {max_speed}")
         return cls(
@@ -255,8 +266,8 @@ class BusesSettings:
             kteam=flags["kteam"],
             kteam_max_speed=max_speed,
             rangefinders=flags["rangefinders"],
-            can=CanSettings.from_dict(_section(d, "can")),
-            mavlink=MavlinkSettings.from_dict(_section(d, "mavlink")),
+            can=CanSettings.from_dict(_section(d, "can", s)),
+            mavlink=MavlinkSettings.from_dict(_section(d, "mavlink", s)),
         )
 
 
@@ -313,6 +324,7 @@ class BridgeSettings:
 
     @classmethod
     def from_config(cls, config: Mapping[str, Any]) -> BridgeSettings:
+        reject_unknown_sections(config)
         robot = _section(config, "robot")
         name = robot.get("name", "koala")
         if not isinstance(name, str) or not name or any(c in name for c in "/*$?# "):
@@ -323,3 +335,16 @@ class BridgeSettings:
             zenoh=ZenohSettings.from_dict(_section(config, "zenoh"), name),
             robot_name=name,
         )
+
+
+def reject_unknown_sections(config: Mapping[str, Any]) -> None:
+    """Raise :class:`ConfigError` for a top-level key that is not one of :data:`SECTIONS`,
+    suggesting the nearest (a misspelt ``[bueses]`` must not be ignored silently), or that is
+    not a table."""
+    for key, value in config.items():
+        if key not in SECTIONS:
+            near = difflib.get_close_matches(key, SECTIONS, n=1)
+            hint = f"did you mean [{near[0]}]?" if near else f"valid: {', '.join(SECTIONS)}"
+            raise ConfigError(f"unknown section [{key}]; {hint}")
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"[{key}] must be a table, got {value!r}")

@@ -28,6 +28,8 @@ from rich.panel import Panel
 from rich.table import Table
 from rich.text import Text
 
+from bridge.zenoh_io import zenoh_error_text
+
 log = logging.getLogger(__name__)
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
@@ -49,8 +51,16 @@ def client_config(connect: Sequence[str], mode: str = "client") -> zenoh.Config:
 
 def target_from_endpoints_file(path: str | Path) -> tuple[list[str], str]:
     """``(zenoh endpoints, prefix)`` from a bridge's endpoints file (``run --endpoints-file``)."""
-    d = json.loads(Path(path).read_text())
-    z = d["zenoh"]
+    p = Path(path)
+    try:
+        d = json.loads(p.read_text(encoding="utf-8"))
+    except OSError as e:
+        raise OSError(f"cannot read the endpoints file {p}: {e.strerror or e}") from e
+    except ValueError as e:
+        raise OSError(f"{p} is not an endpoints file (not JSON: {e})") from e
+    z = d.get("zenoh") if isinstance(d, dict) else None
+    if not isinstance(z, dict) or not z.get("endpoints") or not z.get("prefix"):
+        raise OSError(f"{p} is not a koala-bridge endpoints file (no zenoh endpoints/prefix)")
     return list(z["endpoints"]), str(z["prefix"])
 
 
@@ -73,7 +83,10 @@ class ZenohWatch:
         try:
             self.session = zenoh.open(client_config(connect, mode))
         except zenoh.ZError as e:
-            raise OSError(f"cannot open a Zenoh session to {list(connect)}: {e}") from e
+            raise OSError(
+                f"cannot reach a Zenoh peer at {', '.join(connect)}: {zenoh_error_text(e)} "
+                "(is the bridge running? --connect/--endpoints-file say where)"
+            ) from e
         self._sub = self.session.declare_subscriber(f"{self.prefix}/**", self._on_sample)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:

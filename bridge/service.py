@@ -233,7 +233,10 @@ class BridgeService:
         if n % self._pose_period == 0:
             messages = {"truth/pose": pose_message(r), **messages}
         for suffix, message in messages.items():
-            self.zenoh.publish(suffix, message)
+            try:
+                self.zenoh.publish(suffix, message)
+            except TransportError as e:  # the loop and the other buses go on
+                self._write_failed(ZENOH_BUS, e)
             if self.tap is not None:
                 self.tap.record(suffix, r.t, message)
         if n % self._status_period == 0 and n > 0:
@@ -280,7 +283,10 @@ class BridgeService:
         if self.zenoh is None:
             return
         msg = self.status(t)
-        self.zenoh.publish("status", msg)
+        try:
+            self.zenoh.publish("status", msg)
+        except TransportError as e:
+            self._write_failed(ZENOH_BUS, e)
         if self.tap is not None:
             self.tap.record("status", t, msg)
 

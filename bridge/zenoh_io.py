@@ -29,6 +29,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import re
 import threading
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
@@ -161,6 +162,23 @@ def session_config(settings: ZenohSettings) -> zenoh.Config:
     return config
 
 
+def zenoh_error_text(e: Exception) -> str:
+    """A Zenoh error's message without the Rust source locations it carries."""
+    return re.sub(r"\s+at \S+\.rs:\d+\.?", "", str(e)).strip()
+
+
+def _session_error(settings: ZenohSettings, e: Exception) -> str:
+    """One line saying why the session did not open."""
+    listen = ", ".join(settings.listen) or "nothing"
+    text = zenoh_error_text(e)
+    if "address already in use" in text.lower():
+        return (
+            f"cannot open the Zenoh session: {listen} is already in use (another koala-bridge "
+            "running?); listen elsewhere with --set 'zenoh.listen=[\"tcp/127.0.0.1:7448\"]'"
+        )
+    return f"cannot open the Zenoh session (listen {listen}): {text}"
+
+
 class ZenohLink:
     """The bridge's Zenoh session: publishers under the prefix and the ``world`` queryable.
 
@@ -183,9 +201,7 @@ class ZenohLink:
         try:
             self._session = zenoh.open(session_config(settings))
         except zenoh.ZError as e:
-            raise OSError(
-                f"cannot open the Zenoh session (listen {list(settings.listen)}): {e}"
-            ) from e
+            raise OSError(_session_error(settings, e)) from e
         self._queryable = self._session.declare_queryable(
             f"{self.prefix}/world", self._on_world_query
         )

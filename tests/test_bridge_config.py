@@ -68,7 +68,9 @@ def test_unknown_key_suggests_nearest() -> None:
         ("buses.can.socketcand=1", "'socketcand' must be bool"),
         ("zenoh.listen=[\"7447\"]", "list of locators"),
         ("zenoh.status_rate_hz=0", "'status_rate_hz' must be > 0"),
-        ("run.duration_s=-1", "'duration_s' must be >= 0"),
+        ("run.duration_s=-1", "'duration_s' must be a finite number >= 0"),
+        ("run.duration_s=inf", "'duration_s' must be a finite number >= 0"),
+        ("run.duration_s=nan", "'duration_s' must be a finite number >= 0"),
         ("robot.name=a/b", "plain word"),
     ],
 )
@@ -76,6 +78,17 @@ def test_bad_values_are_named(override: str, message: str) -> None:
     cfg = apply_override(default(), *parse_override(override))
     with pytest.raises(ConfigError, match=message):
         BridgeSettings.from_config(cfg)
+
+
+def test_unknown_section_suggests_nearest() -> None:
+    cfg = apply_override(default(), *parse_override("bueses.kteam.enabled=false"))
+    with pytest.raises(ConfigError, match=r"unknown section \[bueses\]; did you mean \[buses\]"):
+        BridgeSettings.from_config(cfg)
+    cfg = apply_override(default(), *parse_override("xyzzy.a=1"))
+    with pytest.raises(ConfigError, match=r"unknown section \[xyzzy\]; valid: sim, robot"):
+        BridgeSettings.from_config(cfg)
+    cfg = apply_override(default(), *parse_override('real.kteam="/dev/ttyUSB0"'))
+    BridgeSettings.from_config(cfg)  # [real] is a section of run --source real
 
 
 def test_missing_key_is_named() -> None:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 
 from bridge.export import export_bundle
 from bridge.recording import RecordingError
@@ -32,8 +33,12 @@ def run(args: argparse.Namespace) -> int:
     try:
         out = export_bundle(args.recording, args.bundle)
     except RecordingError as e:
-        log.error("%s", e)
+        print(f"koala-bridge export: {e}", file=sys.stderr)
         return 2
+    except OSError as e:
+        print(f"koala-bridge export: cannot write the bundle {args.bundle}: {e.strerror or e}",
+              file=sys.stderr)
+        return 1
     files = sorted(p.name for p in out.iterdir())
     log.info("bundle written to %s: %s", out, ", ".join(files))
     return 0

@@ -14,10 +14,12 @@ import ast
 import importlib
 import importlib.util
 import logging
+import math
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 from types import ModuleType
+from typing import NoReturn
 
 SUBCOMMANDS: dict[str, str] = {
     "run": "bridge.cli.run",
@@ -33,8 +35,43 @@ examples:
   koala-bridge run                                # real time, config/default.toml
   koala-bridge run --clock fast --duration 10 --seed 3
   koala-bridge run --endpoints-file /tmp/koala.json --set buses.mavlink.port=14551
+  koala-bridge run --config config/ideal.toml     # every error model off
+  koala-bridge monitor                            # in another terminal: the live streams
+  koala-bridge run --clock fast --duration 60 --record /tmp/run.mcap
+  koala-bridge export /tmp/run.mcap --bundle /tmp/run-bundle
+  koala-bridge replay /tmp/run.mcap
   koala-bridge <subcommand> --help                # what each subcommand does
 """
+
+
+def seconds(text: str) -> float:
+    """Argument type: a finite number of seconds >= 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds, got {text!r}") from None
+    if not math.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"must be a finite number of seconds >= 0, got {text!r}")
+    return value
+
+
+def positive(text: str) -> float:
+    """Argument type: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
+    return value
+
+
+class OneLineErrorParser(argparse.ArgumentParser):
+    """An argument error is one line on stderr (exit 2) that points at ``--help``, instead of
+    the usage block followed by the error."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
 def _summary(module_name: str) -> tuple[str, str] | None:
@@ -67,7 +104,7 @@ def _load(module_name: str) -> ModuleType | None:
 
 def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
     """The parser; only the ``chosen`` subcommand's module is imported to add its arguments."""
-    parser = argparse.ArgumentParser(
+    parser = OneLineErrorParser(
         prog="koala-bridge",
         description=(
             "Hardware-in-the-loop bridge for the K-Team Koala: a simulated robot served on its "

@@ -16,11 +16,13 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 import time
 
 from rich.console import Console
 from rich.live import Live
 
+from bridge.cli.main import positive, seconds
 from bridge.monitor import (
     DEFAULT_CONNECT,
     DEFAULT_PREFIX,
@@ -61,7 +63,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_target_arguments(parser)
     parser.add_argument(
         "--duration",
-        type=float,
+        type=seconds,
         metavar="S",
         help="exit after S seconds (default: run until Ctrl-C)",
     )
@@ -72,23 +74,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--timeout",
-        type=float,
+        type=seconds,
         default=10.0,
         metavar="S",
         help="with --once: wait up to S seconds for the first message (default: 10)",
     )
-    parser.add_argument("--refresh-hz", type=float, default=4.0, help="redraws per second")
+    parser.add_argument("--refresh-hz", type=positive, default=4.0, help="redraws per second")
 
 
 def run(args: argparse.Namespace) -> int:
-    connect, prefix = resolve_target(args)
+    try:
+        connect, prefix = resolve_target(args)
+    except OSError as e:
+        print(f"koala-bridge monitor: {e}", file=sys.stderr)
+        return 2
     header = f"koala-bridge monitor — {prefix} via {', '.join(connect)}"
     state = MonitorState()
     console = Console()
     try:
         watch = ZenohWatch(connect, prefix, state.on_message)
     except OSError as e:
-        log.error("%s", e)
+        print(f"koala-bridge monitor: {e}", file=sys.stderr)
         return 2
     with watch:
         if args.once:
@@ -97,7 +103,14 @@ def run(args: argparse.Namespace) -> int:
             wait_for(lambda: state.total() > 0, args.timeout)
             time.sleep(args.duration if args.duration is not None else 2.0)
             console.print(render(state, header))
-            return 0 if state.total() else 1
+            if not state.total():
+                print(
+                    f"koala-bridge monitor: no message under {prefix}/ in {args.timeout:g} s "
+                    f"via {', '.join(connect)} (is the bridge running, with this prefix?)",
+                    file=sys.stderr,
+                )
+                return 1
+            return 0
         deadline = None if args.duration is None else time.monotonic() + args.duration
         period = 1.0 / max(args.refresh_hz, 0.1)
         try:

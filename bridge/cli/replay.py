@@ -33,6 +33,8 @@ import time
 from pathlib import Path
 from types import FrameType
 
+from bridge.cli.main import positive, seconds
+
 log = logging.getLogger(__name__)
 
 
@@ -40,7 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("recording", metavar="FILE.mcap", help="a recording of `run --record`")
     parser.add_argument(
         "--speed",
-        type=float,
+        type=positive,
         default=1.0,
         metavar="X",
         help="replay X times faster than recorded (default: 1, real time)",
@@ -87,14 +89,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--linger",
-        type=float,
+        type=seconds,
         default=0.5,
         metavar="S",
         help="keep the buses open S seconds after the last frame (default: 0.5)",
     )
     parser.add_argument(
         "--wait-clients",
-        type=float,
+        type=seconds,
         default=0.0,
         metavar="S",
         help="before starting, wait up to S seconds for a client on each pty/TCP/socketcand bus",
@@ -103,6 +105,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from bridge.buses import open_buses
+    from bridge.cli.run import DEFAULT_CONFIG
     from bridge.config import (
         BridgeSettings,
         ConfigError,
@@ -128,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
             config = load_config(args.config)
         else:
             text = rec.metadata.get("koala-bridge", {}).get("config")
-            config = json.loads(text) if text else load_config("config/default.toml")
+            config = json.loads(text) if text else load_config(DEFAULT_CONFIG)
         for o in args.overrides:
             config = apply_override(config, *parse_override(o))
         settings = BridgeSettings.from_config(config)
@@ -161,9 +164,16 @@ def run(args: argparse.Namespace) -> int:
         endpoints = endpoints_of(buses, settings, zenoh=zenoh is not None)
         print(endpoints.describe(), flush=True)
         if args.endpoints_file:
-            print(
-                f"  Endpoints file          {write_endpoints_file(args.endpoints_file, endpoints)}"
-            )
+            try:
+                path = write_endpoints_file(args.endpoints_file, endpoints)
+            except OSError as e:
+                print(
+                    f"koala-bridge replay: cannot write the endpoints file {args.endpoints_file}: "
+                    f"{e.strerror or e}",
+                    file=sys.stderr,
+                )
+                return 1
+            print(f"  Endpoints file          {path}")
         counts = ", ".join(f"{b} {n}" for b, n in sorted(plan.counts.items()))
         span = plan.t_end - plan.t0
         print(

@@ -24,6 +24,7 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
+from bridge.cli.main import seconds
 from bridge.clock import CLOCK_NAMES
 from bridge.config import (
     BridgeSettings,
@@ -35,13 +36,14 @@ from bridge.config import (
 
 log = logging.getLogger(__name__)
 
-DEFAULT_CONFIG = Path("config/default.toml")
+# The repository's config, wherever the command is run from (as drivers.can_codec finds the DBC).
+DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "config" / "default.toml"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--config", type=Path, default=DEFAULT_CONFIG,
-        help=f"TOML configuration (default: {DEFAULT_CONFIG})",
+        help="TOML configuration (default: config/default.toml of this installation)",
     )
     parser.add_argument(
         "--clock", choices=CLOCK_NAMES,
@@ -49,7 +51,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "(default: [run] clock)",
     )
     parser.add_argument(
-        "--duration", type=float, metavar="S",
+        "--duration", type=seconds, metavar="S",
         help="stop after S simulation seconds; 0 = until stopped (default: [run] duration_s)",
     )
     parser.add_argument("--seed", type=int, help="random seed (default: [sim] seed)")
@@ -139,7 +141,16 @@ def run(args: argparse.Namespace) -> int:
             return 1
         print(endpoints.describe(), flush=True)
         if settings.run.endpoints_file:
-            path = write_endpoints_file(settings.run.endpoints_file, endpoints)
+            target = settings.run.endpoints_file
+            try:
+                path = write_endpoints_file(target, endpoints)
+            except OSError as e:
+                print(
+                    f"koala-bridge run: cannot write the endpoints file {target}: "
+                    f"{e.strerror or e}",
+                    file=sys.stderr,
+                )
+                return 1
             print(f"  Endpoints file          {path}", flush=True)
         clock = settings.run.clock
         until = f"for {settings.run.duration_s:g} s" if settings.run.duration_s else "until Ctrl-C"

@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 
+from bridge.cli.main import seconds
 from bridge.cli.monitor import add_target_arguments, resolve_target
 from bridge.snapshot import collect_scene, render_scene
 
@@ -25,25 +27,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_target_arguments(parser)
     parser.add_argument(
         "--listen",
-        type=float,
+        type=seconds,
         default=1.0,
         metavar="S",
         help="seconds to collect poses (the trail) before drawing (default: 1)",
     )
     parser.add_argument(
-        "--timeout", type=float, default=5.0, metavar="S", help="give up after S seconds"
+        "--timeout", type=seconds, default=5.0, metavar="S", help="give up after S seconds"
     )
 
 
 def run(args: argparse.Namespace) -> int:
-    connect, prefix = resolve_target(args)
     try:
+        connect, prefix = resolve_target(args)
         scene = collect_scene(connect, prefix, args.listen, max(args.timeout, args.listen))
     except OSError as e:
-        log.error("%s", e)
+        print(f"koala-bridge snapshot: {e}", file=sys.stderr)
         return 2
     if scene.world is None:
-        log.error("no answer from %s/world via %s", prefix, ", ".join(connect))
+        print(
+            f"koala-bridge snapshot: no answer from {prefix}/world via {', '.join(connect)} "
+            "(is the bridge running, with this prefix?)",
+            file=sys.stderr,
+        )
         return 1
     out = render_scene(scene, args.out)
     log.info(
