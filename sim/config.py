@@ -214,6 +214,7 @@ class RobotConfig:
     ticks_per_metre: float          # encoder pulses per metre of wheel travel
     wheel_diameter_m: float
     wheel_base_m: float             # distance between the left and right wheel contact lines
+    wheel_diameter_ratio: float     # left / right wheel diameter (1: equal); see sim/robot.py
     body_radius_m: float            # collision body: a circle around the robot's centre
     max_wheel_speed_mps: float      # wheel surface speed limit, each wheel
     speed_unit_s: float             # K-Team speed unit = pulses per this many seconds (10 ms)
@@ -224,8 +225,9 @@ class RobotConfig:
         sec = "robot"
         reject_unknown(
             d,
-            ["name", "ticks_per_metre", "wheel_diameter_m", "wheel_base_m", "body_radius_m",
-             "max_wheel_speed_mps", "speed_unit_s", "drive_error"],
+            ["name", "ticks_per_metre", "wheel_diameter_m", "wheel_base_m",
+             "wheel_diameter_ratio", "body_radius_m", "max_wheel_speed_mps", "speed_unit_s",
+             "drive_error"],
             sec,
         )
         name = str(require(d, "name", sec))
@@ -236,6 +238,9 @@ class RobotConfig:
             ticks_per_metre=positive(require(d, "ticks_per_metre", sec), "ticks_per_metre", sec),
             wheel_diameter_m=positive(require(d, "wheel_diameter_m", sec), "wheel_diameter_m", sec),
             wheel_base_m=positive(require(d, "wheel_base_m", sec), "wheel_base_m", sec),
+            wheel_diameter_ratio=positive(
+                require(d, "wheel_diameter_ratio", sec), "wheel_diameter_ratio", sec
+            ),
             body_radius_m=positive(require(d, "body_radius_m", sec), "body_radius_m", sec),
             max_wheel_speed_mps=positive(
                 require(d, "max_wheel_speed_mps", sec), "max_wheel_speed_mps", sec
@@ -291,10 +296,17 @@ class IrConfig:
         ideal = _bool(d, "ideal", sec)
         errors = _split_errors(d, own, sec, "ir", {"ideal": ideal, "ambient_counts": ambient,
                                                    "max_counts": full})
+        poses = _poses(require(d, "poses", sec), "poses", sec)
+        offsets = getattr(errors, "per_sensor_offset_counts", ())
+        if len(offsets) not in (0, poses.shape[0]):
+            raise ConfigError(
+                f"[{sec}] 'per_sensor_offset_counts' must be [] or one value per sensor "
+                f"({poses.shape[0]}), got {len(offsets)}"
+            )
         return cls(
             rate_hz=positive(require(d, "rate_hz", sec), "rate_hz", sec),
             ideal=ideal,
-            poses=_poses(require(d, "poses", sec), "poses", sec),
+            poses=poses,
             rays=_odd(d, "rays", sec),
             aperture_deg=_nonneg(d, "aperture_deg", sec),
             response_range_m=rng_m,

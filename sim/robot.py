@@ -20,6 +20,14 @@ increase the distance to every touched wall (backing away, turning in place) are
 With ideal drive the wheels stall against the wall: wheel travel (what the encoders count) is cut
 by the same fraction as the body motion.
 
+Wheel diameters (``[robot] wheel_diameter_ratio`` rho = D_left / D_right, the mean diameter
+kept): a command is a wheel *rotation* rate (the Koala's PID servoes encoder pulses), expressed
+as the surface speed of a nominal wheel; each wheel's surface moves by its own diameter,
+``v_l (2 rho / (1 + rho))`` and ``v_r (2 / (1 + rho))`` (UMBmark's E_d, Borenstein & Feng 1996).
+:attr:`RobotState.left_travel_m` is that surface travel; the encoders count rotation
+(:mod:`sim.sensors.encoders` divides by the same factors), so they report the commanded rotation
+while the pose follows the unequal wheels.
+
 Seam for the drive-error model (issue 3, seeds/000 eq. 1-4, wheel slip): :func:`step` takes an
 optional ``drive_error`` object (see :class:`DriveErrorModel`). It receives the ideal body-frame
 displacement of the step and returns the displacement that really happens (and may change the
@@ -139,6 +147,10 @@ def step(
     True when a wall stopped the robot during this step.
     """
     vl, vr = limit_wheel_speeds(left_speed, right_speed, params.max_wheel_speed_mps)
+    rho = params.wheel_diameter_ratio
+    if rho != 1.0:
+        # The wheels turn as commanded; their surfaces move by their own diameters.
+        vl, vr = vl * (2.0 * rho / (1.0 + rho)), vr * (2.0 / (1.0 + rho))
     motion = arc_motion(vl, vr, params.wheel_base_m, dt)
     if drive_error is not None:
         if rng is None:

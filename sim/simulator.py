@@ -120,6 +120,7 @@ class Simulator:
             "name": r.name,
             "wheel_base_m": r.wheel_base_m,
             "wheel_diameter_m": r.wheel_diameter_m,
+            "wheel_diameter_ratio": r.wheel_diameter_ratio,
             "ticks_per_metre": r.ticks_per_metre,
             "body_radius_m": r.body_radius_m,
             "max_wheel_speed_mps": r.max_wheel_speed_mps,
@@ -190,7 +191,8 @@ class Simulator:
         self.ir = IrSensor(s.ir, self._make("ir", s.ir))
         # walls: late echoes via a second surface and crosstalk need the sonar's world geometry.
         self.sonar = SonarSensor(s.sonar, self._make("sonar", s.sonar), walls=self.walls)
-        self.encoders = EncoderSensor(s.encoders, cfg.robot.ticks_per_metre)   # no error model
+        self.encoders = EncoderSensor(s.encoders, cfg.robot.ticks_per_metre,
+                                      cfg.robot.wheel_diameter_ratio)   # no error model
         self.gyro = GyroSensor(s.gyro, self._make("gyro", s.gyro))
         self.compass = CompassSensor(s.compass, self.world, self._make("compass", s.compass))
         self.camera = CameraSensor(s.camera, self.world, self.walls,

@@ -37,12 +37,13 @@ def interp(x: float, xs: np.ndarray, ys: np.ndarray) -> float:  # pragma: no cov
 # ---------------------------------------------------------------------------------------- IR
 @numba.njit(cache=True, nogil=True)
 def ir_kernel(d: np.ndarray, z: np.ndarray, w: np.ndarray, rho: np.ndarray, rx: np.ndarray,
-              ry: np.ndarray, ex: np.ndarray, ey: np.ndarray, fp: np.ndarray, out: np.ndarray
-              ) -> None:  # pragma: no cover - compiled
+              ry: np.ndarray, ex: np.ndarray, ey: np.ndarray, fp: np.ndarray, off: np.ndarray,
+              out: np.ndarray) -> None:  # pragma: no cover - compiled
     """``d`` (n, k) ray ranges; ``z`` (3 n,) normals: distance, count and ambient noise of sensor
     ``i`` at ``z[i]``, ``z[n + i]``, ``z[2 n + i]`` (unused when ideal). ``fp``: ideal (0/1),
-    gain, count sigma, ambient, ambient sigma, max counts. ``out`` (3, n) int64: counts,
-    ambient, truth counts."""
+    gain, count sigma, ambient, ambient sigma, max counts. ``off`` (n,) per-sensor count offsets
+    or (0,) for none. ``out`` (3, n) int64: counts, ambient, truth counts."""
+    has_off = off.shape[0] > 0
     ideal = fp[0] != 0.0
     gain = fp[1]
     count_sigma = fp[2]
@@ -72,7 +73,10 @@ def ir_kernel(d: np.ndarray, z: np.ndarray, w: np.ndarray, rho: np.ndarray, rx: 
             out_counts[i] = out_truth[i]
             out_ambient[i] = np.int64(min(max(np.rint(ambient), 0.0), max_counts))
         else:
-            c = c * gain + count_sigma * z[n + i]
+            c = c * gain
+            if has_off:
+                c += off[i]
+            c += count_sigma * z[n + i]
             out_counts[i] = np.int64(min(max(np.rint(c), 0.0), max_counts))
             a = ambient + ambient_sigma * z[2 * n + i]
             out_ambient[i] = np.int64(min(max(np.rint(a), 0.0), max_counts))

@@ -92,8 +92,8 @@ class IrError:
         # ir_model.measure_with, with the kernel's constant arguments computed once.
         z = np.asarray(rng.standard_normal(self.n_draws)) if self.n_draws else _NONE
         out = np.empty((3, self.n), dtype=np.int64)
-        w, rho, rx, ry, ex, ey, fp = self.constants
-        _kernels.ir_kernel(truth.ray_ranges, z, w, rho, rx, ry, ex, ey, fp, out)
+        w, rho, rx, ry, ex, ey, fp, off = self.constants
+        _kernels.ir_kernel(truth.ray_ranges, z, w, rho, rx, ry, ex, ey, fp, off, out)
         return IrReading(counts=out[0], ambient=out[1], truth_counts=out[2],
                          truth_ranges=truth.axis_ranges)
 

@@ -21,9 +21,10 @@ and of the allan-variance tools, so that measured densities can be entered direc
 discretised for a sample interval ``dt`` as Kalibr specifies: white-noise sample sigma
 ``sigma_g / sqrt(dt)``; bias increment sigma ``sigma_bg * sqrt(dt)``. The integrated white noise
 is the angle random walk: heading error variance ``sigma_g^2 * T`` after T seconds (grows as
-sqrt(T)). ``b(0)`` is a turn-on bias ``N(0, turn_on_bias_sigma^2)`` drawn at reset; ``s`` a fixed
-scale-factor error. With a finite ``bias_correlation_time_s`` the bias is a Gauss–Markov process
-(Gazebo's IMU noise) with the same short-term walk density.
+sqrt(T)). ``b(0) = bias_rad_s + N(0, turn_on_bias_sigma^2)``: a fixed bias (what a calibration
+measured, ``koala-bridge calibrate --write-config``) plus a turn-on bias drawn at reset; ``s`` a
+fixed scale-factor error. With a finite ``bias_correlation_time_s`` the bias is a Gauss–Markov
+process (Gazebo's IMU noise) with the same short-term walk density.
 """
 
 from __future__ import annotations
@@ -49,6 +50,7 @@ class GyroErrorParams:
     gyroscope_noise_density: float = 0.0     # rad/s/sqrt(Hz), white noise (ARW)
     gyroscope_random_walk: float = 0.0       # rad/s^2/sqrt(Hz), bias random walk
     bias_correlation_time_s: float = math.inf  # inf: pure random walk (Kalibr)
+    bias_rad_s: float = 0.0                  # rad/s, fixed bias (mean of b(0))
     turn_on_bias_sigma: float = 0.0          # rad/s, drawn once at reset
     scale_factor_error: float = 0.0          # fixed relative scale error s
     scale_noise: float = 0.0                 # seeds/000 eq. 15 sigma_Gyroscope, per sample
@@ -72,10 +74,11 @@ class GyroState:
 
 
 def initial_state(params: GyroErrorParams, rng: np.random.Generator) -> GyroState:
-    """Turn-on state: bias ~ N(0, turn_on_bias_sigma^2). Draws one variate (none when ideal)."""
+    """Turn-on state: bias ~ N(bias_rad_s, turn_on_bias_sigma^2). Draws one variate (none when
+    ideal)."""
     if params.ideal:
         return GyroState(0.0)
-    return GyroState(float(params.turn_on_bias_sigma * rng.standard_normal()))
+    return GyroState(float(params.bias_rad_s + params.turn_on_bias_sigma * rng.standard_normal()))
 
 
 def measure(yaw_rate: float, dt: float, state: GyroState, params: GyroErrorParams,

@@ -15,13 +15,14 @@ Model, per sensor with rays ``i``::
 
     d_i' = d_i + sigma(d_i) * z        (one z per sensor and reading: the table is per reading)
     c    = sum_i w_i * rho_i * R(d_i')  (R: [sensors.ir] response table; rho: reflectivity)
-    c_m  = round(clip(c * (1 - ambient_saturation * A / max_counts) + count_noise_sigma * n,
+    c_m  = round(clip(c * (1 - ambient_saturation * A / max_counts) + o_s + count_noise_sigma * n,
                       0, max_counts))
     A_m  = round(clip(ambient_counts + ambient_noise_counts * n', 0, max_counts))
 
 We average the rays' *responses* (reflected light adds), where Webots averages distances; for a
 flat wall across the beam both agree. ``A`` is the ambient light level; strong ambient light
 narrows the emitter-on/emitter-off difference the Koala measures (``ambient_saturation``).
+``o_s`` is sensor ``s``'s own offset (``per_sensor_offset_counts``, 0 when empty).
 The noise-free companion is ``c`` with ``z = n = 0`` and no ambient effect.
 """
 
@@ -60,6 +61,10 @@ class IrErrorParams:
     ambient_noise_counts: float = 0.0
     ambient_saturation: float = 0.0    # proximity loss at full-scale ambient light, fraction
     max_counts: int = 1023
+    # Per-sensor offset of the counts (a sensor's own emitter/receiver gain and ambient leak, as
+    # `koala-bridge calibrate` measures it: effect offset_per:sensor); () = none, else one value
+    # per sensor (sim/config.py checks the length).
+    per_sensor_offset_counts: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         check_positive(self.gaussian_width, "gaussian_width")
@@ -125,13 +130,13 @@ def measure_with(d: np.ndarray, w: np.ndarray, rho: np.ndarray, response: Lookup
     ambient noise of each sensor; ignored when ideal), ``d``/``rho`` (n, r) and ``w`` (r,)
     C-contiguous."""
     out = np.empty((3, d.shape[0]), dtype=np.int64)
-    w_, rho_, rx, ry, ex, ey, fp = kernel_constants(w, rho, response, params)
-    _kernels.ir_kernel(d, z, w_, rho_, rx, ry, ex, ey, fp, out)
+    w_, rho_, rx, ry, ex, ey, fp, off = kernel_constants(w, rho, response, params)
+    _kernels.ir_kernel(d, z, w_, rho_, rx, ry, ex, ey, fp, off, out)
     return out[0], out[1], out[2]
 
 
 KernelConstants = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-                        np.ndarray]
+                        np.ndarray, np.ndarray]
 
 
 def kernel_constants(w: np.ndarray, rho: np.ndarray, response: LookupTable,
@@ -142,7 +147,9 @@ def kernel_constants(w: np.ndarray, rho: np.ndarray, response: LookupTable,
     gain = 1.0 - params.ambient_saturation * amb / params.max_counts
     fp = np.array([float(params.ideal), gain, params.count_noise_sigma, params.ambient_counts,
                    params.ambient_noise_counts, float(params.max_counts)])
-    return (w, rho, response.x, response.y, params.distance_error.x, params.distance_error.y, fp)
+    off = np.asarray(params.per_sensor_offset_counts, dtype=float)
+    return (w, rho, response.x, response.y, params.distance_error.x, params.distance_error.y, fp,
+            off)
 
 
 _NO_Z = np.zeros(0)

@@ -1,7 +1,8 @@
 """Wheel encoders: cumulative ticks of each wheel's rotation.
 
-``ticks = round(wheel surface travel * ticks_per_metre)`` for each wheel, where the travel is what
-the drive model says the wheel turned (:attr:`sim.robot.RobotState.left_travel_m`). With ideal
+``ticks = round(wheel surface travel * ticks_per_metre)`` for each wheel (per wheel: divided by
+its diameter relative to nominal, ``[robot] wheel_diameter_ratio``, see sim/robot.py), where the
+travel is what the drive model says the wheel turned (:attr:`sim.robot.RobotState.left_travel_m`). With ideal
 drive that is the body's motion; the drive-error model (``[robot.drive_error]``: per-wheel error,
 wall slip) makes the body move differently from the wheels, so dead reckoning drifts from truth as
 on the real robot. The counters start at 0 on ``reset``; setting them (K-Team ``G``) is an offset
@@ -28,11 +29,16 @@ def encoder_ticks(travel_m: float, ticks_per_metre: float) -> int:
 class EncoderSensor:
     name = "encoders"
 
-    def __init__(self, params: BasicSensorConfig, ticks_per_metre: float) -> None:
+    def __init__(self, params: BasicSensorConfig, ticks_per_metre: float,
+                 wheel_diameter_ratio: float = 1.0) -> None:
         self.params = params
         self.ticks_per_metre = ticks_per_metre
+        # Ticks per metre of each wheel's *surface* travel: a wheel smaller than nominal turns
+        # more per metre (sim/robot.py, wheel diameters).
+        rho = wheel_diameter_ratio
+        self._tpm_left = ticks_per_metre if rho == 1.0 else ticks_per_metre * (1 + rho) / (2 * rho)
+        self._tpm_right = ticks_per_metre if rho == 1.0 else ticks_per_metre * (1 + rho) / 2
 
     def measure(self, state: RobotState) -> OdometryReading:
-        tpm = self.ticks_per_metre
-        return OdometryReading(math.floor(state.left_travel_m * tpm + 0.5),
-                               math.floor(state.right_travel_m * tpm + 0.5))
+        return OdometryReading(math.floor(state.left_travel_m * self._tpm_left + 0.5),
+                               math.floor(state.right_travel_m * self._tpm_right + 0.5))
