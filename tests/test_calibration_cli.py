@@ -100,7 +100,7 @@ def test_ir_config_keys(tmp_path: Path) -> None:
     )
     ir = tomllib.loads(new.read_text())["sensors"]["ir"]
     assert len(ir["per_sensor_offset_counts"]) == 8
-    assert len(ir["curve"]["range_m"]) == len(ir["curve"]["counts"]) >= 2
+    assert len(ir["response_range_m"]) == len(ir["response_counts"]) >= 2
 
 
 def test_help_first_line_and_example() -> None:

@@ -12,15 +12,18 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy import stats
 
 from bridge.calibration.bundle import Bundle
-from bridge.calibration.effects import available_effects
+from bridge.calibration.effects import available_effects, get_effect
 from bridge.calibration.effects.base import EffectInstance
 from bridge.calibration.model import DeclaredModel
 from bridge.calibration.problem import SecondaryMetric, StreamProblem
 from bridge.calibration.selection import (
+    ALPHA,
     MAX_EFFECTS,
     Selection,
+    Trial,
     fit_model,
     parameter_se,
     select_effects,
@@ -117,12 +120,41 @@ def run_stream(
             progress(problem.name, done, len(cands))
 
     sel = select_effects(problem, cands, options.max_effects, on_trial=tick)
+    if getattr(problem, "turn_on_bias_sigma", 0.0) > 0 and (
+        options.effects is None or "bias" in options.effects
+    ):
+        _turn_on_bias_check(problem, sel)
     before = problem.metric_value(sel.before.insts, sel.before.x, "score")
     after = problem.metric_value(sel.after.insts, sel.after.x, "score")
     secondary = problem.secondary_metrics(
         (sel.before.insts, sel.before.x), (sel.after.insts, sel.after.x)
     )
     return StreamResult(problem, sel, before, after, secondary)
+
+
+def _turn_on_bias_check(problem: StreamProblem, sel: Selection) -> None:
+    """A declared per-run bias ``N(mu, sigma^2)`` is a nuisance, fitted in every model (its
+    deviation from ``mu`` is ``x[0]``). When the fitted deviation is implausible under that
+    distribution, ``|b| / sqrt(sigma^2 + SE^2) > z(1 - alpha/2)``, the data hold a bias the
+    declared model lacks: ``bias`` is added (its value fixed at ``b``, the nuisance refitted),
+    so ``--write-config`` writes ``bias_rad_s = mu + b``."""
+    sigma = float(getattr(problem, "turn_on_bias_sigma", 0.0))
+    fit = sel.after
+    b = float(fit.x[0])
+    se = float(parameter_se(problem, fit)[0])
+    z = abs(b) / float(np.hypot(sigma, se))
+    threshold = float(stats.norm.ppf(1 - ALPHA / 2))
+    problem.notes.append(
+        f"turn-on bias fitted: {b:+.4g} (declared sigma {sigma:g}, SE {se:.2g}, z = {z:.2f})"
+    )
+    if z <= threshold or len(sel.added) >= MAX_EFFECTS:
+        return
+    inst = EffectInstance("bias", get_effect("bias"), ("bias",), (b,), fixed=True)
+    insts = [*fit.insts, inst]
+    new = fit_model(problem, insts, problem.initial_vector(insts, fit.x, fit.insts))
+    trial = Trial("bias", 1, float("nan"), z * z, threshold**2, 0.0, True, new)
+    sel.added.append((inst, trial))
+    sel.after = new
 
 
 def decimate_bundle(bundle: Bundle, max_rows: int, references: bool = False) -> Bundle:

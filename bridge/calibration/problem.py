@@ -69,7 +69,7 @@ class StreamProblem(ABC):
     #: declared value plus what was found); effects without one write ``calibration.<name>``.
     native_keys: dict[str, str] = field(default_factory=dict, kw_only=True)
     #: effect name -> the declared value the found parameter adds to.
-    declared_values: dict[str, float] = field(default_factory=dict, kw_only=True)
+    declared_values: dict[str, Any] = field(default_factory=dict, kw_only=True)
 
     # ----- the model -------------------------------------------------------------------------
     def nuisance_x0(self) -> FloatArray:

@@ -3,7 +3,9 @@
     y = gain * curve(u) + b          params: b (stream unit)
 
 Writes the stream's native bias key (gyro: ``[sensors.gyro] bias_rad_s``, declared + b) or
-``[sensors.<stream>.calibration] bias``.
+``[sensors.<stream>.calibration] bias``. Not proposed where the declared model has a per-run
+(turn-on) bias: that is a nuisance parameter, and a bias beyond its declared spread is added
+by :func:`bridge.calibration.pipeline.run_stream` instead.
 """
 
 from __future__ import annotations
@@ -20,6 +22,8 @@ class Bias(Effect):
     kinds = frozenset({"scalar"})
 
     def _propose(self, problem: Any) -> list[EffectInstance]:
+        if getattr(problem, "turn_on_bias_sigma", 0.0) > 0:
+            return []  # the declared per-run bias is a nuisance; see pipeline.run_stream
         return [EffectInstance(self.name, self, ("bias",), (0.0,))]
 
     def apply(self, inst: EffectInstance, state: Any, params: Any) -> None:

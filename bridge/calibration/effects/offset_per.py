@@ -64,8 +64,11 @@ class OffsetPer(Effect):
         if native is not None and levels.min() >= 0:
             full = np.zeros(int(levels.max()) + 1)
             full[levels.astype(int)] = off
-            declared = problem.declared_values.get(inst.name, 0.0)
-            return {native: [float(f"{declared + v:.6g}") for v in full]}
+            declared = np.asarray(problem.declared_values.get(inst.name, ()), dtype=float)
+            if declared.size:
+                n = max(full.size, declared.size)
+                full = np.pad(full, (0, n - full.size)) + np.pad(declared, (0, n - declared.size))
+            return {native: [float(f"{v:.6g}") for v in full]}
         return {
             f"calibration.{config_name(inst.name)}": {
                 "levels": [float(v) for v in levels],

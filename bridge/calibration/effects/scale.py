@@ -2,7 +2,8 @@
 
     y = (1 + s) * gain * curve(u) + ...          params: s (dimensionless)
 
-Writes the native scale key (gyro: ``[sensors.gyro] scale_error`` = (1 + declared)(1 + s) - 1) or
+Writes the native scale key (gyro: ``[sensors.gyro] scale_factor_error`` = (1 + declared)(1 + s)
+- 1) or
 ``[sensors.<stream>.calibration] scale``.
 """
 

@@ -3,7 +3,8 @@
     s_l = dL / tpm * 2 rho / (1 + rho),  s_r = dR / tpm * 2 / (1 + rho)    params: rho = D_l / D_r
 
 The mean distance per tick is kept, so ``rho`` is separate from ``tick_scale``. Tick odometry
-only. Writes ``[sensors.odometry] wheel_diameter_ratio`` (left / right).
+only; starts from the declared ratio. Writes ``[robot] wheel_diameter_ratio`` (left / right), which
+the simulator's drive and encoders read (sim/robot.py).
 """
 
 from __future__ import annotations
@@ -21,10 +22,10 @@ class WheelRatio(Effect):
     def _propose(self, problem: Any) -> list[EffectInstance]:
         if problem.form != "ticks":
             return []
-        return [EffectInstance(self.name, self, ("ratio_left_right",), (1.0,))]
+        return [EffectInstance(self.name, self, ("ratio_left_right",), (problem.ratio,))]
 
     def apply(self, inst: EffectInstance, state: Any, params: Any) -> None:
         state.ratio = float(params[0])
 
     def config(self, inst: EffectInstance, params: Any, problem: Any) -> dict[str, Any]:
-        return {"wheel_diameter_ratio": float(f"{params[0]:.6g}")}
+        return {"/robot.wheel_diameter_ratio": float(f"{params[0]:.6g}")}

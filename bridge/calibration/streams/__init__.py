@@ -102,16 +102,21 @@ def build_gyro(
     if ref is None:
         log.warning("gyro: no heading reference (truth_pose.theta or compass); stream skipped")
         return None
+    dense = source == "truth_pose.theta"
     t = gyro["t"]
     inside = (t >= ref[0][0]) & (t <= ref[0][-1]) & np.isfinite(gyro["yaw_rate"])
     table = gyro.select(inside)
     t = table["t"]
-    rate_ref = _rate_of(ref[0], ref[1], t)
+    interval = model.gyro_sample_interval_s
+    if interval is not None and dense:
+        # The declared sample is the mean rate over the interval before its stamp.
+        rate_ref = (np.interp(t, *ref) - np.interp(t - interval, *ref)) / interval
+    else:
+        rate_ref = _rate_of(ref[0], ref[1], t)
     ref_series = (t.copy(), rate_ref.copy())
     extras = _extras(table, {"t", "yaw_rate"})
     split = Split.of(t)
     window = min(HEADING_WINDOW_S, (split.t2 - split.t1) / 4)
-    dense = source == "truth_pose.theta"
     problem = ScalarProblem(
         "gyro",
         "scalar",
@@ -135,11 +140,33 @@ def build_gyro(
         heading_window_s=float(f"{window:.3g}") if dense else None,
         quantity="yaw rate",
         integrate_window_s=None if dense else HEADING_WINDOW_S,
-        native_keys={"bias": "bias_rad_s", "scale": "scale_error"},
+        native_keys={"bias": "bias_rad_s", "scale": "scale_factor_error"},
         declared_values={"bias": model.gyro_bias_rad_s, "scale": model.gyro_scale_error},
+        turn_on_bias_sigma=model.gyro_turn_on_bias_sigma,
     )
     problem.notes.append(f"reference: {source}")
+    if interval is not None and dense:
+        problem.notes.append(f"declared sample: mean rate over the {interval:g} s before it")
+    if model.gyro_turn_on_bias_sigma > 0:
+        problem.notes.append(
+            "declared turn-on bias N(bias_rad_s, "
+            f"{model.gyro_turn_on_bias_sigma:g}^2) fitted as a nuisance"
+        )
     return problem
+
+
+def _range_unit(meta: Mapping[str, Any], kind: str) -> str:
+    """The unit of ``range.measured`` for one kind: ``units["range.measured"]`` is a string, or
+    a ``{kind: unit}`` table (bundles exported from recordings), or ``range.measured.<kind>``."""
+    units = meta.get("units", {})
+    if not isinstance(units, Mapping):
+        return ""
+    if kind and isinstance(units.get(f"range.measured.{kind}"), str):
+        return str(units[f"range.measured.{kind}"])
+    value = units.get("range.measured", "")
+    if isinstance(value, Mapping):
+        return str(value.get(kind, ""))
+    return str(value)
 
 
 def _compass_unit(meta: Mapping[str, Any]) -> tuple[str, float]:
@@ -165,11 +192,13 @@ def build_compass(bundle: Bundle, model: DeclaredModel) -> CompassProblem | None
     unit, uT = _compass_unit(bundle.meta)
     ref = heading_reference(bundle)
     theta = None
+    direction = None
     if ref is not None:
         inside = (t >= ref[0][0]) & (t <= ref[0][-1])
         t, m = t[inside], m[inside]
         theta = np.interp(t, ref[0], ref[1])
         mode = "heading"
+        direction = _declared_field_direction(bundle, model, t)
     else:
         horiz = float(min(np.std(m[:, 0]), np.std(m[:, 1])))
         mode = "magnitude_3d" if np.std(m[:, 2]) > 0.25 * horiz else "magnitude_2d"
@@ -194,9 +223,57 @@ def build_compass(bundle: Bundle, model: DeclaredModel) -> CompassProblem | None
         C_declared=np.linalg.inv(np.asarray(model.compass_soft_iron, dtype=float)),
         uT_per_unit=uT,
         data_unit=unit,
+        disturbance=_declared_motor_field(bundle, model, t, uT),
+        field_direction=direction,
     )
     problem.notes.append(f"mode: {mode}; field unit {unit}")
+    if problem.disturbance is not None:
+        problem.notes.append("declared motor-current field subtracted (speeds from the ticks)")
+    if direction is not None:
+        problem.notes.append("declared local magnetic sources: field direction per position")
     return problem
+
+
+def _declared_field_direction(
+    bundle: Bundle, model: DeclaredModel, t: FloatArray
+) -> FloatArray | None:
+    """World-frame direction of the declared horizontal field at the reference positions."""
+    truth = bundle.get("truth_pose")
+    if model.compass_world is None or truth is None or "x" not in truth.columns:
+        return None
+    from sim.sensors.compass import field_world
+
+    earth, sources, dmin = model.compass_world
+    x, y = np.interp(t, truth["t"], truth["x"]), np.interp(t, truth["t"], truth["y"])
+    b = np.array([field_world(float(a), float(c), earth, sources, dmin)[:2] for a, c in zip(x, y)])
+    north = np.arctan2(earth[1], earth[0])
+    return np.asarray(np.arctan2(b[:, 1], b[:, 0]) - north, dtype=float)
+
+
+def _declared_motor_field(
+    bundle: Bundle, model: DeclaredModel, t: FloatArray, uT_per_unit: float
+) -> FloatArray | None:
+    """(N, 3) the declared motor-current field at ``t`` (data unit), from the wheel speeds the
+    odometry ticks give (each the mean over the interval before its sample, as the simulator's)."""
+    odo = bundle.get("odometry")
+    if (
+        model.compass_motor_uT_per_mps is None
+        or odo is None
+        or not {"left_ticks", "right_ticks"} <= set(odo.columns)
+        or model.ticks_per_metre is None
+        or len(odo) < 2
+    ):
+        return None
+    to = odo["t"]
+    dt = np.diff(to)
+    ok = dt > 0
+    rho = model.wheel_diameter_ratio
+    k = np.array([2 * rho / (1 + rho), 2 / (1 + rho)]) / model.ticks_per_metre
+    v = np.column_stack([np.diff(odo["left_ticks"]), np.diff(odo["right_ticks"])])[ok]
+    v = v / dt[ok, None] * k
+    tv = to[1:][ok]
+    speeds = np.column_stack([np.interp(t, tv, v[:, 0]), np.interp(t, tv, v[:, 1])])
+    return np.asarray(speeds @ np.asarray(model.compass_motor_uT_per_mps).T / uT_per_unit)
 
 
 def build_odometry(
@@ -223,6 +300,7 @@ def build_odometry(
             d_right=np.diff(odo["right_ticks"]),
             tpm=model.ticks_per_metre,
             wheel_base=model.wheel_base_m,
+            ratio=model.wheel_diameter_ratio,
         )
     elif "v" in odo.columns and "omega" in odo.columns:
         form = "speeds"
@@ -287,12 +365,33 @@ def build_ranges(bundle: Bundle, model: DeclaredModel) -> list[ScalarProblem]:
     kinds = np.unique(table.text["kind"]) if "kind" in table.text else np.array([""])
     for kind in kinds:
         sub = table.select(table.text["kind"] == kind) if kind else table
-        unit_text = _unit(
-            bundle.meta, f"range.measured.{kind}" if kind else "range.measured"
-        ) or _unit(bundle.meta, "range.measured")
-        counts = "count" in unit_text.lower() or kind == "ir"
+        counts = "count" in _range_unit(bundle.meta, str(kind)).lower() or kind == "ir"
         ok = np.isfinite(sub["measured"]) & np.isfinite(sub["true_range"]) & (sub["true_range"] > 0)
         dropped = int((~ok).sum())
+        beyond = 0
+        critical = model.sonar_critical_angle_rad
+        if not counts and critical is not None and "incidence_angle" in sub.columns:
+            # The declared echo rule (sim/models/sonar.py): beyond the critical incidence there is
+            # no direct echo; what is read there (late echo, crosstalk) is the model's, not a
+            # residual of the direct-echo range.
+            inc = np.abs(sub["incidence_angle"])
+            far = np.isfinite(inc) & (inc > critical)
+            beyond = int((ok & far).sum())
+            ok &= ~far
+        if not counts and model.sonar_range_m is not None:
+            # Readings the declared range limits could censor (0 below min_range_m, no echo
+            # beyond max_range_m): keep only true ranges 3 sigma inside both limits, so the
+            # dropped no-echo readings do not bias the rest.
+            lo, hi = model.sonar_range_m
+            tr = sub["true_range"]
+            sig = (
+                np.interp(tr, *model.sonar_distance_error)
+                if model.sonar_distance_error is not None
+                else np.zeros_like(tr)
+            )
+            edge = (tr - 3 * sig < lo) | (tr + 3 * sig > hi)
+            beyond += int((ok & edge).sum())
+            ok &= ~edge
         sub = sub.select(ok)
         if len(sub) < 10:
             continue
@@ -304,11 +403,14 @@ def build_ranges(bundle: Bundle, model: DeclaredModel) -> list[ScalarProblem]:
         curve = None
         fitted = False
         base_add: FloatArray | float = 0.0
+        base_gain = 1.0
         if counts:
+            base_gain = model.ir_gain
             if model.ir_curve is not None:
                 curve = (np.asarray(model.ir_curve[0]), np.asarray(model.ir_curve[1]))
             else:
-                curve = fit_shared_curve(sub["true_range"][fit], sub["measured"][fit])
+                xs, ys = fit_shared_curve(sub["true_range"][fit], sub["measured"][fit])
+                curve = (xs, ys / model.ir_gain)  # the declared gain multiplies the response
                 fitted = True
             if model.ir_per_sensor_offset:
                 off = np.asarray(model.ir_per_sensor_offset)
@@ -336,8 +438,10 @@ def build_ranges(bundle: Bundle, model: DeclaredModel) -> list[ScalarProblem]:
             curve_points=curve,
             curve_fitted=fitted,
             base_add=base_add,
+            base_gain=base_gain,
             quantity="IR counts" if counts else "range",
             native_keys={"offset_per:sensor": "per_sensor_offset_counts"} if counts else {},
+            declared_values={"offset_per:sensor": model.ir_per_sensor_offset} if counts else {},
         )
         if fitted:
             problem.notes.append(
@@ -346,6 +450,11 @@ def build_ranges(bundle: Bundle, model: DeclaredModel) -> list[ScalarProblem]:
             )
         if dropped:
             problem.notes.append(f"{dropped} readings with true_range <= 0 or non-finite dropped")
+        if beyond:
+            problem.notes.append(
+                f"{beyond} readings beyond the declared critical incidence angle or within "
+                "3 sigma of the declared range limits dropped"
+            )
         out.append(problem)
     return out
 
@@ -364,8 +473,15 @@ def build_landmarks(bundle: Bundle, model: DeclaredModel) -> list[ScalarProblem]
     obs, idx, t = obs.select(inside), idx[inside], t[inside]
     px = np.interp(t, truth["t"], truth["x"])
     py = np.interp(t, truth["t"], truth["y"])
+    ref = heading_reference(bundle)
+    if model.camera_wrong_ids and ref is not None and lmap["id"].size > 1:
+        idx = _reassociate(obs, lmap, px, py, np.interp(t, ref[0], ref[1]), model)
     lx, ly = lmap["x"][idx] - px, lmap["y"][idx] - py
     true_range = np.hypot(lx, ly)
+    range_bias: FloatArray | float = 0.0
+    if model.camera_far is not None:
+        dist, d_mid, doubling = model.camera_far
+        range_bias = dist * d_mid * 2.0 ** ((true_range - d_mid) / doubling) * np.sqrt(2 / np.pi)
     extras = _extras(obs, {"t", "range", "bearing", "landmark_id"})
     out: list[ScalarProblem] = []
     ok = np.isfinite(obs["range"])
@@ -385,10 +501,10 @@ def build_landmarks(bundle: Bundle, model: DeclaredModel) -> list[ScalarProblem]
                 columns={k: v[ok] for k, v in extras.items()},
                 covariate_names=tuple(sorted(extras)),
                 is_range=True,
+                base_add=np.broadcast_to(range_bias, t.shape)[ok],
                 quantity="landmark range",
             )
         )
-    ref = heading_reference(bundle)
     if ref is not None:
         theta = np.interp(t, ref[0], ref[1])
         bearing = wrap_angle(np.arctan2(ly, lx) - theta)
@@ -411,3 +527,27 @@ def build_landmarks(bundle: Bundle, model: DeclaredModel) -> list[ScalarProblem]
             )
         )
     return out
+
+
+def _reassociate(
+    obs: Table,
+    lmap: Table,
+    px: FloatArray,
+    py: FloatArray,
+    theta: FloatArray,
+    model: DeclaredModel,
+) -> np.ndarray:
+    """Map index of the landmark each observation most likely saw, when the declared camera
+    reports wrong ids (sim/models/camera.py, recognition): the nearest in (range, bearing)
+    normalised by the declared spreads (nearest-neighbour data association)."""
+    dx = lmap["x"][None, :] - px[:, None]
+    dy = lmap["y"][None, :] - py[:, None]
+    r = np.hypot(dx, dy)
+    b = wrap_angle(np.arctan2(dy, dx) - theta[:, None])
+    dist = model.camera_far[0] if model.camera_far is not None else 0.05
+    sr = np.maximum(dist * r, 0.02)
+    sb = max(model.camera_bearing_sigma_rad, 0.01)
+    er = (np.nan_to_num(obs["range"], nan=0.0)[:, None] - r) / sr
+    eb = wrap_angle(np.nan_to_num(obs["bearing"], nan=0.0)[:, None] - b) / sb
+    er = np.where(np.isfinite(obs["range"])[:, None], er, 0.0)
+    return np.asarray(np.argmin(er**2 + eb**2, axis=1))

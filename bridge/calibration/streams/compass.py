@@ -9,6 +9,12 @@ Three modes, chosen from the data:
 * ``heading``: a reference heading exists (``truth_pose.theta``); planar. Residual is the heading
   error ``wrap(alpha - atan2(m_c,y, m_c,x) - theta_ref)`` in rad; ``alpha`` (direction of
   magnetic north in the world frame: declination plus mounting yaw) is a nuisance parameter.
+  Where the declared world has local magnetic sources and the reference has positions, the
+  field's declared direction at each position is subtracted from ``theta_ref`` first
+  (``alpha`` is then the mounting yaw).
+
+A declared motor-current disturbance ``M k (v_l, v_r)`` (wheel speeds from the odometry ticks)
+is subtracted from ``m`` before the correction.
 * ``magnitude_2d``: no reference, rotation about z only (the vertical component varies little):
   the horizontal field magnitude must be constant; residual ``|m_c,xy| / B - 1``.
 * ``magnitude_3d``: no reference, rotation through many orientations: ``|m_c| / B - 1``.
@@ -49,6 +55,11 @@ class CompassProblem(StreamProblem):
     C_declared: FloatArray = field(default_factory=lambda: np.eye(3))
     uT_per_unit: float = 1.0
     data_unit: str = "uT"
+    #: declared additive disturbance per sample (N, 3), data unit: the motor currents' field
+    disturbance: FloatArray | None = None
+    #: declared world-frame direction of the horizontal field at each sample's position (N,)
+    #: (local sources), heading mode only; alpha is then a mounting yaw about it
+    field_direction: FloatArray | None = None
 
     def __post_init__(self) -> None:
         fit = self.split.mask(self.t, "fit")
@@ -64,15 +75,25 @@ class CompassProblem(StreamProblem):
     def corrected(self, insts: Sequence[EffectInstance], x: FloatArray, part: str) -> FloatArray:
         st = self.state()
         apply_all(st, self, insts, x)
-        m = self.m[self._masks[part]]
+        mask = self._masks[part]
+        m = self.m[mask]
+        if self.disturbance is not None:
+            m = m - self.disturbance[mask]
         return (m - st.h) @ st.C.T
+
+    def _theta_field(self, mask: np.ndarray) -> FloatArray:
+        """Reference heading minus the declared field direction (0 without one)."""
+        assert self.theta_ref is not None
+        if self.field_direction is None:
+            return self.theta_ref[mask]
+        return self.theta_ref[mask] - self.field_direction[mask]
 
     def nuisance_x0(self) -> FloatArray:
         fit = self._masks["fit"]
-        m = (self.m[fit] - self.h_declared) @ self.C_declared.T
+        m = self.m[fit] - (0.0 if self.disturbance is None else self.disturbance[fit])
+        m = (m - self.h_declared) @ self.C_declared.T
         if self.mode == "heading":
-            assert self.theta_ref is not None
-            a = self.theta_ref[fit] + np.arctan2(m[:, 1], m[:, 0])
+            a = self._theta_field(fit) + np.arctan2(m[:, 1], m[:, 0])
             return np.array([float(np.arctan2(np.mean(np.sin(a)), np.mean(np.cos(a))))])
         return np.array([float(np.mean(np.linalg.norm(m[:, : self.dims], axis=1)))])
 
@@ -83,8 +104,7 @@ class CompassProblem(StreamProblem):
     def _residual(self, insts: Sequence[EffectInstance], x: FloatArray, part: str) -> FloatArray:
         mc = self.corrected(insts, x, part)
         if self.mode == "heading":
-            assert self.theta_ref is not None
-            return wrap_angle(x[0] + self.heading(mc) - self.theta_ref[self._masks[part]])
+            return wrap_angle(x[0] + self.heading(mc) - self._theta_field(self._masks[part]))
         return np.linalg.norm(mc[:, : self.dims], axis=1) / x[0] - 1.0
 
     def residuals(

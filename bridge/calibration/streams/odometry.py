@@ -63,6 +63,7 @@ class OdometryProblem(StreamProblem):
     theta_ref: FloatArray | None = None
     tpm: float = 1.0
     wheel_base: float = 1.0
+    ratio: float = 1.0  # declared left/right wheel diameter ratio
     window_s: float = 10.0
     form: str = "ticks"
     start_pose: tuple[float, float, float] | None = None  # (t, theta) known at the start
@@ -88,7 +89,7 @@ class OdometryProblem(StreamProblem):
         return _Windows(idx, anchor, label, int(label.max()) + 1)
 
     def state(self) -> OdometryState:
-        return OdometryState(self.tpm, self.wheel_base)
+        return OdometryState(self.tpm, self.wheel_base, self.ratio)
 
     def dead_reckon(self, st: OdometryState) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Cumulative pose (x, y, theta) at the odometry times, from (0, 0, 0)."""

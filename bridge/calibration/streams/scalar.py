@@ -93,6 +93,10 @@ class ScalarProblem(StreamProblem):
     #: (re-anchored at each window start) instead of the rate residual itself; used when the
     #: reference heading is noisy (a compass), whose derivative is far noisier than its integral.
     integrate_window_s: float | None = None
+    #: sigma of a declared per-run (turn-on) bias: > 0 makes the bias a nuisance parameter of
+    #: the declared model, fitted in every model (the ``bias`` effect is then judged against
+    #: this spread instead, see :func:`bridge.calibration.pipeline.run_stream`)
+    turn_on_bias_sigma: float = 0.0
 
     def __post_init__(self) -> None:
         fit = self.split.mask(self.t, "fit")
@@ -122,6 +126,9 @@ class ScalarProblem(StreamProblem):
         assert self.reference is not None
         return np.interp(t - tau, self.reference[0], self.reference[1])
 
+    def nuisance_x0(self) -> FloatArray:
+        return np.zeros(1) if self.turn_on_bias_sigma > 0 else np.empty(0)
+
     def state(self, part: str) -> ScalarState:
         return ScalarState(
             self._parts[part],
@@ -134,6 +141,8 @@ class ScalarProblem(StreamProblem):
         self, insts: Sequence[EffectInstance], x: FloatArray, part: str, for_fit: bool
     ) -> FloatArray:
         st = self.state(part)
+        if self.turn_on_bias_sigma > 0:
+            st.add = st.add + x[0]
         apply_all(st, self, insts, x)
         y_hat = st.predict(self.curve, rounding=not for_fit)
         r = st.part.y - y_hat
@@ -214,11 +223,10 @@ class ScalarProblem(StreamProblem):
 
     def config_values(self, insts: Sequence[EffectInstance], x: FloatArray) -> dict[str, Any]:
         if self.curve_fitted and self.curve_points is not None:
+            # The simulator's IR response table ([sensors.ir], sim/config.py).
             return {
-                "curve": {
-                    "range_m": [round(float(v), 6) for v in self.curve_points[0]],
-                    "counts": [round(float(v), 3) for v in self.curve_points[1]],
-                }
+                "response_range_m": [round(float(v), 6) for v in self.curve_points[0]],
+                "response_counts": [round(float(v), 3) for v in self.curve_points[1]],
             }
         return {}
 
