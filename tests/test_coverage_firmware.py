@@ -5,8 +5,9 @@ firmware, another process, sees only the K-Team serial pty, the socketcand CAN s
 MAVLink UDP stream. Success is judged on the *truth* recorded by the bridge (``/truth/pose``):
 the robot must have stopped near the centre of every reachable cell -- not on the firmware's word.
 
-``python tests/test_coverage_firmware.py --seeds 5`` runs every lab wall world with seeds 0..4
-and prints a table (docs/localisation.md, "Coverage firmware").
+``python tests/test_coverage_firmware.py --seeds 20 --random-start`` runs every lab wall world
+with seeds 0..19 (random start cell and heading per seed) and prints a table
+(docs/localisation.md, "Coverage firmware").
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import argparse
 import json
 import math
 import os
+import random
 import signal
 import socket
 import subprocess
@@ -41,9 +43,14 @@ def free_port(kind: int = socket.SOCK_STREAM) -> int:
         return int(s.getsockname()[1])
 
 
-def write_config(tmp: Path, world: str, zenoh_port: int, mav_port: int) -> Path:
+def write_config(
+    tmp: Path, world: str, zenoh_port: int, mav_port: int,
+    start: tuple[float, float, float] | None = None,
+) -> Path:
     d = tomllib.loads((ROOT / "config" / "default.toml").read_text())
     d["world"] = tomllib.loads((ROOT / "config" / "worlds" / f"{world}.toml").read_text())["world"]
+    if start is not None:
+        d["world"]["start"] = {"x": start[0], "y": start[1], "theta_deg": start[2]}
     for name, sec in d["sensors"].items():
         if name != "encoders":  # encoders count the commanded rotation; drive error is below
             sec["ideal"] = False
@@ -69,9 +76,21 @@ def visited_cells(mcap: Path, world: World) -> set[tuple[int, int]]:
     return cells
 
 
-def run_once(tmp: Path, world_name: str, seed: int, timeout_s: float = 240.0) -> dict[str, Any]:
-    """One bridge + firmware run; returns the firmware's report plus truth-based results."""
-    cfg = write_config(tmp, world_name, free_port(), free_port(socket.SOCK_DGRAM))
+def run_once(
+    tmp: Path, world_name: str, seed: int, timeout_s: float = 240.0, random_start: bool = False
+) -> dict[str, Any]:
+    """One bridge + firmware run; returns the firmware's report plus truth-based results. With
+    ``random_start`` the robot starts at a seeded random free cell's centre, facing a random
+    cardinal direction."""
+    start = None
+    if random_start:
+        rng = random.Random(seed)
+        w = World.from_dict(
+            tomllib.loads((ROOT / "config" / "worlds" / f"{world_name}.toml").read_text())["world"]
+        )
+        x, y = w.cell_centre(*rng.choice(w.free_cells()))
+        start = (x, y, float(rng.choice([0, 90, 180, 270])))
+    cfg = write_config(tmp, world_name, free_port(), free_port(socket.SOCK_DGRAM), start)
     endpoints = tmp / f"endpoints_{world_name}_{seed}.json"
     mcap = tmp / f"run_{world_name}_{seed}.mcap"
     report = tmp / f"report_{world_name}_{seed}.json"
@@ -131,13 +150,15 @@ def main() -> None:
     ap = argparse.ArgumentParser(description="coverage firmware over seeds and lab worlds")
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--worlds", nargs="*", default=["lab_walls_1", "lab_walls_2", "lab_walls_3"])
+    ap.add_argument("--random-start", action="store_true",
+                    help="start each run in a seeded random cell and cardinal heading")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         for world in args.worlds:
             for seed in range(args.seeds):
                 t0 = time.monotonic()
                 try:
-                    r = run_once(Path(tmp), world, seed)
+                    r = run_once(Path(tmp), world, seed, random_start=args.random_start)
                     ok = r["complete"] and set(map(tuple, r["truth_visited"])) == set(
                         r["free_cells"])
                     print(f"{world} seed {seed}: {'ok' if ok else 'INCOMPLETE'} "
