@@ -1,7 +1,7 @@
 """Grid (histogram) localisation from wall observations (seeds/003 "Key functions" A-G).
 
-The belief is one number per cell: the log-probability that the robot is in that cell, kept
-unnormalised between steps and normalised with log-sum-exp (seeds/003 F). Arrays are indexed
+The belief is one number per cell: the log-probability that the robot is in that cell,
+normalised after every step (log-sum-exp, seeds/003 F). Arrays are indexed
 ``[row, col]`` with row 0 the southern-most row (docs/architecture.md), so a flat index is
 row-major from the south-west corner. Blocked cells hold ``-inf``.
 
