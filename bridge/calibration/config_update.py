@@ -1,22 +1,49 @@
 """Turn found effects into config keys, merge them into MODEL.toml, and diff the two.
 
 Each effect's ``config`` gives keys relative to its stream's section (``[sensors.gyro]`` ...):
-``"bias_rad_s"`` sets a key the simulator reads, ``"calibration.<name>"`` goes to the stream's
-``[sensors.<stream>.calibration]`` table, and ``"/robot.wheel_base_m"`` is absolute.
+``"bias_rad_s"`` sets a key of that section, ``"calibration.<name>"`` names an effect without a
+simulator key, and ``"/robot.wheel_base_m"`` is absolute.
+
+The written config must still load in the simulator (``sim/config.py`` rejects unknown keys),
+so only the keys of :data:`SIMULATED_KEYS` go into the TOML document; every other finding is
+written as a comment block at the end of the file (and is in report.json). docs/calibration.md
+"What the simulator reproduces" says which effects are which, and why.
+
+When a sensor declared ``ideal = true`` gets a found effect, its error model is switched on;
+the model's other error terms, which the calibration did not measure, are set to their
+"absent" values (the params class's zero defaults: no turn-on bias, no random walk, ...) rather
+than to whatever the config held under ``ideal = true``.
 """
 
 from __future__ import annotations
 
 import copy
+import dataclasses
 import difflib
+import importlib
+import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import tomli_w
 
 from bridge.calibration.pipeline import StreamResult
 from bridge.calibration.problem import split_params
+
+#: Keys the simulator reads, per section: written into the config.
+SIMULATED_KEYS: Mapping[str, frozenset[str]] = {
+    "robot": frozenset({"ticks_per_metre", "wheel_base_m", "wheel_diameter_ratio"}),
+    "sensors.gyro": frozenset({"bias_rad_s", "scale_factor_error", "gyroscope_noise_density"}),
+    "sensors.compass": frozenset({"hard_iron_uT", "soft_iron", "noise_sigma_uT"}),
+    "sensors.ir": frozenset(
+        {"response_range_m", "response_counts", "per_sensor_offset_counts", "count_noise_sigma"}
+    ),
+}
+
+#: Config section -> the simulator's error-model name (sim.config.ERROR_PARAMS).
+_MODEL_OF = {"sensors.gyro": "gyro", "sensors.compass": "compass", "sensors.ir": "ir"}
 
 
 def _set(doc: dict[str, Any], dotted: str, value: Any) -> None:
@@ -31,6 +58,16 @@ def _set(doc: dict[str, Any], dotted: str, value: Any) -> None:
     node[last] = value
 
 
+def _section_and_key(dotted: str) -> tuple[str, str]:
+    section, _, key = dotted.rpartition(".")
+    return section, key
+
+
+def is_simulated(dotted: str) -> bool:
+    section, key = _section_and_key(dotted)
+    return key in SIMULATED_KEYS.get(section, frozenset())
+
+
 def found_keys(results: Sequence[StreamResult]) -> dict[str, Any]:
     """``{dotted.key: value}`` for every found effect (and fitted declared parts, e.g. a curve)."""
     out: dict[str, Any] = {}
@@ -38,26 +75,90 @@ def found_keys(results: Sequence[StreamResult]) -> dict[str, Any]:
         problem, after = res.problem, res.selection.after
         entries: dict[str, Any] = dict(problem.config_values(after.insts, after.x))
         params = split_params(problem, after.insts, after.x)
+        increments: dict[str, np.ndarray] = {}
         for inst in res.effects:
-            entries.update(inst.config(params[after.insts.index(inst)], problem))
+            for key, value in inst.config(params[after.insts.index(inst)], problem).items():  # type: ignore[arg-type]
+                if key.startswith("+"):  # per-element increments of a declared list: summed
+                    inc = np.asarray(value, dtype=float)
+                    old = increments.get(key, np.zeros(0))
+                    n = max(old.size, inc.size)
+                    increments[key] = np.pad(old, (0, n - old.size)) + np.pad(
+                        inc, (0, n - inc.size)
+                    )
+                else:
+                    entries[key] = value
+        for key, inc in increments.items():
+            declared = np.asarray(problem.declared_values.get(key, ()), dtype=float)
+            n = max(inc.size, declared.size, int(problem.declared_values.get("n_sensors", 0)))
+            total = np.pad(inc, (0, n - inc.size)) + np.pad(declared, (0, n - declared.size))
+            entries[key[1:]] = [float(f"{v:.6g}") for v in total]
         for key, value in entries.items():
             path = key[1:] if key.startswith("/") else f"{problem.section}.{key}"
             out[path] = value
     return out
 
 
+def noise_keys(results: Sequence[StreamResult]) -> dict[str, Any]:
+    """The white-noise level of each stream's final residual, in the simulator's noise key
+    (``--write-noise``): gyro ``gyroscope_noise_density`` = sigma sqrt(median sample interval)
+    (Kalibr's discretisation, sim/models/gyro.py), compass ``noise_sigma_uT`` (heading residual
+    times the horizontal field, or the magnitude residual times the field), IR
+    ``count_noise_sigma`` (minus the rounding's 1/12 count^2). Right when the reference is far
+    less noisy than the sensor (a robot standing still, a motion tracker)."""
+    out: dict[str, Any] = {}
+    for res in results:
+        key, value = res.problem.noise_estimate(res.selection.after.insts, res.selection.after.x)
+        if key is not None and value is not None and math.isfinite(value):
+            out[f"{res.problem.section}.{key}"] = float(f"{value:.4g}")
+    return out
+
+
+def _absent_error_terms(section: str) -> dict[str, Any]:
+    """The error-model keys of ``section`` whose params-class default means 'no such error'."""
+    model = _MODEL_OF.get(section)
+    if model is None:
+        return {}
+    from sim.config import ERROR_PARAMS
+
+    module, name = ERROR_PARAMS[model]
+    cls = getattr(importlib.import_module(module), name)
+    skip = set(getattr(cls, "FROM_SENSOR", ()))
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(cls):
+        if f.name in skip or f.default is dataclasses.MISSING:
+            continue
+        d = f.default
+        if isinstance(d, float) and d == 0.0:
+            out[f.name] = 0.0
+        elif isinstance(d, tuple) and (not d or not np.any(np.asarray(d, dtype=float))):
+            out[f.name] = [list(r) if isinstance(r, tuple) else r for r in d]
+        elif f.name == "soft_iron":
+            out[f.name] = [list(r) for r in d]
+    return out
+
+
 def updated_config(base: Mapping[str, Any], keys: Mapping[str, Any]) -> dict[str, Any]:
-    """A deep copy of ``base`` with ``keys`` set (an ``ideal = true`` flag is cleared)."""
+    """A deep copy of ``base`` with the simulated ``keys`` set; a sensor whose ``ideal = true``
+    flag is cleared gets its unmeasured error terms set to 'absent' (module docstring)."""
     doc = copy.deepcopy(dict(base))
     for dotted, value in keys.items():
-        _set(doc, dotted, value)
-        section = dotted.split(".calibration.")[0].rsplit(".", 1)[0]
+        if not is_simulated(dotted):
+            continue
+        section, _ = _section_and_key(dotted)
         node: Any = doc
         for k in section.split("."):
             node = node.get(k, {}) if isinstance(node, dict) else {}
         if isinstance(node, dict) and node.get("ideal") is True:
             node["ideal"] = False
+            for k, v in _absent_error_terms(section).items():
+                if k in node and f"{section}.{k}" not in keys:
+                    node[k] = v
+        _set(doc, dotted, value)
     return doc
+
+
+def not_simulated(keys: Mapping[str, Any]) -> dict[str, Any]:
+    return {k: v for k, v in keys.items() if not is_simulated(k)}
 
 
 def dumps(doc: Mapping[str, Any]) -> str:
@@ -76,9 +177,19 @@ def config_diff(base: Mapping[str, Any], new: Mapping[str, Any], name: str = "MO
     )
 
 
-def write_config(path: Path, doc: Mapping[str, Any]) -> None:
+def write_config(path: Path, doc: Mapping[str, Any], unsimulated: Mapping[str, Any] = {}) -> None:
     header = (
         "# Written by `koala-bridge calibrate --write-config`: the declared model with the\n"
         "# effects found in measured data added (see the report's config diff).\n"
     )
-    Path(path).write_text(header + dumps(doc), encoding="utf-8")
+    tail = ""
+    if unsimulated:
+        lines = [
+            "",
+            "# Found in the data but not written above: the simulator has no key for these",
+            "# (docs/calibration.md, 'What the simulator reproduces'):",
+        ]
+        for k, v in unsimulated.items():
+            lines.append(f"#   {k} = {tomli_w.dumps({'v': v})[4:].strip()}")
+        tail = "\n".join(lines) + "\n"
+    Path(path).write_text(header + dumps(doc) + tail, encoding="utf-8")

@@ -84,6 +84,8 @@ class DeclaredModel:
     #: counts = ir_gain * curve(range) + offset: reflectivity and the ambient-light loss
     ir_gain: float = 1.0
     ir_per_sensor_offset: tuple[float, ...] = ()
+    #: number of IR sensors the config declares ([sensors.ir] poses), for per-sensor keys
+    ir_sensor_count: int | None = None
     #: camera (sim/models/camera.py): wrong ids declared (observations are re-associated to
     #: the nearest predicted landmark), and the distance model's mean error
     #: eps_far sqrt(2/pi), eps_far = dist d_mid 2^((d - d_mid) / far_doubling)
@@ -273,6 +275,7 @@ def declared_model(config: Mapping[str, Any], meta: Mapping[str, Any]) -> Declar
         ir_curve=curve,
         ir_gain=gain,
         ir_per_sensor_offset=offsets,
+        ir_sensor_count=len(ir["poses"]) if isinstance(ir.get("poses"), list) else None,
         sonar_critical_angle_rad=critical,
         sonar_range_m=sonar_range,
         sonar_distance_error=sonar_table,

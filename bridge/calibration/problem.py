@@ -142,6 +142,14 @@ class StreamProblem(ABC):
         """Config keys written for the declared model's own fitted parts (default: none)."""
         return {}
 
+    def noise_estimate(
+        self, insts: Sequence[EffectInstance], x: FloatArray
+    ) -> tuple[str | None, float | None]:
+        """``(key, value)``: the white-noise level of the residual of ``insts`` in the
+        simulator's noise key of this stream's section (default: none; see
+        :func:`bridge.calibration.config_update.noise_keys`)."""
+        return None, None
+
     def describe(self) -> dict[str, Any]:
         """Facts about the stream for the report (sample counts, reference used, ...)."""
         return {}

@@ -23,14 +23,19 @@ CommandSchedule = Callable[[float], tuple[float, float]]
 
 
 def weave_command(
-    speed_mps: float = 0.12, turn_rad_s: float = 0.6, period_s: float = 7.0
+    speed_mps: float = 0.12,
+    mean_turn_rad_s: float = 0.5,
+    turn_amplitude_rad_s: float = 0.5,
+    period_s: float = 7.0,
 ) -> CommandSchedule:
-    """Forward at ``speed_mps`` while the turn rate swings between +-``turn_rad_s`` (a sine of
-    ``period_s``) and a slow steady turn, so the heading covers full circles (compass) and both
-    wheels change speed independently (odometry)."""
+    """Forward at ``speed_mps`` while turning at ``mean_turn_rad_s`` plus a sine of
+    ``turn_amplitude_rad_s`` and ``period_s``: the heading covers full circles (compass), both
+    wheels change speed independently (odometry), and in the default world the robot loops
+    near its start without touching a wall (wall slip would swamp odometry effects) while
+    passing close enough to one for the IR sensors."""
 
     def command(t: float) -> tuple[float, float]:
-        w = 0.35 + turn_rad_s * math.sin(2 * math.pi * t / period_s)
+        w = mean_turn_rad_s + turn_amplitude_rad_s * math.sin(2 * math.pi * t / period_s)
         return speed_mps, w
 
     return command

@@ -21,6 +21,8 @@ from bridge.calibration.bundle import load_input
 from bridge.calibration.config_update import (
     config_diff,
     found_keys,
+    noise_keys,
+    not_simulated,
     updated_config,
     write_config,
 )
@@ -63,6 +65,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         metavar="NEW.toml",
         help="write MODEL.toml with the found effects added",
+    )
+    parser.add_argument(
+        "--write-noise",
+        action="store_true",
+        help="also write each stream's residual white-noise level into the simulator's noise key "
+        "(gyroscope_noise_density, noise_sigma_uT, count_noise_sigma); for references far less "
+        "noisy than the sensor (robot still, motion tracker)",
     )
     parser.add_argument(
         "--window-s",
@@ -114,13 +123,16 @@ def run(args: argparse.Namespace) -> int:
                     bar.update(tasks[stream], completed=done)
 
                 results = calibrate(bundle, model, options, progress)
-        new_config = updated_config(config, found_keys(results))
+        keys = found_keys(results)
+        if args.write_noise:
+            keys.update(noise_keys(results))
+        new_config = updated_config(config, keys)
         name = args.config.name if args.config is not None else "MODEL.toml"
         diff = config_diff(config, new_config, name)
         write_report(args.out, results, str(args.input), diff, plots=not args.no_plots)
         if args.write_config is not None:
             args.write_config.parent.mkdir(parents=True, exist_ok=True)
-            write_config(args.write_config, new_config)
+            write_config(args.write_config, new_config, not_simulated(keys))
     except CalibrationError as e:
         log.error("%s", e)
         return 2

@@ -2,8 +2,9 @@
 
 ``ticks = round(wheel surface travel * ticks_per_metre)`` for each wheel (per wheel: divided by
 its diameter relative to nominal, ``[robot] wheel_diameter_ratio``, see sim/robot.py), where the
-travel is what the drive model says the wheel turned (:attr:`sim.robot.RobotState.left_travel_m`). With ideal
-drive that is the body's motion; the drive-error model (``[robot.drive_error]``: per-wheel error,
+travel is what the drive model says the wheel turned
+(:attr:`sim.robot.RobotState.left_travel_m`). With ideal drive that is the body's motion; the
+drive-error model (``[robot.drive_error]``: per-wheel error,
 wall slip) makes the body move differently from the wheels, so dead reckoning drifts from truth as
 on the real robot. The counters start at 0 on ``reset``; setting them (K-Team ``G``) is an offset
 kept by the bridge.

@@ -30,4 +30,8 @@ class Bias(Effect):
         state.add = state.add + params[0]
 
     def config(self, inst: EffectInstance, params: Any, problem: Any) -> dict[str, Any]:
+        native = problem.native_keys.get(inst.name, "")
+        if native.startswith("+"):  # a per-sensor key (IR offsets): the same increment for all
+            n = int(problem.declared_values.get("n_sensors", 0))
+            return {native: [float(f"{params[0]:.6g}")] * n}
         return scalar_config(inst, params, problem)

@@ -5,7 +5,8 @@
 Proposed for integer-valued columns with 2 to 32 levels on the fit part (the ``sensor`` column of
 ``range.csv`` among them). Levels not seen on the fit part get no offset. The sum-to-zero
 constraint leaves the common level to the declared curve and ``bias``. Writes
-``[sensors.ir] per_sensor_offset_counts`` for IR sensors (indexed by sensor id), otherwise
+``[sensors.ir] per_sensor_offset_counts`` for IR sensors (indexed by sensor id, added to the
+declared offsets), otherwise
 ``[sensors.<stream>.calibration] offset_per_<column> = {levels, offsets}``.
 """
 
@@ -62,12 +63,9 @@ class OffsetPer(Effect):
         off = offsets_of(params)
         native = problem.native_keys.get(inst.name)
         if native is not None and levels.min() >= 0:
+            # An increment per sensor id (config_update adds the declared offsets).
             full = np.zeros(int(levels.max()) + 1)
             full[levels.astype(int)] = off
-            declared = np.asarray(problem.declared_values.get(inst.name, ()), dtype=float)
-            if declared.size:
-                n = max(full.size, declared.size)
-                full = np.pad(full, (0, n - full.size)) + np.pad(declared, (0, n - declared.size))
             return {native: [float(f"{v:.6g}") for v in full]}
         return {
             f"calibration.{config_name(inst.name)}": {

@@ -143,6 +143,7 @@ def build_gyro(
         native_keys={"bias": "bias_rad_s", "scale": "scale_factor_error"},
         declared_values={"bias": model.gyro_bias_rad_s, "scale": model.gyro_scale_error},
         turn_on_bias_sigma=model.gyro_turn_on_bias_sigma,
+        noise_key="gyroscope_noise_density",
     )
     problem.notes.append(f"reference: {source}")
     if interval is not None and dense:
@@ -245,7 +246,12 @@ def _declared_field_direction(
 
     earth, sources, dmin = model.compass_world
     x, y = np.interp(t, truth["t"], truth["x"]), np.interp(t, truth["t"], truth["y"])
-    b = np.array([field_world(float(a), float(c), earth, sources, dmin)[:2] for a, c in zip(x, y)])
+    b = np.array(
+        [
+            field_world(float(a), float(c), earth, sources, dmin)[:2]
+            for a, c in zip(x, y, strict=True)
+        ]
+    )
     north = np.arctan2(earth[1], earth[0])
     return np.asarray(np.arctan2(b[:, 1], b[:, 0]) - north, dtype=float)
 
@@ -440,8 +446,25 @@ def build_ranges(bundle: Bundle, model: DeclaredModel) -> list[ScalarProblem]:
             base_add=base_add,
             base_gain=base_gain,
             quantity="IR counts" if counts else "range",
-            native_keys={"offset_per:sensor": "per_sensor_offset_counts"} if counts else {},
-            declared_values={"offset_per:sensor": model.ir_per_sensor_offset} if counts else {},
+            # Offsets common to all sensors (bias) and per sensor both go to the simulator's
+            # per-sensor offsets, as increments ("+": config_update adds the declared ones).
+            native_keys={
+                "offset_per:sensor": "+per_sensor_offset_counts",
+                "bias": "+per_sensor_offset_counts",
+            }
+            if counts
+            else {},
+            noise_key="count_noise_sigma" if counts else None,
+            declared_values={
+                "+per_sensor_offset_counts": model.ir_per_sensor_offset,
+                "n_sensors": max(
+                    model.ir_sensor_count or 0,
+                    len(model.ir_per_sensor_offset),
+                    int(np.nanmax(sub["sensor"])) + 1 if "sensor" in sub.columns else 0,
+                ),
+            }
+            if counts
+            else {},
         )
         if fitted:
             problem.notes.append(
@@ -509,6 +532,7 @@ def build_landmarks(bundle: Bundle, model: DeclaredModel) -> list[ScalarProblem]
         theta = np.interp(t, ref[0], ref[1])
         bearing = wrap_angle(np.arctan2(ly, lx) - theta)
         okb = np.isfinite(obs["bearing"])
+    if ref is not None and okb.sum() >= 10:
         out.append(
             ScalarProblem(
                 "landmark_bearing",

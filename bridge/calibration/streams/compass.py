@@ -124,5 +124,19 @@ class CompassProblem(StreamProblem):
     ) -> tuple[FloatArray, FloatArray]:
         return self.t, self._residual(insts, x, "all")
 
+    def noise_estimate(
+        self, insts: Sequence[EffectInstance], x: FloatArray
+    ) -> tuple[str | None, float | None]:
+        """Per-axis sigma (uT) of isotropic noise: the heading residual times the horizontal
+        field, or the magnitude residual times the field."""
+        r = self._residual(insts, x, "all")
+        mc = self.corrected(insts, x, "all")
+        field = float(
+            np.mean(
+                np.linalg.norm(mc[:, :2] if self.mode == "heading" else mc[:, : self.dims], axis=1)
+            )
+        )
+        return "noise_sigma_uT", float(np.std(r)) * field * self.uT_per_unit
+
     def describe(self) -> dict[str, Any]:
         return {"samples": int(self.t.size), "mode": self.mode, "data_unit": self.data_unit}

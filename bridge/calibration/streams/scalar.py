@@ -97,6 +97,8 @@ class ScalarProblem(StreamProblem):
     #: the declared model, fitted in every model (the ``bias`` effect is then judged against
     #: this spread instead, see :func:`bridge.calibration.pipeline.run_stream`)
     turn_on_bias_sigma: float = 0.0
+    #: the simulator's white-noise key of this stream (gyroscope_noise_density, count_noise_sigma)
+    noise_key: str | None = None
 
     def __post_init__(self) -> None:
         fit = self.split.mask(self.t, "fit")
@@ -220,6 +222,20 @@ class ScalarProblem(StreamProblem):
                 self.heading_window_error(*after, w),
             )
         ]
+
+    def noise_estimate(
+        self, insts: Sequence[EffectInstance], x: FloatArray
+    ) -> tuple[str | None, float | None]:
+        if self.noise_key is None or self.integrate_window_s is not None or self.t.size < 3:
+            return None, None
+        r = self._residual(insts, x, "all", False)
+        sigma = float(np.std(r))
+        if self.noise_key == "gyroscope_noise_density":
+            # Kalibr: sample sigma = density / sqrt(dt)
+            return self.noise_key, sigma * float(np.sqrt(np.median(np.diff(self.t))))
+        if self.noise_key == "count_noise_sigma":
+            return self.noise_key, float(np.sqrt(max(sigma**2 - 1 / 12, 0.0)))
+        return self.noise_key, sigma
 
     def config_values(self, insts: Sequence[EffectInstance], x: FloatArray) -> dict[str, Any]:
         if self.curve_fitted and self.curve_points is not None:
