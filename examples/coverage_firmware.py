@@ -226,6 +226,8 @@ class CoverageFirmware:
         self.resyncs = 0
         self.last_counts: tuple[int, ...] | None = None
         self.wall_fixes = 0
+        self.compass_rejects = 0  # consecutive
+        self.heading_resets = 0
 
     # -- plumbing ------------------------------------------------------------------------
     def poll(self) -> None:
@@ -244,7 +246,13 @@ class CoverageFirmware:
                 self.spin_fields.append((self.tracker.pose[2], field))
             if self.hard_iron is not None:
                 heading = heading_from_field(field, self.north, self.hard_iron)
-                self.tracker.on_compass(self.t, heading)
+                ok = self.tracker.on_compass(self.t, heading)
+                # Turning, the compass is gated out anyway (stream lag): count only otherwise.
+                turning = self.last_units is not None and self.last_units[0] != self.last_units[1]
+                if ok:
+                    self.compass_rejects = 0
+                elif not turning:
+                    self.compass_rejects += 1
         for reply in self.links.kteam_replies():
             if reply.letter == "n":
                 self.ir = reply.ints
@@ -282,8 +290,22 @@ class CoverageFirmware:
             self.last_send_t = self.t
 
     def stop(self) -> None:
+        """Stop the wheels and let them settle. Standing still is also when a heading that the
+        compass has contradicted for a long time (every update gated out) is re-initialised."""
         self.drive(0.0, 0.0)
         self.wait(0.2)
+        if self.hard_iron is not None and self.compass_rejects > 50:
+            heading = self.compass_heading_at_rest()
+            log.warning("compass disagreed %d times in a row: heading %.1f -> %.1f deg",
+                        self.compass_rejects, math.degrees(self.tracker.pose[2]),
+                        math.degrees(heading))
+            x, y, _ = self.tracker.pose
+            cov = self.tracker.pose_cov
+            cov[2, :] = cov[:, 2] = 0.0
+            cov[2, 2] = math.radians(3) ** 2
+            self.tracker.reset(x, y, heading, cov, t=self.t, gyro_bias=self.tracker.gyro_bias)
+            self.compass_rejects = 0
+            self.heading_resets += 1
 
     def read_ir(self) -> tuple[int, ...]:
         """One fresh ``N`` reading."""
@@ -334,10 +356,12 @@ class CoverageFirmware:
 
     # -- Lab 4 ---------------------------------------------------------------------------
     def calibrate(self) -> None:
-        """One turn on the spot: gyro-tracked; hard iron = centre of the field circle."""
+        """One turn on the spot: hard iron = centre of the circle the horizontal field draws;
+        then, standing still, the absolute heading = the mean compass heading. (Pairing each
+        field sample with the gyro heading would be wrong whenever the CAN and MAVLink streams
+        are drained at different lags.)"""
         self.wait(0.3)
-        start = self.tracker.pose[2]
-        turned, last = 0.0, start
+        turned, last = 0.0, self.tracker.pose[2]
         self.collect_fields = True
         end = self.t + 40.0
         while turned < 2 * math.pi + 0.3 and self.t < end:
@@ -349,20 +373,27 @@ class CoverageFirmware:
             time.sleep(0.0005)
         self.collect_fields = False
         self.stop()
-        rel = np.array([h for h, _ in self.spin_fields])
         xy = np.array([f[:2] for _, f in self.spin_fields])
         a = np.column_stack([2 * xy, np.ones(len(xy))])
         sol, *_ = np.linalg.lstsq(a, np.sum(xy**2, axis=1), rcond=None)
         self.hard_iron = np.array([sol[0], sol[1], 0.0])
-        absolute = np.array([heading_from_field(f, self.north, self.hard_iron)
-                             for _, f in self.spin_fields])
-        d = absolute - rel
-        offset = math.atan2(float(np.mean(np.sin(d))), float(np.mean(np.cos(d))))
-        x, y, th = self.tracker.pose
-        self.tracker.reset(x, y, th + offset, np.diag([1e-6, 1e-6, math.radians(3) ** 2]),
+        heading = self.compass_heading_at_rest()
+        x, y, _ = self.tracker.pose
+        self.tracker.reset(x, y, heading, np.diag([1e-6, 1e-6, math.radians(3) ** 2]),
                            t=self.t, gyro_bias=self.tracker.gyro_bias)
-        log.info("hard iron %.2f %.2f uT, heading %.1f deg", sol[0], sol[1],
-                 math.degrees(th + offset))
+        log.info("hard iron %.2f %.2f uT from %d samples, heading %.1f deg", sol[0], sol[1],
+                 len(xy), math.degrees(heading))
+
+    def compass_heading_at_rest(self, seconds: float = 0.5) -> float:
+        """Circular mean of the compass headings over ``seconds`` of standing still."""
+        self.spin_fields.clear()
+        self.collect_fields = True
+        self.wait(seconds)
+        self.collect_fields = False
+        assert self.hard_iron is not None
+        h = np.array([heading_from_field(f, self.north, self.hard_iron)
+                      for _, f in self.spin_fields])
+        return math.atan2(float(np.mean(np.sin(h))), float(np.mean(np.cos(h))))
 
     def read_walls(self, n: int) -> list[tuple[bool | None, ...]]:
         out: list[tuple[bool | None, ...]] = []
@@ -511,6 +542,7 @@ class CoverageFirmware:
             "robot_time_s": round(self.t, 2),
             "resyncs": self.resyncs,
             "wall_fixes": self.wall_fixes,
+            "heading_resets": self.heading_resets,
             "gated_out": self.tracker.counters.rejected,
         }
 
