@@ -56,6 +56,8 @@ class Fit:
     r_fit: FloatArray
     r_score: FloatArray
     jac: FloatArray | None = None
+    #: unrounded residuals, when the model holds an output transform (quantisation)
+    smooth: tuple[FloatArray, FloatArray] | None = None
 
     @property
     def rss_fit(self) -> float:
@@ -123,8 +125,19 @@ def fit_model(problem: StreamProblem, insts: Sequence[EffectInstance], x0: Float
             x, jac = sol.x, sol.jac
         except ValueError as e:  # degenerate data (e.g. no samples): keep the start values
             log.warning("%s: fit of %s failed: %s", problem.name, [i.name for i in insts], e)
+    smooth = None
+    if any(i.effect.output_transform for i in insts):
+        smooth = (
+            problem.residuals(insts, x, "fit", for_fit=True),
+            problem.residuals(insts, x, "score", for_fit=True),
+        )
     return Fit(
-        insts, x, problem.residuals(insts, x, "fit"), problem.residuals(insts, x, "score"), jac
+        insts,
+        x,
+        problem.residuals(insts, x, "fit"),
+        problem.residuals(insts, x, "score"),
+        jac,
+        smooth,
     )
 
 
@@ -165,17 +178,22 @@ def judge(
     if old.r_score.size == 0 or new.r_fit.size == 0:
         return Trial(name, k, np.nan, np.nan, np.nan, np.nan, False, new)
     tiny = 1e-300
-    wf_old, wf_new = prewhiten(old.r_fit, rho), prewhiten(new.r_fit, rho)
-    ws_old, ws_new = prewhiten(old.r_score, rho), prewhiten(new.r_score, rho)
+    rf_old, rs_old, rf_new, rs_new = old.r_fit, old.r_score, new.r_fit, new.r_score
+    if old.smooth is not None and new.smooth is not None:
+        # Both round their output: compare the unrounded residuals (Effect.output_transform).
+        (rf_old, rs_old), (rf_new, rs_new) = old.smooth, new.smooth
+    wf_old, wf_new = prewhiten(rf_old, rho), prewhiten(rf_new, rho)
+    ws_old, ws_new = prewhiten(rs_old, rho), prewhiten(rs_new, rho)
     nf, ns = max(wf_new.size, 1), max(ws_new.size, 1)
     if counts[0] is not None and counts[1] is not None:
         # The stream knows its independent units (odometry windows): raw sums, those counts.
-        wf_old, wf_new, ws_old, ws_new = old.r_fit, new.r_fit, old.r_score, new.r_score
+        wf_old, wf_new, ws_old, ws_new = rf_old, rf_new, rs_old, rs_new
         nf, ns = max(counts[0], 1), max(counts[1], 1)
     dbic = nf * np.log(max(_ss(wf_new), tiny) / max(_ss(wf_old), tiny)) + k * np.log(nf)
     lr = ns * np.log(max(_ss(ws_old), tiny) / max(_ss(ws_new), tiny))
     thr = float(stats.chi2.ppf(1 - ALPHA / max(n_candidates, 1), max(k, 1)))
-    gain = 1 - np.sqrt(new.rss_score / old.rss_score) if old.rss_score > 0 else 0.0
+    ss_old, ss_new = _ss(rs_old), _ss(rs_new)
+    gain = 1 - np.sqrt(ss_new / ss_old) if ss_old > 0 else 0.0
     passed = bool(dbic < 0 and lr > thr and gain >= MIN_RELATIVE_GAIN)
     return Trial(name, k, float(dbic), float(lr), thr, float(gain), passed, new)
 

@@ -212,9 +212,11 @@ CASES: Mapping[str, Case] = {
     "wheel_base": Case(
         Injected(wheel_base=0.1), {"odometry": {"wheel_base": {"wheel_base_m": (0.33, 0.003)}}}
     ),
+    # 0.04: the ratio's spread over seeds is 0.0013 (bench), so 0.02 was only 15 SE and its
+    # 10 % tolerance 1.5 SE; 0.04 keeps the rule of the class docstring (>= 20 SE, 10 % >= 2 SE).
     "wheel_ratio": Case(
-        Injected(wheel_ratio=0.02),
-        {"odometry": {"wheel_ratio": {"ratio_left_right": (1.02, 0.002)}}},
+        Injected(wheel_ratio=0.04),
+        {"odometry": {"wheel_ratio": {"ratio_left_right": (1.04, 0.004)}}},
     ),
     "range_dependent": Case(
         Injected(sonar_range_dependent=0.02),

@@ -52,6 +52,10 @@ class Effect(ABC):
 
     name: ClassVar[str] = ""
     kinds: ClassVar[frozenset[str]] = frozenset()
+    #: the effect transforms the model's output discontinuously (rounding): with it in the
+    #: model, further candidates are judged on the smooth (unrounded) residual, see
+    #: :func:`bridge.calibration.selection.judge`
+    output_transform: ClassVar[bool] = False
 
     def propose(self, problem: StreamProblem) -> list[EffectInstance]:
         """Instances of this effect that make sense for ``problem`` (empty: not applicable)."""

@@ -5,7 +5,9 @@
 Proposed when at least 99 % of the fit part's readings lie within 1 % of a step of a multiple of
 ``q``, ``q`` the smallest gap between distinct readings (so unquantised data, whose gaps are
 arbitrary, is never proposed). Least squares fits the other parameters on the unrounded model;
-scoring rounds. Writes ``[sensors.<stream>.calibration] quantisation_step``.
+scoring rounds. Once it is in the model, further candidates are judged on the unrounded residual
+(quantisation error as uniform noise of variance q^2/12, Widrow): the rounded residual is zero but
+at rounding boundaries, and a few boundary flips would pass for strong evidence. Writes ``[sensors.<stream>.calibration] quantisation_step``.
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ def lattice_step(y: np.ndarray, tolerance: float = 0.01, share: float = 0.99) ->
 @register_effect("quantisation")
 class Quantisation(Effect):
     kinds = frozenset({"scalar"})
+    output_transform = True
 
     def _propose(self, problem: Any) -> list[EffectInstance]:
         if problem.angle:
