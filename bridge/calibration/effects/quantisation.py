@@ -7,7 +7,8 @@ Proposed when at least 99 % of the fit part's readings lie within 1 % of a step 
 arbitrary, is never proposed). Least squares fits the other parameters on the unrounded model;
 scoring rounds. Once it is in the model, further candidates are judged on the unrounded residual
 (quantisation error as uniform noise of variance q^2/12, Widrow): the rounded residual is zero but
-at rounding boundaries, and a few boundary flips would pass for strong evidence. Writes ``[sensors.<stream>.calibration] quantisation_step``.
+at rounding boundaries, and a few boundary flips would pass for strong evidence. Writes
+``[sensors.<stream>.calibration] quantisation_step`` (not simulated).
 """
 
 from __future__ import annotations
