@@ -74,3 +74,25 @@ def test_khepera2_ir_per_sensor_offset() -> None:
     assert ir.effects[0].name == "offset_per:sensor"
     assert 35 < ir.before < 55  # README: one shared curve 46 counts RMS held-out
     assert ir.after < 25  # README: shared curve + per-sensor offset 19 counts RMS
+
+
+def test_mpu6050_turns_gyro_with_the_bias_of_the_still_recording() -> None:
+    """The turns alone cannot tell the gyro's bias (the compass heading's hand-tilt error is
+    as large, and the known total is one number): the bias measured on the still recording of
+    the same sensor, carried as the declared model (--write-config of one bundle as --config
+    of the next), lowers the held-out heading error against the calibrated compass."""
+    from bridge.calibration.config_update import found_keys, updated_config
+
+    still = load_bundle(DATA / "mpu6050_gyro_static")
+    written = updated_config({}, found_keys(calibrate(still, declared_model({}, still.meta))))
+    turns = load_bundle(DATA / "mpu6050_turns")
+    ideal = {r.problem.name: r for r in calibrate(turns, declared_model({}, turns.meta))}["gyro"]
+    carried = {r.problem.name: r for r in calibrate(turns, declared_model(written, turns.meta))}[
+        "gyro"
+    ]
+    assert carried.before < 0.8 * ideal.before  # 0.146 -> 0.107 rad per 10 s window
+    # The known +4 pi: README 733 deg integrated as ideal (+13 deg), 706 with the bias (-14 deg).
+    (rot_ideal,) = (m for m in ideal.secondary if m.metric == "known_rotation_error")
+    (rot_carried,) = (m for m in carried.secondary if m.metric == "known_rotation_error")
+    assert np.degrees(rot_ideal.before) == pytest.approx(13.0, abs=1.0)
+    assert np.degrees(rot_carried.before) == pytest.approx(-14.0, abs=1.0)

@@ -144,6 +144,7 @@ def build_gyro(
         declared_values={"bias": model.gyro_bias_rad_s, "scale": model.gyro_scale_error},
         turn_on_bias_sigma=model.gyro_turn_on_bias_sigma,
         noise_key="gyroscope_noise_density",
+        known_rotation=_known_rotation(bundle.meta),
     )
     problem.notes.append(f"reference: {source}")
     if interval is not None and dense:
@@ -154,6 +155,18 @@ def build_gyro(
             f"{model.gyro_turn_on_bias_sigma:g}^2) fitted as a nuisance"
         )
     return problem
+
+
+def _known_rotation(meta: Mapping[str, Any]) -> tuple[float, float, float] | None:
+    """``meta.json`` ``reference``: ``total_rotation_rad`` from ``from_t`` to ``to_t`` (a net
+    rotation known without a continuous reference, e.g. "two full turns")."""
+    ref = meta.get("reference")
+    if not isinstance(ref, Mapping):
+        return None
+    vals = [ref.get(k) for k in ("from_t", "to_t", "total_rotation_rad")]
+    if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in vals):
+        return None
+    return (float(vals[0]), float(vals[1]), float(vals[2]))  # type: ignore[arg-type]
 
 
 def _range_unit(meta: Mapping[str, Any], kind: str) -> str:

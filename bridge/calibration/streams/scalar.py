@@ -99,6 +99,9 @@ class ScalarProblem(StreamProblem):
     turn_on_bias_sigma: float = 0.0
     #: the simulator's white-noise key of this stream (gyroscope_noise_density, count_noise_sigma)
     noise_key: str | None = None
+    #: a known net rotation (t0, t1, rad) the bundle declares (meta.json reference): reported as
+    #: the error of the rotation the model's corrected rate integrates to; not used to select
+    known_rotation: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
         fit = self.split.mask(self.t, "fit")
@@ -206,22 +209,46 @@ class ScalarProblem(StreamProblem):
             full = span > 0
         return float(np.sqrt(np.mean(sums[full] ** 2)))
 
+    def rotation_error(self, insts: Sequence[EffectInstance], x: FloatArray) -> float:
+        """Integral over the known rotation's interval of the rate the model infers from the
+        readings, ``(y - add) / gain`` (trapezoid), minus the known rotation (rad)."""
+        assert self.known_rotation is not None
+        t0, t1, known = self.known_rotation
+        st = self.state("all")
+        if self.turn_on_bias_sigma > 0:
+            st.add = st.add + x[0]
+        apply_all(st, self, insts, x)
+        rate = (self.y - np.broadcast_to(st.add, self.y.shape)) / st.gain
+        m = (self.t >= t0) & (self.t <= t1)
+        t, r = self.t[m], rate[m]
+        return float(np.sum(0.5 * (r[1:] + r[:-1]) * np.diff(t)) - known) if t.size > 1 else np.nan
+
     def secondary_metrics(
         self,
         before: tuple[Sequence[EffectInstance], FloatArray],
         after: tuple[Sequence[EffectInstance], FloatArray],
     ) -> list[SecondaryMetric]:
-        if self.heading_window_s is None:
-            return []
-        w = self.heading_window_s
-        return [
-            SecondaryMetric(
-                f"heading_error_{w:g}s_window_rms",
-                "rad",
-                self.heading_window_error(*before, w),
-                self.heading_window_error(*after, w),
+        out = []
+        if self.heading_window_s is not None:
+            w = self.heading_window_s
+            out.append(
+                SecondaryMetric(
+                    f"heading_error_{w:g}s_window_rms",
+                    "rad",
+                    self.heading_window_error(*before, w),
+                    self.heading_window_error(*after, w),
+                )
             )
-        ]
+        if self.known_rotation is not None:
+            out.append(
+                SecondaryMetric(
+                    "known_rotation_error",
+                    "rad",
+                    self.rotation_error(*before),
+                    self.rotation_error(*after),
+                )
+            )
+        return out
 
     def noise_estimate(
         self, insts: Sequence[EffectInstance], x: FloatArray
