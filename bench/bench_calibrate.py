@@ -7,9 +7,13 @@ the time of the whole calibration including that load, and their ratio. Target: 
 
 ``--rates N``: runs every case of ``bridge.calibration.synthetic.CASES`` plus clean bundles on
 N seeds each and prints the detection and false-positive rates quoted in docs/calibration.md.
+``--sim N``: records the simulator under ``config/default.toml`` (every model on, 30 s,
+``bridge.calibration.simulated``) on N seeds, calibrates each ``.mcap`` against that config and
+prints how many got any effect (the declared model is the config itself: expected none).
 
     .venv/bin/python bench/bench_calibrate.py            # the 1-hour bench
     .venv/bin/python bench/bench_calibrate.py --rates 50
+    .venv/bin/python bench/bench_calibrate.py --sim 40
 """
 
 from __future__ import annotations
@@ -91,6 +95,27 @@ def rates(n: int, workdir: Path) -> int:
     return 0
 
 
+def sim_recordings(n: int, workdir: Path) -> int:
+    import tomllib
+
+    from bridge.calibration.bundle import load_input
+    from bridge.calibration.simulated import record_simulator
+
+    with (Path(__file__).parents[1] / "config" / "default.toml").open("rb") as fh:
+        config = tomllib.load(fh)
+    hits = 0
+    for seed in range(100, 100 + n):
+        mcap = record_simulator(config, workdir / "run.mcap", 30.0, seed=seed)
+        bundle = load_input(mcap, workdir / f"w{seed}")
+        results = calibrate(bundle, declared_model(config, bundle.meta))
+        found = {r.problem.name: [i.name for i in r.effects] for r in results if r.effects}
+        if found:
+            hits += 1
+            print(f"seed {seed}: {found}")
+    print(f"simulator recordings with any effect against their own config: {hits}/{n}")
+    return 0
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
     parser.add_argument(
@@ -100,12 +125,21 @@ def main() -> int:
         metavar="N",
         help="detection / false-positive rates over N seeds instead",
     )
+    parser.add_argument(
+        "--sim",
+        type=int,
+        default=0,
+        metavar="N",
+        help="false positives on N recordings of the simulator against its own config",
+    )
     args = parser.parse_args()
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
     with tempfile.TemporaryDirectory(prefix="bench-calibrate-") as tmp:
         if args.rates:
             return rates(args.rates, Path(tmp))
+        if args.sim:
+            return sim_recordings(args.sim, Path(tmp))
         return bench_hour(Path(tmp))
 
 
