@@ -100,8 +100,10 @@ def make_bundle(
     tpm_true = tpm * (1 + inj.tick_scale)
     slip = rng_odo.normal(0, 2e-4, (2, ds.size)) * np.sqrt(np.abs(ds) / max(ds.mean(), 1e-9))
     # Inverse of the model: s_l = dL / tpm 2 rho / (1 + rho), s_r = dR / tpm 2 / (1 + rho)
-    ticks_l = np.round(np.r_[0, np.cumsum((s_l + slip[0]) * tpm_true * (1 + rho) / (2 * rho))])
-    ticks_r = np.round(np.r_[0, np.cumsum((s_r + slip[1]) * tpm_true * (1 + rho) / 2)])
+    cum_l = np.cumsum((s_l + slip[0]) * tpm_true * (1 + rho) / (2 * rho))
+    cum_r = np.cumsum((s_r + slip[1]) * tpm_true * (1 + rho) / 2)
+    ticks_l = np.rint(np.concatenate([[0.0], cum_l]))
+    ticks_r = np.rint(np.concatenate([[0.0], cum_r]))
     _write(out / "odometry.csv", "t,left_ticks,right_ticks", [t, ticks_l, ticks_r], fmt="%.10g")
 
     # Gyro with a temperature covariate.
