@@ -39,8 +39,9 @@ __all__ = [
 MAVLINK_TRANSPORTS = ("udp", "tcp", "pty")
 
 #: The top-level tables of a configuration: sim/ reads the first four (sim/config.py), the bridge
-#: the others (``[real]``: bridge/real_source.py, for ``run --source real``).
-SECTIONS = ("sim", "robot", "sensors", "world", "run", "buses", "zenoh", "real")
+#: the others (``[real]``: bridge/real_source.py, for ``run --source real``; ``[localisation]``:
+#: bridge/localisation.py, the estimator node).
+SECTIONS = ("sim", "robot", "sensors", "world", "run", "buses", "zenoh", "real", "localisation")
 
 
 def load_config(path: str | Path) -> dict[str, Any]:
