@@ -23,6 +23,10 @@ stamps stay in the raw frames of the recording). The rest of the configuration (
 zenoh) is read as for a simulated run: the world and robot description answer the ``world``
 queryable, so monitor and snapshot work unchanged. No ``truth/pose`` is published.
 
+With ``[localisation] enabled``, every frame read from the robot also goes to the estimator node
+(:class:`bridge.localisation.LocalisationNode`), which decodes it as it decodes the simulated
+buses and publishes ``estimate/*`` and ``map/occupancy`` (no camera: it has no bus).
+
 :class:`RealRobotSource` has the simulated service's life cycle: ``open() -> Endpoints``,
 ``run(stop, duration_s)``, ``close()``, the ``tap`` recorder, ``clock.real_time_factor``.
 """
@@ -43,6 +47,7 @@ import serial
 from bridge.config import BridgeSettings
 from bridge.counters import BusCounters
 from bridge.endpoints import Endpoints
+from bridge.localisation import LocalisationNode
 from bridge.service import Tap
 from bridge.zenoh_io import ZENOH_BUS, ZenohLink, status_message
 from drivers.can_codec import KoalaCanCodec
@@ -57,6 +62,7 @@ from drivers.messages import (
     WheelOdometryFrame,
 )
 from drivers.rangeframes import NO_ECHO, RangeFrameDecoder, encode_range_frame
+from sim.config import load_sim_config
 from sim.schema import ConfigError, reject_unknown
 
 log = logging.getLogger(__name__)
@@ -226,6 +232,10 @@ class RealRobotSource:
         self._streamed = ({"sensors/ir"} if p.rangefinders else set()) | (
             {"sensors/odometry"} if p.can_interface else set()
         )
+        # The estimator node, fed with every frame read from the robot (_frame); None when off.
+        self.localisation = LocalisationNode.from_config(
+            config, load_sim_config(config), self._publish
+        )
 
     # -- life cycle --------------------------------------------------------------------------
 
@@ -355,12 +365,16 @@ class RealRobotSource:
     def _frame(self, bus: str, direction: str, t: float, data: bytes, **fields: object) -> None:
         if self.tap is not None:
             self.tap.record_frame(bus, direction, t, data, **fields)
+        if self.localisation is not None:
+            self.localisation.on_frame(bus, direction, t, data, **fields)
 
     def _publish_status(self) -> None:
         counts = self.counters.snapshot()
         buses = {name: {**c, "dropped": 0} for name, c in counts.items() if name != ZENOH_BUS}
         msg = status_message(self.clock.now(), 1.0, buses)
         msg["source"] = "real"
+        if self.localisation is not None:
+            msg["localisation"] = self.localisation.snapshot()
         self._publish("status", msg)
 
     # -- readers -----------------------------------------------------------------------------

@@ -129,10 +129,43 @@ TOPIC_SCHEMAS: dict[str, dict[str, Any]] = {
         {"real_time_factor": _NUM_OR_NULL, "buses": {"type": "object"}},
         required=[],
     ),
-    "estimate/pose": _obj("koala.estimate.Pose", _POSE, required=[]),
-    "estimate/cell": _obj("koala.estimate.Cell", {}, required=[]),
-    "estimate/grid": _obj("koala.estimate.Grid", {}, required=[]),
-    "map/occupancy": _obj("koala.map.Occupancy", {}, required=[]),
+    # The localisation node's outputs (bridge/localisation.py; encodings in
+    # bridge/estimation/messages.py and docs/localisation.md "Zenoh payloads").
+    "estimate/pose": _obj(
+        "koala.estimate.Pose",
+        {**_POSE, "cov": {**_array(_array(_NUM)), "description": "3x3 covariance of x, y, theta"}},
+    ),
+    "estimate/cell": _obj(
+        "koala.estimate.Cell",
+        {"cell": {**_INTS, "description": "[col, row], row 0 south"},
+         "p": {**_NUM, "description": "probability of that cell"}},
+    ),
+    "estimate/grid": _obj(
+        "koala.estimate.Grid",
+        {
+            "cols": {"type": "integer"},
+            "rows": {"type": "integer"},
+            "cell_m": _NUM,
+            "encoding": {"const": "float32-le"},
+            "data": {"type": "string", "contentEncoding": "base64",
+                     "description": "rows*cols float32 probabilities, row-major from SW"},
+            "cell": _INTS,
+            "p": _NUM,
+        },
+    ),
+    "map/occupancy": _obj(
+        "koala.map.Occupancy",
+        {
+            "cols": {"type": "integer"},
+            "rows": {"type": "integer"},
+            "resolution_m": _NUM,
+            "origin": _array(_NUM),
+            "encoding": {"const": "int8-logodds"},
+            "scale": {**_NUM, "description": "log-odds = q * scale; P(occ) = 1/(1+exp(-l))"},
+            "data": {"type": "string", "contentEncoding": "base64",
+                     "description": "rows*cols int8 q, row-major from the SW corner, 0 unknown"},
+        },
+    ),
 }
 
 BUS_FRAME_SCHEMA: dict[str, Any] = _obj(

@@ -36,6 +36,7 @@ from bridge.clock import Clock, make_clock
 from bridge.config import BridgeSettings
 from bridge.counters import BusCounters
 from bridge.endpoints import Endpoints, endpoints_of
+from bridge.localisation import LocalisationNode
 from bridge.robot_io import KteamResponder, MotorArbiter, RobotPort, RobotUnits
 from bridge.zenoh_io import ZENOH_BUS, ZenohLink, pose_message, sensor_messages, status_message
 from drivers.can_codec import KoalaCanCodec
@@ -128,6 +129,11 @@ class BridgeService:
         self._pose_period = max(1, round(1.0 / (zs.pose_rate_hz * self.dt)))
         self._status_period = max(1, round(1.0 / (zs.status_rate_hz * self.dt)))
         self._heartbeat_period = max(1, round(1.0 / (mav.heartbeat_hz * self.dt)))
+        # The estimator node ([localisation]): fed with the frames this service puts on the
+        # buses (_send_bytes, _send_can) and the camera's observations (no bus); None when off.
+        self.localisation = LocalisationNode.from_config(
+            config, self.sim.config, self._publish_estimate
+        )
 
     # -- lifecycle ---------------------------------------------------------------------------
 
@@ -224,6 +230,8 @@ class BridgeService:
                 self._send_bytes(
                     "mavlink", self.buses.mavlink, self.mav_encoder.scaled_imu(sample), r.t
                 )
+        if self.localisation is not None and r.camera is not None:
+            self.localisation.on_camera(r.t, r.camera.observations)
         self._publish(r, n)
         self._drain_output_links()
 
@@ -277,6 +285,8 @@ class BridgeService:
             buses[ZENOH_BUS] = {**counts[ZENOH_BUS], "dropped": 0}
         msg = status_message(t, self.clock.real_time_factor(t), buses)
         msg["motor_command_source"] = self.arbiter.source
+        if self.localisation is not None:
+            msg["localisation"] = self.localisation.snapshot()
         return msg
 
     def _publish_status(self, t: float) -> None:
@@ -289,6 +299,16 @@ class BridgeService:
             self._write_failed(ZENOH_BUS, e)
         if self.tap is not None:
             self.tap.record("status", t, msg)
+
+    def _publish_estimate(self, suffix: str, msg: dict[str, Any]) -> None:
+        """The localisation node's output: Zenoh and the recorder, like every other key."""
+        if self.zenoh is not None:
+            try:
+                self.zenoh.publish(suffix, msg)
+            except TransportError as e:
+                self._write_failed(ZENOH_BUS, e)
+        if self.tap is not None:
+            self.tap.record(suffix, msg["t"], msg)
 
     # -- output helpers ----------------------------------------------------------------------
 
@@ -308,6 +328,8 @@ class BridgeService:
             return
         if self.tap is not None:
             self.tap.record_frame(_tap_bus(bus), "from_robot", t, data)
+        if self.localisation is not None:
+            self.localisation.on_frame(_tap_bus(bus), "from_robot", t, data)
 
     def _send_can(self, frame: WheelOdometryFrame | GyroFrame, t: float) -> None:
         msg = self.can_codec.encode(frame)
@@ -319,6 +341,11 @@ class BridgeService:
                 self._write_failed(name, e)
         if self.tap is not None:
             self.tap.record_frame(
+                "can", "from_robot", t, bytes(msg.data), can_id=msg.arbitration_id,
+                extended=msg.is_extended_id,
+            )
+        if self.localisation is not None:
+            self.localisation.on_frame(
                 "can", "from_robot", t, bytes(msg.data), can_id=msg.arbitration_id,
                 extended=msg.is_extended_id,
             )

@@ -50,7 +50,19 @@ def expected_rates(rec: Recording) -> dict[str, float]:
         "/bus/serial/rangefinders": s["ir"] + s["sonar"],
         "/bus/can": s["encoders"] + s["gyro"],
         "/bus/mavlink": float(mav["heartbeat_hz"]) + s["compass"],
+        **localisation_rates(config),
     }
+
+
+def localisation_rates(config: dict) -> dict[str, float]:
+    """The estimator node's channels (bridge/localisation.py), when it is on."""
+    loc = config.get("localisation") or {}
+    if not loc.get("enabled"):
+        return {}
+    return {"/estimate/pose": float(loc["pose_rate_hz"]),
+            "/estimate/cell": float(loc["cell_rate_hz"]),
+            "/estimate/grid": float(loc["grid_rate_hz"]),
+            "/map/occupancy": float(loc["occupancy_rate_hz"])}
 
 
 def test_opens_with_mcap_library_every_channel_counts_match_rates(
