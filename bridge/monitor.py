@@ -11,6 +11,7 @@ given: the bridge's own listen endpoint, or a router's (docs/multihost.md).
 
 from __future__ import annotations
 
+import base64
 import json
 import logging
 import math
@@ -264,10 +265,31 @@ def render_poses(streams: Mapping[str, StreamStats]) -> Table:
         dist = math.hypot(est[0] - truth[0], est[1] - truth[1])
         dth = math.degrees(wrap_angle(est[2] - truth[2]))
         table.add_row("error", f"|d|={dist:.3f}", "", f"{dth:+.1f}")
+    captions = []
     cell = streams.get("estimate/cell")
     if cell is not None and cell.last is not None:
-        table.caption = f"estimate/cell: {_fmt(cell.last, 80)}"
+        captions.append(f"estimate/cell: {_fmt(cell.last, 80)}")
+    occupancy = streams.get("map/occupancy")
+    summary = _occupancy_summary(occupancy.last) if occupancy is not None else None
+    if summary:
+        captions.append(summary)
+    if captions:
+        table.caption = "\n".join(captions)
     return table
+
+
+def _occupancy_summary(msg: Any) -> str | None:
+    """``map/occupancy`` in one line: cells observed and occupied (int8 log-odds, 0 = unknown;
+    docs/localisation.md "Zenoh payloads")."""
+    if not isinstance(msg, dict) or msg.get("encoding") != "int8-logodds":
+        return None
+    try:
+        q = base64.b64decode(msg["data"])
+    except (KeyError, TypeError, ValueError):
+        return None
+    known = sum(1 for b in q if b)
+    occupied = sum(1 for b in q if 0 < b < 128)  # int8 > 0 as unsigned bytes
+    return f"map/occupancy: {known} of {len(q)} cells observed, {occupied} occupied"
 
 
 def render_status(streams: Mapping[str, StreamStats]) -> Table:

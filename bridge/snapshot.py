@@ -8,7 +8,9 @@ one was published.
 
 Grids are accepted as ``[row][col]`` nested lists (row 0 the southern-most row,
 docs/architecture.md) or flat row-major lists with ``rows``/``cols`` members, under one of the
-keys of :data:`GRID_KEYS`.
+keys of :data:`GRID_KEYS`, or in the bridge's own encodings (``encoding`` ``float32-le`` for the
+belief, ``int8-logodds`` for the occupancy map, drawn as P(occupied); docs/localisation.md). A
+grid with ``resolution_m`` (the occupancy map) is drawn at that resolution from ``origin``.
 """
 
 from __future__ import annotations
@@ -104,6 +106,9 @@ def grid_array(msg: Any, rows: int | None = None, cols: int | None = None) -> np
     """A ``(rows, cols)`` float array from a grid message (see module docstring), or None."""
     if not isinstance(msg, dict):
         return None
+    encoded = _decode_encoded(msg)
+    if encoded is not None:
+        return encoded
     rows = int(msg.get("rows", rows or 0)) or rows
     cols = int(msg.get("cols", cols or 0)) or cols
     for key in GRID_KEYS:
@@ -119,6 +124,35 @@ def grid_array(msg: Any, rows: int | None = None, cols: int | None = None) -> np
         if a.ndim == 1 and rows and cols and a.size == rows * cols:
             return a.reshape(rows, cols)
     return None
+
+
+def _decode_encoded(msg: dict[str, Any]) -> np.ndarray | None:
+    """The bridge's base64 grids (bridge/estimation/messages.py): belief probabilities, or the
+    occupancy log-odds as P(occupied) (0.5 where unknown); None for other messages."""
+    encoding = msg.get("encoding")
+    if encoding not in ("float32-le", "int8-logodds"):
+        return None
+    # Imported here: the estimation package loads scipy, which a plain snapshot does not need.
+    from bridge.estimation import EstimationError, decode_grid, decode_occupancy
+
+    try:
+        if encoding == "float32-le":
+            return decode_grid(msg)
+        return 1.0 / (1.0 + np.exp(-decode_occupancy(msg)))
+    except (EstimationError, KeyError, TypeError, ValueError):
+        return None
+
+
+def _grid_extent(
+    msg: Any, grid: np.ndarray, world_extent: tuple[float, float, float, float]
+) -> tuple[float, float, float, float]:
+    """Where a grid lies: its own ``resolution_m``/``origin`` if it has them, else the world's."""
+    res = msg.get("resolution_m") if isinstance(msg, dict) else None
+    if not isinstance(res, int | float) or not res > 0:
+        return world_extent
+    ox, oy = (msg.get("origin") or [0.0, 0.0])[:2]
+    rows, cols = grid.shape
+    return (float(ox), float(ox) + cols * res, float(oy), float(oy) + rows * res)
 
 
 def _draw_pose(ax: Axes, p: PoseT, colour: str, label: str, size: float) -> None:
@@ -197,7 +231,7 @@ def render_scene(scene: Scene, out: str | Path, dpi: int = 120) -> Path:
         im = ax.imshow(
             occupancy,
             origin="lower",
-            extent=extent,
+            extent=_grid_extent(scene.occupancy, occupancy, extent),
             cmap="Greys",
             vmin=0,
             vmax=1,
