@@ -26,11 +26,12 @@ has been seen.
 
 What it does with them (docs/localisation.md, "In the bridge"):
 
-* **pose** -- every ``WheelOdometry`` frame predicts, the gyro supplies the heading change, the
-  compass (after hard-iron removal: configured, or estimated online from the circle the
-  horizontal field draws once the robot has turned through most headings) and camera landmarks
-  correct; near a cell centre, IR sensors facing a known wall of the cell fix the coordinate
-  across that wall (``PoseTracker.on_coordinate``).
+* **pose** -- ``WheelOdometry`` frames predict (at ``predict_rate_hz``: the counters are
+  cumulative, so the frames in between are skipped undecoded), every ``Gyro`` frame supplies the
+  heading change; the compass (at ``compass_rate_hz``, after hard-iron removal: configured, or
+  fitted online to the circle the horizontal field draws once the robot has turned through most
+  headings) and camera landmarks correct; near a cell centre, IR sensors facing a known wall of
+  the cell fix the coordinate across that wall (``PoseTracker.on_coordinate``).
 * **grid** -- moves come from the pose: when the estimated position enters a neighbouring cell
   (by ``move_hysteresis_m`` past the boundary) the grid filter predicts a move to that side; a
   wall observation is made once per cell visit, from the first IR frame taken within
@@ -317,6 +318,7 @@ class NodeCounters:
     grid_observations: int = 0
     wall_fixes: int = 0
     occupancy_scans: int = 0
+    clock_restarts: int = 0
     hard_iron_uT: list[float] | None = None
 
     def took(self, kind: str) -> None:
@@ -429,6 +431,27 @@ class LocalisationNode:
                    KEY_GRID: settings.grid_rate_hz, KEY_OCCUPANCY: settings.occupancy_rate_hz}
         self._period = {k: 1.0 / hz for k, hz in periods.items()}
         self._next = {k: -math.inf for k in periods}
+        self._next_due = -math.inf
+        self._last_t = -math.inf
+
+    def _restart_clock(self, t: float) -> None:
+        """Time went backwards (the simulator was reset, e.g. a second ``run``): restart every
+        schedule from ``t``. The estimates carry on; the encoder counters' jump back to 0 is
+        taken as a client reset (:meth:`_odometry`)."""
+        log.info("localisation: time went back from %.3f to %.3f s; schedules restarted",
+                 self._last_t, t)
+        self._next = dict.fromkeys(self._next, -math.inf)
+        self._next_due = -math.inf
+        self._odo_t = None
+        self._compass_t = -math.inf
+        self._last_occupancy = -math.inf
+        self.tracker.t = t
+        self.counters.clock_restarts += 1
+
+    def _now(self, t: float) -> None:
+        if t < self._last_t - 0.5:
+            self._restart_clock(t)
+        self._last_t = t
 
     @classmethod
     def from_config(cls, config: Mapping[str, Any], robot: SimConfig,
@@ -458,6 +481,7 @@ class LocalisationNode:
         if direction != FROM_ROBOT:
             return
         with self._lock:
+            self._now(t)
             if bus == "can":
                 self._on_can(t, data, fields)
             elif bus == "mavlink":
@@ -475,6 +499,7 @@ class LocalisationNode:
             return
         ps = self.settings.pose
         with self._lock:
+            self._now(t)
             for ob in observations:
                 xy = self._landmarks.get(int(ob.id))
                 if xy is None or not (math.isfinite(ob.range) and math.isfinite(ob.bearing)):
@@ -555,6 +580,7 @@ class LocalisationNode:
         dl = wrap_int32(left - self._raw_ticks[0])
         dr = wrap_int32(right - self._raw_ticks[1])
         dt = max(t - (self._odo_t if self._odo_t is not None else t), 0.01)
+        # (after a clock restart _odo_t is None: the first step is judged over one 10 ms step)
         limit = (2.0 * self._max_wheel_speed * dt + 0.01) * self._ticks_per_metre
         self._raw_ticks = (left, right)
         self._odo_t = t
@@ -669,11 +695,14 @@ class LocalisationNode:
     def _maybe_publish(self, t: float) -> None:
         # On a fixed schedule in the frames' time (no drift from frame spacing; no catch-up
         # burst after a gap).
+        if t < self._next_due - 1e-9:  # the common case: nothing due (every frame asks)
+            return
         due = [k for k, nxt in self._next.items() if t >= nxt - 1e-9]
         for key in due:
             nxt = self._next[key] + self._period[key]
             self._next[key] = nxt if nxt > t else t + self._period[key]
             self._publish(key, self._message(key, t))
+        self._next_due = min(self._next.values())
 
     def _message(self, key: str, t: float) -> dict[str, Any]:
         if key == KEY_POSE:
@@ -699,5 +728,6 @@ class LocalisationNode:
                 "grid_observations": c.grid_observations,
                 "wall_fixes": c.wall_fixes,
                 "occupancy_scans": c.occupancy_scans,
+                "clock_restarts": c.clock_restarts,
                 "hard_iron_uT": c.hard_iron_uT,
             }
