@@ -12,8 +12,15 @@ simulation seconds, world frame x east / y north / theta CCW from +x, body frame
 ``sensors/compass``     ``{t, mx, my, mz (uT, body FLU), truth: {mx, my, mz}}``
 ``sensors/camera``      ``{t, observations: [{id, range, bearing}], truth: {observations}}``
 ``status``              ``{t, real_time_factor, buses: {name: {sent, received, rejected}}}``
+``estimate/pose``       ``{t, x, y, theta, cov}`` (the localisation node, bridge/localisation.py)
+``estimate/cell``       ``{t, cell: [col, row], p}``
+``estimate/grid``       ``{t, cols, rows, cell_m, encoding, data, cell, p}`` (belief, base64)
+``map/occupancy``       ``{t, cols, rows, resolution_m, origin, encoding, scale, data}`` (int8)
 ``world`` (queryable)   the world (``sim.world.World.to_dict``) plus ``robot``
 =====================  ==========================================================================
+
+The ``estimate/*`` and ``map/occupancy`` payloads are built by :mod:`bridge.estimation.messages`
+(docs/localisation.md, "Zenoh payloads") and published by the service through the same session.
 
 The message builders are pure functions of a :class:`sim.types.Readings`; :class:`ZenohLink`
 owns the session. Non-finite numbers (no echo, nothing in range) are sent as ``null``.

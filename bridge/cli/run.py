@@ -11,6 +11,8 @@ examples:
   koala-bridge run --set 'zenoh.listen=["tcp/127.0.0.1:7500"]' --set robot.name=k2
   koala-bridge run --clock fast --duration 60 --record /tmp/run.mcap   # docs/recording.md
   koala-bridge run --source real --config robot.toml --record /tmp/real.mcap
+  koala-bridge run --set localisation.enabled=false     # no estimate/* (docs/localisation.md)
+  koala-bridge run --set localisation.grid_prior=uniform  # no known start: the grid filter finds it
 """
 
 from __future__ import annotations
