@@ -20,7 +20,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import re
 import socket
 import struct
 import subprocess
@@ -96,8 +95,10 @@ class Truth:
                 last = self.poses[-1]
                 recent = [p for p in self.poses if p[0] >= last[0] - span]
             if recent[0][0] <= last[0] - span + 0.05 and all(
-                abs(p[1] - last[1]) < 1e-9 and abs(p[2] - last[2]) < 1e-9
-                and abs(p[3] - last[3]) < 1e-9 for p in recent
+                abs(p[1] - last[1]) < 1e-9
+                and abs(p[2] - last[2]) < 1e-9
+                and abs(p[3] - last[3]) < 1e-9
+                for p in recent
             ):
                 return last
             time.sleep(0.05)
@@ -262,8 +263,13 @@ class Compass(threading.Thread):
 
 def drive_can(bus: can.BusABC, db, left: float, right: float) -> None:
     msg = db.get_message_by_name("MotorCommand")
-    bus.send(can.Message(arbitration_id=msg.frame_id, is_extended_id=False,
-                         data=msg.encode({"left_speed": left, "right_speed": right})))
+    bus.send(
+        can.Message(
+            arbitration_id=msg.frame_id,
+            is_extended_id=False,
+            data=msg.encode({"left_speed": left, "right_speed": right}),
+        )
+    )
 
 
 # --------------------------------------------------------------------------- the test
@@ -275,13 +281,26 @@ def bridge(tmp_path):
     zenoh_port = free_port(socket.SOCK_STREAM)
     mavlink_port = free_port(socket.SOCK_DGRAM)
     cmd = [
-        str(BRIDGE), "run", "--config", str(IDEAL), "--clock", "realtime",
-        "--duration", str(DURATION_S), "--endpoints-file", str(endpoints_file),
-        "--set", f'zenoh.listen=["tcp/127.0.0.1:{zenoh_port}"]',
-        "--set", f"buses.mavlink.port={mavlink_port}",
-        "--set", "buses.mavlink.host=\"127.0.0.1\"",
-        "--set", "buses.can.socketcand_port=0",
-        "--set", "localisation.enabled=false",
+        str(BRIDGE),
+        "run",
+        "--config",
+        str(IDEAL),
+        "--clock",
+        "realtime",
+        "--duration",
+        str(DURATION_S),
+        "--endpoints-file",
+        str(endpoints_file),
+        "--set",
+        f'zenoh.listen=["tcp/127.0.0.1:{zenoh_port}"]',
+        "--set",
+        f"buses.mavlink.port={mavlink_port}",
+        "--set",
+        'buses.mavlink.host="127.0.0.1"',
+        "--set",
+        "buses.can.socketcand_port=0",
+        "--set",
+        "localisation.enabled=false",
     ]
     log = open(tmp_path / "bridge.log", "wb")
     proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=tmp_path)
@@ -351,8 +370,9 @@ def _run_client(ep: dict, closers: list) -> None:
     closers.append(rf.close)
     db = cantools.database.load_file(ep["can"]["dbc"], strict=True)
     sc = ep["can"]["socketcand"]
-    sc_bus = can.Bus(interface="socketcand", host=sc["host"], port=sc["port"],
-                     channel=sc["channel"])
+    sc_bus = can.Bus(
+        interface="socketcand", host=sc["host"], port=sc["port"], channel=sc["channel"]
+    )
     sc_rx = CanListener(sc_bus, db)
     sc_rx.start()
     closers.append(sc_rx.close)
@@ -365,8 +385,9 @@ def _run_client(ep: dict, closers: list) -> None:
     closers.append(compass.close)
 
     end = time.monotonic() + 10
-    while time.monotonic() < end and not (truth.poses and sc_rx.odometry and sl_rx.odometry
-                                          and compass.imus and compass.heartbeats):
+    while time.monotonic() < end and not (
+        truth.poses and sc_rx.odometry and sl_rx.odometry and compass.imus and compass.heartbeats
+    ):
         time.sleep(0.05)
     assert truth.poses, "no truth/pose"
     assert sc_rx.odometry and sc_rx.gyro, "no CAN over socketcand"
@@ -431,7 +452,7 @@ def _run_client(ep: dict, closers: list) -> None:
     assert list(sc_rx.last_odometry()[1:]) == h
     assert list(sl_rx.last_odometry()[1:]) == h
 
-    # ---------------------------------------------------------------- phase C: slcan MotorCommand toward the east wall
+    # ------------------------------------------ phase C: slcan MotorCommand toward the east wall
     # The robot starts facing east (theta = 0) at the world's `start`; the east wall is the
     # segment at x = max over segments.  Front sensors: |pose theta| < 0.35 rad.
     front = [i for i, p in enumerate(robot["sensors"]["ir"]["poses"]) if abs(p["theta"]) < 0.35]
@@ -456,7 +477,7 @@ def _run_client(ep: dict, closers: list) -> None:
     assert pose2[1] > pose1[1] + 0.3, "truth did not move after MotorCommand (slcan)"
     h2 = kt.ints(b"H", "h", 2)
     d2 = pose2[1] - pose1[1]
-    for a, b in zip(h2, h):
+    for a, b in zip(h2, h, strict=True):
         assert abs((a - b) - d2 * tpm) <= max(2.0, 0.01 * d2 * tpm), (h2, h, d2 * tpm)
     time.sleep(0.1)
     assert list(sc_rx.last_odometry()[1:]) == h2
@@ -468,7 +489,7 @@ def _run_client(ep: dict, closers: list) -> None:
     assert max(near_n[i] for i in front) > 50, near_n
     fronts = [max(vals[i] for i in front) for _, vals in n_replies]
     print("N front counts while driving:", fronts)
-    assert all(b >= a for a, b in zip(fronts, fronts[1:])), fronts  # ideal: monotone
+    assert all(b >= a for a, b in zip(fronts, fronts[1:], strict=False)), fronts  # ideal: monotone
     # ... and the binary IR frames, aligned with truth by their simulation time stamp.
     ir_frames = rf.of_kind(1)[frames_before:]
     assert len(ir_frames) > 10
@@ -486,18 +507,18 @@ def _run_client(ep: dict, closers: list) -> None:
     assert all(r == 0xFFFF or 0 <= r <= 2600 for f in sonar for r in f[3])
     for kind in (1, 2):
         seqs = [f[1] for f in rf.of_kind(kind)]
-        gaps = sum(1 for a, b in zip(seqs, seqs[1:]) if (b - a) % 65536 != 1)
+        gaps = sum(1 for a, b in zip(seqs, seqs[1:], strict=False) if (b - a) % 65536 != 1)
         assert gaps <= 5, (kind, seqs[:20])
     assert rf.bad_crc == 0
 
-    # ---------------------------------------------------------------- phase B: socketcand MotorCommand, turn on the spot
+    # ------------------------------------------ phase B: socketcand MotorCommand, turn on the spot
     pose_b0 = truth.wait_still()
     t_b0 = time.monotonic()
     w = 0.1  # wheel speed, m/s; yaw rate = 2 w / wheel_base
     drive_can(sc_bus, db, -w, w)
     time.sleep(0.3)
     turning = truth.latest()
-    assert wrap(turning[3] - pose_b0[3]) > 0.05, "truth did not turn after MotorCommand (socketcand)"
+    assert wrap(turning[3] - pose_b0[3]) > 0.05, "truth did not turn after MotorCommand"
     time.sleep(1.7)
     drive_can(sc_bus, db, 0.0, 0.0)
     pose_b1 = truth.wait_still()
