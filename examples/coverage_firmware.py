@@ -56,11 +56,15 @@ import numpy as np
 import serial
 
 from bridge.estimation import (
+    BeamModel,
     GridLocaliser,
     GridParams,
+    OccupancyGrid,
+    OccupancyParams,
     PoseTracker,
     PoseTrackerParams,
     heading_from_field,
+    occupancy_message,
     sensor_sides,
     walls_from_ir,
 )
@@ -100,6 +104,7 @@ class RobotParams:
     ir_poses: np.ndarray  # (16, 3) body frame [x, y, yaw rad]
     ir_response_m: np.ndarray  # response curve: range (m) ...
     ir_response_counts: np.ndarray  # ... -> counts (decreasing)
+    ir_aperture_rad: float
     encoders_rate_hz: float
     gyro_rate_hz: float
 
@@ -114,6 +119,7 @@ class RobotParams:
             ir_poses=ir,
             ir_response_m=np.array(d["sensors"]["ir"]["response_range_m"], dtype=float),
             ir_response_counts=np.array(d["sensors"]["ir"]["response_counts"], dtype=float),
+            ir_aperture_rad=math.radians(float(d["sensors"]["ir"]["aperture_deg"])),
             encoders_rate_hz=float(d["sensors"]["encoders"]["rate_hz"]),
             gyro_rate_hz=float(d["sensors"]["gyro"]["rate_hz"]),
         )
@@ -228,6 +234,13 @@ class CoverageFirmware:
         self.wall_fixes = 0
         self.compass_rejects = 0  # consecutive
         self.heading_resets = 0
+        # The lecture's occupancy grid (seeds/004) from the IR ring at every stop once localised.
+        # The free cone stops a cell short of each echo: a grazing IR ray must not clear the
+        # cells a wall touches (docs/localisation.md, "Occupancy grid").
+        self.occupancy = OccupancyGrid.for_world(world, args.map_resolution_m,
+                                                 OccupancyParams(free_margin_cells=1.0))
+        self.ir_beam = BeamModel(robot.ir_aperture_rad, 0.03,
+                                 max_range_m=float(robot.ir_response_m[-1]))
 
     # -- plumbing ------------------------------------------------------------------------
     def poll(self) -> None:
@@ -405,20 +418,36 @@ class CoverageFirmware:
                                      self.args.ir_threshold, cell_m=self.world.cell_m))
         return out
 
-    def correct_from_walls(self, cell: tuple[int, int]) -> None:
-        """Map-based position fix at a stop: a sensor facing a known wall of ``cell`` within
-        20 deg of its normal measures the robot's coordinate across that wall (IR counts to
-        range by the robot's response curve)."""
+    def ir_ranges(self, counts: tuple[int, ...]) -> np.ndarray:
+        """IR counts to ranges by the robot's response curve; below the noise floor
+        ``--ir-echo-counts`` nothing is in range."""
+        c = np.asarray(counts, dtype=float)
+        r = np.interp(c, self.robot.ir_response_counts[::-1], self.robot.ir_response_m[::-1])
+        return np.where(c >= self.args.ir_echo_counts, r, np.inf)
+
+    def map_stop(self) -> None:
+        """Add the last IR reading, taken at rest, to the occupancy grid."""
+        if self.last_counts is not None:
+            self.occupancy.integrate_scan(self.tracker.pose, self.robot.ir_poses,
+                                          self.ir_ranges(self.last_counts), self.ir_beam)
+
+    def correct_from_walls(
+        self, centre: tuple[float, float], walls: tuple[bool | None, ...]
+    ) -> None:
+        """Position fix at a stop: a sensor facing a wall of the current cell (centre
+        ``centre``, walls ``N, E, S, W``) within 20 deg of its normal measures the robot's
+        coordinate across that wall (IR counts to range by the robot's response curve). Before
+        localisation the cell is the start-relative one and its walls are the ones just seen."""
         if self.last_counts is None:
             return
         x, y, th = self.tracker.pose
         poses = self.robot.ir_poses
         sides = sensor_sides(th, poses, self.world.cell_m, math.radians(20.0))
-        cm = self.world.cell_m
+        half = self.world.cell_m / 2
         c, s = math.cos(th), math.sin(th)
         for i, k in enumerate(sides):
             counts = self.last_counts[i]
-            if k is None or not self.world.has_wall(*cell, SIDES[k]) or not 40 <= counts < 1000:
+            if k is None or not walls[k] or not 40 <= counts < 1000:
                 continue
             r = float(np.interp(counts, self.robot.ir_response_counts[::-1],
                                 self.robot.ir_response_m[::-1]))
@@ -428,31 +457,41 @@ class CoverageFirmware:
             side = SIDES[k]
             sigma = 0.004 + 0.05 * r
             if side in ("N", "S"):
-                wall_y = (cell[1] + (1 if side == "N" else 0)) * cm
+                wall_y = centre[1] + (half if side == "N" else -half)
                 ok = self.tracker.on_coordinate(self.t, 1, wall_y - r * math.sin(phi) - oy, sigma)
             else:
-                wall_x = (cell[0] + (1 if side == "E" else 0)) * cm
+                wall_x = centre[0] + (half if side == "E" else -half)
                 ok = self.tracker.on_coordinate(self.t, 0, wall_x - r * math.cos(phi) - ox, sigma)
             self.wall_fixes += int(ok)
 
+    def map_walls(self, cell: tuple[int, int]) -> tuple[bool, ...]:
+        return tuple(self.world.has_wall(*cell, side) for side in SIDES)
+
     def move(self, target_xy: tuple[float, float], side: str) -> bool:
-        self.grid.move(side)
-        return self.drive_to(*target_xy)
+        """Drive to the neighbour's centre; the grid filter predicts the move only if it was
+        made (a blocked move brings the robot back to where it was: no motion to predict)."""
+        ok = self.drive_to(*target_xy)
+        if ok:
+            self.grid.move(side)
+        return ok
 
     def localise(self) -> tuple[tuple[int, int], int]:
         """Wall localisation from a uniform prior; returns (cell, moves)."""
         cm = self.world.cell_m
         rel = (0, 0)
         last: str | None = None
+        confident = 0
         for moves in range(self.args.max_localise_moves + 1):
             readings = self.read_walls(self.args.readings_per_stop)
             for walls in readings:
                 self.grid.observe(walls)
+            self.correct_from_walls((rel[0] * cm, rel[1] * cm), readings[-1])
             guess = self.grid.guess()
             p = self.grid.probability(guess)
             log.info("localising: move %d, guess %s p=%.3f walls %s", moves, guess, p,
                      readings[-1])
-            if p >= self.args.p_name:
+            confident = confident + 1 if p >= self.args.p_name else 0
+            if confident >= 2:  # named at two stops in a row (a move apart)
                 # Shift the start-relative EKF frame onto the world.
                 gx, gy = self.world.cell_centre(*guess)
                 self.tracker.x[0] += gx - rel[0] * cm
@@ -484,7 +523,8 @@ class CoverageFirmware:
         order = [cell]
         history: list[str] = []
         doubt = 0
-        self.correct_from_walls(cell)
+        self.correct_from_walls(w.cell_centre(*cell), self.map_walls(cell))
+        self.map_stop()
         while True:
             side = next((s for s in LAB_ORDER if w.can_move(*cell, s)
                          and _step(cell, s) not in visited), None)
@@ -509,7 +549,8 @@ class CoverageFirmware:
             order.append(cell)
             for walls in self.read_walls(1):
                 self.grid.observe(walls)
-            self.correct_from_walls(cell)
+            self.correct_from_walls(w.cell_centre(*cell), self.map_walls(cell))
+            self.map_stop()
             guess = self.grid.guess()
             doubt = doubt + 1 if guess != cell and self.grid.probability(guess) > 0.95 else 0
             if doubt >= 2:
@@ -543,6 +584,9 @@ class CoverageFirmware:
             "resyncs": self.resyncs,
             "wall_fixes": self.wall_fixes,
             "heading_resets": self.heading_resets,
+            "occupancy": occupancy_message(self.t, self.occupancy.log_odds,
+                                           self.occupancy.resolution_m,
+                                           self.occupancy.params.l_max),
             "gated_out": self.tracker.counters.rejected,
         }
 
@@ -613,6 +657,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="robot-time budget, s (default 1500)")
     ap.add_argument("--timeout-s", type=float, default=300.0,
                     help="wall-clock budget, s (default 300)")
+    ap.add_argument("--ir-echo-counts", type=float, default=10.0,
+                    help="IR counts below this are noise, not an echo (default 10)")
+    ap.add_argument("--map-resolution-m", type=float, default=0.05,
+                    help="occupancy grid cell side (default 0.05)")
     ap.add_argument("--report", type=Path, help="also write the JSON report here")
     ap.add_argument("--log-level", default="INFO")
     args = ap.parse_args(argv)

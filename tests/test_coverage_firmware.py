@@ -26,9 +26,11 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import tomli_w
 
+from bridge.estimation import decode_occupancy
 from bridge.recording import open_recording
 from sim.world import World
 
@@ -74,6 +76,23 @@ def visited_cells(mcap: Path, world: World) -> set[tuple[int, int]]:
         if math.hypot(p["x"] - cx, p["y"] - cy) < CENTRE_TOLERANCE_M:
             cells.add(c)
     return cells
+
+
+def occupancy_accuracy(msg: dict[str, Any], world: World) -> tuple[float, int]:
+    """Share of observed cells of a ``map/occupancy`` payload classified as the true map has them
+    (a cell is occupied when a wall touches its closed square), and the number observed."""
+    lo = decode_occupancy(msg)
+    res = float(msg["resolution_m"])
+    truth = np.zeros(lo.shape, dtype=bool)
+    tol = 1e-9
+    for x0, y0, x1, y1 in world.segments:
+        c0 = max(math.floor((min(x0, x1) - tol) / res), 0)
+        c1 = min(math.floor((max(x0, x1) + tol) / res), lo.shape[1] - 1)
+        r0 = max(math.floor((min(y0, y1) - tol) / res), 0)
+        r1 = min(math.floor((max(y0, y1) + tol) / res), lo.shape[0] - 1)
+        truth[r0 : r1 + 1, c0 : c1 + 1] = True
+    seen = lo != 0
+    return float(np.mean((lo[seen] > 0) == truth[seen])), int(seen.sum())
 
 
 def run_once(
@@ -132,6 +151,8 @@ def run_once(
     )
     result["truth_visited"] = sorted(visited_cells(mcap, world))
     result["free_cells"] = sorted(world.free_cells())
+    result["map_accuracy"], result["map_observed"] = occupancy_accuracy(
+        result["occupancy"], world)
     return result
 
 
@@ -142,6 +163,8 @@ def test_firmware_covers_every_cell_through_the_buses(tmp_path: Path) -> None:
     assert set(map(tuple, res["truth_visited"])) == set(res["free_cells"]), res
     # the firmware's own belief of where it went matches where it went
     assert {tuple(c) for c in res["visited"]} == set(map(tuple, res["truth_visited"]))
+    # its IR occupancy grid (seeds/004) agrees with the true map
+    assert res["map_observed"] > 200 and res["map_accuracy"] >= 0.95, res["map_accuracy"]
 
 
 def main() -> None:
@@ -165,7 +188,8 @@ def main() -> None:
                           f"localised {r['localised_cell']} after {r['localisation_moves']} "
                           f"moves, {len(r['truth_visited'])}/{len(r['free_cells'])} cells, "
                           f"robot time {r['robot_time_s']} s, resyncs {r['resyncs']}, "
-                          f"wall fixes {r['wall_fixes']}, wall {time.monotonic() - t0:.0f} s",
+                          f"wall fixes {r['wall_fixes']}, map {r['map_accuracy']:.3f} of "
+                          f"{r['map_observed']}, wall {time.monotonic() - t0:.0f} s",
                           flush=True)
                     if not ok:
                         print(r["firmware_log"], flush=True)

@@ -129,3 +129,10 @@ def test_int8_encoding_round_trips_within_half_a_step() -> None:
     back = decode_log_odds(data, 7, 9, scale)
     assert np.max(np.abs(back - lo)) <= scale / 2 + 1e-12
     assert np.all(decode_log_odds(encode_log_odds(np.zeros((2, 3)), 4.0)[0], 2, 3, scale) == 0)
+
+
+def test_free_margin_stops_the_cone_short_of_the_band() -> None:
+    beam = BeamModel(0.0, 0.0, max_range_m=3.0)
+    _, free0 = beam_cells((40, 40), RES, (0.025, 1.025), 0.0, 1.0, beam)
+    _, free1 = beam_cells((40, 40), RES, (0.025, 1.025), 0.0, 1.0, beam, free_margin_m=RES)
+    assert np.max(free0 % 40) == 19 and np.max(free1 % 40) == 18

@@ -77,6 +77,9 @@ class OccupancyParams:
         l_occ: added to a cell in a reading's obstacle band (0.85 = ln(0.7/0.3)).
         l_free: added to a cell in front of the band (-0.4 ~ ln(0.4/0.6)).
         occ_share_cells: an arc band of ``n`` cells gives each ``l_occ * min(1, this / n)``.
+        free_margin_cells: the free cone stops this many cells short of the band (the obstacle's
+            half thickness, Thrun et al. 2005 table 9.2 ``alpha / 2``), so beams grazing a wall
+            do not clear the cells the wall touches.
         l_min, l_max: clamp of the accumulated log-odds.
         mark_free_on_no_echo: whether a no-echo reading clears its whole cone to ``max_range_m``.
     """
@@ -84,6 +87,7 @@ class OccupancyParams:
     l_occ: float = 0.85
     l_free: float = -0.4
     occ_share_cells: float = 3.0
+    free_margin_cells: float = 0.0
     l_min: float = -4.0
     l_max: float = 4.0
     mark_free_on_no_echo: bool = False
@@ -117,6 +121,7 @@ def beam_cells(
     range_m: float,
     beam: BeamModel,
     mark_free_on_no_echo: bool = False,
+    free_margin_m: float = 0.0,
 ) -> tuple[IntArray, IntArray]:
     """The cells one reading marks occupied and free (module docstring).
 
@@ -129,6 +134,7 @@ def beam_cells(
             ``< beam.min_range_m`` = ignored.
         beam: the sensor's beam model.
         mark_free_on_no_echo: clear the cone to ``max_range_m`` on no echo.
+        free_margin_m: the free cone ends this far short of the band.
 
     Returns:
         ``(occupied, free)``: flat row-major cell indices, disjoint and sorted.
@@ -150,7 +156,7 @@ def beam_cells(
         radii = np.linspace(lo, hi, max(2, math.ceil((hi - lo) / inc) + 1))
         ox, oy = _arc_points(xs, ys, phi, radii, beam.beam_width_rad, resolution_m / 2.0)
         occ = _cells(ox.ravel(), oy.ravel(), shape, resolution_m)
-        free_to = lo
+        free_to = lo - free_margin_m
     n_r = math.ceil(free_to / (resolution_m / 2.0))
     if n_r < 1:
         return occ, empty
@@ -205,6 +211,7 @@ class OccupancyGrid:
         occ, free = beam_cells(
             (self.rows, self.cols), self.resolution_m, sensor_xy, phi, range_m, beam,
             self.params.mark_free_on_no_echo,
+            self.params.free_margin_cells * self.resolution_m,
         )
         flat = self.log_odds.reshape(-1)
         if occ.size:
