@@ -209,6 +209,23 @@ def _read_element(sock: socket.socket) -> bytes:
     return buf.strip()
 
 
+def test_socketcand_counts_a_client_once_it_receives_frames(
+    codec: KoalaCanCodec, socketcand: SocketcandServer
+) -> None:
+    # What `replay --wait-clients` waits on: a frame sent before `rawmode` never reaches the
+    # client, so a client still in its handshake is not counted yet.
+    with _raw_client(socketcand) as raw:
+        raw.sendall(b"< open koala0 >")
+        assert _read_element(raw) == b"< ok >"
+        assert socketcand.stats.clients == 0
+        raw.sendall(b"< rawmode >")
+        assert _read_element(raw) == b"< ok >"
+        _wait_for(lambda: socketcand.stats.clients == 1)
+        socketcand.send(codec.encode(GyroFrame(0.5)))
+        assert _read_element(raw).startswith(b"< frame ")
+    _wait_for(lambda: socketcand.stats.clients == 0)
+
+
 def test_socketcand_rejects_bad_input_and_keeps_serving(
     codec: KoalaCanCodec, socketcand: SocketcandServer
 ) -> None:

@@ -29,7 +29,9 @@ class TransportStats:
             rejects are counted by the codec's caller).
         dropped: outgoing data thrown away because no client was connected or a client could not
             keep up, and incoming frames dropped because the receive queue was full.
-        clients: clients currently connected, where the transport can tell (else 0).
+        clients: clients currently connected and receiving what is sent, where the transport
+            can tell (else 0): a pty with its slave open, a TCP connection, a socketcand client
+            in raw mode, an slcan channel opened with ``O``.
     """
 
     sent: int = 0

@@ -161,7 +161,11 @@ class SocketcandServer(CanTransport):
 
     @property
     def stats(self) -> TransportStats:
-        return self._stats.snapshot(clients=len(self._clients))
+        """Counters; ``clients`` counts the clients in raw mode, the ones that receive the bus's
+        frames: a client that has connected but not yet sent ``open`` and ``rawmode`` would miss
+        every frame sent meanwhile (``replay --wait-clients`` waits on this)."""
+        clients = list(self._clients.values())  # a copy: the service thread adds and drops
+        return self._stats.snapshot(clients=sum(1 for c in clients if c.mode == "raw"))
 
     def send(self, msg: can.Message) -> None:
         if self._closed:
