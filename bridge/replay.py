@@ -184,7 +184,10 @@ class Replayer:
         monotonic: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
         zenoh: ZenohLink | None = None,
+        on_sent_all: Callable[[ReplayStats], None] | None = None,
     ) -> None:
+        """``on_sent_all`` is called once every frame has been sent, before the linger (the
+        command line says so, for the client that waits for the end of the stream)."""
         if not speed > 0:
             raise ValueError(f"speed must be > 0, got {speed!r}")
         self.plan = plan
@@ -194,6 +197,7 @@ class Replayer:
         self.linger_s = linger_s
         self._monotonic = monotonic
         self._sleep = sleep
+        self._on_sent_all = on_sent_all
         self._start: float | None = None
         self.stats = ReplayStats()
         missing = [b for b in plan.counts if not self._has_bus(b)]
@@ -240,7 +244,10 @@ class Replayer:
                 end = self._start + (self.plan.t_end - self.plan.t0) / self.speed
                 if not self._wait_until(end, stop):
                     self.stats.stopped_early = True
-                self._linger(stop)
+                else:
+                    if self._on_sent_all is not None:
+                        self._on_sent_all(self.stats)
+                    self._linger(stop)
         finally:
             if kteam is not None:
                 stop.set()

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import socket
 import subprocess
 import threading
@@ -25,6 +26,7 @@ from mcap.writer import Writer
 
 from bridge.cli import monitor as monitor_cli
 from bridge.cli import replay as replay_cli
+from bridge.monitor import ZenohWatch as MonitorWatch
 from bridge.recording import FROM_ROBOT, Recorder, open_recording
 from bridge.replay import plan_replay
 from drivers.rangeframes import RangeFrameDecoder, encode_range_frame
@@ -48,11 +50,22 @@ def monitor_args(argv: list[str]) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
+def wait_for_log(log_path: Path, text: str, proc: subprocess.Popen[bytes],
+                 timeout: float = 120.0) -> None:
+    """Wait until the replay has written ``text`` to its log."""
+    deadline = time.monotonic() + timeout
+    while text not in log_path.read_text():
+        assert proc.poll() is None, log_path.read_text()
+        assert time.monotonic() < deadline, log_path.read_text()
+        time.sleep(0.02)
+
+
 class Collector:
     """Reads one client connection in a thread, keeping (arrival time, frame bytes)."""
 
     def __init__(self, name: str, read_frames) -> None:  # type: ignore[no-untyped-def]
         self.frames: list[tuple[float, bytes]] = []
+        self._cond = threading.Condition()
         self._stop = threading.Event()
         self._read = read_frames
         self._thread = threading.Thread(target=self._loop, name=f"collector-{name}")
@@ -64,8 +77,16 @@ class Collector:
                 frames = self._read()
             except (OSError, ValueError, can.CanError):  # the replay closed its end
                 return
-            for frame in frames:
-                self.frames.append((time.monotonic(), frame))
+            with self._cond:
+                for frame in frames:
+                    self.frames.append((time.monotonic(), frame))
+                self._cond.notify_all()
+
+    def wait_for(self, n: int, timeout: float) -> int:
+        """Wait until ``n`` frames have arrived (or ``timeout`` s); the number that did."""
+        with self._cond:
+            self._cond.wait_for(lambda: len(self.frames) >= n, timeout)
+            return len(self.frames)
 
     def stop(self) -> None:
         self._stop.set()
@@ -89,8 +110,10 @@ def test_replay_feeds_clients_the_recorded_frames_in_order(
     with log_path.open("wb") as log:
         proc = subprocess.Popen(
             bridge_command(
-                "replay", str(run3.path), "--speed", "3", "--wait-clients", "20",
-                "--endpoints-file", str(endpoints_file),
+                # Playback starts once every client below is connected (no frame sent before
+                # a client can receive it), and the ports stay open until the test is done.
+                "replay", str(run3.path), "--speed", "3", "--wait-clients", "120",
+                "--linger", "120", "--endpoints-file", str(endpoints_file),
                 "--set", f"buses.mavlink.port={mav_port}", "--set", "buses.can.slcan=false",
                 "--set", f'zenoh.listen=["tcp/127.0.0.1:{free_port()}"]',
             ),
@@ -98,7 +121,7 @@ def test_replay_feeds_clients_the_recorded_frames_in_order(
         )
     collectors: list[Collector] = []
     try:
-        deadline = time.monotonic() + 30
+        deadline = time.monotonic() + 60
         while not endpoints_file.exists():
             assert proc.poll() is None, log_path.read_text()
             assert time.monotonic() < deadline
@@ -107,7 +130,7 @@ def test_replay_feeds_clients_the_recorded_frames_in_order(
         sc = ep["can"]["socketcand"]
         with (
             serial.Serial(ep["serial"]["rangefinders"], 115200, timeout=0.1) as ranges,
-            serial.Serial(ep["serial"]["kteam"], 115200, timeout=5) as kteam,
+            serial.Serial(ep["serial"]["kteam"], 115200, timeout=30) as kteam,
             can.Bus(interface="socketcand", host=sc["host"], port=sc["port"],
                     channel=sc["channel"]) as bus,
         ):
@@ -128,16 +151,19 @@ def test_replay_feeds_clients_the_recorded_frames_in_order(
 
             collectors = [Collector("ranges", read_ranges), Collector("can", read_can),
                           Collector("mavlink", read_udp)]
+            for c, frames in zip(collectors, want.values(), strict=True):
+                c.wait_for(len(frames), timeout=120)
+            # The replay is past its last frame and lingers: K-Team replies are the last ones.
+            wait_for_log(log_path, "Every frame sent", proc)
             # K-Team: answered from the recording (the run's client asked B, D, H, N, X, E).
-            time.sleep(1.0)
             kteam.write(b"B\r")
             version = kteam.read_until(b"\r\n")
             kteam.write(b"H\r")
             counters = kteam.read_until(b"\r\n")
             kteam.write(b"O\r")  # never asked while recording: no reply to give
             missing = kteam.read_until(b"\r\n")
+            proc.send_signal(signal.SIGINT)  # ends the linger: a clean stop, "Replay done"
             assert proc.wait(timeout=60) == 0, log_path.read_text()
-            time.sleep(0.3)
             for c in collectors:  # before the clients close under them
                 c.stop()
     finally:
@@ -160,7 +186,8 @@ def test_replay_feeds_clients_the_recorded_frames_in_order(
 
 
 def test_replay_republishes_the_recorded_zenoh_messages_for_monitor(
-    run3: RecordedRun, tmp_path: Path, zenoh_watch, capsys: pytest.CaptureFixture[str]
+    run3: RecordedRun, tmp_path: Path, zenoh_watch, capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     rec = open_recording(run3.path)
     recorded: dict[str, list[dict]] = {}
@@ -174,15 +201,33 @@ def test_replay_republishes_the_recorded_zenoh_messages_for_monitor(
     with log_path.open("wb") as log:
         proc = subprocess.Popen(
             bridge_command(
+                # Playback waits for a client on the K-Team pty: the test opens it once both
+                # Zenoh subscribers (the watch, the monitor) are in place.
                 "replay", str(run3.path), "--endpoints-file", str(endpoints_file),
-                "--bus", "can", "--set", "buses.can.slcan=false",
+                "--bus", "can", "--bus", "serial/kteam", "--wait-clients", "120",
+                "--set", "buses.can.slcan=false",
                 "--set", "buses.can.socketcand=false", "--set", "buses.mavlink.enabled=false",
                 "--set", f'zenoh.listen=["{zenoh_endpoint}"]',
             ),
             cwd=REPO, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
         )
+
+    monitor_ready = threading.Event()
+
+    class ReadyMonitorWatch(MonitorWatch):
+        """The monitor's own session, flagging when the replay has answered it (so its
+        subscriber, declared before, is known to the replay)."""
+
+        def __init__(self, *args, **kwargs) -> None:  # type: ignore[no-untyped-def]
+            super().__init__(*args, **kwargs)
+            if self.query_json("world", timeout_s=30.0) is not None:
+                monitor_ready.set()
+
+    monkeypatch.setattr(monitor_cli, "ZenohWatch", ReadyMonitorWatch)
+    monitor_rc: list[int] = []
+    monitor = None
     try:
-        deadline = time.monotonic() + 30
+        deadline = time.monotonic() + 60
         while not endpoints_file.exists():
             assert proc.poll() is None, log_path.read_text()
             assert time.monotonic() < deadline
@@ -190,24 +235,29 @@ def test_replay_republishes_the_recorded_zenoh_messages_for_monitor(
         ep = json.loads(endpoints_file.read_text())
         assert ep["zenoh"]["endpoints"] == [zenoh_endpoint]
         watch = zenoh_watch(BridgeProcess(proc, ep, endpoints_file, log_path, zenoh_endpoint, 0))
+        # Answered on the session the watch subscribed on: the replay knows the subscriber.
         assert watch.query("world") == rec.world
-        assert monitor_cli.run(monitor_args([
-            "--connect", zenoh_endpoint, "--prefix", ep["zenoh"]["prefix"],
-            "--once", "--duration", "1"])) == 0
-        assert proc.wait(timeout=60) == 0, log_path.read_text()
+        monitor = threading.Thread(target=lambda: monitor_rc.append(monitor_cli.run(
+            monitor_args(["--connect", zenoh_endpoint, "--prefix", ep["zenoh"]["prefix"],
+                          "--once", "--duration", "1", "--timeout", "120"]))))
+        monitor.start()
+        assert monitor_ready.wait(60), "the monitor did not reach the replay"
+        with serial.Serial(ep["serial"]["kteam"], 115200, timeout=30):  # playback starts
+            monitor.join(timeout=180)
+            assert proc.wait(timeout=120) == 0, log_path.read_text()
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+        if monitor is not None:
+            monitor.join(timeout=180)
+    assert monitor_rc == [0]
     out = capsys.readouterr().out
     assert "sensors/gyro" in out and "truth/pose" in out
-    time.sleep(0.2)
+    # Subscribed before the first message: every recorded message, in order, unchanged.
     for key, want in recorded.items():
-        got = watch.messages.get(key, [])
-        # The watch connected after the replay started: what it got is the recording's tail,
-        # message for message.
-        assert len(got) >= len(want) // 2, (key, len(got), len(want))
-        assert got == want[len(want) - len(got):], key
+        watch.collect({key: len(want)}, timeout=60)
+        assert watch.messages.get(key, []) == want, key
 
 
 def test_refuses_a_recording_without_bus_channels(

@@ -115,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
     )
     from bridge.endpoints import endpoints_of, write_endpoints_file
     from bridge.recording import RecordingError, open_recording
-    from bridge.replay import SWITCH_INTERVAL_S, Replayer, plan_replay
+    from bridge.replay import SWITCH_INTERVAL_S, Replayer, ReplayStats, plan_replay
     from bridge.zenoh_io import ZenohLink
 
     try:
@@ -186,8 +186,17 @@ def run(args: argparse.Namespace) -> int:
         # The replay thread and the transports' I/O threads hand the GIL over every 0.5 ms
         # instead of 5 ms: a frame queued for socketcand leaves within a millisecond.
         sys.setswitchinterval(SWITCH_INTERVAL_S)
+        linger_s = max(0.0, args.linger)
+
+        def on_sent_all(stats: ReplayStats) -> None:
+            print(
+                f"Every frame sent; the buses stay open {linger_s:g} s more (Ctrl-C ends).",
+                flush=True,
+            )
+
         replayer = Replayer(
-            plan, buses, speed=replayer_speed, linger_s=max(0.0, args.linger), zenoh=zenoh
+            plan, buses, speed=replayer_speed, linger_s=linger_s, zenoh=zenoh,
+            on_sent_all=on_sent_all,
         )
         stats = replayer.run(stop)
         sent = ", ".join(f"{b} {n}" for b, n in sorted(stats.sent.items()))
