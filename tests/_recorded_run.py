@@ -52,7 +52,7 @@ def record_run(
                                 stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
     exchanges: list[tuple[bytes, bytes]] = []
     try:
-        deadline = time.monotonic() + 30
+        deadline = time.monotonic() + 120
         while not endpoints_file.exists():
             assert proc.poll() is None, log_path.read_text()
             assert time.monotonic() < deadline, "no endpoints file"

@@ -193,7 +193,7 @@ def bridge(tmp_path: Path) -> Iterator[Callable[..., BridgeProcess]]:
         sets: list[str] | None = None,
         extra: list[str] | None = None,
         config: Path = DEFAULT_CONFIG,
-        timeout: float = 30.0,
+        timeout: float = 120.0,  # a loaded 2-core machine takes ~10 s to import and open
         ideal: bool = True,
     ) -> BridgeProcess:
         n = len(started)
@@ -274,7 +274,7 @@ class ZenohWatch:
 
     def wait_for(
         self, key: str, predicate: Callable[[dict[str, Any]], bool] = lambda m: True,
-        timeout: float = 20.0,
+        timeout: float = 60.0,
     ) -> dict[str, Any]:
         """The first message of ``key`` arriving from now on (or already latest) that satisfies
         ``predicate``."""
@@ -312,11 +312,11 @@ class ZenohWatch:
                     raise AssertionError(f"too few messages after {timeout} s (got, want): {short}")
                 self._cond.wait(remaining)
 
-    def after(self, key: str, t: float, timeout: float = 20.0) -> dict[str, Any]:
+    def after(self, key: str, t: float, timeout: float = 60.0) -> dict[str, Any]:
         """The first ``key`` message with simulation time ``t`` or later."""
         return self.wait_for(key, lambda m: m["t"] >= t, timeout)
 
-    def query(self, suffix: str, timeout: float = 10.0) -> dict[str, Any]:
+    def query(self, suffix: str, timeout: float = 30.0) -> dict[str, Any]:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             for reply in self.session.get(f"{self.prefix}/{suffix}", timeout=2.0):
