@@ -15,6 +15,7 @@ from __future__ import annotations
 import copy
 import difflib
 import math
+import re
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -37,6 +38,9 @@ __all__ = [
 ]
 
 MAVLINK_TRANSPORTS = ("udp", "tcp", "pty")
+
+#: A Zenoh locator whose port is 0 (``tcp/127.0.0.1:0``, ``udp/[::1]:0#iface=lo``, ...).
+_ZERO_PORT = re.compile(r":0+(?:[?#].*)?$")
 
 #: The top-level tables of a configuration: sim/ reads the first four (sim/config.py), the bridge
 #: the others (``[real]``: bridge/real_source.py, for ``run --source real``; ``[localisation]``:
@@ -215,11 +219,20 @@ class MavlinkSettings:
             if not 1 <= v <= 255:
                 raise ConfigError(f"[{s}] '{key}' must be 1..255, got {v}")
             ids[key] = v
+        port = _port(d, "port", s)
+        if transport == "udp" and port == 0:
+            # UDP: host:port is where the CLIENT listens (the bridge sends datagrams there), so
+            # the bridge cannot pick it; tcp listens itself and 0 picks a free port.
+            raise ConfigError(
+                f"[{s}] 'port' 0 is not allowed with transport 'udp': host:port is the address "
+                "the client (ground station) listens on and the bridge sends to, so choose it, "
+                "e.g. --set buses.mavlink.port=14551 and connect with udpin:127.0.0.1:14551"
+            )
         return cls(
             enabled=_get(d, "enabled", s, bool),
             transport=transport,
             host=_get(d, "host", s, str),
-            port=_port(d, "port", s),
+            port=port,
             system_id=ids["system_id"],
             component_id=ids["component_id"],
             heartbeat_hz=_rate(d, "heartbeat_hz", s),
@@ -300,6 +313,15 @@ class ZenohSettings:
                     f"\"tcp/127.0.0.1:7447\", got {v!r}"
                 )
             endpoints[key] = tuple(v)
+        for locator in endpoints["listen"]:
+            if _ZERO_PORT.search(locator):
+                # Zenoh does not report the port it picked, so neither the banner nor the
+                # endpoints file could tell clients where to connect.
+                raise ConfigError(
+                    f"[{s}] 'listen' locator {locator!r}: port 0 is not supported (the bridge "
+                    "could not tell clients which port Zenoh picked); give a free port, e.g. "
+                    "--set 'zenoh.listen=[\"tcp/127.0.0.1:7448\"]'"
+                )
         prefix = _get(d, "prefix", s, str).strip("/") or f"koala/{robot_name}"
         if any(c in prefix for c in "*$?#"):
             raise ConfigError(f"[{s}] 'prefix' must be a plain key expression, got {prefix!r}")

@@ -103,7 +103,7 @@ class Endpoints:
         )
         if self.zenoh_prefix:
             where = ", ".join(self.zenoh_endpoints) or "(no listen endpoint: see [zenoh] connect)"
-            lines.append(f"  Zenoh                   {where}  prefix {self.zenoh_prefix}/")
+            lines.append(f"  Zenoh                   {where}  prefix {self.zenoh_prefix}")
         else:
             lines.append(f"  Zenoh                   {off}")
         for name, where in sorted(self.extra.items()):

@@ -131,6 +131,16 @@ class RobotPort:
         with self._lock:
             self._offset = (self._ticks[0] - left, self._ticks[1] - right)
 
+    def set_led(self, n: int, action: int) -> None:
+        """K-Team ``L,n,action``: 0 off, 1 on, 2 toggle."""
+        with self._lock:
+            self.leds[n] = {0: 0, 1: 1, 2: 1 - self.leds[n]}[action]
+
+    def led_states(self) -> list[int]:
+        """``[lateral, frontal]``, 0 off / 1 on (reported in Zenoh ``status`` as ``leds``)."""
+        with self._lock:
+            return list(self.leds)
+
     def wheel_speeds(self) -> WheelCommand:
         with self._lock:
             return self._wheel_speeds
@@ -192,9 +202,7 @@ class KteamResponder:
             top = self.limits.sensor_max
             return KteamReply(lo, tuple(str(max(0, min(top, v))) for v in values))
         if letter == "L":
-            n, action = args
-            leds = self.port.leds
-            leds[n] = {0: 0, 1: 1, 2: 1 - leds[n]}[action]
+            self.port.set_led(*args)
             return KteamReply(lo)
         # parse_command only lets through the letters of command_specs.
         raise AssertionError(f"no handler for K-Team command {letter!r}")

@@ -285,6 +285,7 @@ class BridgeService:
             buses[ZENOH_BUS] = {**counts[ZENOH_BUS], "dropped": 0}
         msg = status_message(t, self.clock.real_time_factor(t), buses)
         msg["motor_command_source"] = self.arbiter.source
+        msg["leds"] = self.port.led_states()  # K-Team L: [lateral, frontal], 0 off / 1 on
         if self.localisation is not None:
             msg["localisation"] = self.localisation.snapshot()
         return msg

@@ -1,6 +1,7 @@
 """Zenoh: the bridge's session, the JSON messages it publishes, and the ``world`` queryable.
 
-Key expressions under ``<prefix>`` (default ``koala/<robot name>``), JSON, SI units, ``t`` in
+Key expressions under ``<prefix>`` (default ``koala/<robot name>``; no trailing ``/``: a key is
+``<prefix>/<suffix>``), JSON (encoding ``application/json``), SI units, ``t`` in
 simulation seconds, world frame x east / y north / theta CCW from +x, body frame FLU:
 
 =====================  ==========================================================================
@@ -11,7 +12,9 @@ simulation seconds, world frame x east / y north / theta CCW from +x, body frame
 ``sensors/gyro``        ``{t, yaw_rate (rad/s, CCW+), truth: {yaw_rate}}``
 ``sensors/compass``     ``{t, mx, my, mz (uT, body FLU), truth: {mx, my, mz}}``
 ``sensors/camera``      ``{t, observations: [{id, range, bearing}], truth: {observations}}``
-``status``              ``{t, real_time_factor, buses: {name: {sent, received, rejected}}}``
+``status``              ``{t, real_time_factor, buses: {name: {sent, received, rejected,
+                        dropped}}, motor_command_source, leds, localisation}`` (the service adds
+                        the last three; docs/protocols.md, "Zenoh")
 ``estimate/pose``       ``{t, x, y, theta, cov}`` (the localisation node, bridge/localisation.py)
 ``estimate/cell``       ``{t, cell: [col, row], p}``
 ``estimate/grid``       ``{t, cols, rows, cell_m, encoding, data, cell, p}`` (belief, base64)

@@ -72,6 +72,10 @@ def test_unknown_key_suggests_nearest() -> None:
         ("run.duration_s=inf", "'duration_s' must be a finite number >= 0"),
         ("run.duration_s=nan", "'duration_s' must be a finite number >= 0"),
         ("robot.name=a/b", "plain word"),
+        # Port 0 where the bridge could not tell the client the port (docs/protocols.md, "Ports").
+        ("buses.mavlink.port=0", "'port' 0 is not allowed with transport 'udp'"),
+        ('zenoh.listen=["tcp/127.0.0.1:0"]', "port 0 is not supported"),
+        ('zenoh.listen=["tcp/127.0.0.1:7447", "udp/127.0.0.1:00#iface=lo"]', "port 0"),
     ],
 )
 def test_bad_values_are_named(override: str, message: str) -> None:
@@ -112,3 +116,20 @@ def test_override_syntax_errors() -> None:
         parse_override("buses.mavlink.port")
     with pytest.raises(ConfigError, match="is a value, not a section"):
         apply_override(default(), *parse_override("run.clock.x=1"))
+
+
+def test_port_zero_where_the_bridge_reports_the_port() -> None:
+    """socketcand and MAVLink over TCP listen themselves: 0 = any free port (the endpoints file
+    has the real one). Zenoh locators with a port that merely contains 0 are fine."""
+    cfg = default()
+    for override in (
+        "buses.can.socketcand_port=0",
+        'buses.mavlink.transport="tcp"',
+        "buses.mavlink.port=0",
+        'zenoh.listen=["tcp/127.0.0.1:7000", "tcp/[::1]:10"]',
+    ):
+        cfg = apply_override(cfg, *parse_override(override))
+    s = BridgeSettings.from_config(cfg)
+    assert s.buses.can.socketcand_port == 0
+    assert (s.buses.mavlink.transport, s.buses.mavlink.port) == ("tcp", 0)
+    assert s.zenoh.listen == ("tcp/127.0.0.1:7000", "tcp/[::1]:10")

@@ -65,8 +65,11 @@ def test_write_failure_leaves_no_temporary(tmp_path: Path) -> None:
 def test_describe_names_every_endpoint() -> None:
     text = sample().describe()
     for needle in ("/dev/pts/7", "/dev/pts/8", "127.0.0.1:29536 channel koala0", "/dev/pts/9",
-                   "udpin:127.0.0.1:14550", "tcp/127.0.0.1:7447", "koala/koala/"):
+                   "udpin:127.0.0.1:14550", "tcp/127.0.0.1:7447", "prefix koala/koala"):
         assert needle in text
+    # The prefix reads as in the endpoints file: no trailing "/" (keys are PREFIX + "/" + key).
+    assert "koala/koala/" not in text
+    assert sample().to_json_dict()["zenoh"]["prefix"] == "koala/koala"
 
 
 def test_counters_are_thread_safe_and_snapshot_sorted() -> None:

@@ -74,6 +74,7 @@ def test_kteam_replies() -> None:
     assert ask(resp, b"O").startswith(b"o,1,11,")
     assert ask(resp, b"L,1,1") == b"l\r\n" and port.leds == [0, 1]
     assert ask(resp, b"L,1,2") == b"l\r\n" and port.leds == [0, 0]
+    assert ask(resp, b"L,0,2") == b"l\r\n" and port.led_states() == [1, 0]  # status "leds"
 
 
 def test_g_sets_the_counters_that_h_reports() -> None:

@@ -341,3 +341,20 @@ def test_url_registry_opens_each_can_backend() -> None:
         open_can_transport("canbus://x")
     with pytest.raises(ValueError):
         open_can_transport("python-can://virtual")
+
+
+def test_socketcand_frame_time_is_the_senders_time_stamp(
+    codec: KoalaCanCodec, socketcand: SocketcandServer
+) -> None:
+    # The bridge stamps its frames with the sample's simulation time (docs/protocols.md,
+    # "Time"); the first step's frames are at t = 0 and must say 0, not the host's clock.
+    with _raw_client(socketcand) as raw:
+        raw.sendall(b"< open koala0 >< rawmode >")
+        assert _read_element(raw) == b"< ok >"
+        assert _read_element(raw) == b"< ok >"
+        _wait_for(lambda: socketcand.stats.clients == 1)
+        for t in (0.0, 0.01, 12.34):
+            msg = codec.encode(GyroFrame(0.5))
+            msg.timestamp = t
+            socketcand.send(msg)
+            assert _read_element(raw) == f"< frame 120 {t:.6f} 50C30000 >".encode()

@@ -48,11 +48,10 @@ DURATION_S = 40
 
 
 def free_port(kind: int) -> int:
-    # DOC GAP (README): only `buses.mavlink.port` and `zenoh.listen` are named as port keys.
-    # `buses.can.socketcand_port` was found from the "unknown key ... valid keys" error message;
-    # port 0 works for it (the endpoints file then has the real port) but NOT for zenoh.listen
-    # (the endpoints file repeats "tcp/127.0.0.1:0"), and UDP MAVLink needs the client's port
-    # chosen in advance, so those two are picked here (small bind-then-close race).
+    # protocols.md "Ports and addresses": socketcand takes port 0 (the endpoints file has the
+    # real port); zenoh.listen and UDP MAVLink reject 0 (Zenoh does not report its port; the
+    # UDP port is the client's own listening port), so those two are picked here
+    # (bind-then-close, a small race).
     with socket.socket(socket.AF_INET, kind) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
@@ -413,6 +412,8 @@ def _run_client(ep: dict, closers: list) -> None:
     assert kt.ask(b"L,1,2") == "l"
     assert kt.ask(b"L,1,0") == "l"
     assert kt.ask(b"L, 0 , +0") == "l"  # signs and spaces around arguments are accepted
+    assert kt.ask(b"L,1,1") == "l"  # frontal on: `status` reports leds [0, 1] (checked below)
+    assert kt.ask(b"  H").startswith("h,")  # leading spaces before the letter are ignored
     assert kt.ask(b"D,+0,-0") == "d"
     assert kt.ask(b"E") == "e,0,0"  # rejected D commands changed nothing
     ambient = kt.ints(b"O", "o", 16)
@@ -592,6 +593,7 @@ def _run_client(ep: dict, closers: list) -> None:
     with truth.lock:
         last_status = truth.status[-1]
     print("status:", json.dumps(last_status))
+    assert last_status["leds"] == [0, 1]  # [lateral, frontal] after the L commands above
     buses = last_status["buses"]
     assert buses["kteam"]["rejected"] >= 10
     assert buses["can.socketcand"]["rejected"] == 0

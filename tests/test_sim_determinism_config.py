@@ -127,6 +127,8 @@ def test_robot_description_is_json_ready() -> None:
     assert len(d["sensors"]["sonar"]["poses"]) == 9
     p = d["sensors"]["ir"]["poses"][0]
     assert set(p) == {"x", "y", "theta"} and p["theta"] == pytest.approx(math.radians(-5.7))
+    # The magnetic sources' 1/d^2 law is clamped at this distance (docs/protocols.md, "world").
+    assert d["sensors"]["compass"]["min_source_distance_m"] == pytest.approx(0.05)
 
 
 # ---------------------------------------------------------------------- config errors

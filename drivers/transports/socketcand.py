@@ -8,6 +8,10 @@ element ``< ... >``::
     client: < open CHANNEL >     server: < ok >  (or < error could not open bus >)
     client: < rawmode >          server: < ok >
     server: < frame ID SECS.USECS DATA >        every bus frame, to every raw-mode client
+                                                (SECS.USECS: the frame's ``timestamp`` as given
+                                                to :meth:`SocketcandServer.send` -- the bridge
+                                                gives simulation seconds, 0 included; frames
+                                                from clients: host wall clock at reception)
     client: < send ID DLC B0 B1 ... >           a frame onto the bus (no reply when valid)
     client: < echo >             server: < echo >
     client: < bcmmode >          server: < ok >  (stops frame delivery to that client)
@@ -170,8 +174,10 @@ class SocketcandServer(CanTransport):
     def send(self, msg: can.Message) -> None:
         if self._closed:
             raise TransportClosedError("socketcand server is closed")
-        stamp = msg.timestamp if msg.timestamp > 0 else time.time()
-        self._outbox.append((format_frame_element(msg, stamp), None))
+        # The sender's time stamp as it is: the bridge's frames carry their sample's simulation
+        # time, which is 0.0 at the first step (a wall-clock fallback for 0 made those frames
+        # jump to the epoch time).
+        self._outbox.append((format_frame_element(msg, msg.timestamp), None))
         self._stats.add("sent")
         self._waker.wake()
 
