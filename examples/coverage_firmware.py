@@ -331,26 +331,56 @@ class CoverageFirmware:
 
     # -- motion primitives ---------------------------------------------------------------
     def turn_to(self, heading: float, tolerance: float = 0.03) -> None:
-        end = self.t + 20.0
+        """Turn on the spot to ``heading``: proportionally while far, then in timed pulses with
+        a stop between them. The firmware sees the robot through a lag (with ``--clock fast`` a
+        busy machine delays the CAN stream by up to a second of robot time); proportional
+        control through a lag overshoots and can oscillate for ever, whereas a pulse timed on
+        the (equally lagging) robot clock has the right length, and deciding only when the
+        robot stands still removes the lag from the decision."""
+        end = self.t + 30.0
         while self.t < end:
             self.poll()
             err = wrap(heading - self.tracker.pose[2])
-            if abs(err) < tolerance:
+            if abs(err) < 0.25:
                 break
-            self.drive(0.0, math.copysign(min(0.8, max(0.12, 2.0 * abs(err))), err))
+            self.drive(0.0, math.copysign(min(0.8, 2.0 * abs(err)), err))
             time.sleep(0.0005)
         self.stop()
+        for _ in range(8):
+            err = wrap(heading - self.tracker.pose[2])
+            if abs(err) < tolerance:
+                return
+            rate = 0.3
+            self.drive(0.0, math.copysign(rate, err))
+            self.wait(abs(err) / rate)
+            self.stop()
+
+    def blocked_ahead(self) -> bool:
+        """Bumper by IR: a sensor within 50 deg of forward reads more than 600 counts (~4 cm)."""
+        if self.ir is None:
+            return False
+        yaw = self.robot.ir_poses[:, 2]
+        return any(c > 600 for c, a in zip(self.ir, yaw, strict=True) if abs(a) <= 0.88)
 
     def drive_to(self, x: float, y: float) -> bool:
-        """Closed-loop drive to ``(x, y)`` on the EKF pose; False on timeout (blocked)."""
+        """Closed-loop drive to ``(x, y)`` on the EKF pose; False when the IR bumper trips or
+        on timeout (blocked)."""
         px, py, th = self.tracker.pose
         d0 = math.hypot(x - px, y - py)
         if d0 > 0.05:
             self.turn_to(math.atan2(y - py, x - px))
-        end = self.t + d0 / 0.03 + 5.0
+        end = self.t + d0 / 0.02 + 10.0
         vmax = self.args.speed_mps
+        self.ir = None
+        next_ir = self.t
         while self.t < end:
             self.poll()
+            if self.t >= next_ir:  # ask for IR; the reply lands in self.ir via poll()
+                self.links.send(KteamCommand("N"))
+                next_ir = self.t + 0.1
+            if self.blocked_ahead():
+                log.warning("IR bumper: obstacle ahead at t=%.1f", self.t)
+                break
             px, py, th = self.tracker.pose
             dx, dy = x - px, y - py
             along = dx * math.cos(th) + dy * math.sin(th)
@@ -473,6 +503,10 @@ class CoverageFirmware:
         ok = self.drive_to(*target_xy)
         if ok:
             self.grid.move(side)
+        x, y, th = self.tracker.pose
+        log.debug("t=%.1f move %s to (%.3f, %.3f): %s; pose (%.3f, %.3f, %.1f deg)", self.t,
+                  side, target_xy[0], target_xy[1], "ok" if ok else "blocked", x, y,
+                  math.degrees(th))
         return ok
 
     def localise(self) -> tuple[tuple[int, int], int]:
