@@ -60,17 +60,19 @@ def test_realtime_on_the_real_clock() -> None:
     for n in range(1, 41):
         clock.wait_for_step(n)
     elapsed = clock.elapsed()
-    assert 0.2 <= elapsed < 0.35
+    # Never early; how late a loaded machine makes it is a benchmark's business, not a test's.
+    assert elapsed >= 0.2
     assert clock.real_time_factor(40 * 0.005) == pytest.approx(0.2 / elapsed, rel=1e-2)
 
 
-def test_fast_clock_never_waits() -> None:
+def test_fast_clock_never_waits(monkeypatch: pytest.MonkeyPatch) -> None:
+    def no_sleep(_: float) -> None:
+        raise AssertionError("the fast clock slept")
+
+    monkeypatch.setattr(time, "sleep", no_sleep)
     clock = FastClock(1.0)
     clock.start()
-    t0 = time.monotonic()
     assert all(clock.wait_for_step(n) for n in range(1000))
-    assert time.monotonic() - t0 < 0.5
-    assert clock.real_time_factor(1000.0) > 100
 
 
 def test_make_clock_rejects_unknown_names() -> None:
