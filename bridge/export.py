@@ -1,4 +1,4 @@
-"""Export a recording as a measurement bundle (../shared/data/BUNDLE-FORMAT.md).
+"""Export a recording as a measurement bundle (docs/bundle-format.md).
 
 One CSV row per recorded reading, so a bundle holds exactly what the recording holds:
 

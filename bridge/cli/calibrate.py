@@ -34,7 +34,7 @@ from bridge.calibration.report import write_report
 log = logging.getLogger(__name__)
 
 EXAMPLE = """example:
-  koala-bridge calibrate ../shared/data/real/lego_brenner --config config/default.toml \\
+  koala-bridge calibrate tests/data/real/lego_brenner --config config/default.toml \\
       --out out/lego --write-config out/lego/koala-calibrated.toml
   # then read out/lego/report.md; run the simulator with the written config.
 """

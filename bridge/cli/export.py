@@ -1,6 +1,6 @@
 """Export a recording (.mcap) as a measurement bundle of CSV files.
 
-The bundle (../shared/data/BUNDLE-FORMAT.md; docs/recording.md lists the columns) holds one row
+The bundle (docs/bundle-format.md; docs/recording.md lists the columns) holds one row
 per recorded reading: truth_pose.csv, odometry.csv, gyro.csv, compass.csv, range.csv (sonar and IR
 with their noise-free ranges, kind, sensor id, incidence angle), landmarks.csv, landmark_map.csv
 and meta.json (recording, seed, config). `koala-bridge calibrate` reads the bundle.

@@ -10,7 +10,7 @@ re-initialises this filter.
 
 State ``x = [x, y, theta, b]``: position (m, world frame), heading (rad CCW from east, wrapped to
 (-pi, pi]) and the gyro's yaw-rate bias ``b`` (rad/s; a real MEMS gyro's bias is of order
-0.02 rad/s, /work/shared/data/real/README.md "mpu6050_gyro_static").
+0.02 rad/s, tests/data/real/PROVENANCE.md, "mpu6050_gyro_static").
 
 Motion (prediction) -- "gyrodometry": the distance travelled ``ds`` comes from the wheel
 encoders; the heading change comes from the gyro, ``dtheta = integral(omega) - b * T``, whenever
