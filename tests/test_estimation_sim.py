@@ -1,10 +1,11 @@
 """Pose tracking against the simulator with every seed error model on, in each lab world.
 
-The robot tours the world's cells (the lab's coverage order) steered on its *true* pose, so that
-the measurement is of the estimator alone; the pose tracker sees only what the buses carry
-(encoder ticks, gyro rate, magnetometer field, camera landmarks). It starts from the world's known
-start pose and first turns once on the spot ("Find Landmarks", seeds/003 H), which also gives the
-magnetometer's hard-iron offset (the centre of the circle the horizontal field draws).
+The robot tours the world's cells in the lab's coverage order, steered on its *true* pose (tour
+and steering shared with tests/_localisation_sim.py), so that the measurement is of the
+estimator alone; the pose tracker sees only what the buses carry (encoder ticks, gyro rate,
+magnetometer field, camera landmarks). It starts from the world's known start pose and first
+turns once on the spot ("Find Landmarks", seeds/003 H), which also gives the magnetometer's
+hard-iron offset (the centre of the circle the horizontal field draws).
 
 ``python tests/test_estimation_sim.py --seconds 300`` prints the 5-minute table of
 docs/localisation.md; the test runs 40 s per world.
@@ -14,65 +15,27 @@ from __future__ import annotations
 
 import argparse
 import math
-import tomllib
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+from _localisation_sim import WORLDS, coverage_cells, wheel_command, world_config
 
 from bridge.estimation import PoseTracker, PoseTrackerParams, heading_from_field
-from sim.world import SIDE_STEP, World
+from sim.types import WheelCommand
 
-ROOT = Path(__file__).resolve().parent.parent
-WORLDS = ["lab_walls_1", "lab_walls_2", "lab_walls_3", "lab_trilateration"]
 # Position RMSE bounds over the run (docs/localisation.md, "Pose tracking").
 RMSE_BOUND_M = {"landmarks": 0.05, "no_landmarks": 0.10}
 
 
 def sim_config(world: str, seed_models: bool = True) -> dict[str, Any]:
-    d = tomllib.loads((ROOT / "config" / "default.toml").read_text())
-    d["world"] = tomllib.loads((ROOT / "config" / "worlds" / f"{world}.toml").read_text())["world"]
+    d = world_config(world)
     if seed_models:
         for name, sec in d["sensors"].items():
             if name != "encoders":  # encoders count the commanded rotation; drive error is below
                 sec["ideal"] = False
         d["robot"]["drive_error"]["ideal"] = False
     return d
-
-
-def coverage_cells(world: World, start: tuple[int, int]) -> list[tuple[int, int]]:
-    """The lab's full-grid tour from ``start``: left, up, down, right, else back (seeds/003)."""
-    order = ("W", "N", "S", "E")
-    back = {"W": "E", "E": "W", "N": "S", "S": "N"}
-    cell, visited, moves, path = start, {start}, [], [start]
-    while True:
-        for s in order:
-            n = (cell[0] + SIDE_STEP[s][0], cell[1] + SIDE_STEP[s][1])
-            if world.can_move(*cell, s) and n not in visited:
-                moves.append(s)
-                break
-        else:
-            if not moves:
-                return path
-            s = back[moves.pop()]
-            n = (cell[0] + SIDE_STEP[s][0], cell[1] + SIDE_STEP[s][1])
-        cell = n
-        visited.add(cell)
-        path.append(cell)
-
-
-def wheel_command(pose: Any, goal: tuple[float, float], wheel_base: float, vmax: float) -> Any:
-    """Turn on the spot towards ``goal``, then drive at it with a heading correction."""
-    from sim.types import WheelCommand
-
-    dx, dy = goal[0] - pose.x, goal[1] - pose.y
-    err = math.remainder(math.atan2(dy, dx) - pose.theta, math.tau)
-    w = max(-2.0, min(2.0, 3.0 * err))
-    v = 0.0 if abs(err) > 0.2 else min(vmax, 0.8 * math.hypot(dx, dy) + 0.02)
-    left, right = v - w * wheel_base / 2, v + w * wheel_base / 2
-    k = max(1.0, abs(left) / vmax, abs(right) / vmax)
-    return WheelCommand(left / k, right / k)
 
 
 def fit_circle(xy: np.ndarray) -> np.ndarray:
@@ -142,8 +105,6 @@ def run_tracking(world_name: str, seconds: float, seed: int) -> dict[str, float]
         if t < spin_until:
             if r.compass is not None:
                 fields.append(r.compass.field_uT[:2].copy())
-            from sim.types import WheelCommand
-
             cmd = WheelCommand(-0.5 * robot["wheel_base_m"], 0.5 * robot["wheel_base_m"])
         else:
             if hard_iron is None:
