@@ -48,7 +48,7 @@ from bridge.config import BridgeSettings
 from bridge.counters import BusCounters
 from bridge.endpoints import Endpoints
 from bridge.localisation import LocalisationNode
-from bridge.service import Tap
+from bridge.service import Tap, start_reader
 from bridge.zenoh_io import ZENOH_BUS, ZenohLink, status_message
 from drivers.can_codec import KoalaCanCodec
 from drivers.kteam import LineSplitter, format_command, parse_reply
@@ -340,21 +340,11 @@ class RealRobotSource:
             raise OSError(f"cannot open {name} port {url!r}: {e}") from e
 
     def _spawn(self, name: str, step: Callable[[], None]) -> None:
-        def loop() -> None:
-            while not self._stop.is_set():
-                try:
-                    step()
-                except (OSError, serial.SerialException, can.CanError) as e:
-                    if self._stop.is_set():
-                        return
-                    log.warning("%s: %s", name, e)
-                    self._stop.wait(READ_TIMEOUT_S)
-                except Exception:  # one bad input must not end the reader
-                    log.exception("%s reader failed on one input; going on", name)
-
-        thread = threading.Thread(target=loop, name=f"real-{name}", daemon=True)
+        thread = start_reader(
+            name, step, self._stop, thread_prefix="real",
+            transient=(OSError, serial.SerialException, can.CanError), logger=log,
+        )
         self._threads.append(thread)
-        thread.start()
 
     def _publish(self, suffix: str, message: dict[str, Any]) -> None:
         if self.zenoh is not None:

@@ -374,21 +374,7 @@ class BridgeService:
             self._drains.append(self._mavlink_reader(b.mavlink))
 
     def _spawn(self, name: str, step: Callable[[], None]) -> None:
-        def loop() -> None:
-            while not self._stop_readers.is_set():
-                try:
-                    step()
-                except TransportError as e:
-                    if self._stop_readers.is_set():
-                        return
-                    log.warning("%s: %s", name, e)
-                    self._stop_readers.wait(READ_TIMEOUT_S)
-                except Exception:  # a reader must outlive any one bad input
-                    log.exception("%s reader failed on one input; going on", name)
-
-        thread = threading.Thread(target=loop, name=f"bridge-{name}", daemon=True)
-        self._readers.append(thread)
-        thread.start()
+        self._readers.append(start_reader(name, step, self._stop_readers))
 
     def _kteam_reader(self, link: LockedByteLink) -> Callable[[], None]:
         splitter = LineSplitter()
@@ -495,6 +481,41 @@ def _sonar_mm(ranges: Any) -> tuple[int, ...]:
     for r in np.asarray(ranges, dtype=float):
         out.append(NO_ECHO if not math.isfinite(r) else int(min(max(round(r * 1000), 0), 0xFFFE)))
     return tuple(out)
+
+
+def start_reader(
+    name: str,
+    step: Callable[[], None],
+    stop: threading.Event,
+    *,
+    thread_prefix: str = "bridge",
+    transient: tuple[type[Exception], ...] = (TransportError,),
+    logger: logging.Logger = log,
+) -> threading.Thread:
+    """Start a daemon thread ``<thread_prefix>-<name>`` that calls ``step`` until ``stop`` is
+    set; return it.
+
+    A ``transient`` error (a port failing) is logged as a warning and waited out for
+    :data:`READ_TIMEOUT_S` before the next ``step``, or ends the thread if ``stop`` is set by then
+    (the port was closed under it). Any other exception is logged with its traceback and the loop
+    goes on: a reader must outlive any one bad input.
+    """
+
+    def loop() -> None:
+        while not stop.is_set():
+            try:
+                step()
+            except transient as e:
+                if stop.is_set():
+                    return
+                logger.warning("%s: %s", name, e)
+                stop.wait(READ_TIMEOUT_S)
+            except Exception:
+                logger.exception("%s reader failed on one input; going on", name)
+
+    thread = threading.Thread(target=loop, name=f"{thread_prefix}-{name}", daemon=True)
+    thread.start()
+    return thread
 
 
 def _tap_bus(bus: str) -> str:
