@@ -152,6 +152,15 @@ def _split_errors(
     return cls.from_dict(rest, section)
 
 
+def _range_limits(d: Mapping[str, Any], section: str) -> tuple[float, float]:
+    """``(min_range_m, max_range_m)``: the first >= 0, the second > 0 and above the first."""
+    lo = _nonneg(d, "min_range_m", section)
+    hi = positive(require(d, "max_range_m", section), "max_range_m", section)
+    if lo >= hi:
+        raise ConfigError(f"[{section}] 'min_range_m' must be < 'max_range_m'")
+    return lo, hi
+
+
 def _poses(value: Any, key: str, section: str) -> np.ndarray:
     """``[[x_m, y_m, theta_deg], ...]`` -> read-only ``(n, 3)`` array ``[x, y, theta_rad]``."""
     try:
@@ -333,19 +342,12 @@ class SonarConfig:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> SonarConfig:
         sec = "sensors.sonar"
-        _check_keys(d, ["rate_hz", "ideal", "poses", "rays", "aperture_deg", "min_range_m",
-                        "max_range_m"], sec, "sonar")
-        lo = _nonneg(d, "min_range_m", sec)
-        hi = positive(require(d, "max_range_m", sec), "max_range_m", sec)
-        if lo >= hi:
-            raise ConfigError(f"[{sec}] 'min_range_m' must be < 'max_range_m'")
+        own = ["rate_hz", "ideal", "poses", "rays", "aperture_deg", "min_range_m", "max_range_m"]
+        _check_keys(d, own, sec, "sonar")
+        lo, hi = _range_limits(d, sec)
         ideal = _bool(d, "ideal", sec)
         errors = _split_errors(
-            d,
-            ["rate_hz", "ideal", "poses", "rays", "aperture_deg", "min_range_m", "max_range_m"],
-            sec,
-            "sonar",
-            {"ideal": ideal, "min_range_m": lo, "max_range_m": hi},
+            d, own, sec, "sonar", {"ideal": ideal, "min_range_m": lo, "max_range_m": hi}
         )
         return cls(
             rate_hz=positive(require(d, "rate_hz", sec), "rate_hz", sec),
@@ -369,9 +371,10 @@ class BasicSensorConfig:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], sec: str, model: str) -> BasicSensorConfig:
-        _check_keys(d, ["rate_hz", "ideal"], sec, model)
+        own = ["rate_hz", "ideal"]
+        _check_keys(d, own, sec, model)
         ideal = _bool(d, "ideal", sec)
-        errors = _split_errors(d, ["rate_hz", "ideal"], sec, model, {"ideal": ideal})
+        errors = _split_errors(d, own, sec, model, {"ideal": ideal})
         if not ideal and _error_params_class(model) is None:
             raise ConfigError(
                 f"[{sec}] 'ideal' must be true: the {model} have no error model of their own "
@@ -398,10 +401,10 @@ class CompassConfig:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> CompassConfig:
         sec = "sensors.compass"
-        _check_keys(d, ["rate_hz", "ideal", "min_source_distance_m"], sec, "compass")
+        own = ["rate_hz", "ideal", "min_source_distance_m"]
+        _check_keys(d, own, sec, "compass")
         ideal = _bool(d, "ideal", sec)
-        errors = _split_errors(d, ["rate_hz", "ideal", "min_source_distance_m"], sec, "compass",
-                               {"ideal": ideal})
+        errors = _split_errors(d, own, sec, "compass", {"ideal": ideal})
         return cls(
             rate_hz=positive(require(d, "rate_hz", sec), "rate_hz", sec),
             ideal=ideal,
@@ -427,19 +430,12 @@ class CameraConfig:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> CameraConfig:
         sec = "sensors.camera"
-        _check_keys(d, ["rate_hz", "ideal", "pose", "fov_deg", "min_range_m", "max_range_m"],
-                    sec, "camera")
-        lo = _nonneg(d, "min_range_m", sec)
-        hi = positive(require(d, "max_range_m", sec), "max_range_m", sec)
-        if lo >= hi:
-            raise ConfigError(f"[{sec}] 'min_range_m' must be < 'max_range_m'")
+        own = ["rate_hz", "ideal", "pose", "fov_deg", "min_range_m", "max_range_m"]
+        _check_keys(d, own, sec, "camera")
+        lo, hi = _range_limits(d, sec)
         ideal = _bool(d, "ideal", sec)
         errors = _split_errors(
-            d,
-            ["rate_hz", "ideal", "pose", "fov_deg", "min_range_m", "max_range_m"],
-            sec,
-            "camera",
-            {"ideal": ideal, "min_range_m": lo, "max_range_m": hi},
+            d, own, sec, "camera", {"ideal": ideal, "min_range_m": lo, "max_range_m": hi}
         )
         fov = positive(require(d, "fov_deg", sec), "fov_deg", sec)
         if fov > 360:
