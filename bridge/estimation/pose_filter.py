@@ -321,13 +321,12 @@ class PoseTracker:
         if t - self._gyro_last_seen <= p.gyro_timeout_s:
             dth, bias_time = self._gyro_angle, self._gyro_time
             var_th = p.gyroscope_noise_density**2 * bias_time
-            self._gyro_angle = 0.0
-            self._gyro_time = 0.0
         else:
-            self._gyro_angle = 0.0
-            self._gyro_time = 0.0
             dth, bias_time = dth_odo, 0.0
             var_th = p.odo_heading_var_per_m * abs(ds) + p.odo_heading_var_per_rad * abs(dth_odo)
+        # The gyro integral restarts at every odometry sample, used or not.
+        self._gyro_angle = 0.0
+        self._gyro_time = 0.0
         cov_u = np.diag([var_ds, var_th])
         self.x, self.P = predict(
             self.x, self.P, ds, dth, cov_u, bias_time, p.gyroscope_random_walk**2 * dt
