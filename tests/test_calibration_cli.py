@@ -103,11 +103,45 @@ def test_ir_config_keys(tmp_path: Path) -> None:
     assert len(ir["response_range_m"]) == len(ir["response_counts"]) >= 2
 
 
+def test_staged_inputs_carry_effects_into_the_next_model(tmp_path: Path) -> None:
+    """Two inputs: the second is calibrated on the model the first wrote; the report says
+    which stage found what, and ``before`` stays the declared model's error."""
+    out, new = tmp_path / "out", tmp_path / "imu.toml"
+    args = _args(
+        str(DATA / "mpu6050_gyro_static"),
+        str(DATA / "mpu6050_turns"),
+        "--out",
+        str(out),
+        "--write-config",
+        str(new),
+        "--quiet",
+    )
+    assert cli.run(args) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["inputs"] == [str(DATA / "mpu6050_gyro_static"), str(DATA / "mpu6050_turns")]
+    entries = {(e["stage"], e["stream"], e["metric"]): e for e in report["streams"]}
+    turns_gyro = entries[(2, "gyro", "heading_error_10s_window_rms")]
+    assert turns_gyro["input"] == str(DATA / "mpu6050_turns")
+    (bias,) = (e for e in turns_gyro["effects"] if e["name"] == "bias")
+    assert bias["evidence"]["carried_from"] == str(DATA / "mpu6050_gyro_static")
+    assert bias["evidence"]["stage"] == 1
+    # before: the declared (ideal) gyro; before_with_carried: with the still recording's bias.
+    assert turns_gyro["before_with_carried"] < turns_gyro["before"]
+    still_gyro = entries[(1, "gyro", "rms_rate_error")]
+    assert "before_with_carried" not in still_gyro
+    written = tomllib.loads(new.read_text())["sensors"]
+    assert written["gyro"]["bias_rad_s"] == pytest.approx(0.0196, abs=3e-4)
+    assert len(written["compass"]["hard_iron_uT"]) == 3
+    md = (out / "report.md").read_text()
+    assert "stage 2 (`" in md and "Carried from earlier stages" in md
+    assert (out / "stage2_residuals_compass.png").is_file()
+
+
 def test_help_first_line_and_example() -> None:
     assert cli.__doc__ is not None and cli.__doc__.splitlines()[0].strip()
     parser = argparse.ArgumentParser()
     cli.add_arguments(parser)
-    assert "example:" in parser.format_help()
+    assert "examples:" in parser.format_help()
 
 
 def test_bad_inputs(tmp_path: Path) -> None:

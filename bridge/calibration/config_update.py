@@ -77,7 +77,7 @@ def found_keys(results: Sequence[StreamResult]) -> dict[str, Any]:
         params = split_params(problem, after.insts, after.x)
         increments: dict[str, np.ndarray] = {}
         for inst in res.effects:
-            for key, value in inst.config(params[after.insts.index(inst)], problem).items():  # type: ignore[arg-type]
+            for key, value in inst.config(params[after.insts.index(inst)], problem).items():
                 if key.startswith("+"):  # per-element increments of a declared list: summed
                     inc = np.asarray(value, dtype=float)
                     old = increments.get(key, np.zeros(0))

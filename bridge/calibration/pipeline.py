@@ -129,7 +129,24 @@ def run_stream(
     secondary = problem.secondary_metrics(
         (sel.before.insts, sel.before.x), (sel.after.insts, sel.after.x)
     )
+    _note_known_rotation(problem, secondary)
     return StreamResult(problem, sel, before, after, secondary)
+
+
+def _note_known_rotation(problem: StreamProblem, secondary: Sequence[SecondaryMetric]) -> None:
+    """A known net rotation (meta.json) is one number: it cannot be split into fit and score
+    parts, so it only ever *checks* a model. What it implies is noted for the reader: the scale
+    error ``s = e / K`` that would close the remaining error ``e`` of the total ``K``, not
+    added, as nothing held out could test it (the hand that turned the sensor, or the bias, may
+    account for it as well)."""
+    known = getattr(problem, "known_rotation", None)
+    for m in secondary:
+        if m.metric == "known_rotation_error" and known is not None and known[2] != 0:
+            problem.notes.append(
+                f"known total rotation {known[2]:.4g} rad: the model leaves {m.after:+.3g} rad; "
+                f"a further gyro scale error of {100 * m.after / known[2]:+.2g} % would close "
+                "it (one number, not testable on held-out data: not added)"
+            )
 
 
 def _turn_on_bias_check(problem: StreamProblem, sel: Selection) -> None:
@@ -214,6 +231,7 @@ def refit_full(full: StreamProblem, small: StreamResult) -> StreamResult:
     b = full.metric_value(before.insts, before.x, "score")
     a = full.metric_value(after.insts, after.x, "score")
     secondary = full.secondary_metrics((before.insts, before.x), (after.insts, after.x))
+    _note_known_rotation(full, secondary)
     return StreamResult(full, result, b, a, secondary)
 
 

@@ -7,7 +7,11 @@ report.json shape (issue 6)::
                   "effects": [{"name": "bias", "params": {...}, "evidence": {...}}]}]}
 
 A stream with a secondary metric (the gyro's windowed heading error) has a second entry with the
-same ``stream``, that metric, and the same effects.
+same ``stream``, that metric, and the same effects. In a staged run (several inputs,
+:mod:`bridge.calibration.stages`) the document also lists ``inputs``, and each entry names its
+``input`` and ``stage``, lists the effects carried from earlier stages (``evidence.carried_from``),
+and gives ``before_with_carried``, the stage's own starting point, while ``before`` stays the
+metric under the user's declared model.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from bridge.calibration.pipeline import StreamResult
+from bridge.calibration.stages import Stage
 
 log = logging.getLogger(__name__)
 
@@ -29,7 +34,22 @@ def _num(v: float) -> float | None:
     return float(f"{v:.6g}") if np.isfinite(v) else None
 
 
-def stream_entries(res: StreamResult) -> list[dict[str, Any]]:
+def _carried(stage: Stage, res: StreamResult) -> list[dict[str, Any]]:
+    return [
+        {
+            "name": c.name,
+            "params": dict(c.params),
+            "evidence": {"carried_from": c.source, "stage": c.stage, "config": dict(c.keys)},
+        }
+        for c in stage.carried.get(res.problem.section, [])
+    ]
+
+
+def stream_entries(
+    res: StreamResult, stage: Stage | None = None, staged: bool = False
+) -> list[dict[str, Any]]:
+    """report.json entries of one stream: the issue's shape; ``staged`` adds ``input``,
+    ``stage`` and ``before_with_carried`` (module docstring)."""
     p = res.problem
     split = {
         "fit": [_num(p.split.t0), _num(p.split.t1)],
@@ -41,34 +61,32 @@ def stream_entries(res: StreamResult) -> list[dict[str, Any]]:
             res.selection.added, res.effect_params(), strict=True
         )
     ]
-    entries = [
-        {
-            "stream": p.name,
-            "metric": p.metric,
-            "unit": p.unit,
-            "before": _num(res.before),
-            "after": _num(res.after),
-            "split": split,
-            "effects": effects,
-        }
-    ]
-    for s in res.secondary:
-        entries.append(
-            {
-                "stream": p.name,
-                "metric": s.metric,
-                "unit": s.unit,
-                "before": _num(s.before),
-                "after": _num(s.after),
-                "split": split,
-                "effects": effects,
-            }
-        )
+    carried = _carried(stage, res) if stage is not None else []
+    metrics = [(p.metric, p.unit, res.before, res.after)]
+    metrics += [(s.metric, s.unit, s.before, s.after) for s in res.secondary]
+    entries = []
+    for metric, unit, before, after in metrics:
+        entry: dict[str, Any] = {"stream": p.name}
+        if stage is not None and staged:
+            entry["input"] = stage.source
+        entry.update(metric=metric, unit=unit, before=_num(before), after=_num(after))
+        if stage is not None and staged:
+            entry["stage"] = stage.number
+        if stage is not None and stage.declared_before:
+            entry["before"] = _num(stage.declared_before.get((p.name, metric), float("nan")))
+            entry["before_with_carried"] = _num(before)
+        entry.update(split=split, effects=carried + effects)
+        entries.append(entry)
     return entries
 
 
-def report_json(results: Sequence[StreamResult]) -> dict[str, Any]:
-    return {"streams": [e for r in results for e in stream_entries(r)]}
+def report_json(stages: Sequence[Stage]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    if len(stages) > 1:
+        out["inputs"] = [s.source for s in stages]
+    staged = len(stages) > 1
+    out["streams"] = [e for s in stages for r in s.results for e in stream_entries(r, s, staged)]
+    return out
 
 
 def plot_residuals(res: StreamResult, path: Path) -> None:
@@ -101,73 +119,104 @@ def plot_residuals(res: StreamResult, path: Path) -> None:
     plt.close(fig)
 
 
-def report_markdown(
-    results: Sequence[StreamResult], source: str, diff: str, plots: dict[str, str]
-) -> str:
-    lines = [
-        f"# Calibration report: `{source}`",
+def _stream_markdown(res: StreamResult, stage: Stage, plot: str | None, heading: str) -> list[str]:
+    p = res.problem
+    lines = ["", f"## {heading}", ""]
+    lines += [f"- {n}" for n in p.notes]
+    lines.append(f"- {json.dumps(p.describe())}")
+    lines.append(f"- noise lag-1 autocorrelation used for effective sizes: {res.selection.rho:.3g}")
+    carried = _carried(stage, res)
+    if carried:
+        lines += ["", "Carried from earlier stages (in this stage's declared model):", ""]
+        lines += ["| effect | params | found in |", "|---|---|---|"]
+        for c in carried:
+            ev = c["evidence"]
+            lines.append(
+                f"| {c['name']} | {json.dumps(c['params'])} | "
+                f"stage {ev['stage']}: `{ev['carried_from']}` |"
+            )
+    if res.effects:
+        lines += ["", "| effect | params | evidence |", "|---|---|---|"]
+        for (inst, trial), (params, se) in zip(
+            res.selection.added, res.effect_params(), strict=True
+        ):
+            ev = {**trial.evidence(), "param_se": se}
+            lines.append(f"| {inst.name} | {json.dumps(params)} | {json.dumps(ev)} |")
+    lines += [
         "",
+        "Candidates per round (dBIC < 0, LR > threshold, gain >= 1 % to pass):",
+        "",
+        "| round | candidate | dBIC (fit) | held-out LR | threshold | held-out gain | pass |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for i, trials in enumerate(res.selection.rounds, 1):
+        for t in trials:
+            lines.append(
+                f"| {i} | {t.name} | {t.delta_bic:.4g} | {t.lr:.4g} | "
+                f"{t.lr_threshold:.3g} | {100 * t.relative_gain:.2f} % | "
+                f"{'yes' if t.passed else ''} |"
+            )
+    if plot is not None:
+        lines += ["", f"![{p.name} residuals]({plot})"]
+    return lines
+
+
+def _plot_name(stage: Stage, res: StreamResult, staged: bool) -> str:
+    prefix = f"stage{stage.number}_" if staged else ""
+    return f"{prefix}residuals_{res.problem.name.replace(':', '_')}.png"
+
+
+def report_markdown(stages: Sequence[Stage], diff: str, plots: bool) -> str:
+    staged = len(stages) > 1
+    title = " then ".join(f"`{s.source}`" for s in stages)
+    lines = [f"# Calibration report: {title}", ""]
+    if staged:
+        lines += [
+            "Staged: each input was calibrated on the model the inputs before it produced "
+            "(effects carried through their config keys). *before* is the metric under the "
+            "declared model (`--config` and meta.json), *after* with the carried and the found "
+            "effects.",
+            "",
+        ]
+    lines += [
         "Fit on the first 60 % of each stream's time span, scored on the last 40 %. "
         "An effect is added when it lowers the fit-part BIC, passes the held-out "
         "likelihood-ratio test (alpha = 0.01, Bonferroni over the round's candidates, "
         "effective sample size) and lowers the held-out RMS by at least 1 %.",
         "",
-        "| stream | metric | unit | before | after | effects |",
-        "|---|---|---|---|---|---|",
     ]
-    for res in results:
-        for e in stream_entries(res):
-            lines.append(
-                f"| {e['stream']} | {e['metric']} | {e['unit']} | {e['before']} | "
-                f"{e['after']} | {', '.join(x['name'] for x in e['effects']) or '-'} |"
-            )
-    for res in results:
-        p = res.problem
-        lines += ["", f"## {p.name}", ""]
-        lines += [f"- {n}" for n in p.notes]
-        lines.append(f"- {json.dumps(p.describe())}")
-        lines.append(
-            f"- noise lag-1 autocorrelation used for effective sizes: {res.selection.rho:.3g}"
-        )
-        if res.effects:
-            lines += ["", "| effect | params | evidence |", "|---|---|---|"]
-            for (inst, trial), (params, se) in zip(
-                res.selection.added, res.effect_params(), strict=True
-            ):
-                ev = {**trial.evidence(), "param_se": se}
-                lines.append(f"| {inst.name} | {json.dumps(params)} | {json.dumps(ev)} |")
-        lines += [
-            "",
-            "Candidates per round (dBIC < 0, LR > threshold, gain >= 1 % to pass):",
-            "",
-            "| round | candidate | dBIC (fit) | held-out LR | threshold | held-out gain | pass |",
-            "|---|---|---|---|---|---|---|",
-        ]
-        for i, trials in enumerate(res.selection.rounds, 1):
-            for t in trials:
-                lines.append(
-                    f"| {i} | {t.name} | {t.delta_bic:.4g} | {t.lr:.4g} | "
-                    f"{t.lr_threshold:.3g} | {100 * t.relative_gain:.2f} % | "
-                    f"{'yes' if t.passed else ''} |"
+    head = "| stream | metric | unit | before | after | effects |"
+    if staged:
+        head = "| input | " + head[2:]
+    lines += [head, "|" + "---|" * (head.count("|") - 1)]
+    for stage in stages:
+        for res in stage.results:
+            for e in stream_entries(res, stage, staged):
+                row = (
+                    f"| {e['stream']} | {e['metric']} | {e['unit']} | {e['before']} | "
+                    f"{e['after']} | {', '.join(x['name'] for x in e['effects']) or '-'} |"
                 )
-        if p.name in plots:
-            lines += ["", f"![{p.name} residuals]({plots[p.name]})"]
+                lines.append(f"| `{stage.source}` " + row if staged else row)
+    for stage in stages:
+        for res in stage.results:
+            heading = res.problem.name
+            if staged:
+                heading = f"stage {stage.number} (`{stage.source}`): {heading}"
+            plot = _plot_name(stage, res, staged) if plots else None
+            lines += _stream_markdown(res, stage, plot, heading)
     lines += ["", "## Model change", "", "```diff", diff.rstrip() or "(no change)", "```", ""]
     return "\n".join(lines)
 
 
-def write_report(
-    out: Path, results: Sequence[StreamResult], source: str, diff: str, plots: bool = True
-) -> None:
+def write_report(out: Path, stages: Sequence[Stage], diff: str, plots: bool = True) -> None:
     out.mkdir(parents=True, exist_ok=True)
     (out / "report.json").write_text(
-        json.dumps(report_json(results), indent=2) + "\n", encoding="utf-8"
+        json.dumps(report_json(stages), indent=2) + "\n", encoding="utf-8"
     )
-    names: dict[str, str] = {}
+    staged = len(stages) > 1
     if plots:
-        for res in results:
-            fname = f"residuals_{res.problem.name.replace(':', '_')}.png"
-            plot_residuals(res, out / fname)
-            names[res.problem.name] = fname
-    (out / "report.md").write_text(report_markdown(results, source, diff, names), encoding="utf-8")
+        for stage in stages:
+            for res in stage.results:
+                plot_residuals(res, out / _plot_name(stage, res, staged))
+    (out / "report.md").write_text(report_markdown(stages, diff, plots), encoding="utf-8")
     log.info("report written to %s", out)

@@ -1,9 +1,11 @@
 """Find what the sensor model lacks in measured data; report the error before/after and the fix.
 
-``koala-bridge calibrate INPUT --config MODEL.toml --out DIR [--write-config NEW.toml]``
+``koala-bridge calibrate INPUT [INPUT ...] --config MODEL.toml --out DIR [--write-config NEW.toml]``
 
-INPUT is a measurement bundle directory (``shared/data/BUNDLE-FORMAT.md``) or an MCAP recording
-(converted by ``koala-bridge export`` first). For each stream the declared model predicts the
+INPUT is a measurement bundle directory (docs/bundle-format.md) or an MCAP recording
+(converted by ``koala-bridge export`` first). Several inputs are calibrated in order, each on the
+model the ones before it produced (:mod:`bridge.calibration.stages`): a still recording first
+for the gyro bias, then one with motion. For each stream the declared model predicts the
 measurements from the reference; candidate effects are added greedily while they improve the
 held-out error beyond chance (see ``docs/calibration.md``). Writes ``DIR/report.json``,
 ``DIR/report.md`` with residual plots, and optionally the model with the found effects.
@@ -17,26 +19,24 @@ import sys
 import tempfile
 from pathlib import Path
 
-from bridge.calibration.bundle import load_input
-from bridge.calibration.config_update import (
-    config_diff,
-    found_keys,
-    noise_keys,
-    not_simulated,
-    updated_config,
-    write_config,
-)
+from bridge.calibration.config_update import config_diff, not_simulated, write_config
 from bridge.calibration.errors import CalibrationError
-from bridge.calibration.model import declared_model, read_config
-from bridge.calibration.pipeline import Options, calibrate
+from bridge.calibration.model import read_config
+from bridge.calibration.pipeline import Options
 from bridge.calibration.report import write_report
+from bridge.calibration.stages import all_keys, calibrate_stages
 
 log = logging.getLogger(__name__)
 
-EXAMPLE = """example:
+EXAMPLE = """examples:
   koala-bridge calibrate tests/data/real/lego_brenner --config config/default.toml \\
       --out out/lego --write-config out/lego/koala-calibrated.toml
   # then read out/lego/report.md; run the simulator with the written config.
+
+  koala-bridge calibrate tests/data/real/mpu6050_gyro_static tests/data/real/mpu6050_turns \\
+      --out out/imu --write-config out/imu/imu.toml
+  # staged: the still recording gives the gyro bias, carried into the turns' model, where
+  # the compass's hard iron is found against the bias-corrected gyro heading.
 """
 
 
@@ -44,7 +44,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``koala-bridge calibrate``."""
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.epilog = EXAMPLE
-    parser.add_argument("input", type=Path, help="measurement bundle directory or .mcap recording")
+    parser.add_argument(
+        "input",
+        type=Path,
+        nargs="+",
+        help="measurement bundle directory or .mcap recording; several: calibrated in order, "
+        "each on the model the ones before it produced (effects carried in their config keys)",
+    )
     parser.add_argument(
         "--config",
         type=Path,
@@ -64,7 +70,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=Path,
         default=None,
         metavar="NEW.toml",
-        help="write MODEL.toml with the found effects added",
+        help="write MODEL.toml with the found effects added (of every input, when several)",
     )
     parser.add_argument(
         "--write-noise",
@@ -108,57 +114,57 @@ def run(args: argparse.Namespace) -> int:
     """Run the calibration; 0 on success, 2 on a bad input or config."""
     try:
         config = read_config(args.config)
-        with tempfile.TemporaryDirectory(prefix="koala-calibrate-") as tmp:
-            bundle = load_input(args.input, Path(tmp))
-            model = declared_model(config, bundle.meta)
-            options = Options(
-                window_s=args.window_s, effects=args.effects.split(",") if args.effects else None
+        options = Options(
+            window_s=args.window_s, effects=args.effects.split(",") if args.effects else None
+        )
+        with (
+            tempfile.TemporaryDirectory(prefix="koala-calibrate-") as tmp,
+            _progress_bar(not args.quiet and sys.stdout.isatty()) as bar,
+        ):
+            tasks: dict[str, int] = {}
+            prefix = [""]
+
+            def progress(stream: str, done: int, total: int) -> None:
+                key = prefix[0] + stream
+                if key not in tasks:
+                    tasks[key] = bar.add_task(key, total=None)
+                bar.update(tasks[key], completed=done)
+
+            def on_stage(number: int, path: Path) -> None:
+                if len(args.input) > 1:
+                    prefix[0] = f"{number}:"
+                    log.info("stage %d: %s", number, path)
+
+            stages, new_config = calibrate_stages(
+                args.input, config, options, Path(tmp), progress, args.write_noise, on_stage
             )
-            with _progress_bar(not args.quiet and sys.stdout.isatty()) as bar:
-                tasks: dict[str, int] = {}
-
-                def progress(stream: str, done: int, total: int) -> None:
-                    if stream not in tasks:
-                        tasks[stream] = bar.add_task(stream, total=None)
-                    bar.update(tasks[stream], completed=done)
-
-                results = calibrate(bundle, model, options, progress)
-        keys = found_keys(results)
-        if args.write_noise:
-            keys.update(noise_keys(results))
-        new_config = updated_config(config, keys)
         name = args.config.name if args.config is not None else "MODEL.toml"
         diff = config_diff(config, new_config, name)
-        write_report(args.out, results, str(args.input), diff, plots=not args.no_plots)
+        write_report(args.out, stages, diff, plots=not args.no_plots)
         if args.write_config is not None:
             args.write_config.parent.mkdir(parents=True, exist_ok=True)
-            write_config(args.write_config, new_config, not_simulated(keys))
+            write_config(args.write_config, new_config, not_simulated(all_keys(stages)))
     except CalibrationError as e:
         log.error("%s", e)
         return 2
-    for res in results:
-        log.info(
-            "%s %s: %.4g -> %.4g %s [%s]",
-            res.problem.name,
-            res.problem.metric,
-            res.before,
-            res.after,
-            res.problem.unit,
-            ", ".join(i.name for i in res.effects) or "-",
-        )
+    for stage in stages:
+        for res in stage.results:
+            metrics = [(res.problem.metric, res.problem.unit, res.before, res.after)]
+            metrics += [(m.metric, m.unit, m.before, m.after) for m in res.secondary]
+            for metric, unit, before, after in metrics:
+                before = stage.declared_before.get((res.problem.name, metric), before)
+                log.info(
+                    "%s%s %s: %.4g -> %.4g %s [%s]",
+                    f"{stage.number}:" if len(stages) > 1 else "",
+                    res.problem.name,
+                    metric,
+                    before,
+                    after,
+                    unit,
+                    ", ".join(
+                        [c.name + "*" for c in stage.carried.get(res.problem.section, [])]
+                        + [i.name for i in res.effects]
+                    )
+                    or "-",
+                )
     return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Stand-alone entry (``python -m bridge.cli.calibrate``) until ``koala-bridge`` dispatches."""
-    parser = argparse.ArgumentParser(
-        prog="koala-bridge calibrate", description=(__doc__ or "").splitlines()[0]
-    )
-    add_arguments(parser)
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    return run(args)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

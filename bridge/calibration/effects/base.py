@@ -38,7 +38,9 @@ class EffectInstance:
     def apply(self, state: Any, params: NDArray[np.float64]) -> None:
         self.effect.apply(self, state, params)
 
-    def config(self, params: Sequence[float], problem: StreamProblem) -> dict[str, Any]:
+    def config(
+        self, params: Sequence[float] | NDArray[np.float64], problem: StreamProblem
+    ) -> dict[str, Any]:
         return self.effect.config(self, np.asarray(params, dtype=float), problem)
 
 

@@ -239,13 +239,38 @@ def build_compass(bundle: Bundle, model: DeclaredModel) -> CompassProblem | None
         data_unit=unit,
         disturbance=_declared_motor_field(bundle, model, t, uT),
         field_direction=direction,
+        gyro_heading=_declared_gyro_heading(bundle, model, t) if mode == "magnitude_2d" else None,
     )
     problem.notes.append(f"mode: {mode}; field unit {unit}")
+    if problem.gyro_heading is not None:
+        problem.notes.append(
+            "second metric: heading against the gyro integrated under its declared model "
+            f"(bias {model.gyro_bias_rad_s:g} rad/s, scale error {model.gyro_scale_error:g})"
+        )
     if problem.disturbance is not None:
         problem.notes.append("declared motor-current field subtracted (speeds from the ticks)")
     if direction is not None:
         problem.notes.append("declared local magnetic sources: field direction per position")
     return problem
+
+
+def _declared_gyro_heading(
+    bundle: Bundle, model: DeclaredModel, t_out: FloatArray
+) -> FloatArray | None:
+    """Heading integrated (trapezoid) from the gyro's yaw rate under the declared model,
+    ``(yaw_rate - bias) / (1 + scale)``, at ``t_out`` (held at the ends, where the two streams'
+    first and last stamps differ); None without a gyro over most of that span."""
+    gyro = bundle.get("gyro")
+    if gyro is None or t_out.size < 2:
+        return None
+    ok = np.isfinite(gyro["yaw_rate"])
+    t, w = gyro["t"][ok], gyro["yaw_rate"][ok]
+    span = float(t_out[-1] - t_out[0])
+    if t.size < 2 or min(t[-1], t_out[-1]) - max(t[0], t_out[0]) < 0.9 * span:
+        return None
+    rate = (w - model.gyro_bias_rad_s) / (1.0 + model.gyro_scale_error)
+    theta = np.concatenate([[0.0], np.cumsum(0.5 * (rate[1:] + rate[:-1]) * np.diff(t))])
+    return np.asarray(np.interp(t_out, t, theta), dtype=float)
 
 
 def _declared_field_direction(

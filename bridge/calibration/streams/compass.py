@@ -21,6 +21,12 @@ is subtracted from ``m`` before the correction.
 
 ``B`` (the field magnitude) is a nuisance parameter. The metric is the RMS heading error (rad) or,
 with no reference, the spread std/mean of the (horizontal) field magnitude in percent.
+
+In ``magnitude_2d`` mode a bundle with a gyro gives a second, heading metric: the compass
+heading against the heading integrated from the gyro under its *declared* model
+(``(yaw_rate - bias) / (1 + scale)``), the constant between the two (north) fitted on the fit
+part as a circular mean, RMS of the wrapped difference on the score part. It is only as good as
+the declared gyro: a gyro bias that nobody declared drifts that reference by ``bias * t``.
 """
 
 from __future__ import annotations
@@ -32,7 +38,13 @@ from typing import Any
 import numpy as np
 
 from bridge.calibration.effects.base import EffectInstance
-from bridge.calibration.problem import FloatArray, Part, StreamProblem, apply_all
+from bridge.calibration.problem import (
+    FloatArray,
+    Part,
+    SecondaryMetric,
+    StreamProblem,
+    apply_all,
+)
 from bridge.calibration.streams.scalar import wrap_angle
 
 
@@ -60,6 +72,9 @@ class CompassProblem(StreamProblem):
     #: declared world-frame direction of the horizontal field at each sample's position (N,)
     #: (local sources), heading mode only; alpha is then a mounting yaw about it
     field_direction: FloatArray | None = None
+    #: heading (rad, unwrapped) integrated from the bundle's gyro under its declared model, at
+    #: each compass sample; ``magnitude_2d`` mode's second metric is held against it
+    gyro_heading: FloatArray | None = None
 
     def __post_init__(self) -> None:
         fit = self.split.mask(self.t, "fit")
@@ -123,6 +138,31 @@ class CompassProblem(StreamProblem):
         self, insts: Sequence[EffectInstance], x: FloatArray
     ) -> tuple[FloatArray, FloatArray]:
         return self.t, self._residual(insts, x, "all")
+
+    def heading_error_vs_gyro(self, insts: Sequence[EffectInstance], x: FloatArray) -> float:
+        """Held-out RMS (rad) of the compass heading against the declared gyro's heading, north
+        (the constant between them) fitted on the fit part."""
+        assert self.gyro_heading is not None
+        d = wrap_angle(self.heading(self.corrected(insts, x, "all")) - self.gyro_heading)
+        fit, score = self._masks["fit"], self._masks["score"]
+        north = float(np.arctan2(np.mean(np.sin(d[fit])), np.mean(np.cos(d[fit]))))
+        return float(np.sqrt(np.mean(wrap_angle(d[score] - north) ** 2)))
+
+    def secondary_metrics(
+        self,
+        before: tuple[Sequence[EffectInstance], FloatArray],
+        after: tuple[Sequence[EffectInstance], FloatArray],
+    ) -> list[SecondaryMetric]:
+        if self.mode != "magnitude_2d" or self.gyro_heading is None:
+            return []
+        return [
+            SecondaryMetric(
+                "heading_error_vs_declared_gyro_rms",
+                "rad",
+                self.heading_error_vs_gyro(*before),
+                self.heading_error_vs_gyro(*after),
+            )
+        ]
 
     def noise_estimate(
         self, insts: Sequence[EffectInstance], x: FloatArray

@@ -1,0 +1,164 @@
+"""Staged calibration: several recordings of the same robot, each calibrated on the model the
+ones before it produced.
+
+Some effects show only in a recording made for them. A gyro's bias is plain in a recording
+lying still and lost under the motion of a hand-turned one; a compass's hard iron needs the
+turns. Calibration tools work in the same order (Kalibr and imu_utils fit IMU noise and bias on a
+static log before the dynamic calibration; ArduPilot's compass calibration assumes a calibrated
+gyro). ``koala-bridge calibrate STILL TURNS ...`` does the same:
+
+* stage 1 calibrates ``INPUT 1`` against ``--config`` (the user's declared model);
+* stage *k* calibrates ``INPUT k`` against the model stage *k-1* wrote: the declared model plus
+  every effect found so far that the simulator has a key for (``config_update.SIMULATED_KEYS``;
+  the others are reported but cannot be carried, the model has no place for them);
+* ``--write-config`` writes the model after the last stage.
+
+The report keeps the meaning of *before* and *after* of a single run: *before* is the metric
+under the **user's declared model** (stage *k* is therefore run once more against it, for its
+*before* values), *after* under the model with the carried and the newly found effects. The
+carried effects are listed with each stream of their config section, their evidence naming the
+stage that found them; ``before_with_carried`` gives the stage's own starting point.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from bridge.calibration.bundle import load_input
+from bridge.calibration.config_update import found_keys, is_simulated, noise_keys, updated_config
+from bridge.calibration.model import declared_model
+from bridge.calibration.pipeline import Options, Progress, StreamResult, calibrate
+from bridge.calibration.problem import split_params
+
+
+@dataclass(frozen=True)
+class CarriedEffect:
+    """An effect found in an earlier stage and carried, through its config keys, into a later
+    stage's declared model."""
+
+    name: str
+    section: str
+    params: Mapping[str, float]
+    keys: Mapping[str, Any]
+    source: str
+    stage: int
+
+
+@dataclass
+class Stage:
+    """One input's calibration within a staged run (a single input is a run of one stage)."""
+
+    number: int
+    source: str
+    results: list[StreamResult]
+    #: config section -> effects found in earlier stages that this stage's model holds
+    carried: dict[str, list[CarriedEffect]] = field(default_factory=dict)
+    #: (stream, metric) -> the metric under the user's declared model (stages after the first)
+    declared_before: dict[tuple[str, str], float] = field(default_factory=dict)
+    #: the stage's config, as calibrated against (the model the stage started from)
+    config: Mapping[str, Any] = field(default_factory=dict)
+
+
+def _effect_keys(res: StreamResult) -> list[tuple[str, dict[str, float], dict[str, Any]]]:
+    """``(name, params, simulated config keys)`` of each effect added to ``res``'s stream."""
+    problem, after = res.problem, res.selection.after
+    params = split_params(problem, after.insts, after.x)
+    out = []
+    for inst, (named, _) in zip(res.effects, res.effect_params(), strict=True):
+        keys = {}
+        for key, value in inst.config(params[after.insts.index(inst)], problem).items():
+            bare = key.lstrip("+")
+            dotted = bare[1:] if bare.startswith("/") else f"{problem.section}.{bare}"
+            if is_simulated(dotted):
+                keys[dotted] = value
+        out.append((inst.name, named, keys))
+    return out
+
+
+def carried_from(stage: Stage) -> list[CarriedEffect]:
+    """The effects of ``stage`` that its written config holds (simulated keys)."""
+    out = []
+    for res in stage.results:
+        for name, params, keys in _effect_keys(res):
+            if keys:
+                out.append(
+                    CarriedEffect(
+                        name, res.problem.section, params, keys, stage.source, stage.number
+                    )
+                )
+    return out
+
+
+def _metrics(results: Sequence[StreamResult]) -> dict[tuple[str, str], float]:
+    out = {}
+    for res in results:
+        out[(res.problem.name, res.problem.metric)] = res.before
+        for s in res.secondary:
+            out[(res.problem.name, s.metric)] = s.before
+    return out
+
+
+@contextmanager
+def _quiet() -> Iterator[None]:
+    """The second pass over a stage (for its *before* values) logs nothing new."""
+    logger = logging.getLogger("bridge.calibration")
+    level = logger.level
+    logger.setLevel(logging.WARNING)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+
+
+def calibrate_stages(
+    inputs: Sequence[Path],
+    config: Mapping[str, Any],
+    options: Options,
+    tmp: Path,
+    progress: Progress | None = None,
+    with_noise: bool = False,
+    on_stage: Callable[[int, Path], None] | None = None,
+) -> tuple[list[Stage], dict[str, Any]]:
+    """Calibrate ``inputs`` in order (module docstring); returns the stages and the final
+    config (``config`` with every stage's simulated keys set)."""
+    stages: list[Stage] = []
+    current: dict[str, Any] = dict(config)
+    carried: list[CarriedEffect] = []
+    for number, path in enumerate(inputs, 1):
+        if on_stage is not None:
+            on_stage(number, path)
+        work = tmp / f"stage-{number}"
+        work.mkdir(parents=True, exist_ok=True)
+        bundle = load_input(path, work)
+        results = calibrate(bundle, declared_model(current, bundle.meta), options, progress)
+        stage = Stage(number, str(path), results, config=current)
+        if carried:
+            sections = {res.problem.section for res in results}
+            for effect in carried:
+                if effect.section in sections:
+                    stage.carried.setdefault(effect.section, []).append(effect)
+            with _quiet():
+                declared = calibrate(bundle, declared_model(config, bundle.meta), options)
+            stage.declared_before = _metrics(declared)
+        stages.append(stage)
+        keys = found_keys(results)
+        if with_noise:
+            keys.update(noise_keys(results))
+        current = updated_config(current, keys)
+        carried += carried_from(stage)
+    return stages, current
+
+
+def all_keys(stages: Sequence[Stage], with_noise: bool = False) -> dict[str, Any]:
+    """Every stage's found keys, later stages overriding earlier ones."""
+    out: dict[str, Any] = {}
+    for stage in stages:
+        out.update(found_keys(stage.results))
+        if with_noise:
+            out.update(noise_keys(stage.results))
+    return out
