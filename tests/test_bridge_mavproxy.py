@@ -13,6 +13,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -50,6 +51,11 @@ def test_mavproxy_receives_the_compass(bridge, zenoh_watch, tmp_path: Path,
         assert abs(math.remainder(heading - expected, math.tau)) < math.radians(3)
         hb = out.recv_match(type="HEARTBEAT", blocking=True, timeout=10)
         assert hb is not None and hb.get_srcSystem() == 1
+        # MAVProxy's log writer flushes the telemetry log in its own time, and a SIGTERM
+        # loses what it still buffers: wait for the message on disk before ending it.
+        deadline = time.monotonic() + 30
+        while not _tlog_holds(tlog, "SCALED_IMU") and time.monotonic() < deadline:
+            time.sleep(0.2)
     finally:
         out.close()
         # MAVProxy has no clean shutdown in daemon mode: end its whole process group.
@@ -61,8 +67,16 @@ def test_mavproxy_receives_the_compass(bridge, zenoh_watch, tmp_path: Path,
                 os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait(5)
         log.close()
+    assert _tlog_holds(tlog, "SCALED_IMU"), (tmp_path / "mavproxy.log").read_text()
+
+
+def _tlog_holds(tlog: Path, kind: str) -> bool:
+    from pymavlink import mavutil
+
+    if not tlog.exists():
+        return False
     logged = mavutil.mavlink_connection(str(tlog))
     try:
-        assert logged.recv_match(type="SCALED_IMU") is not None
+        return logged.recv_match(type=kind) is not None
     finally:
         logged.close()

@@ -107,18 +107,10 @@ def test_staged_inputs_carry_effects_into_the_next_model(tmp_path: Path) -> None
     """Two inputs: the second is calibrated on the model the first wrote; the report says
     which stage found what, and ``before`` stays the declared model's error."""
     out, new = tmp_path / "out", tmp_path / "imu.toml"
-    args = _args(
-        str(DATA / "mpu6050_gyro_static"),
-        str(DATA / "mpu6050_turns"),
-        "--out",
-        str(out),
-        "--write-config",
-        str(new),
-        "--quiet",
-    )
-    assert cli.run(args) == 0
+    inputs = [str(DATA / "mpu6050_gyro_static"), str(DATA / "mpu6050_turns")]
+    assert cli.run(_args(*inputs, f"--out={out}", f"--write-config={new}", "--quiet")) == 0
     report = json.loads((out / "report.json").read_text())
-    assert report["inputs"] == [str(DATA / "mpu6050_gyro_static"), str(DATA / "mpu6050_turns")]
+    assert report["inputs"] == inputs
     entries = {(e["stage"], e["stream"], e["metric"]): e for e in report["streams"]}
     turns_gyro = entries[(2, "gyro", "heading_error_10s_window_rms")]
     assert turns_gyro["input"] == str(DATA / "mpu6050_turns")
