@@ -147,6 +147,13 @@ def build_gyro(
         known_rotation=_known_rotation(bundle.meta),
     )
     problem.notes.append(f"reference: {source}")
+    if not dense:
+        problem.notes.append(
+            "a compass heading holds errors of its own (tilt, iron) that can hide a gyro bias "
+            "or scale: measure those on a recording with a better reference (the sensor lying "
+            "still) and give it first, `koala-bridge calibrate STILL THIS` (staged, "
+            "docs/calibration.md)"
+        )
     if interval is not None and dense:
         problem.notes.append(f"declared sample: mean rate over the {interval:g} s before it")
     if model.gyro_turn_on_bias_sigma > 0:
