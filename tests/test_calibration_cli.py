@@ -16,7 +16,6 @@ from bridge.calibration.effects.quantisation import lattice_step
 from bridge.calibration.errors import (
     BundleError,
     EffectRegistryError,
-    RecordingNotSupportedError,
 )
 from bridge.cli import calibrate as cli
 
@@ -136,21 +135,27 @@ def test_help_first_line_and_example() -> None:
     assert "examples:" in parser.format_help()
 
 
-def test_bad_inputs(tmp_path: Path) -> None:
-    rec = tmp_path / "run.mcap"
-    rec.write_bytes(b"")
-    try:
-        import bridge.recording as recording
-
-        has_export = hasattr(recording, "export_bundle")
-    except ImportError:
-        has_export = False
-    if not has_export:
-        with pytest.raises(RecordingNotSupportedError, match="export"):
-            load_input(rec, tmp_path)
+def test_bad_inputs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Each bad input is one line on stderr naming it, exit code 2, no traceback."""
+    not_mcap = tmp_path / "run.mcap"
+    not_mcap.write_bytes(b"hello")
+    with pytest.raises(BundleError, match="MCAP"):
+        load_input(not_mcap, tmp_path)
     with pytest.raises(BundleError):
         load_input(tmp_path / "missing", tmp_path)
-    assert cli.run(_args(str(tmp_path / "missing"), "--out", str(tmp_path / "o"), "--quiet")) == 2
+    bad_model = tmp_path / "model.toml"
+    bad_model.write_text("[robot\n", encoding="utf-8")
+    for argv in (
+        [str(tmp_path / "missing")],
+        [str(tmp_path / "missing.mcap")],
+        [str(not_mcap)],
+        [str(DATA / "lego_brenner"), "--config", str(bad_model)],
+        [str(DATA / "lego_brenner"), str(not_mcap)],  # a bad second stage
+    ):
+        capsys.readouterr()
+        assert cli.run(_args(*argv, "--out", str(tmp_path / "o"), "--quiet", "--no-plots")) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("koala-bridge calibrate: "), err
 
 
 def test_registry_rejects_duplicates() -> None:

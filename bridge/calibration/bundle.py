@@ -1,4 +1,4 @@
-"""Measurement bundles (``shared/data/BUNDLE-FORMAT.md``): load a directory of CSV files.
+"""Measurement bundles (docs/bundle-format.md): load a directory of CSV files.
 
 A bundle is read into plain numpy columns, one :class:`Table` per CSV file, plus the free-form
 ``meta.json``. Recordings (MCAP) are converted to a bundle first by the recording package's
@@ -7,7 +7,6 @@ exporter, so every later stage sees one format.
 
 from __future__ import annotations
 
-import importlib
 import json
 import logging
 from collections.abc import Mapping
@@ -18,7 +17,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from bridge.calibration.errors import BundleError, RecordingNotSupportedError
+from bridge.calibration.errors import BundleError
 
 log = logging.getLogger(__name__)
 
@@ -153,24 +152,19 @@ def load_bundle(directory: Path) -> Bundle:
 
 
 def load_input(path: Path, workdir: Path) -> Bundle:
-    """Load a bundle directory, or export an MCAP recording into ``workdir`` and load that.
-
-    Recordings are converted by ``bridge.recording.export_bundle(mcap_path, out_dir)`` (the
-    recording package's ``koala-bridge export``); without it a recording is a clear error.
-    """
+    """Load a bundle directory, or export an MCAP recording into ``workdir`` and load that
+    (``koala-bridge export``'s :func:`bridge.recording.export_bundle`)."""
     path = Path(path)
     if path.suffix.lower() == ".mcap":
-        try:
-            recording = importlib.import_module("bridge.recording")
-            export_bundle = recording.export_bundle
-        except (ImportError, AttributeError) as e:
-            raise RecordingNotSupportedError(
-                f"{path} is a recording; recordings need the export command "
-                "(`koala-bridge export`, bridge.recording.export_bundle), which is not available "
-                "in this installation. Export the recording to a bundle directory first."
-            ) from e
+        from bridge.recording import RecordingError, export_bundle
+
+        if not path.is_file():
+            raise BundleError(f"{path}: no such recording")
         out = workdir / "bundle"
         out.mkdir(parents=True, exist_ok=True)
-        export_bundle(path, out)
+        try:
+            export_bundle(path, out)
+        except (RecordingError, OSError) as e:
+            raise BundleError(str(e)) from e
         return load_bundle(out)
     return load_bundle(path)

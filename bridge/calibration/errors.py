@@ -15,9 +15,5 @@ class ModelConfigError(CalibrationError):
     """The model TOML cannot be read or a value in it has the wrong type."""
 
 
-class RecordingNotSupportedError(CalibrationError):
-    """An MCAP recording was given but no exporter (``bridge.recording.export_bundle``) exists."""
-
-
 class EffectRegistryError(CalibrationError):
     """An effect name is registered twice or asked for but not registered."""

@@ -111,7 +111,8 @@ def _progress_bar(enabled: bool):  # type: ignore[no-untyped-def]
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the calibration; 0 on success, 2 on a bad input or config."""
+    """Run the calibration; 0 on success, 2 on a bad input or config, 1 when the output
+    cannot be written."""
     try:
         config = read_config(args.config)
         options = Options(
@@ -145,8 +146,11 @@ def run(args: argparse.Namespace) -> int:
             args.write_config.parent.mkdir(parents=True, exist_ok=True)
             write_config(args.write_config, new_config, not_simulated(all_keys(stages)))
     except CalibrationError as e:
-        log.error("%s", e)
+        print(f"koala-bridge calibrate: {e}", file=sys.stderr)
         return 2
+    except OSError as e:  # the report or the config cannot be written
+        print(f"koala-bridge calibrate: {e}", file=sys.stderr)
+        return 1
     for stage in stages:
         for res in stage.results:
             metrics = [(res.problem.metric, res.problem.unit, res.before, res.after)]
