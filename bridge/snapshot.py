@@ -3,8 +3,8 @@
 :func:`collect_scene` asks ``<prefix>/world`` for the world and listens for a while to
 ``truth/pose``, ``estimate/pose``, ``estimate/cell``, ``estimate/grid`` (belief) and
 ``map/occupancy``; :func:`render_scene` draws walls, blocked cells, landmarks, magnetic sources,
-magnetic north, the truth and estimated trails and poses, and the belief / occupancy grid when
-one was published.
+magnetic north, the truth (ring) and estimated (dot) trails and poses, and the belief / occupancy
+grid when one was published.
 
 Grids are accepted as ``[row][col]`` nested lists (row 0 the southern-most row,
 docs/architecture.md) or flat row-major lists with ``rows``/``cols`` members, under one of the
@@ -155,38 +155,87 @@ def _grid_extent(
     return (float(ox), float(ox) + cols * res, float(oy), float(oy) + rows * res)
 
 
-def _draw_pose(ax: Axes, p: PoseT, colour: str, label: str, size: float) -> None:
-    _, x, y, th = p
-    ax.plot([x], [y], "o", color=colour, markersize=6, label=label, zorder=5)
+@dataclass(frozen=True)
+class PoseStyle:
+    """How one pose stream is drawn: its trail, its latest pose and that pose's heading arrow."""
+
+    colour: str
+    trail: str          # matplotlib line style of the trail
+    markersize: float   # points
+    filled: bool
+    arrow: float        # heading arrow length, in cells
+    arrow_lw: float
+    zorder: float       # of the marker; the arrow goes just below it
+
+
+# Truth and estimate usually overlap (a good estimate), so neither may hide the other: the truth
+# is a large ring whose long, wide arrow lies under everything, the estimate a small filled dot
+# with a short, thin arrow inside the ring, and the ring on top of all.
+TRUTH = PoseStyle("tab:green", "-", 15.0, False, 0.7, 3.5, zorder=8)
+ESTIMATE = PoseStyle("tab:red", "--", 6.0, True, 0.45, 1.5, zorder=7)
+_Z_TRAIL, _Z_TRUTH_ARROW, _Z_LABEL = 4, 5, 9
+
+
+def _draw_pose_stream(
+    ax: Axes, trail: Sequence[PoseT], style: PoseStyle, label: str, cell: float, gid: str
+) -> None:
+    """The trail and the latest pose (marker and heading arrow) of one pose stream."""
+    ax.plot([p[1] for p in trail], [p[2] for p in trail], style.trail, color=style.colour,
+            lw=1.2, alpha=0.8, zorder=_Z_TRAIL)
+    _, x, y, th = trail[-1]
+    marker: dict[str, Any] = {
+        "marker": "o",
+        "markersize": style.markersize,
+        "color": style.colour,
+        "mfc": style.colour if style.filled else "none",
+        "mew": 1.0 if style.filled else 2.5,
+    }
+    ax.plot([x], [y], linestyle="none", zorder=style.zorder, gid=gid, **marker)
+    length = style.arrow * cell
     ax.annotate(
         "",
-        xy=(x + size * math.cos(th), y + size * math.sin(th)),
+        xy=(x + length * math.cos(th), y + length * math.sin(th)),
         xytext=(x, y),
-        arrowprops={"arrowstyle": "-|>", "color": colour, "lw": 2},
-        zorder=6,
+        arrowprops={"arrowstyle": "-|>", "color": style.colour, "lw": style.arrow_lw,
+                    "shrinkA": 0, "shrinkB": 0},
+        zorder=style.zorder if style.filled else _Z_TRUTH_ARROW,
     )
+    # The legend entry shows the marker on the trail's line style, as drawn.
+    ax.plot([], [], linestyle=style.trail, label=label, **marker)
 
 
 def _draw_world(ax: Axes, world: dict[str, Any]) -> tuple[float, float, float]:
     """Walls, blocked cells, landmarks, magnetic sources, north; returns (width, height, cell)."""
     cell = float(world.get("cell_m", 0.5))
     cols, rows = int(world.get("cols", 0)), int(world.get("rows", 0))
+    w, h = cols * cell, rows * cell
     for c, r in world.get("blocked", []):
         ax.add_patch(Rectangle((c * cell, r * cell), cell, cell, color="0.35", zorder=1))
-    for x0, y0, x1, y1 in world.get("segments", []):
-        ax.plot([x0, x1], [y0, y1], color="black", lw=2.5, solid_capstyle="round", zorder=3)
-    for lm in world.get("landmarks", []):
-        colour = lm.get("colour") or "magenta"
+    for i, (x0, y0, x1, y1) in enumerate(world.get("segments", [])):
+        ax.plot([x0, x1], [y0, y1], color="black", lw=2.5, solid_capstyle="round", zorder=3,
+                label="wall" if i == 0 else None)
+    for i, lm in enumerate(world.get("landmarks", [])):
+        x, y = float(lm["x"]), float(lm["y"])
+        star: dict[str, Any] = {"markersize": 16, "mec": "black", "zorder": 4,
+                "label": "landmark Ln" if i == 0 else None}
         try:
-            ax.plot([lm["x"]], [lm["y"]], "*", color=colour, markersize=16, mec="black", zorder=4)
+            ax.plot([x], [y], "*", color=lm.get("colour") or "magenta", **star)
         except ValueError:  # a colour name matplotlib does not know
-            ax.plot([lm["x"]], [lm["y"]], "*", color="magenta", markersize=16, zorder=4)
+            ax.plot([x], [y], "*", color="magenta", **star)
+        # The label goes towards the middle of the world: landmarks sit by the walls and in the
+        # corners, where a label outside would cross a wall or leave the axes.
+        right, above = x < w / 2, y < h / 2
         ax.annotate(
             f"L{lm.get('id')}",
-            (lm["x"], lm["y"]),
+            (x, y),
             textcoords="offset points",
-            xytext=(6, -12),
+            xytext=(9 if right else -9, 9 if above else -9),
+            ha="left" if right else "right",
+            va="bottom" if above else "top",
             fontsize=8,
+            bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.8},
+            zorder=_Z_LABEL,
+            gid=f"landmark-label-{lm.get('id')}",
         )
     for i, m in enumerate(world.get("magnetic_sources", [])):
         s = float(m.get("strength_uT", 1.0))
@@ -199,26 +248,29 @@ def _draw_world(ax: Axes, world: dict[str, Any]) -> tuple[float, float, float]:
             zorder=4,
             label="magnetic source" if i == 0 else None,
         )
-    w, h = cols * cell, rows * cell
     north = (world.get("earth_field") or {}).get("north_deg")
     if north is not None and w > 0:
+        # In the right margin at mid-height, clear of the corners where landmarks usually are.
         a = math.radians(float(north))
-        x, y, L = w + 0.15 * cell, h - 0.6 * cell, 0.4 * cell
+        cx, cy, half = w + 0.45 * cell, h / 2, 0.3 * cell
         ax.annotate(
-            "N",
-            xy=(x + L * math.cos(a), y + L * math.sin(a)),
-            xytext=(x, y),
-            arrowprops={"arrowstyle": "-|>", "color": "tab:purple"},
-            color="tab:purple",
-            ha="center",
-            va="center",
-            fontsize=9,
+            "",
+            xy=(cx + half * math.cos(a), cy + half * math.sin(a)),
+            xytext=(cx - half * math.cos(a), cy - half * math.sin(a)),
+            arrowprops={"arrowstyle": "-|>", "color": "tab:purple", "lw": 1.5},
+            gid="north",
         )
+        ax.text(cx + 1.6 * half * math.cos(a), cy + 1.6 * half * math.sin(a), "N",
+                color="tab:purple", ha="center", va="center", fontsize=9, gid="north")
     return w, h, cell
 
 
-def render_scene(scene: Scene, out: str | Path, dpi: int = 120) -> Path:
-    """Draw ``scene`` and write it as a PNG to ``out``; returns the path."""
+def draw_scene(scene: Scene, dpi: int = 120) -> Figure:
+    """The figure of ``scene`` (an Agg canvas attached; no pyplot state).
+
+    Artists a reader may want to find carry a ``gid``: ``north`` (the arrow and its "N"),
+    ``landmark-label-<id>``, ``truth-pose`` and ``estimate-pose`` (the latest pose markers).
+    """
     fig = Figure(figsize=(7.5, 7.0), dpi=dpi)
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
@@ -243,17 +295,14 @@ def render_scene(scene: Scene, out: str | Path, dpi: int = 120) -> Path:
     if belief is not None and w > 0:
         im = ax.imshow(belief, origin="lower", extent=extent, cmap="Blues", alpha=0.55, zorder=0)
         fig.colorbar(im, ax=ax, fraction=0.04, label="belief")
-    size = 0.6 * cell
     if scene.truth:
-        xs, ys = [p[1] for p in scene.truth], [p[2] for p in scene.truth]
-        ax.plot(xs, ys, "-", color="tab:green", lw=1, alpha=0.7, zorder=4)
-        _draw_pose(ax, scene.truth[-1], "tab:green", "truth", size)
+        _draw_pose_stream(ax, scene.truth, TRUTH, "truth (ring, solid trail)", cell, "truth-pose")
     if scene.estimate:
-        xs, ys = [p[1] for p in scene.estimate], [p[2] for p in scene.estimate]
-        ax.plot(xs, ys, "--", color="tab:red", lw=1, alpha=0.7, zorder=4)
-        _draw_pose(ax, scene.estimate[-1], "tab:red", "estimate", size)
+        _draw_pose_stream(
+            ax, scene.estimate, ESTIMATE, "estimate (dot, dashed trail)", cell, "estimate-pose"
+        )
     if w > 0:
-        ax.set_xlim(-0.1 * cell, w + 0.5 * cell)
+        ax.set_xlim(-0.1 * cell, w + 0.9 * cell)  # the right margin holds the north arrow
         ax.set_ylim(-0.1 * cell, h + 0.1 * cell)
     ax.set_aspect("equal")
     ax.set_xlabel("x east (m)")
@@ -271,10 +320,19 @@ def render_scene(scene: Scene, out: str | Path, dpi: int = 120) -> Path:
             transform=ax.transAxes,
             fontsize=7,
         )
-    if ax.get_legend_handles_labels()[0]:
-        # Below the axes: inside, it would hide the corner landmarks.
-        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.09), ncol=4, fontsize=8)
+    handles, labels = ax.get_legend_handles_labels()
+    if handles:
+        # Below the axes, clear of the tick labels and the x label (the pad is in font sizes):
+        # inside, it would hide the corner landmarks.
+        ax.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, 0.0),
+                  borderaxespad=4.0, ncol=3, fontsize=8)
     ax.grid(True, color="0.85", lw=0.5)
+    return fig
+
+
+def render_scene(scene: Scene, out: str | Path, dpi: int = 120) -> Path:
+    """Draw ``scene`` and write it as a PNG to ``out``; returns the path."""
+    fig = draw_scene(scene, dpi)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, format="png", bbox_inches="tight")

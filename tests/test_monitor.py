@@ -22,7 +22,7 @@ from matplotlib.image import imread
 from bridge.cli import monitor as monitor_cli
 from bridge.cli import snapshot as snapshot_cli
 from bridge.monitor import MonitorState, render_status, wrap_angle
-from bridge.snapshot import grid_array
+from bridge.snapshot import Scene, draw_scene, grid_array, render_scene
 from sim.world import World
 
 PREFIX = "koala/standin"
@@ -163,3 +163,42 @@ def test_grid_array_shapes() -> None:
     assert flat is not None and flat[1, 0] == 3  # row-major from the south-west corner
     assert grid_array({"belief": [1, 2, 3]}) is None
     assert grid_array(None) is None
+
+
+def _green_red_pixels(scene: Scene, path: Path) -> tuple[int, int]:
+    rgb = imread(render_scene(scene, path))[..., :3]
+
+    def near(colour: tuple[float, float, float]) -> int:
+        return int((np.abs(rgb - np.array(colour)).max(axis=2) < 0.06).sum())
+
+    return near((0.173, 0.627, 0.173)), near((0.839, 0.153, 0.157))  # tab:green, tab:red
+
+
+def test_snapshot_truth_stays_visible_under_an_identical_estimate(tmp_path: Path) -> None:
+    # A perfect estimate lies exactly on the truth: the truth must not vanish under it.
+    world = default_world()
+    trail = [(0.1 * k, 1.75 + 0.02 * k, 1.75, 0.3) for k in range(20)]
+    green_alone, _ = _green_red_pixels(Scene(world=world, truth=trail), tmp_path / "t.png")
+    green, red = _green_red_pixels(
+        Scene(world=world, truth=trail, estimate=list(trail)), tmp_path / "te.png")
+    assert green_alone > 200
+    assert green > 0.6 * green_alone, (green, green_alone)  # most of the truth still shows
+    assert red > 50  # and so does the estimate
+
+
+def test_snapshot_labels_stay_inside_and_clear_of_the_north_arrow() -> None:
+    world = default_world()
+    fig = draw_scene(Scene(world=world))
+    renderer = fig.canvas.get_renderer()  # type: ignore[attr-defined]
+    ax = fig.axes[0]
+    inside = ax.get_window_extent(renderer)
+    texts = [a for a in ax.get_children() if (a.get_gid() or "").startswith("landmark-label-")]
+    north = [a.get_window_extent(renderer) for a in ax.get_children() if a.get_gid() == "north"]
+    assert len(texts) == len(world["landmarks"]) and len(north) == 2  # arrow and its "N"
+    boxes = [t.get_window_extent(renderer) for t in texts]
+    for text, box in zip(texts, boxes, strict=True):
+        label = text.get_text()  # type: ignore[attr-defined]
+        assert inside.contains(box.x0, box.y0) and inside.contains(box.x1, box.y1), label
+        assert not any(box.overlaps(n) for n in north), label
+    for i, a in enumerate(boxes):
+        assert not any(a.overlaps(b) for b in boxes[i + 1 :])
