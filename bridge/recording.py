@@ -14,6 +14,8 @@ File layout (docs/recording.md has the full description):
   direction. ``dir`` is seen from the robot: ``from_robot`` (what the robot, simulated or real,
   put on the bus) or ``to_robot`` (what a client sent it). ``seq`` counts frames per bus and
   direction from 0 without gaps; a gap in a recording means frames were lost.
+* :meth:`Recorder.declare` creates channels before their first message (the service declares every
+  bus it serves and every key it publishes), so a bus no client used still has its channel.
 * ``log_time`` = ``publish_time`` = simulation time in nanoseconds; the MCAP ``sequence`` field
   counts messages per channel.
 
@@ -188,6 +190,11 @@ def generic_schema(topic: str) -> dict[str, Any]:
     return _obj("koala." + topic.replace("/", "."), {}, required=[])
 
 
+def _topic_schema(topic: str) -> dict[str, Any]:
+    """The schema of the MCAP topic of a Zenoh key: its listed one, else the generic one."""
+    return TOPIC_SCHEMAS.get(topic[1:]) or generic_schema(topic[1:])
+
+
 def topic_name(channel: str) -> str:
     """The MCAP topic of a Zenoh key below the prefix: ``sensors/ir`` -> ``/sensors/ir``."""
     return "/" + channel.strip("/")
@@ -307,11 +314,8 @@ class Recorder:
             data = payload.encode()
         else:
             data = bytes(payload)
-        topic = topic_name(channel)
         with self._lock:
-            self._write(
-                topic, t, data, lambda: TOPIC_SCHEMAS.get(topic[1:]) or generic_schema(topic[1:])
-            )
+            self._write(topic_name(channel), t, data, _topic_schema)
 
     def record_frame(
         self, bus: str, direction: str, t: float, data: bytes, **fields: object
@@ -337,8 +341,23 @@ class Recorder:
                 **fields,
             }
             self._write(
-                topic, t, json.dumps(msg, separators=(",", ":")).encode(), lambda: BUS_FRAME_SCHEMA
+                topic,
+                t,
+                json.dumps(msg, separators=(",", ":")).encode(),
+                lambda _topic: BUS_FRAME_SCHEMA,
             )
+
+    def declare(self, keys: Iterable[str] = (), buses: Iterable[str] = ()) -> None:
+        """Create the channels of Zenoh ``keys`` (below the prefix) and of ``buses`` now, before
+        their first message: a recording then holds every channel its run served, a bus no
+        client used among them (with 0 messages). Channels that exist are left as they are."""
+        with self._lock:
+            if self._closed or self._failed:
+                return
+            for key in keys:
+                self._channel(topic_name(key), _topic_schema)
+            for bus in buses:
+                self._channel(bus_topic(bus), lambda _topic: BUS_FRAME_SCHEMA)
 
     def flush(self) -> None:
         """Write the chunk in progress now (a SIGKILL after this loses nothing recorded so far)."""
@@ -368,21 +387,26 @@ class Recorder:
 
     # -- internals ----------------------------------------------------------------------------
 
-    def _write(
-        self, topic: str, t: float, data: bytes, schema: Callable[[], dict[str, Any]]
-    ) -> None:
-        if self._closed or self._failed:
-            self.dropped += 1
-            return
+    def _channel(self, topic: str, schema: Callable[[str], dict[str, Any]]) -> int:
+        """The id of ``topic``'s channel, registered (with its schema) on first use."""
         channel_id = self._channels.get(topic)
         if channel_id is None:
-            s = schema()
+            s = schema(topic)
             schema_id = self._writer.register_schema(
                 name=s["title"], encoding="jsonschema", data=json.dumps(s).encode()
             )
             channel_id = self._writer.register_channel(topic, "json", schema_id)
             self._channels[topic] = channel_id
             self._msg_seq[channel_id] = 0
+        return channel_id
+
+    def _write(
+        self, topic: str, t: float, data: bytes, schema: Callable[[str], dict[str, Any]]
+    ) -> None:
+        if self._closed or self._failed:
+            self.dropped += 1
+            return
+        channel_id = self._channel(topic, schema)
         seq = self._msg_seq[channel_id]
         self._msg_seq[channel_id] = seq + 1
         ns = time_ns(t)

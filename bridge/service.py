@@ -26,7 +26,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any, Protocol
 
 import numpy as np
@@ -36,6 +36,7 @@ from bridge.clock import Clock, make_clock
 from bridge.config import BridgeSettings
 from bridge.counters import BusCounters
 from bridge.endpoints import Endpoints, endpoints_of
+from bridge.estimation.messages import KEY_CELL, KEY_GRID, KEY_OCCUPANCY, KEY_POSE
 from bridge.localisation import LocalisationNode
 from bridge.robot_io import KteamResponder, MotorArbiter, RobotPort, RobotUnits
 from bridge.zenoh_io import ZENOH_BUS, ZenohLink, pose_message, sensor_messages, status_message
@@ -66,6 +67,8 @@ GYRO_LIMIT = 20.0           # rad/s: the DBC range of Gyro.yaw_rate
 
 class Tap(Protocol):
     """Something that sees what the bridge publishes and every raw bus frame (a recorder)."""
+
+    def declare(self, keys: Iterable[str] = (), buses: Iterable[str] = ()) -> None: ...
 
     def record(self, channel: str, t: float, payload: Mapping[str, Any]) -> None: ...
 
@@ -189,6 +192,8 @@ class BridgeService:
         last_step = round(duration / self.dt) if duration > 0 else None
         r = self._initial if self._initial is not None else self.sim.reset(self.seed)
         self._initial = None
+        if self.tap is not None:
+            self.tap.declare(self._published_keys(r), self._tap_buses())
         self.clock.start()
         self._emit(r, 0)
         n = 0
@@ -200,6 +205,19 @@ class BridgeService:
             self._emit(r, n)
         self._publish_status(r.t)
         return r
+
+    def _published_keys(self, r: Readings) -> list[str]:
+        """Every Zenoh key this run publishes (``r``: the step-0 readings, where every sensor
+        reads), in the order a recording lists them."""
+        keys = ["truth/pose", *sensor_messages(r), "status"]
+        if self.localisation is not None:
+            keys += [KEY_POSE, KEY_CELL, KEY_GRID, KEY_OCCUPANCY]
+        return keys
+
+    def _tap_buses(self) -> list[str]:
+        """The recorder's names of the buses this run serves."""
+        names = list(self.buses.byte_links()) + (["can"] if self.buses.can else [])
+        return [_tap_bus(name) for name in names]
 
     def _emit(self, r: Readings, n: int) -> None:
         """Hand the readings of step ``n`` to every bus and to Zenoh."""

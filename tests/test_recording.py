@@ -99,6 +99,28 @@ def test_concurrent_writers_keep_frame_sequences_gap_free(tmp_path: Path) -> Non
             assert seqs == list(range(writers * n))
 
 
+def test_declared_channels_exist_without_messages(tmp_path: Path) -> None:
+    path = tmp_path / "declared.mcap"
+    with Recorder(path) as rec:
+        rec.declare(keys=["sensors/gyro", "status"], buses=["serial/kteam", "can"])
+        rec.record("sensors/gyro", 0.0, {"t": 0.0, "yaw_rate": 0.0})
+        rec.declare(keys=["sensors/gyro"], buses=["can"])  # declared twice: one channel
+    with path.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None and summary.statistics is not None
+    topics = sorted(c.topic for c in summary.channels.values())
+    assert topics == ["/bus/can", "/bus/serial/kteam", "/sensors/gyro", "/status"]
+    counts = {summary.channels[k].topic: v
+              for k, v in summary.statistics.channel_message_counts.items()}
+    assert counts == {"/sensors/gyro": 1}
+    schemas = {c.topic: json.loads(summary.schemas[c.schema_id].data)["title"]
+               for c in summary.channels.values()}
+    assert schemas["/bus/serial/kteam"] == "koala.bus.Frame"
+    assert schemas["/status"] == "koala.Status"
+    r = open_recording(path)
+    assert r.topics == topics and [m.sequence for m in r.topic("sensors/gyro")] == [0]
+
+
 def test_records_after_close_are_dropped_not_raised(tmp_path: Path) -> None:
     rec = Recorder(tmp_path / "c.mcap")
     rec.record("status", 0.0, {"t": 0.0})

@@ -94,6 +94,25 @@ def test_opens_with_mcap_library_every_channel_counts_match_rates(
     assert t[0] == 0.0 and t[-1] == pytest.approx(DURATION_S)
 
 
+def test_a_bus_no_client_used_still_has_its_channel(
+    bridge: Callable[..., BridgeProcess], tmp_path: Path
+) -> None:
+    path = tmp_path / "quiet.mcap"
+    b = bridge(clock="fast", extra=["--duration", "2.5", "--record", str(path)])
+    assert b.proc.wait(timeout=120) == 0, b.log()
+    with path.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None and summary.statistics is not None
+    topics = {c.topic: c.id for c in summary.channels.values()}
+    counts = summary.statistics.channel_message_counts
+    # No K-Team client: its bus channel is there, empty; every other channel too.
+    assert "/bus/serial/kteam" in topics
+    assert counts.get(topics["/bus/serial/kteam"], 0) == 0
+    rec = open_recording(path)
+    assert set(topics) == set(expected_rates(rec)) | {"/bus/serial/kteam"}
+    assert "/bus/serial/kteam" in rec.topics and not rec.topic("/bus/serial/kteam")
+
+
 def test_no_gap_in_any_sequence(rec: Recording) -> None:
     for topic in rec.topics:
         seqs = [m.sequence for m in rec.topic(topic)]
