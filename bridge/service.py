@@ -203,7 +203,9 @@ class BridgeService:
             r = self.sim.step(self.arbiter.command(self.sim.t))
             n += 1
             self._emit(r, n)
-        self._publish_status(r.t)
+        # The final counters, unless the last step just published them (one status per t).
+        if n == 0 or n % self._status_period != 0:
+            self._publish_status(r.t)
         return r
 
     def _published_keys(self, r: Readings) -> list[str]:

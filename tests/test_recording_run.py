@@ -92,6 +92,11 @@ def test_opens_with_mcap_library_every_channel_counts_match_rates(
     # sample times cover the run
     t = [m.t for m in rec.topic("/sensors/gyro")]
     assert t[0] == 0.0 and t[-1] == pytest.approx(DURATION_S)
+    # status: one per period from the first period on, the last at the stop time, none twice
+    period = 1.0 / rates["/status"]
+    n_status = round(DURATION_S / period)
+    assert [m.t for m in rec.topic("/status")] == pytest.approx(
+        [k * period for k in range(1, n_status + 1)])
 
 
 def test_a_bus_no_client_used_still_has_its_channel(
@@ -111,6 +116,11 @@ def test_a_bus_no_client_used_still_has_its_channel(
     rec = open_recording(path)
     assert set(topics) == set(expected_rates(rec)) | {"/bus/serial/kteam"}
     assert "/bus/serial/kteam" in rec.topics and not rec.topic("/bus/serial/kteam")
+    # Stopped between two statuses (2.5 s, 1 Hz): one more, the final counters at the stop time.
+    period = 1.0 / expected_rates(rec)["/status"]
+    every = [k * period for k in range(1, int(2.5 / period + 1e-9) + 1)]
+    assert [m.t for m in rec.topic("/status")] == pytest.approx(
+        every + ([] if every[-1] == pytest.approx(2.5) else [2.5]))
 
 
 def test_no_gap_in_any_sequence(rec: Recording) -> None:
