@@ -43,8 +43,9 @@ TOML form (``[world]`` of a config file)::
     north_deg = 90.0               # direction of magnetic north, CCW from +x (east)
 
 The ASCII map is drawn north up: lines alternate between corner lines (``+`` with ``-`` runs
-for walls) and cell lines (``|`` for walls, ``#`` inside a cell to block it). Without a map,
-``cols`` and ``rows`` give an empty grid with its outer boundary walled.
+for walls) and cell lines (``|`` for walls, ``#`` inside a cell to block it); any other character
+is an error naming its map line and column. Without a map, ``cols`` and ``rows`` give an empty
+grid with its outer boundary walled.
 """
 
 from __future__ import annotations
@@ -315,7 +316,9 @@ def parse_ascii_map(text: str) -> tuple[int, int, set[Edge], set[tuple[int, int]
 
     Corner lines hold ``+`` at every grid corner with runs of ``-`` where a horizontal wall is;
     cell lines hold ``|`` where a vertical wall is and ``#`` inside a blocked cell. All corner
-    lines must put their ``+`` in the same columns.
+    lines must put their ``+`` in the same columns. Any other character, or one of these where it
+    means nothing (a ``#`` in a wall slot, a ``-`` on a cell line), is an error naming its map
+    line and column: a typo must not silently change the world.
     """
     lines = [ln.rstrip() for ln in text.strip("\n").splitlines()]
     lines = [ln for ln in lines if ln.strip()]
@@ -336,15 +339,37 @@ def parse_ascii_map(text: str) -> tuple[int, int, set[Edge], set[tuple[int, int]
                 raise ConfigError(f"[world] map line {li + 1}: '+' corners do not line up")
             y_index = rows - li // 2
             for c in range(cols):
-                if "-" in padded[corners[c] + 1 : corners[c + 1]]:
+                span = padded[corners[c] + 1 : corners[c + 1]]
+                side = f"south of cell ({c}, {y_index})" if y_index < rows else (
+                    f"north of cell ({c}, {rows - 1})")
+                _check_map_chars(span, " -", li, corners[c] + 1, f"the wall slot {side}")
+                if "-" in span:
                     edges.add(("h", c, y_index))
         else:
             row = rows - 1 - li // 2
             for k, pos in enumerate(corners):
+                side = (f"west of cell ({k}, {row})" if k < cols
+                        else f"east of cell ({k - 1}, {row})")
+                _check_map_chars(padded[pos], " |", li, pos, f"the wall slot {side}")
                 if padded[pos] == "|":
                     edges.add(("v", k, row))
             for c in range(cols):
-                if "#" in padded[corners[c] + 1 : corners[c + 1]]:
+                span = padded[corners[c] + 1 : corners[c + 1]]
+                _check_map_chars(span, " #", li, corners[c] + 1, f"cell ({c}, {row})")
+                if "#" in span:
                     blocked.add((c, row))
+        _check_map_chars(padded[corners[-1] + 1 :], " ", li, corners[-1] + 1,
+                         "the map's right margin (beyond the last corner)")
     return cols, rows, edges, blocked
 
+
+def _check_map_chars(span: str, allowed: str, line: int, start: int, where: str) -> None:
+    """Raise if ``span`` (map line ``line``, 0-based, from text column ``start``) holds a
+    character not in ``allowed``."""
+    for i, ch in enumerate(span):
+        if ch not in allowed:
+            expected = " or ".join(repr(a) for a in allowed)
+            raise ConfigError(
+                f"[world] map line {line + 1}, column {start + i + 1}: {ch!r} in {where} "
+                f"(expected {expected}; '+' corners, '-' and '|' walls, '#' blocked cell)"
+            )

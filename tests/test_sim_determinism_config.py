@@ -18,6 +18,7 @@ from sim.noise import BlockStream
 from sim.schema import ConfigError
 from sim.simulator import RNG_STREAMS, Simulator
 from sim.types import GyroReading, Readings, WheelCommand
+from sim.world import World
 
 
 def _flatten(r: Readings) -> list[Any]:
@@ -171,6 +172,31 @@ def test_missing_key_and_bad_values() -> None:
     cfg["sensors"]["ir"]["poses"] = [[0, 0]]
     with pytest.raises(ConfigError, match="poses"):
         load_sim_config(cfg)
+
+
+@pytest.mark.parametrize("top, middle, where", [
+    ("+---+---+---+", "|   #       |",
+     r"line 2, column 5: '#' in the wall slot west of cell \(1, 0\)"),
+    ("+---+---+---+", "| - |       |", r"line 2, column 3: '-' in cell \(0, 0\)"),
+    ("+---+---+---+", "|   |  x    |", r"line 2, column 8: 'x' in cell \(1, 0\)"),
+    ("+---+---+---+", "|           | ;", r"line 2, column 15: ';' in the map's right margin"),
+    ("+---+-*-+---+", "|   |    #  |",
+     r"line 1, column 7: '\*' in the wall slot north of cell \(1, 0\)"),
+])
+def test_a_stray_map_character_is_an_error_naming_where(top: str, middle: str, where: str) -> None:
+    # A typo must not silently change the world (a '#' one column off used to vanish).
+    cfg = copy.deepcopy(default_config())
+    cfg["world"]["map"] = "\n".join([top, middle, "+---+---+---+"])
+    cfg["world"].pop("start", None)
+    with pytest.raises(ConfigError, match=where):
+        load_sim_config(cfg)
+
+
+def test_every_shipped_world_loads() -> None:
+    for path in sorted({DEFAULT, IDEAL, *(DEFAULT.parent / "worlds").glob("*.toml")}):
+        with path.open("rb") as f:
+            world = World.from_dict(tomllib.load(f)["world"])
+        assert world.cols > 0 and world.rows > 0, path
 
 
 def test_other_top_level_sections_are_ignored() -> None:
