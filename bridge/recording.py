@@ -40,6 +40,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from mcap.exceptions import EndOfFile
 from mcap.records import Channel, Footer, Header, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
@@ -50,6 +51,8 @@ PROFILE = "koala-bridge"
 FORMAT_VERSION = 1
 META_NAME = "koala-bridge"
 WORLD_META_NAME = "world"
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"  # the first (and last) 8 bytes of every MCAP file
 
 BUSES = ("serial/kteam", "serial/rangefinders", "can", "mavlink")
 FROM_ROBOT = "from_robot"
@@ -526,6 +529,11 @@ def open_recording(path: str | os.PathLike[str]) -> Recording:
         raw = p.read_bytes()
     except OSError as e:
         raise RecordingError(f"cannot read {p}: {e}") from e
+    if not raw.startswith(MCAP_MAGIC):
+        # Checked here: the reader's own complaint about a short or foreign file is a struct
+        # error ("unpack requires a buffer of 8 bytes") that says nothing to a user.
+        what = "it is empty" if not raw else "it does not begin with the MCAP magic bytes"
+        raise RecordingError(f"{p} is not an MCAP file: {what}")
     reader = StreamReader(io.BytesIO(raw))
     profile = ""
     metadata: dict[str, dict[str, str]] = {}
@@ -543,8 +551,15 @@ def open_recording(path: str | os.PathLike[str]) -> Recording:
             # The tail of a file cut short: a partial record (EndOfFile, a short struct, a zstd
             # frame cut in two). Everything before it is good.
             if not messages and not metadata and not profile:
-                raise RecordingError(f"{p} is not a readable MCAP file: {e}") from e
-            log.info("%s ends in a partial record (%s): read up to the last complete chunk", p, e)
+                raise RecordingError(
+                    f"{p} is not a readable MCAP file: nothing readable after its magic bytes "
+                    f"({_read_error(e)})"
+                ) from e
+            log.info(
+                "%s ends in a partial record (%s): read up to the last complete chunk",
+                p,
+                _read_error(e),
+            )
             break
         if isinstance(record, Metadata):
             metadata[record.name] = dict(record.metadata)
@@ -569,6 +584,14 @@ def open_recording(path: str | os.PathLike[str]) -> Recording:
         if ch.schema_id in schemas
     }
     return Recording(p, profile, metadata, messages, complete, topic_schemas)
+
+
+def _read_error(e: Exception) -> str:
+    """What went wrong reading a record, never empty (the MCAP library's ``EndOfFile`` has no
+    message)."""
+    if isinstance(e, EndOfFile):
+        return "the file ends inside a record"
+    return str(e) or type(e).__name__
 
 
 def iter_frames(

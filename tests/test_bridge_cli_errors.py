@@ -62,6 +62,7 @@ def held_tcp_port() -> Iterator[int]:
     (["--clock", "bogus"], ["--clock", "invalid choice: 'bogus'", "--help"]),
     (["--seed", "x"], ["--seed", "invalid int value"]),
     (["--set", "novalue"], ["override must look like section.key=value"]),
+    (["--bogus"], ["unrecognized arguments: --bogus", "koala-bridge run --help"]),
 ])
 def test_run_mistakes_are_one_line_exit_2(tmp_path: Path, args: list[str],
                                           needles: list[str]) -> None:
@@ -140,6 +141,19 @@ def test_other_subcommands_fail_in_one_line(tmp_path: Path, args: list[str], cod
     port = str(free_port())
     p = koala(tmp_path, *[a.replace("{port}", port) for a in args])
     assert_one_line_error(p, code, *needles)
+
+
+@pytest.mark.parametrize("sub", ["replay", "export"])
+def test_a_file_that_is_not_mcap_is_named_so(tmp_path: Path, sub: str) -> None:
+    (tmp_path / "notes.txt").write_text("abc\n")  # shorter than the MCAP magic
+    p = koala(tmp_path, sub, "notes.txt", *(["--bundle", "b"] if sub == "export" else []))
+    line = assert_one_line_error(p, 2, f"koala-bridge {sub}", "notes.txt is not an MCAP file")
+    assert "unpack" not in line
+
+
+def test_an_unknown_option_names_its_subcommand(tmp_path: Path) -> None:
+    p = koala(tmp_path, "snapshot", "--out", "x.png", "--bogus")
+    assert_one_line_error(p, 2, "koala-bridge snapshot: error: unrecognized arguments: --bogus")
 
 
 @pytest.mark.parametrize("sub", [None, *SUBCOMMANDS])

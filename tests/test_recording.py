@@ -132,11 +132,36 @@ def test_records_after_close_are_dropped_not_raised(tmp_path: Path) -> None:
         rec.record_frame("can", "sideways", 0.0, b"")
 
 
-def test_not_mcap_is_a_clear_error(tmp_path: Path) -> None:
+@pytest.mark.parametrize("content, reason", [
+    (b"hello, not an mcap file at all", "not an MCAP file: it does not begin with the MCAP magic"),
+    (b"abc", "not an MCAP file: it does not begin with the MCAP magic"),  # shorter than the magic
+    (b"", "not an MCAP file: it is empty"),
+    (b"\x89MCAP0\r\n", r"nothing readable after its magic bytes \(the file ends inside a record"),
+])
+def test_not_mcap_is_a_clear_error(tmp_path: Path, content: bytes, reason: str) -> None:
     bad = tmp_path / "bad.mcap"
-    bad.write_bytes(b"hello, not an mcap file at all")
-    with pytest.raises(RecordingError, match="not a readable MCAP"):
+    bad.write_bytes(content)
+    with pytest.raises(RecordingError, match=reason) as e:
         open_recording(bad)
+    assert "unpack" not in str(e.value)
+
+
+def test_a_file_cut_short_says_why_in_the_log(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    path = tmp_path / "whole.mcap"
+    with Recorder(path) as rec:
+        for i in range(2000):
+            rec.record("sensors/gyro", i * 0.01, {"t": i * 0.01, "yaw_rate": 0.25})
+            if i % 500 == 499:
+                rec.flush()  # whole chunks to read before the cut
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    with caplog.at_level("INFO", logger="bridge.recording"):
+        r = open_recording(cut)
+    assert not r.complete and r.topic("sensors/gyro")
+    partial = [m.getMessage() for m in caplog.records if "partial record" in m.getMessage()]
+    assert len(partial) == 1 and "()" not in partial[0], partial
 
 
 _WRITER = textwrap.dedent(

@@ -137,15 +137,26 @@ def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
             if module is None:
                 continue
             module.add_arguments(p)
-            p.set_defaults(_module=module)
+            p.set_defaults(_module=module, _parser=p)
     return parser
+
+
+def parse_arguments(parser: argparse.ArgumentParser, argv: Sequence[str]) -> argparse.Namespace:
+    """``parser.parse_args(argv)``, except that arguments the subcommand does not know are
+    reported by the subcommand's parser (``koala-bridge run: error: …``), not the top-level one
+    (argparse hands a subparser's leftovers back up to ``koala-bridge``)."""
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:
+        owner = getattr(args, "_parser", parser)
+        owner.error(f"unrecognized arguments: {' '.join(unknown)}")
+    return args
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     chosen = next((a for a in argv if not a.startswith("-")), None)
     parser = build_parser(chosen if chosen in SUBCOMMANDS else None)
-    args = parser.parse_args(argv)
+    args = parse_arguments(parser, argv)
     logging.basicConfig(
         level=getattr(logging, args.log_level),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
