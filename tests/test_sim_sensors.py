@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from test_sim_support import box_world, config_with_world
+from test_sim_support import box_world, config_with_world, ideal_config
 
 from sim.raycast import SegmentSet, cast_rays, first_hit_before, merge_collinear
 from sim.simulator import Simulator
@@ -211,6 +211,14 @@ def test_camera_bearing_sign() -> None:
     ids = {o.id: o for o in r.camera.observations}
     assert set(ids) == {8}
     assert ids[8].bearing == pytest.approx(math.radians(20.0))   # landmark left of heading: CCW +
+
+
+def test_camera_sees_a_landmark_from_the_default_start_pose() -> None:
+    # A run nobody drives must still exercise landmark observations (config/default.toml).
+    r = Simulator(ideal_config()).reset(0)
+    assert [o.id for o in r.camera.truth] == [4]
+    assert r.camera.truth[0].range == pytest.approx(1.2)
+    assert r.camera.truth[0].bearing == pytest.approx(0.0, abs=1e-9)
 
 
 def test_compiled_cast_matches_numpy_reference() -> None:
