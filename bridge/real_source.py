@@ -268,6 +268,16 @@ class RealRobotSource:
         except BaseException:
             self.close()
             raise
+        if self.tap is not None:
+            # Every port opened gets its channel in the recording, frames or not; the Zenoh
+            # keys are what the robot sends, so they appear with their first message.
+            opened = (
+                ("serial/kteam", self._kteam),
+                ("serial/rangefinders", self._ranges),
+                ("can", self._can),
+                ("mavlink", self._mavlink),
+            )
+            self.tap.declare(["status"], [bus for bus, port in opened if port is not None])
         self.clock.start()
         if self._ranges is not None:
             self._spawn("rangefinders", self._range_reader(self._ranges))

@@ -198,3 +198,23 @@ def test_real_ports_config_errors() -> None:
         RealPorts.from_dict({"kteam": "loop://", "kteam_poll": ["Q"]})
     with pytest.raises(ConfigError, match=r"\[real\] section"):
         RealPorts.from_config({})
+
+
+def test_real_recording_declares_the_opened_ports(tmp_path: Path) -> None:
+    """A port that carries nothing still has its channel in a real-mode recording (here a
+    pyserial loop:// rangefinder port, so no robot is needed), and only opened ports do."""
+    config = tmp_path / "real.toml"
+    config.write_text(DEFAULT_CONFIG.read_text() + '\n[real]\nrangefinders = "loop://"\n')
+    rec_path = tmp_path / "real.mcap"
+    subprocess.run(
+        bridge_command(
+            "run", "--source", "real", "--config", str(config), "--duration", "0.5",
+            "--record", str(rec_path), "--set", f'zenoh.listen=["tcp/127.0.0.1:{free_port()}"]',
+        ),
+        cwd=REPO, check=True, timeout=120, capture_output=True,
+    )
+    rec = open_recording(rec_path)
+    assert rec.complete
+    assert "/bus/serial/rangefinders" in rec.topics
+    assert not rec.topic("/bus/serial/rangefinders")
+    assert not {"/bus/serial/kteam", "/bus/can", "/bus/mavlink"} & set(rec.topics)
