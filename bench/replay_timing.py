@@ -7,6 +7,13 @@ frames pty, python-can socketcand, a UDP socket for MAVLink). For consecutive fr
 bus the error is ``(arrival_i - arrival_{i-1}) - (t_i - t_{i-1}) / speed``; the script prints its
 p50 / p99 / max per bus, and checks that every frame arrived, in order, unchanged.
 
+The floor, measured in the same run just before the replay: a bare sender (this script with
+``--floor-send``, no bridge code but the replay's sleep-then-spin wait) puts the recording's
+MAVLink datagrams on a UDP socket on the same schedule, to a UDP reader thread here. Its p99 is
+what this machine allows a timed sender at normal priority just then; the replay's p99 is
+reported against it. The CPU pressure over each run (/proc/pressure/cpu, "some" avg10) says how
+busy the machine was.
+
     .venv/bin/python -m bench.replay_timing --duration 60
 """
 
@@ -14,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import pickle
 import socket
 import subprocess
 import sys
@@ -167,6 +175,65 @@ def replay_and_receive(
     return got, log_path.read_text()
 
 
+def _cpu_pressure() -> str:
+    """``some avg10`` of /proc/pressure/cpu (the share of time a task waited for a CPU)."""
+    try:
+        line = Path("/proc/pressure/cpu").read_text().splitlines()[0]
+    except (OSError, IndexError):
+        return "n/a"
+    return next((f.split("=")[1] + " %" for f in line.split() if f.startswith("avg10=")), "n/a")
+
+
+def floor_send(schedule: Path, port: int, speed: float) -> None:
+    """Send the pickled ``(times, datagrams)`` to 127.0.0.1:``port`` on their schedule, with the
+    replay's wait (sleep to ``SPIN_S`` before, then spin yielding the GIL) and nothing else."""
+    from bridge.replay import SPIN_S
+
+    times, datagrams = pickle.loads(schedule.read_bytes())
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    start = time.monotonic() + 0.2
+    for t, data in zip(times, datagrams, strict=True):
+        due = start + (t - times[0]) / speed
+        while (remaining := due - time.monotonic()) > 0:
+            time.sleep(remaining - SPIN_S if remaining > SPIN_S else 0)
+        sock.sendto(data, ("127.0.0.1", port))
+    sock.close()
+
+
+def measure_floor(path: Path, tmp: Path, speed: float) -> tuple[np.ndarray, str]:
+    """Timing errors (ms) of the bare UDP sender at a reader thread, and the CPU pressure."""
+    rec = open_recording(path)
+    frames = [m for m in rec.topic("/bus/mavlink") if m.json()["dir"] == FROM_ROBOT]
+    times = [m.t for m in frames]
+    schedule = tmp / "floor.pickle"
+    schedule.write_bytes(pickle.dumps((times, [m.frame_bytes() for m in frames])))
+    port = _free_port(socket.SOCK_DGRAM)
+    udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    udp.bind(("127.0.0.1", port))
+    udp.settimeout(1.0)
+    sender = subprocess.Popen(
+        [sys.executable, "-m", "bench.replay_timing", "--floor-send", str(schedule), str(port)]
+        + ["--speed", str(speed)],
+        cwd=REPO,
+    )
+    arrivals = []
+    try:
+        while len(arrivals) < len(times):
+            try:
+                udp.recv(4096)
+            except TimeoutError:
+                if sender.poll() is not None:
+                    break
+                continue
+            arrivals.append(time.monotonic())
+    finally:
+        sender.wait()
+        udp.close()
+    pressure = _cpu_pressure()
+    a = np.array(arrivals)
+    return np.abs(np.diff(a) - np.diff(np.array(times[: a.size])) / speed) * 1e3, pressure
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--duration", type=float, default=60.0)
@@ -179,7 +246,13 @@ def main(argv: list[str] | None = None) -> int:
         help="replay --fifo-priority P (SCHED_FIFO; needs CAP_SYS_NICE); the client side can be "
         "raised too by starting this script under chrt -f",
     )
+    parser.add_argument(
+        "--floor-send", nargs=2, metavar=("SCHEDULE", "PORT"), help=argparse.SUPPRESS
+    )
     args = parser.parse_args(argv)
+    if args.floor_send:
+        floor_send(Path(args.floor_send[0]), int(args.floor_send[1]), args.speed)
+        return 0
     # Three reader threads share this process's GIL: hand it over every 0.5 ms (default 5 ms),
     # or a reader waits for it and the measurement shows the client's delay, not the replay's.
     sys.setswitchinterval(0.0005)
@@ -187,7 +260,9 @@ def main(argv: list[str] | None = None) -> int:
         tmp = Path(d)
         path = record(tmp, args.duration)
         rec = open_recording(path)
+        floor, floor_pressure = measure_floor(path, tmp, args.speed)
         got, log = replay_and_receive(path, tmp, args.speed, args.fifo_priority)
+        pressure = _cpu_pressure()
     fifo = f", replay under SCHED_FIFO {args.fifo_priority}" if args.fifo_priority else ""
     print(f"recording: {args.duration:g} s, replay speed {args.speed:g}{fifo}")
     print(f"{'bus':<22}{'frames':>8}{'in order':>10}{'p50 ms':>9}{'p99 ms':>9}{'max ms':>9}")
@@ -215,6 +290,16 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"{'all buses':<22}{len(e) + len(all_err):>8}{'':>10}"
         f"{np.percentile(e, 50):>9.3f}{np.percentile(e, 99):>9.3f}{e.max():>9.3f}"
+    )
+    print(
+        f"{'floor: bare UDP sender':<22}{floor.size + 1:>8}{'':>10}"
+        f"{np.percentile(floor, 50):>9.3f}{np.percentile(floor, 99):>9.3f}{floor.max():>9.3f}"
+    )
+    p99_floor = np.percentile(floor, 99)
+    print(
+        f"replay / floor at p99: mavlink {np.percentile(all_err[2], 99) / p99_floor:.2f}, "
+        f"all buses {np.percentile(e, 99) / p99_floor:.2f}; CPU pressure "
+        f"(some, avg10) {floor_pressure} after the floor, {pressure} after the replay"
     )
     print(log.strip().splitlines()[-1])
     return 0 if ok else 1

@@ -84,8 +84,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=int,
         default=0,
         metavar="P",
-        help="run under SCHED_FIFO real-time priority P (1-99; needs CAP_SYS_NICE): keeps "
-        "inter-frame timing under 1 ms at p99 on a busy host (docs/recording.md)",
+        help="run under SCHED_FIFO real-time priority P (1-99; needs CAP_SYS_NICE): the replay "
+        "then sends within 0.5 ms of each frame's time at p99 on a busy host; a client at normal "
+        "priority may still wait for a CPU (docs/recording.md, Timing)",
     )
     parser.add_argument(
         "--linger",
