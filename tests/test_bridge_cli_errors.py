@@ -85,6 +85,15 @@ def test_unknown_section_in_the_file(tmp_path: Path) -> None:
     assert_one_line_error(p, 2, "unknown section [zenho]", "did you mean [zenoh]")
 
 
+def test_a_config_fragment_says_where_to_start(tmp_path: Path) -> None:
+    """A file with a few keys (what `calibrate --write-config` writes without --config) is not a
+    bridge config: the error says which key is missing and what to start from."""
+    cfg = tmp_path / "fragment.toml"
+    cfg.write_text("[sensors.gyro]\nbias_rad_s = 0.0196\n")
+    p = koala(tmp_path, "run", "--config", str(cfg))
+    assert_one_line_error(p, 2, "missing required key", "config/default.toml")
+
+
 def test_zenoh_port_in_use(tmp_path: Path, held_tcp_port: int) -> None:
     p = koala(tmp_path, "run", "--clock", "fast", "--duration", "0.1", *free_ports(),
               "--set", f'zenoh.listen=["tcp/127.0.0.1:{held_tcp_port}"]')

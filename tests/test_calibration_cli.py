@@ -120,6 +120,7 @@ def test_staged_inputs_carry_effects_into_the_next_model(tmp_path: Path) -> None
     assert turns_gyro["before_with_carried"] < turns_gyro["before"]
     still_gyro = entries[(1, "gyro", "rms_rate_error")]
     assert "before_with_carried" not in still_gyro
+    assert "not a whole bridge" in new.read_text()  # no --config: a fragment, and it says so
     written = tomllib.loads(new.read_text())["sensors"]
     assert written["gyro"]["bias_rad_s"] == pytest.approx(0.0196, abs=3e-4)
     assert len(written["compass"]["hard_iron_uT"]) == 3

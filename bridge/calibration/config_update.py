@@ -177,11 +177,21 @@ def config_diff(base: Mapping[str, Any], new: Mapping[str, Any], name: str = "MO
     )
 
 
-def write_config(path: Path, doc: Mapping[str, Any], unsimulated: Mapping[str, Any] = {}) -> None:
+def write_config(
+    path: Path, doc: Mapping[str, Any], unsimulated: Mapping[str, Any] = {}, fragment: bool = False
+) -> None:
+    """Write ``doc`` as TOML; ``unsimulated`` findings as a trailing comment; ``fragment``: no
+    MODEL.toml was given, so the file holds only the found keys, which the header says."""
     header = (
         "# Written by `koala-bridge calibrate --write-config`: the declared model with the\n"
         "# effects found in measured data added (see the report's config diff).\n"
     )
+    if fragment:
+        header += (
+            "# No --config was given: this holds only the keys found, not a whole bridge\n"
+            "# config. To simulate with them, copy them into one (e.g. config/default.toml),\n"
+            "# or calibrate again with --config that file.\n"
+        )
     tail = ""
     if unsimulated:
         lines = [

@@ -144,7 +144,12 @@ def run(args: argparse.Namespace) -> int:
         write_report(args.out, stages, diff, plots=not args.no_plots)
         if args.write_config is not None:
             args.write_config.parent.mkdir(parents=True, exist_ok=True)
-            write_config(args.write_config, new_config, not_simulated(all_keys(stages)))
+            write_config(
+                args.write_config,
+                new_config,
+                not_simulated(all_keys(stages)),
+                fragment=args.config is None,
+            )
     except CalibrationError as e:
         print(f"koala-bridge calibrate: {e}", file=sys.stderr)
         return 2

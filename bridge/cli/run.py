@@ -110,7 +110,10 @@ def run(args: argparse.Namespace) -> int:
         else:
             service = BridgeService(config, settings)
     except ConfigError as e:
-        print(f"koala-bridge run: configuration error: {e}", file=sys.stderr)
+        hint = ""
+        if "missing required key" in str(e):
+            hint = " (a bridge config sets every key: start from a copy of config/default.toml)"
+        print(f"koala-bridge run: configuration error: {e}{hint}", file=sys.stderr)
         return 2
 
     recorder = None
