@@ -7,6 +7,7 @@ import json
 import tomllib
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from bridge.calibration.bundle import load_input
@@ -188,3 +189,44 @@ def test_helpers() -> None:
     a = np.linspace(0, 2 * np.pi, 50)
     pts = np.column_stack([3 + 2 * np.cos(a), -1 + 2 * np.sin(a)])
     assert np.allclose(algebraic_centre(pts), [3, -1])
+
+
+def test_a_compass_that_did_not_turn_gets_no_iron(tmp_path: Path) -> None:
+    """Standing still, a hard or soft iron cannot be told from north: neither is tried, the
+    report says why, and nothing singular reaches the written config (a stationary recording
+    once got a soft iron of 3e15)."""
+    rng = np.random.default_rng(3)
+    t = np.arange(0.0, 30.0, 0.05)
+    bundle = tmp_path / "still"
+    bundle.mkdir()
+    theta = np.full_like(t, 0.7)
+    np.savetxt(
+        bundle / "truth_pose.csv",
+        np.column_stack([t, t * 0 + 1, t * 0 + 1, theta]),
+        delimiter=",",
+        header="t,x,y,theta",
+        comments="",
+    )
+    field = 20.0 * np.array([np.cos(np.pi / 2 - 0.7), np.sin(np.pi / 2 - 0.7)])
+    m = np.array([[1.1, 0.05], [0.05, 0.9]]) @ field + np.array([8.0, -5.0])
+    mxy = m + rng.normal(0, 0.3, (t.size, 2))
+    np.savetxt(
+        bundle / "compass.csv",
+        np.column_stack([t, mxy, t * 0 - 43]),
+        delimiter=",",
+        header="t,mx,my,mz",
+        comments="",
+    )
+    out, new = tmp_path / "out", tmp_path / "new.toml"
+    assert cli.run(_args(str(bundle), f"--out={out}", f"--write-config={new}", "--quiet")) == 0
+    (compass,) = json.loads((out / "report.json").read_text())["streams"]
+    assert compass["stream"] == "compass" and compass["effects"] == []
+    md = (out / "report.md").read_text()
+    assert "hard_iron not tried" in md and "soft_iron not tried" in md
+    assert "soft_iron" not in tomllib.loads(new.read_text()).get("sensors", {}).get("compass", {})
+
+
+def test_a_singular_soft_iron_is_not_plausible() -> None:
+    soft = available_effects()["soft_iron"]
+    assert soft.plausible(None, np.array([0.2, 0.05]))  # type: ignore[arg-type]
+    assert not soft.plausible(None, np.array([-0.9996, 0.0]))  # type: ignore[arg-type]

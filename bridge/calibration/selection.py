@@ -228,7 +228,15 @@ def select_effects(
             insts = [*current.insts, cand]
             x0 = problem.initial_vector(insts, current.x, current.insts)
             new = fit_model(problem, insts, x0)
-            trials.append(judge(current, new, len(cand.param_names), len(remaining), rho, counts))
+            trial = judge(current, new, len(cand.param_names), len(remaining), rho, counts)
+            if trial.passed and not cand.effect.plausible(
+                cand, split_params(problem, new.insts, new.x)[-1]
+            ):
+                trial.passed = False
+                log.info(
+                    "%s: %s fitted outside its physical range: rejected", problem.name, cand.name
+                )
+            trials.append(trial)
             if on_trial is not None:
                 on_trial()
         result.rounds.append(trials)

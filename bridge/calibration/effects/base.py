@@ -68,6 +68,12 @@ class Effect(ABC):
     @abstractmethod
     def _propose(self, problem: StreamProblem) -> list[EffectInstance]: ...
 
+    def plausible(self, inst: EffectInstance, params: NDArray[np.float64]) -> bool:
+        """Whether fitted ``params`` describe this effect at all (default: always). A fit that
+        leaves the effect's physical range (a singular soft-iron matrix) is a degenerate fit of
+        something else, and the candidate is rejected whatever its statistics."""
+        return True
+
     @abstractmethod
     def apply(self, inst: EffectInstance, state: Any, params: NDArray[np.float64]) -> None:
         """Change the stream's model state (see the stream module) by this effect."""

@@ -45,3 +45,21 @@ def categorical_levels(values: np.ndarray, max_levels: int = 32) -> np.ndarray |
         return None
     levels = np.unique(v)
     return levels if 2 <= levels.size <= max_levels else None
+
+
+def enough_orientations(problem: Any, harmonic: int, effect: str) -> bool:
+    """Whether the compass stream's orientations can determine an iron effect
+    (:meth:`~bridge.calibration.streams.compass.CompassProblem.orientation_spread`); when not, a
+    note on the stream says why the effect was not tried."""
+    from bridge.calibration.streams.compass import MIN_ORIENTATION_SPREAD
+
+    spread = float(problem.orientation_spread(harmonic))
+    if spread >= MIN_ORIENTATION_SPREAD:
+        return True
+    note = (
+        f"{effect} not tried: the orientations vary too little to tell it from the constant "
+        f"(spread {spread:.3g} < {MIN_ORIENTATION_SPREAD:g}; turn the sensor through more angles)"
+    )
+    if note not in problem.notes:
+        problem.notes.append(note)
+    return False

@@ -17,6 +17,7 @@ import numpy as np
 
 from bridge.calibration.effects import register_effect
 from bridge.calibration.effects.base import Effect, EffectInstance
+from bridge.calibration.effects.common import enough_orientations
 
 
 def algebraic_centre(m: np.ndarray) -> np.ndarray:
@@ -31,6 +32,8 @@ class HardIron(Effect):
     kinds = frozenset({"compass"})
 
     def _propose(self, problem: Any) -> list[EffectInstance]:
+        if not enough_orientations(problem, 1, "hard_iron"):
+            return []
         d = problem.dims
         fit = problem.split.mask(problem.t, "fit")
         m = problem.m[fit]

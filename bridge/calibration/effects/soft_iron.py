@@ -16,6 +16,10 @@ import numpy as np
 
 from bridge.calibration.effects import register_effect
 from bridge.calibration.effects.base import Effect, EffectInstance
+from bridge.calibration.effects.common import enough_orientations
+
+#: Smallest (and, inverted, largest) axis gain of a plausible soft-iron correction.
+MIN_GAIN = 0.5
 
 
 def correction_matrix(params: Any) -> np.ndarray:
@@ -38,8 +42,16 @@ class SoftIron(Effect):
     kinds = frozenset({"compass"})
 
     def _propose(self, problem: Any) -> list[EffectInstance]:
+        if not enough_orientations(problem, 2, "soft_iron"):
+            return []
         names = ("e_xx", "e_xy") if problem.dims == 2 else ("e_xx", "e_yy", "e_xy", "e_xz", "e_yz")
         return [EffectInstance(self.name, self, names, (0.0,) * len(names))]
+
+    def plausible(self, inst: EffectInstance, params: Any) -> bool:
+        """Axis gains within 2:1 of each other (eigenvalues of I + E in [0.5, 2]): magnetised
+        parts near a sensor distort its field by tens of percent, not by collapsing an axis."""
+        eig = np.linalg.eigvalsh(correction_matrix(params))
+        return bool(np.all(eig >= MIN_GAIN) and np.all(eig <= 1 / MIN_GAIN))
 
     def apply(self, inst: EffectInstance, state: Any, params: Any) -> None:
         state.C = correction_matrix(params) @ state.C

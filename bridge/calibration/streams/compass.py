@@ -47,6 +47,10 @@ from bridge.calibration.problem import (
 )
 from bridge.calibration.streams.scalar import wrap_angle
 
+#: Smallest orientation spread (:meth:`CompassProblem.orientation_spread`) at which the iron
+#: effects are proposed: below it the data cannot tell them from the constant.
+MIN_ORIENTATION_SPREAD = 0.1
+
 
 @dataclass
 class CompassState:
@@ -111,6 +115,33 @@ class CompassProblem(StreamProblem):
             a = self._theta_field(fit) + np.arctan2(m[:, 1], m[:, 0])
             return np.array([float(np.arctan2(np.mean(np.sin(a)), np.mean(np.cos(a))))])
         return np.array([float(np.mean(np.linalg.norm(m[:, : self.dims], axis=1)))])
+
+    def orientation_spread(self, harmonic: int = 1) -> float:
+        """How well the fit part's orientations determine an iron effect: the smallest standard
+        deviation, over directions, of the orientation vector ``(cos k psi, sin k psi)`` (2-D;
+        psi the reference heading, or without one the declared-corrected field's direction) or
+        of the field's unit vector (3-D), ``k = harmonic``.
+
+        A hard iron moves the heading (or the magnitude) by a first harmonic of the orientation,
+        a soft iron by a second; with the constant (north, field magnitude) fitted, either is
+        determined only along directions in which those harmonics vary. A robot that did not
+        turn gives about 0 (its noise); a full turn 0.71. :data:`MIN_ORIENTATION_SPREAD` is the
+        bar (an arc of about 70 degrees for k = 1, 35 for k = 2).
+        """
+        fit = self._masks["fit"]
+        if self.mode == "heading":
+            psi = self._theta_field(fit)
+        else:
+            m = self.m[fit] - (0.0 if self.disturbance is None else self.disturbance[fit])
+            m = (m - self.h_declared) @ self.C_declared.T
+            if self.dims == 3:
+                u = m / np.maximum(np.linalg.norm(m, axis=1, keepdims=True), 1e-300)
+                return float(np.sqrt(max(np.linalg.eigvalsh(np.cov(u.T))[0], 0.0)))
+            psi = np.arctan2(m[:, 1], m[:, 0])
+        if psi.size < 3:
+            return 0.0
+        v = np.column_stack([np.cos(harmonic * psi), np.sin(harmonic * psi)])
+        return float(np.sqrt(max(np.linalg.eigvalsh(np.cov(v.T))[0], 0.0)))
 
     def heading(self, mc: FloatArray) -> FloatArray:
         """Compass heading (rad, CCW, up to the constant alpha): -atan2(m_c,y, m_c,x)."""
