@@ -100,7 +100,7 @@ def found_keys(results: Sequence[StreamResult]) -> dict[str, Any]:
 
 def noise_keys(results: Sequence[StreamResult]) -> dict[str, Any]:
     """The white-noise level of each stream's final residual, in the simulator's noise key
-    (``--write-noise``): gyro ``gyroscope_noise_density`` = sigma sqrt(median sample interval)
+    (``--write-noise``): gyro ``gyroscope_noise_density`` = sigma sqrt(mean sample interval)
     (Kalibr's discretisation, sim/models/gyro.py), compass ``noise_sigma_uT`` (heading residual
     times the horizontal field, or the magnitude residual times the field), IR
     ``count_noise_sigma`` (minus the rounding's 1/12 count^2). Right when the reference is far

@@ -258,8 +258,10 @@ class ScalarProblem(StreamProblem):
         r = self._residual(insts, x, "all", False)
         sigma = float(np.std(r))
         if self.noise_key == "gyroscope_noise_density":
-            # Kalibr: sample sigma = density / sqrt(dt)
-            return self.noise_key, sigma * float(np.sqrt(np.median(np.diff(self.t))))
+            # Kalibr: sample sigma = density / sqrt(dt), dt the mean interval (the sensor's
+            # rate): a logger's irregular stamps make the median far shorter than the rate.
+            dt = (self.t[-1] - self.t[0]) / (self.t.size - 1)
+            return self.noise_key, sigma * float(np.sqrt(dt))
         if self.noise_key == "count_noise_sigma":
             return self.noise_key, float(np.sqrt(max(sigma**2 - 1 / 12, 0.0)))
         return self.noise_key, sigma
