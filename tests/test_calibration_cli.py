@@ -103,6 +103,17 @@ def test_ir_config_keys(tmp_path: Path) -> None:
     assert len(ir["response_range_m"]) == len(ir["response_counts"]) >= 2
 
 
+def test_effects_by_the_names_the_report_prints(tmp_path: Path) -> None:
+    """``--effects`` takes an effect (``offset_per``) or one proposal of it, as the report
+    names it (``offset_per:sensor``)."""
+    out = tmp_path / "out"
+    argv = [str(DATA / "khepera2_ir"), f"--out={out}", "--quiet", "--no-plots"]
+    assert cli.run(_args(*argv, "--effects", "offset_per:sensor")) == 0
+    (entry,) = json.loads((out / "report.json").read_text())["streams"]
+    assert [e["name"] for e in entry["effects"]] == ["offset_per:sensor"]
+    assert entry["after"] < entry["before"] / 1.5
+
+
 def test_staged_inputs_carry_effects_into_the_next_model(tmp_path: Path) -> None:
     """Two inputs: the second is calibrated on the model the first wrote; the report says
     which stage found what, and ``before`` stays the declared model's error."""
@@ -147,7 +158,16 @@ def test_bad_inputs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
         load_input(tmp_path / "missing", tmp_path)
     bad_model = tmp_path / "model.toml"
     bad_model.write_text("[robot\n", encoding="utf-8")
+    text_cell = tmp_path / "text_cell"
+    text_cell.mkdir()
+    (text_cell / "gyro.csv").write_text("t,yaw_rate\n0,0.1\n0.1,abc\n", encoding="utf-8")
+    no_reference = tmp_path / "no_reference"
+    no_reference.mkdir()
+    (no_reference / "truth_pose.csv").write_text("t,x,y\n0,1,1\n1,1,1\n", encoding="utf-8")
     for argv in (
+        [str(text_cell)],  # a text cell in a numeric column
+        [str(no_reference)],  # nothing to hold against the reference
+        [str(DATA / "khepera2_ir"), "--effects", "bais"],  # no such effect
         [str(tmp_path / "missing")],
         [str(tmp_path / "missing.mcap")],
         [str(not_mcap)],

@@ -113,6 +113,14 @@ def read_csv_table(path: Path) -> Table:
     return Table(path.stem, cols, text)
 
 
+def _is_number(cell: str) -> bool:
+    try:
+        float(cell)
+    except ValueError:
+        return cell == ""
+    return True
+
+
 def load_bundle(directory: Path) -> Bundle:
     """Load every known CSV of a bundle directory and its ``meta.json``.
 
@@ -131,6 +139,14 @@ def load_bundle(directory: Path) -> Bundle:
         missing = [c for c in required if c not in table]
         if missing:
             raise BundleError(f"{csv} lacks required column(s) {', '.join(missing)}")
+        for c in required:
+            if c in table.text:
+                cells = table.text[c]
+                row = next(i for i, v in enumerate(cells) if not _is_number(v))
+                raise BundleError(
+                    f"{csv}: column {c!r} must be numeric (ids too), but data row {row + 1} "
+                    f"holds {str(cells[row])!r}"
+                )
         if "t" in table.columns:
             order = np.argsort(table["t"], kind="stable")
             if np.any(order != np.arange(len(order))):

@@ -17,6 +17,7 @@ from scipy import stats
 from bridge.calibration.bundle import Bundle
 from bridge.calibration.effects import available_effects, get_effect
 from bridge.calibration.effects.base import EffectInstance
+from bridge.calibration.errors import EffectRegistryError
 from bridge.calibration.model import DeclaredModel
 from bridge.calibration.problem import SecondaryMetric, StreamProblem
 from bridge.calibration.selection import (
@@ -94,13 +95,28 @@ class StreamResult:
 def candidates_for(
     problem: StreamProblem, names: Sequence[str] | None = None
 ) -> list[EffectInstance]:
-    """Every registered effect's proposals for ``problem``, optionally restricted by name."""
+    """Every registered effect's proposals for ``problem``, optionally restricted by name: an
+    effect's name (``offset_per``) takes all its proposals, a proposal's own name as the report
+    prints it (``offset_per:sensor``, ``covariate:temperature_c``) just that one."""
     out: list[EffectInstance] = []
     for name, effect in available_effects().items():
         if names is not None and name not in names:
+            out.extend(i for i in effect.propose(problem) if i.name in names)
             continue
         out.extend(effect.propose(problem))
     return out
+
+
+def check_effect_names(names: Sequence[str]) -> None:
+    """Raise :class:`EffectRegistryError` for a name that is neither a registered effect nor
+    ``<effect>:<column>`` of one."""
+    known = available_effects()
+    unknown = [n for n in names if n.split(":", 1)[0] not in known]
+    if unknown:
+        raise EffectRegistryError(
+            f"unknown effect {', '.join(map(repr, unknown))}; registered: {', '.join(known)} "
+            "(per-column ones as covariate:<column>, offset_per:<column>)"
+        )
 
 
 def count_work(problems: Sequence[StreamProblem]) -> int:
@@ -284,9 +300,7 @@ def calibrate(
         if small is not bundle
         else [],
     )
-    if not results:
-        log.warning("%s: no stream with a reference to calibrate against", bundle.path)
-    return results
+    return results  # empty: no stream with a reference (the caller says so)
 
 
 def compass_heading_of(problem: CompassProblem, sel: Selection) -> tuple[Any, Any] | None:

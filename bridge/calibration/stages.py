@@ -31,6 +31,7 @@ from typing import Any
 
 from bridge.calibration.bundle import load_input
 from bridge.calibration.config_update import found_keys, is_simulated, noise_keys, updated_config
+from bridge.calibration.errors import BundleError
 from bridge.calibration.model import declared_model
 from bridge.calibration.pipeline import Options, Progress, StreamResult, calibrate
 from bridge.calibration.problem import split_params
@@ -136,6 +137,12 @@ def calibrate_stages(
         work.mkdir(parents=True, exist_ok=True)
         bundle = load_input(path, work)
         results = calibrate(bundle, declared_model(current, bundle.meta), options, progress)
+        if not results:
+            raise BundleError(
+                f"{path}: no stream it holds has a reference to be held against (gyro: "
+                "truth_pose.csv with theta, or compass.csv; odometry: truth_pose.csv; range: "
+                "true_range; landmarks: landmark_map.csv; see docs/bundle-format.md)"
+            )
         stage = Stage(number, str(path), results, config=current)
         if carried:
             sections = {res.problem.section for res in results}

@@ -22,7 +22,7 @@ from pathlib import Path
 from bridge.calibration.config_update import config_diff, not_simulated, write_config
 from bridge.calibration.errors import CalibrationError
 from bridge.calibration.model import read_config
-from bridge.calibration.pipeline import Options
+from bridge.calibration.pipeline import Options, check_effect_names
 from bridge.calibration.report import write_report
 from bridge.calibration.stages import all_keys, calibrate_stages
 
@@ -38,6 +38,16 @@ EXAMPLE = """examples:
   # staged: the still recording gives the gyro bias, carried into the turns' model, where
   # the compass's hard iron is found against the bias-corrected gyro heading.
 """
+
+
+def _positive(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    return value
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -81,7 +91,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--window-s",
-        type=float,
+        type=_positive,
         default=5.0,
         help="odometry dead-reckoning window length in seconds (default 5)",
     )
@@ -115,9 +125,12 @@ def run(args: argparse.Namespace) -> int:
     cannot be written."""
     try:
         config = read_config(args.config)
-        options = Options(
-            window_s=args.window_s, effects=args.effects.split(",") if args.effects else None
+        effects = (
+            [e.strip() for e in args.effects.split(",") if e.strip()] if args.effects else None
         )
+        if effects is not None:
+            check_effect_names(effects)
+        options = Options(window_s=args.window_s, effects=effects)
         with (
             tempfile.TemporaryDirectory(prefix="koala-calibrate-") as tmp,
             _progress_bar(not args.quiet and sys.stdout.isatty()) as bar,
@@ -128,8 +141,8 @@ def run(args: argparse.Namespace) -> int:
             def progress(stream: str, done: int, total: int) -> None:
                 key = prefix[0] + stream
                 if key not in tasks:
-                    tasks[key] = bar.add_task(key, total=None)
-                bar.update(tasks[key], completed=done)
+                    tasks[key] = bar.add_task(key, total=total)
+                bar.update(tasks[key], completed=done, total=total)
 
             def on_stage(number: int, path: Path) -> None:
                 if len(args.input) > 1:
