@@ -158,6 +158,8 @@ def test_bad_inputs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
         load_input(tmp_path / "missing", tmp_path)
     bad_model = tmp_path / "model.toml"
     bad_model.write_text("[robot\n", encoding="utf-8")
+    typo = tmp_path / "typo.toml"
+    typo.write_text("[robot]\nwheel_bass_m = 0.15\n", encoding="utf-8")
     text_cell = tmp_path / "text_cell"
     text_cell.mkdir()
     (text_cell / "gyro.csv").write_text("t,yaw_rate\n0,0.1\n0.1,abc\n", encoding="utf-8")
@@ -168,6 +170,7 @@ def test_bad_inputs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
         [str(text_cell)],  # a text cell in a numeric column
         [str(no_reference)],  # nothing to hold against the reference
         [str(DATA / "khepera2_ir"), "--effects", "bais"],  # no such effect
+        [str(DATA / "lego_brenner"), "--config", str(typo)],  # a misspelt key
         [str(tmp_path / "missing")],
         [str(tmp_path / "missing.mcap")],
         [str(not_mcap)],

@@ -120,11 +120,45 @@ def read_config(path: Path | None) -> dict[str, Any]:
         return {}
     try:
         with Path(path).open("rb") as fh:
-            return tomllib.load(fh)
+            config = tomllib.load(fh)
     except OSError as e:
         raise ModelConfigError(f"cannot read model config {path}: {e}") from e
     except tomllib.TOMLDecodeError as e:
         raise ModelConfigError(f"{path} is not valid TOML: {e}") from e
+    check_config(config, str(path))
+    return config
+
+
+def _laid_over(base: Mapping[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in top.items():
+        old = out.get(key)
+        both = isinstance(old, Mapping) and isinstance(value, Mapping)
+        out[key] = _laid_over(old, value) if both else value  # type: ignore[arg-type]
+    return out
+
+
+def check_config(config: Mapping[str, Any], where: str) -> None:
+    """The same checks as ``koala-bridge run``: an unknown section or key, or a value of the
+    wrong kind, is an error naming it (and the nearest valid name), not a key silently
+    ignored. MODEL.toml may be partial: it is laid over the shipped ``config/default.toml``
+    first, and the bridge's and the simulator's own loaders check the result."""
+    from bridge.cli.run import DEFAULT_CONFIG
+    from bridge.config import BridgeSettings, load_config, reject_unknown_sections
+    from bridge.localisation import LocalisationSettings
+    from sim.config import load_sim_config
+    from sim.schema import ConfigError
+
+    if not config:
+        return
+    merged = _laid_over(load_config(DEFAULT_CONFIG), config)
+    try:
+        reject_unknown_sections(merged)
+        BridgeSettings.from_config(merged)
+        load_sim_config(merged)
+        LocalisationSettings.from_config(merged)
+    except ConfigError as e:
+        raise ModelConfigError(f"{where}: {e}") from e
 
 
 def declared_model(config: Mapping[str, Any], meta: Mapping[str, Any]) -> DeclaredModel:
