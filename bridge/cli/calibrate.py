@@ -29,9 +29,14 @@ from bridge.calibration.stages import all_keys, calibrate_stages
 log = logging.getLogger(__name__)
 
 EXAMPLE = """examples:
+  koala-bridge run --clock fast --duration 120 --record run.mcap
+  koala-bridge calibrate run.mcap --config config/default.toml --out out/run
+  # a recording of this bridge, against the config it ran with: no effect should be found.
+
   koala-bridge calibrate tests/data/real/lego_brenner --config config/default.toml \\
       --out out/lego --write-config out/lego/koala-calibrated.toml
-  # then read out/lego/report.md; run the simulator with the written config.
+  # odometry of another robot (its meta.json declares ticks and wheel base, overriding the
+  # config): read out/lego/report.md, then run the simulator with the written config.
 
   koala-bridge calibrate tests/data/real/mpu6050_gyro_static tests/data/real/mpu6050_turns \\
       --out out/imu --write-config out/imu/imu.toml
@@ -66,7 +71,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=Path,
         default=None,
         metavar="MODEL.toml",
-        help="declared model (the bridge config); omitted: every sensor ideal",
+        help="declared model: the bridge config the data were recorded with (config/default.toml "
+        "declares the Koala's own sensor models: turn-on gyro bias, IR curve, ...). Omitted: "
+        "every sensor ideal, as for another robot's data, whose meta.json declares what it "
+        "knows (meta.json values always take precedence)",
     )
     parser.add_argument(
         "--out",
