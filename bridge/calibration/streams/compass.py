@@ -126,7 +126,7 @@ class CompassProblem(StreamProblem):
         a soft iron by a second; with the constant (north, field magnitude) fitted, either is
         determined only along directions in which those harmonics vary. A robot that did not
         turn gives about 0 (its noise); a full turn 0.71. :data:`MIN_ORIENTATION_SPREAD` is the
-        bar (an arc of about 70 degrees for k = 1, 35 for k = 2).
+        bar (a turn through about 100 degrees for k = 1, 50 for k = 2).
         """
         fit = self._masks["fit"]
         if self.mode == "heading":
