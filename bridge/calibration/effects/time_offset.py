@@ -5,14 +5,50 @@
 For odometry the dead-reckoned pose stamped ``t + tau`` is compared with the reference at ``t``.
 Needs a reference that is a time series (gyro, odometry). Writes
 ``[sensors.<stream>.calibration] time_offset_s``.
+
+Least squares on ``tau`` alone finds the nearest local minimum: a reference with fast structure
+(the drive's step jitter in a gyro's reference rate) has one about every half sample. So a
+scalar stream's ``tau`` starts at the best of a grid, ``tau`` in steps of half the median sample
+interval over +-min(0.5 s, 5 % of the fit part), scored by the correlation of the readings with
+the shifted reference on the fit part (the cross-correlation peak, as in Kalibr's or
+imu_utils' temporal alignment).
 """
 
 from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
+
 from bridge.calibration.effects import register_effect
 from bridge.calibration.effects.base import Effect, EffectInstance
+
+
+def coarse_lag(problem: Any) -> float:
+    """The grid ``tau`` (module docstring) whose shifted reference correlates best with the
+    readings on the fit part; 0 when nothing correlates."""
+    t_ref, u_ref = problem.reference
+    fit = problem.split.mask(problem.t, "fit")
+    t, y = problem.t[fit], problem.y[fit]
+    ok = np.isfinite(y)
+    t, y = t[ok], y[ok]
+    if t.size < 10:
+        return 0.0
+    step = float(np.median(np.diff(t))) / 2
+    span = min(0.5, 0.05 * float(t[-1] - t[0]))
+    if not step > 0 or span < step:
+        return 0.0
+    taus = np.arange(-span, span + step / 2, step)
+    yc = y - y.mean()
+    best, best_r = 0.0, -np.inf
+    for tau in taus:
+        u = np.interp(t - tau, t_ref, u_ref)
+        uc = u - u.mean()
+        den = float(np.sqrt(np.dot(uc, uc) * np.dot(yc, yc)))
+        r = float(np.dot(uc, yc)) / den if den > 0 else -np.inf
+        if r > best_r:
+            best, best_r = float(tau), r
+    return best
 
 
 @register_effect("time_offset")
@@ -22,7 +58,8 @@ class TimeOffset(Effect):
     def _propose(self, problem: Any) -> list[EffectInstance]:
         if problem.kind == "scalar" and problem.reference is None:
             return []
-        return [EffectInstance(self.name, self, ("tau_s",), (0.0,))]
+        tau0 = coarse_lag(problem) if problem.kind == "scalar" else 0.0
+        return [EffectInstance(self.name, self, ("tau_s",), (tau0,))]
 
     def apply(self, inst: EffectInstance, state: Any, params: Any) -> None:
         state.tau = float(params[0])
