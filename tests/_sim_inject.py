@@ -18,6 +18,11 @@ from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
 
+#: The streams calibrate builds from a recording of the simulator under config/default.toml.
+STREAMS = frozenset(
+    {"gyro", "compass", "odometry", "range:ir", "range:sonar", "landmark_range", "landmark_bearing"}
+)
+
 
 class CsvTable:
     """A bundle CSV as its header and string cells; numeric columns read and written as floats."""

@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from _sim_inject import STREAMS
 from scipy import stats
 
 from bridge.calibration.bundle import load_bundle, load_input
@@ -216,15 +217,7 @@ def test_mcap_of_the_simulator_is_white_against_its_own_config(tmp_path: Path) -
     bundle = load_input(mcap, tmp_path / "work")
     assert {"gyro", "compass", "odometry", "range", "landmarks", "truth_pose"} <= set(bundle.tables)
     results = calibrate(bundle, declared_model(default, bundle.meta))
-    assert {r.problem.name for r in results} >= {
-        "gyro",
-        "compass",
-        "odometry",
-        "range:ir",
-        "range:sonar",
-        "landmark_range",
-        "landmark_bearing",
-    }
+    assert {r.problem.name for r in results} >= STREAMS
     assert {r.problem.name: [i.name for i in r.effects] for r in results if r.effects} == {}
 
     exported = export_bundle(mcap, tmp_path / "injected")

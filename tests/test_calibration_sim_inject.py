@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 import pytest
 from _sim_inject import (
+    STREAMS,
     glitch,
     gyro_bias,
     gyro_bias_drift,
@@ -65,15 +66,6 @@ ROOT = Path(__file__).parents[1]
 SEED = 3
 DURATION_S = 60.0
 POSE_RATE_HZ = 100.0
-STREAMS = {
-    "gyro",
-    "compass",
-    "odometry",
-    "range:ir",
-    "range:sonar",
-    "landmark_range",
-    "landmark_bearing",
-}
 
 Config = dict[str, Any]
 #: Edits the bundle in place; returns the config to calibrate against (None: the recorded one).
@@ -200,6 +192,14 @@ E_GLITCH = {
     }
 }
 
+
+def _lag_case(tau: float) -> SimCase:
+    return SimCase(
+        lambda b, c: gyro_time_offset(b, tau),
+        {"gyro": {"time_offset": {"tau_s": Expect(tau, tau)}}},
+    )
+
+
 CASES: Mapping[str, SimCase] = {
     "bias": SimCase(lambda b, c: gyro_bias(b, BIAS), {"gyro": E_BIAS}),
     "scale": SimCase(lambda b, c: gyro_scale(b, SCALE), {"gyro": E_SCALE}),
@@ -216,14 +216,8 @@ CASES: Mapping[str, SimCase] = {
     # 0.02 and 0.1 s as 0.0049 s. The effect now starts from the cross-correlation peak on a
     # half-sample grid (effects/time_offset.py), and lags beyond one sample are recovered
     # (measured, seeds 3 and 5: 0.02, 0.05, 0.1, -0.03 s to within 3e-6 s).
-    "time_offset": SimCase(
-        lambda b, c: gyro_time_offset(b, TAU),
-        {"gyro": {"time_offset": {"tau_s": Expect(TAU, TAU)}}},
-    ),
-    "time_offset_long": SimCase(
-        lambda b, c: gyro_time_offset(b, TAU_LONG),
-        {"gyro": {"time_offset": {"tau_s": Expect(TAU_LONG, TAU_LONG)}}},
-    ),
+    "time_offset": _lag_case(TAU),
+    "time_offset_long": _lag_case(TAU_LONG),
     "hard_iron": SimCase(lambda b, c: hard_iron(b, HARD), {"compass": E_HARD}),
     "soft_iron": SimCase(
         lambda b, c: soft_iron(b, SOFT, c["sensors"]["compass"]), {"compass": E_SOFT}
