@@ -61,8 +61,6 @@ class Stage:
     carried: dict[str, list[CarriedEffect]] = field(default_factory=dict)
     #: (stream, metric) -> the metric under the user's declared model (stages after the first)
     declared_before: dict[tuple[str, str], float] = field(default_factory=dict)
-    #: the stage's config, as calibrated against (the model the stage started from)
-    config: Mapping[str, Any] = field(default_factory=dict)
 
 
 def _effect_keys(res: StreamResult) -> list[tuple[str, dict[str, float], dict[str, Any]]]:
@@ -143,7 +141,7 @@ def calibrate_stages(
                 "truth_pose.csv with theta, or compass.csv; odometry: truth_pose.csv; range: "
                 "true_range; landmarks: landmark_map.csv; see docs/bundle-format.md)"
             )
-        stage = Stage(number, str(path), results, config=current)
+        stage = Stage(number, str(path), results)
         if carried:
             sections = {res.problem.section for res in results}
             for effect in carried:
