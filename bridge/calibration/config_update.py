@@ -68,6 +68,14 @@ def is_simulated(dotted: str) -> bool:
     return key in SIMULATED_KEYS.get(section, frozenset())
 
 
+def config_path(section: str, key: str) -> str:
+    """The dotted path of an effect's config key (module docstring): ``"/a.b"`` is absolute, a
+    ``"+"`` prefix (per-element increments) is not part of the name, the rest is relative to
+    the stream's ``section``."""
+    key = key.removeprefix("+")
+    return key[1:] if key.startswith("/") else f"{section}.{key}"
+
+
 def found_keys(results: Sequence[StreamResult]) -> dict[str, Any]:
     """``{dotted.key: value}`` for every found effect (and fitted declared parts, e.g. a curve)."""
     out: dict[str, Any] = {}
@@ -93,8 +101,7 @@ def found_keys(results: Sequence[StreamResult]) -> dict[str, Any]:
             total = np.pad(inc, (0, n - inc.size)) + np.pad(declared, (0, n - declared.size))
             entries[key[1:]] = [float(f"{v:.6g}") for v in total]
         for key, value in entries.items():
-            path = key[1:] if key.startswith("/") else f"{problem.section}.{key}"
-            out[path] = value
+            out[config_path(problem.section, key)] = value
     return out
 
 

@@ -30,7 +30,13 @@ from pathlib import Path
 from typing import Any
 
 from bridge.calibration.bundle import load_input
-from bridge.calibration.config_update import found_keys, is_simulated, noise_keys, updated_config
+from bridge.calibration.config_update import (
+    config_path,
+    found_keys,
+    is_simulated,
+    noise_keys,
+    updated_config,
+)
 from bridge.calibration.errors import BundleError
 from bridge.calibration.model import declared_model
 from bridge.calibration.pipeline import Options, Progress, StreamResult, calibrate
@@ -64,17 +70,18 @@ class Stage:
 
 
 def _effect_keys(res: StreamResult) -> list[tuple[str, dict[str, float], dict[str, Any]]]:
-    """``(name, params, simulated config keys)`` of each effect added to ``res``'s stream."""
+    """``(name, params, simulated config keys with their written values)`` of each effect
+    added to ``res``'s stream."""
     problem, after = res.problem, res.selection.after
     params = split_params(problem, after.insts, after.x)
+    written = found_keys([res])
     out = []
     for inst, (named, _) in zip(res.effects, res.effect_params(), strict=True):
-        keys = {}
-        for key, value in inst.config(params[after.insts.index(inst)], problem).items():
-            bare = key.lstrip("+")
-            dotted = bare[1:] if bare.startswith("/") else f"{problem.section}.{bare}"
-            if is_simulated(dotted):
-                keys[dotted] = value
+        paths = [
+            config_path(problem.section, key)
+            for key in inst.config(params[after.insts.index(inst)], problem)
+        ]
+        keys = {p: written[p] for p in paths if is_simulated(p) and p in written}
         out.append((inst.name, named, keys))
     return out
 
