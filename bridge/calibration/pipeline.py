@@ -66,6 +66,11 @@ class StreamResult:
     def effects(self) -> list[EffectInstance]:
         return [inst for inst, _ in self.selection.added]
 
+    def metrics(self) -> list[SecondaryMetric]:
+        """Every reported metric of the stream: its own first, then the secondary ones."""
+        p = self.problem
+        return [SecondaryMetric(p.metric, p.unit, self.before, self.after), *self.secondary]
+
     def effect_params(self) -> list[tuple[dict[str, float], dict[str, float]]]:
         """Per added effect: its parameters and their standard errors (fixed ones: none)."""
         sel = self.selection

@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Sequence
+from dataclasses import astuple
 from pathlib import Path
 from typing import Any
 
@@ -62,10 +63,8 @@ def stream_entries(
         )
     ]
     carried = _carried(stage, res) if stage is not None else []
-    metrics = [(p.metric, p.unit, res.before, res.after)]
-    metrics += [(s.metric, s.unit, s.before, s.after) for s in res.secondary]
     entries = []
-    for metric, unit, before, after in metrics:
+    for metric, unit, before, after in (astuple(m) for m in res.metrics()):
         entry: dict[str, Any] = {"stream": p.name}
         if stage is not None and staged:
             entry["input"] = stage.source

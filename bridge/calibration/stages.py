@@ -100,13 +100,8 @@ def carried_from(stage: Stage) -> list[CarriedEffect]:
     return out
 
 
-def _metrics(results: Sequence[StreamResult]) -> dict[tuple[str, str], float]:
-    out = {}
-    for res in results:
-        out[(res.problem.name, res.problem.metric)] = res.before
-        for s in res.secondary:
-            out[(res.problem.name, s.metric)] = s.before
-    return out
+def _befores(results: Sequence[StreamResult]) -> dict[tuple[str, str], float]:
+    return {(r.problem.name, m.metric): m.before for r in results for m in r.metrics()}
 
 
 @contextmanager
@@ -156,7 +151,7 @@ def calibrate_stages(
                     stage.carried.setdefault(effect.section, []).append(effect)
             with _quiet():
                 declared = calibrate(bundle, declared_model(config, bundle.meta), options)
-            stage.declared_before = _metrics(declared)
+            stage.declared_before = _befores(declared)
         stages.append(stage)
         keys = found_keys(results)
         if with_noise:

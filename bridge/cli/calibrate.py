@@ -179,18 +179,15 @@ def run(args: argparse.Namespace) -> int:
         return 1
     for stage in stages:
         for res in stage.results:
-            metrics = [(res.problem.metric, res.problem.unit, res.before, res.after)]
-            metrics += [(m.metric, m.unit, m.before, m.after) for m in res.secondary]
-            for metric, unit, before, after in metrics:
-                before = stage.declared_before.get((res.problem.name, metric), before)
+            for m in res.metrics():
                 log.info(
                     "%s%s %s: %.4g -> %.4g %s [%s]",
                     f"{stage.number}:" if len(stages) > 1 else "",
                     res.problem.name,
-                    metric,
-                    before,
-                    after,
-                    unit,
+                    m.metric,
+                    stage.declared_before.get((res.problem.name, m.metric), m.before),
+                    m.after,
+                    m.unit,
                     ", ".join(
                         [c.name + "*" for c in stage.carried.get(res.problem.section, [])]
                         + [i.name for i in res.effects]
