@@ -17,6 +17,7 @@ from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
+from scipy.integrate import cumulative_trapezoid
 
 from bridge.calibration.bundle import Bundle, Table
 from bridge.calibration.effects.common import categorical_levels
@@ -276,7 +277,7 @@ def _declared_gyro_heading(
     if t.size < 2 or min(t[-1], t_out[-1]) - max(t[0], t_out[0]) < 0.9 * span:
         return None
     rate = (w - model.gyro_bias_rad_s) / (1.0 + model.gyro_scale_error)
-    theta = np.concatenate([[0.0], np.cumsum(0.5 * (rate[1:] + rate[:-1]) * np.diff(t))])
+    theta = cumulative_trapezoid(rate, t, initial=0.0)
     return np.asarray(np.interp(t_out, t, theta), dtype=float)
 
 
