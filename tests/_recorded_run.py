@@ -5,15 +5,13 @@ Shared by the recording and replay tests (each module records its own: about 3 s
 
 from __future__ import annotations
 
-import json
 import subprocess
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import serial
-from conftest import DEFAULT_CONFIG, REPO, bridge_command, free_port
+from conftest import DEFAULT_CONFIG, REPO, bridge_command, free_port, wait_endpoints
 
 DURATION_S = 60.0
 KTEAM_COMMANDS = (b"B\r", b"D,20,20\r", b"H\r", b"N\r", b"X\r", b"E\r")
@@ -52,12 +50,7 @@ def record_run(
                                 stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
     exchanges: list[tuple[bytes, bytes]] = []
     try:
-        deadline = time.monotonic() + 120
-        while not endpoints_file.exists():
-            assert proc.poll() is None, log_path.read_text()
-            assert time.monotonic() < deadline, "no endpoints file"
-            time.sleep(0.02)
-        endpoints = json.loads(endpoints_file.read_text())
+        endpoints = wait_endpoints(proc, endpoints_file, log_path, timeout=120)
         with serial.Serial(endpoints["serial"]["kteam"], 115200, timeout=5) as port:
             for command in KTEAM_COMMANDS:
                 port.write(command)

@@ -177,6 +177,23 @@ def bridge_command(*args: str) -> list[str]:
     return [sys.executable, "-m", "bridge.cli", *args]
 
 
+def wait_endpoints(proc: subprocess.Popen[bytes], endpoints_file: Path, log_path: Path,
+                   timeout: float = 60.0) -> dict[str, Any]:
+    """The endpoints file a starting koala-bridge (run or replay) writes, atomically, once it
+    serves; fails with the process's log if it exits first or ``timeout`` s pass."""
+    deadline = time.monotonic() + timeout
+    while not endpoints_file.exists():
+        if proc.poll() is not None:
+            raise AssertionError(
+                f"koala-bridge exited with {proc.returncode} before serving:\n"
+                f"{log_path.read_text()}"
+            )
+        if time.monotonic() > deadline:
+            raise AssertionError(f"no endpoints file after {timeout:g} s:\n{log_path.read_text()}")
+        time.sleep(0.02)
+    return json.loads(endpoints_file.read_text())
+
+
 @pytest.fixture
 def bridge(tmp_path: Path) -> Iterator[Callable[..., BridgeProcess]]:
     """Factory: ``bridge(clock="fast", sets=[...], extra=[...])`` -> a started BridgeProcess.
@@ -225,16 +242,7 @@ def bridge(tmp_path: Path) -> Iterator[Callable[..., BridgeProcess]]:
         handle = BridgeProcess(proc, {}, endpoints_file, log_path, zenoh_endpoint,
                                mavlink_port, args)
         started.append(handle)
-        deadline = time.monotonic() + timeout
-        while not endpoints_file.exists():
-            if proc.poll() is not None:
-                raise AssertionError(
-                    f"bridge exited with {proc.returncode} before serving:\n{handle.log()}"
-                )
-            if time.monotonic() > deadline:
-                raise AssertionError(f"bridge did not write its endpoints file:\n{handle.log()}")
-            time.sleep(0.05)
-        handle.endpoints = json.loads(endpoints_file.read_text())
+        handle.endpoints = wait_endpoints(proc, endpoints_file, log_path, timeout)
         return handle
 
     yield start

@@ -15,7 +15,7 @@ from typing import Any
 import can
 import pytest
 from _mpl import fonts_loaded  # noqa: F401 - autouse fixture
-from conftest import DEFAULT_CONFIG, REPO, BridgeProcess, bridge_command, free_port
+from conftest import DEFAULT_CONFIG, REPO, BridgeProcess, bridge_command, free_port, wait_endpoints
 
 from bridge.cli import monitor as monitor_cli
 from bridge.cli import snapshot as snapshot_cli
@@ -141,11 +141,7 @@ mavlink = "udpin:127.0.0.1:{robot.mavlink_port}"
             cwd=REPO, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
         )
     try:
-        deadline = time.monotonic() + 30
-        while not endpoints_file.exists():
-            assert real.poll() is None, log_path.read_text()
-            assert time.monotonic() < deadline
-            time.sleep(0.02)
+        wait_endpoints(real, endpoints_file, log_path, timeout=30)
         with ZenohWatch([zenoh_endpoint], "koala/koala", on_message) as watch:
             world = watch.query_json("world")
             # monitor and snapshot work unchanged against the real-driver mode

@@ -8,7 +8,6 @@ docs/recording.md, not asserted here (it depends on the machine's load).
 from __future__ import annotations
 
 import argparse
-import json
 import signal
 import socket
 import subprocess
@@ -21,7 +20,7 @@ import can
 import pytest
 import serial
 from _recorded_run import RecordedRun, record_run
-from conftest import REPO, BridgeProcess, bridge_command, free_port
+from conftest import REPO, BridgeProcess, bridge_command, free_port, wait_endpoints
 from mcap.writer import Writer
 
 from bridge.cli import monitor as monitor_cli
@@ -121,12 +120,7 @@ def test_replay_feeds_clients_the_recorded_frames_in_order(
         )
     collectors: list[Collector] = []
     try:
-        deadline = time.monotonic() + 60
-        while not endpoints_file.exists():
-            assert proc.poll() is None, log_path.read_text()
-            assert time.monotonic() < deadline
-            time.sleep(0.02)
-        ep = json.loads(endpoints_file.read_text())
+        ep = wait_endpoints(proc, endpoints_file, log_path)
         sc = ep["can"]["socketcand"]
         with (
             serial.Serial(ep["serial"]["rangefinders"], 115200, timeout=0.1) as ranges,
@@ -227,12 +221,7 @@ def test_replay_republishes_the_recorded_zenoh_messages_for_monitor(
     monitor_rc: list[int] = []
     monitor = None
     try:
-        deadline = time.monotonic() + 60
-        while not endpoints_file.exists():
-            assert proc.poll() is None, log_path.read_text()
-            assert time.monotonic() < deadline
-            time.sleep(0.02)
-        ep = json.loads(endpoints_file.read_text())
+        ep = wait_endpoints(proc, endpoints_file, log_path)
         assert ep["zenoh"]["endpoints"] == [zenoh_endpoint]
         watch = zenoh_watch(BridgeProcess(proc, ep, endpoints_file, log_path, zenoh_endpoint, 0))
         # Answered on the session the watch subscribed on: the replay knows the subscriber.
