@@ -26,7 +26,7 @@ lint: $(STAMP)
 	$(VENV)/bin/mypy bridge drivers sim
 
 figures: $(STAMP)
-	$(PY) -m sim.figures docs/figures
+	$(PY) -m koala_bridge.tools.figures docs/figures
 
 bench: $(STAMP)
 	$(PY) -m bench

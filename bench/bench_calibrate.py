@@ -5,10 +5,10 @@ landmarks at 2 Hz) with a few injected effects is written once, then calibrated 
 (BLAS threads 1, CPU affinity one core). Prints the time to load/parse the bundle (the floor),
 the time of the whole calibration including that load, and their ratio. Target: <= 10 s.
 
-``--rates N``: runs every case of ``bridge.calibration.synthetic.CASES`` plus clean bundles on
+``--rates N``: runs every case of ``koala_bridge.calibration.synthetic.CASES`` plus clean bundles on
 N seeds each and prints the detection and false-positive rates quoted in docs/calibration.md.
 ``--sim N``: records the simulator under ``config/default.toml`` (every model on, 30 s,
-``bridge.calibration.simulated``) on N seeds, calibrates each ``.mcap`` against that config and
+``koala_bridge.calibration.simulated``) on N seeds, calibrates each ``.mcap`` against that config and
 prints how many got any effect (the declared model is the config itself: expected none).
 
     .venv/bin/python bench/bench_calibrate.py            # the 1-hour bench
@@ -29,10 +29,10 @@ import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from bridge.calibration.bundle import load_bundle  # noqa: E402
-from bridge.calibration.model import declared_model  # noqa: E402
-from bridge.calibration.pipeline import calibrate  # noqa: E402
-from bridge.calibration.synthetic import (  # noqa: E402
+from koala_bridge.calibration.bundle import load_bundle  # noqa: E402
+from koala_bridge.calibration.model import declared_model  # noqa: E402
+from koala_bridge.calibration.pipeline import calibrate  # noqa: E402
+from koala_bridge.calibration.synthetic import (  # noqa: E402
     CASES,
     DECLARED,
     Injected,
@@ -98,8 +98,8 @@ def rates(n: int, workdir: Path) -> int:
 def sim_recordings(n: int, workdir: Path) -> int:
     import tomllib
 
-    from bridge.calibration.bundle import load_input
-    from bridge.calibration.simulated import record_simulator
+    from koala_bridge.calibration.bundle import load_input
+    from koala_bridge.calibration.simulated import record_simulator
 
     with (Path(__file__).parents[1] / "config" / "default.toml").open("rb") as fh:
         config = tomllib.load(fh)

@@ -21,9 +21,9 @@ from collections.abc import Callable
 
 import numpy as np
 
-from bridge.estimation import GridModel, PoseTracker, PoseTrackerParams, predict, update
-from bridge.estimation.grid_localisation import uniform_prior
-from sim.world import SIDES, World
+from koala_bridge.estimation import GridModel, PoseTracker, PoseTrackerParams, predict, update
+from koala_bridge.estimation.grid_localisation import uniform_prior
+from koala_bridge.sim.world import SIDES, World
 
 GRID_TARGET_S = 1e-3
 

@@ -45,9 +45,9 @@ STAMP = struct.Struct("<d")
 # -- child: the bridge ---------------------------------------------------------------------------
 
 def serve(config_overrides: list[str], ready_file: Path, log_file: Path) -> int:
-    from bridge.config import BridgeSettings, apply_override, load_config, parse_override
-    from bridge.endpoints import write_endpoints_file
-    from bridge.service import BridgeService
+    from koala_bridge.runtime.settings import BridgeSettings, apply_override, load_config, parse_override
+    from koala_bridge.runtime.endpoints import write_endpoints_file
+    from koala_bridge.runtime.service import BridgeService
 
     config = load_config(REPO / "config" / "default.toml")
     for text in ["run.clock=realtime", *config_overrides]:
@@ -228,8 +228,8 @@ def bridge_clients(ep: dict[str, Any], mav_port: int, c: Collector) -> None:
     import zenoh
     from pymavlink.dialects.v20 import common as mavlink2
 
-    from drivers.messages import RangeKind
-    from drivers.rangeframes import RangeFrameDecoder
+    from koala_bridge.drivers.messages import RangeKind
+    from koala_bridge.drivers.rangeframes import RangeFrameDecoder
 
     def rangefinders(record: Callable[[Any], None]) -> None:
         decoder = RangeFrameDecoder()

@@ -2,9 +2,9 @@
 
     python -m bench.bench_localisation [--seconds S] [--window W]     (also run by `make bench`)
 
-What is timed: one :class:`bridge.service.BridgeService` on ``config/default.toml`` (every error
+What is timed: one :class:`koala_bridge.runtime.service.BridgeService` on ``config/default.toml`` (every error
 model on, every bus open on free loopback ports, Zenoh publishing), fast clock, the robot driving
-an arc -- alternately *with* its :class:`~bridge.localisation.LocalisationNode` and *without*
+an arc -- alternately *with* its :class:`koala_bridge.runtime.localisation.LocalisationNode` and *without*
 (the node detached), in windows of ``W`` simulated seconds, in the same process and the same run.
 Each figure is the best window (the least disturbed on a shared machine, the ``timeit``
 convention) with the median beside it. The algorithms alone are in bench/bench_estimation.py.
@@ -44,8 +44,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     sys.path.insert(0, str(REPO))
-    from bridge.config import BridgeSettings, apply_override
-    from bridge.service import BridgeService
+    from koala_bridge.runtime.settings import BridgeSettings, apply_override
+    from koala_bridge.runtime.service import BridgeService
 
     config = tomllib.loads((REPO / "config" / "default.toml").read_text())
     for key, value in (

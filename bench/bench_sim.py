@@ -79,8 +79,8 @@ def _windows(step: Any, seconds: float, batch: int) -> tuple[float, float]:
 
 def bench_koala(seconds: float, all_models: bool = True) -> tuple[float, float, float]:
     """(best steps per second, median, dt)."""
-    from sim.simulator import Simulator
-    from sim.types import WheelCommand
+    from koala_bridge.sim.simulator import Simulator
+    from koala_bridge.sim.types import WheelCommand
 
     sim = Simulator(koala_config(all_models))
     sim.reset(1)
@@ -98,7 +98,7 @@ def bench_koala(seconds: float, all_models: bool = True) -> tuple[float, float, 
 
 
 def irsim_world_yaml(cfg: dict[str, Any], rays: int, dt: float) -> str:
-    from sim.world import World
+    from koala_bridge.sim.world import World
 
     world = World.from_dict(cfg["world"])
     start = world.start

@@ -35,8 +35,8 @@ import can
 import numpy as np
 import serial
 
-from bridge.recording import FROM_ROBOT, open_recording
-from drivers.rangeframes import RangeFrameDecoder, encode_range_frame
+from koala_bridge.recording.mcap_file import FROM_ROBOT, open_recording
+from koala_bridge.drivers.rangeframes import RangeFrameDecoder, encode_range_frame
 
 REPO = Path(__file__).resolve().parents[1]
 BUSES = ("serial/rangefinders", "can", "mavlink")
@@ -49,7 +49,7 @@ def _free_port(kind: int) -> int:
 
 
 def _koala(*args: str) -> list[str]:
-    return [sys.executable, "-m", "bridge.cli", *args]
+    return [sys.executable, "-m", "koala_bridge", *args]
 
 
 def _wait_file(path: Path, proc: subprocess.Popen[bytes], timeout: float = 30) -> dict:
@@ -187,7 +187,7 @@ def _cpu_pressure() -> str:
 def floor_send(schedule: Path, port: int, speed: float) -> None:
     """Send the pickled ``(times, datagrams)`` to 127.0.0.1:``port`` on their schedule, with the
     replay's wait (sleep to ``SPIN_S`` before, then spin yielding the GIL) and nothing else."""
-    from bridge.replay import SPIN_S
+    from koala_bridge.runtime.replay import SPIN_S
 
     times, datagrams = pickle.loads(schedule.read_bytes())
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

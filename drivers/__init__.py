@@ -1,9 +1,9 @@
 """Codecs (bytes <-> typed messages) and transports (move bytes) for the Koala's buses.
 
-- :mod:`drivers.messages`: the typed messages and the error tree.
-- :mod:`drivers.kteam`: K-Team ASCII serial protocol (robot and controller sides).
-- :mod:`drivers.rangeframes`: binary IR / sonar range frames with CRC-16/CCITT-FALSE.
-- :mod:`drivers.can_codec`: CAN frames described by ``config/koala.dbc`` (cantools).
+- :mod:`koala_bridge.drivers.messages`: the typed messages and the error tree.
+- :mod:`koala_bridge.drivers.kteam`: K-Team ASCII serial protocol (robot and controller sides).
+- :mod:`koala_bridge.drivers.rangeframes`: binary IR / sonar range frames with CRC-16/CCITT-FALSE.
+- :mod:`koala_bridge.drivers.can_codec`: CAN frames described by ``config/koala.dbc`` (cantools).
 - :mod:`drivers.mavlink_codec`: MAVLink 2 compass (HEARTBEAT, SCALED_IMU) via pymavlink.
 - :mod:`drivers.transports`: pty, TCP, UDP, loopback, socketcand, slcan and python-can backends.
 

@@ -1,8 +1,8 @@
 """CAN codec for the Koala bus, described by ``config/koala.dbc`` and driven by cantools.
 
 The DBC is the single source of ids, layouts and scaling; this module only maps its messages to
-the typed frames of :mod:`drivers.messages` and turns anything it cannot map into a
-:class:`~drivers.messages.Reject` (unknown id, wrong DLC, value outside the DBC range, remote /
+the typed frames of :mod:`koala_bridge.drivers.messages` and turns anything it cannot map into a
+:class:`drivers.messages.Reject` (unknown id, wrong DLC, value outside the DBC range, remote /
 error / FD frames). It performs no bus I/O: transports live in :mod:`drivers.transports`.
 """
 
@@ -16,8 +16,8 @@ import can
 import cantools
 from cantools.database.can import Database
 from cantools.database.can import Message as DbcMessage
-
-from drivers.messages import (
+from koala_bridge.core.resources import default_dbc_path
+from koala_bridge.drivers.messages import (
     FrameError,
     GyroFrame,
     MotorCommandFrame,
@@ -37,8 +37,8 @@ __all__ = [
 CanFrame = WheelOdometryFrame | GyroFrame | MotorCommandFrame
 """Any typed frame of the Koala bus."""
 
-DEFAULT_DBC_PATH = Path(__file__).resolve().parents[1] / "config" / "koala.dbc"
-"""The DBC shipped in the repository (``config/koala.dbc``)."""
+DEFAULT_DBC_PATH = default_dbc_path()
+"""The DBC shipped with the package (``config/koala.dbc``, :mod:`koala_bridge.config`)."""
 
 _NAMES: Mapping[type, str] = MappingProxyType(
     {WheelOdometryFrame: "WheelOdometry", GyroFrame: "Gyro", MotorCommandFrame: "MotorCommand"}

@@ -21,7 +21,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
 
-from drivers.messages import FrameError, KteamCommand, KteamReply, Reject, RejectReason
+from koala_bridge.drivers.messages import FrameError, KteamCommand, KteamReply, Reject, RejectReason
 
 __all__ = [
     "ERROR_OUT_OF_RANGE",

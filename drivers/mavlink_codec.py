@@ -14,9 +14,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from koala_bridge.drivers.messages import CompassSample, MavlinkHeartbeat, Reject, RejectReason
 from pymavlink.dialects.v20 import common as mavlink2
-
-from drivers.messages import CompassSample, MavlinkHeartbeat, Reject, RejectReason
 
 __all__ = [
     "MG_PER_UT",

@@ -22,8 +22,7 @@ import struct
 from collections import Counter
 
 from crccheck.crc import Crc16CcittFalse
-
-from drivers.messages import FrameError, RangeFrame, RangeKind, Reject, RejectReason
+from koala_bridge.drivers.messages import FrameError, RangeFrame, RangeKind, Reject, RejectReason
 
 __all__ = [
     "HEADER_SIZE",

@@ -55,7 +55,7 @@ import can
 import numpy as np
 import serial
 
-from bridge.estimation import (
+from koala_bridge.estimation import (
     BeamModel,
     GridLocaliser,
     GridParams,
@@ -68,17 +68,17 @@ from bridge.estimation import (
     sensor_sides,
     walls_from_ir,
 )
-from drivers.can_codec import KoalaCanCodec, load_koala_dbc
-from drivers.kteam import LineSplitter, format_command, parse_reply
-from drivers.mavlink_codec import CompassDecoder
-from drivers.messages import (
+from koala_bridge.drivers.can_codec import KoalaCanCodec, load_koala_dbc
+from koala_bridge.drivers.kteam import LineSplitter, format_command, parse_reply
+from koala_bridge.drivers.mavlink_codec import CompassDecoder
+from koala_bridge.drivers.messages import (
     CompassSample,
     GyroFrame,
     KteamCommand,
     KteamReply,
     WheelOdometryFrame,
 )
-from sim.world import SIDE_STEP, SIDES, World
+from koala_bridge.sim.world import SIDE_STEP, SIDES, World
 
 log = logging.getLogger("coverage_firmware")
 

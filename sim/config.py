@@ -3,7 +3,7 @@
 Built from plain dicts (the parsed TOML; file I/O lives in ``bridge/``) by :func:`load_sim_config`.
 Every key a run uses is written in ``config/default.toml``; nothing here hides a default that the
 file should show, so every key of these sections is *required* (error-model parameters are
-validated by their own classes). Unknown keys are :class:`~sim.schema.ConfigError` that
+validated by their own classes). Unknown keys are :class:`koala_bridge.core.schema.ConfigError` that
 suggest the nearest valid key.
 Top-level sections other than ``sim``, ``robot``, ``sensors`` and ``world`` belong to ``bridge/``
 and are ignored here.
@@ -33,9 +33,8 @@ from types import MappingProxyType
 from typing import Any
 
 import numpy as np
-
-from sim.schema import ConfigError, positive, reject_unknown, require
-from sim.world import World
+from koala_bridge.core.schema import ConfigError, positive, reject_unknown, require
+from koala_bridge.sim.world import World
 
 # The sensors of the simulated Koala, in the FIXED order used to spawn their RNG streams
 # (sim.simulator.RNG_STREAMS appends "drive" first). Append new sensors at the end only.
@@ -90,12 +89,12 @@ def _odd(d: Mapping[str, Any], key: str, section: str) -> int:
 # sim/config.py does not depend on them: module, class. Each has ``from_dict(d, section)`` and a
 # ``FROM_SENSOR`` tuple of the fields it reads from the sensor's own keys. The encoders have none.
 ERROR_PARAMS: Mapping[str, tuple[str, str]] = MappingProxyType({
-    "drive": ("sim.models.drive", "DriveErrorParams"),
-    "ir": ("sim.models.ir", "IrErrorParams"),
-    "sonar": ("sim.models.sonar", "SonarErrorParams"),
-    "gyro": ("sim.models.gyro", "GyroErrorParams"),
-    "compass": ("sim.models.compass", "CompassErrorParams"),
-    "camera": ("sim.models.camera", "CameraErrorParams"),
+    "drive": ("koala_bridge.sim.models.drive", "DriveErrorParams"),
+    "ir": ("koala_bridge.sim.models.ir", "IrErrorParams"),
+    "sonar": ("koala_bridge.sim.models.sonar", "SonarErrorParams"),
+    "gyro": ("koala_bridge.sim.models.gyro", "GyroErrorParams"),
+    "compass": ("koala_bridge.sim.models.compass", "CompassErrorParams"),
+    "camera": ("koala_bridge.sim.models.camera", "CameraErrorParams"),
 })
 
 
@@ -509,7 +508,7 @@ def load_sim_config(d: Mapping[str, Any]) -> SimConfig:
     """Build a :class:`SimConfig` from a parsed config file (``tomllib.load`` output).
 
     Reads ``[sim]``, ``[robot]``, ``[sensors.*]`` and ``[world]``; other top-level tables are the
-    bridge's and are ignored. Raises :class:`~sim.schema.ConfigError` naming section and key.
+    bridge's and are ignored. Raises :class:`core.schema.ConfigError` naming section and key.
     """
     for key in ("sim", "robot", "sensors", "world"):
         require(d, key, "<top level>")

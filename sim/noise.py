@@ -22,8 +22,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-
-from sim.schema import ConfigError
+from koala_bridge.core.schema import ConfigError
 
 ArrayLike = float | np.ndarray
 

@@ -41,10 +41,9 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
-
-from sim.config import RobotConfig
-from sim.noise import Variates
-from sim.raycast import SegmentSet, point_segment_distances, sweep_circle
+from koala_bridge.sim.config import RobotConfig
+from koala_bridge.sim.noise import Variates
+from koala_bridge.sim.raycast import SegmentSet, point_segment_distances, sweep_circle
 
 _TAU = 2.0 * math.pi
 

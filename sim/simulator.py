@@ -3,7 +3,7 @@
 Fixed step ``dt = [sim] dt_s``. Step ``k`` ends at simulation time ``t = k * dt`` (computed from the
 integer counter, so there is no floating-point drift). A sensor with rate ``f`` is due at every step
 ``k`` with ``k % round(1 / (f dt)) == 0`` (rates must divide ``1/dt``; the config loader checks),
-so ``reset`` (step 0) returns a reading of every sensor. :class:`~sim.types.Readings` holds the
+so ``reset`` (step 0) returns a reading of every sensor. :class:`sim.types.Readings` holds the
 truth pose and the readings due at that step; the others are None.
 
 Randomness (Gymnasium pattern): ``reset(seed)`` builds ``numpy.random.SeedSequence(seed)`` and
@@ -14,7 +14,7 @@ give bit-identical readings. Factories draw turn-on state (biases) from the sens
 ``Generator``; per-step draws come from a :class:`sim.noise.BlockStream` on it (normals and
 uniforms drawn in blocks from two child streams), which is what ``measure`` receives.
 
-Error models plug in through ``error_models`` (see :mod:`sim.sensors.base`).
+Error models plug in through ``error_models`` (see :mod:`koala_bridge.sim.sensors.base`).
 
 The rays of all range sensors due at a step go through one compiled cast
 (:func:`sim.raycast.cast_fan_arrays`); each range sensor then reads its slice of it in one
@@ -29,22 +29,21 @@ from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
-
-from sim import robot as kin
-from sim.config import SENSOR_NAMES, SimConfig, load_sim_config, poses_to_list
-from sim.noise import BlockStream
-from sim.raycast import SegmentSet, cast_fan_arrays
-from sim.robot import RobotState
-from sim.schema import ConfigError
-from sim.sensors.base import ErrorModelFactory
-from sim.sensors.camera import CameraSensor
-from sim.sensors.compass import CompassSensor
-from sim.sensors.encoders import EncoderSensor
-from sim.sensors.fan import RayFan
-from sim.sensors.gyro import GyroSensor
-from sim.sensors.ir import IrSensor
-from sim.sensors.sonar import SonarSensor
-from sim.types import Pose, Readings, WheelCommand
+from koala_bridge.core.schema import ConfigError
+from koala_bridge.sim import robot as kin
+from koala_bridge.sim.config import SENSOR_NAMES, SimConfig, load_sim_config, poses_to_list
+from koala_bridge.sim.noise import BlockStream
+from koala_bridge.sim.raycast import SegmentSet, cast_fan_arrays
+from koala_bridge.sim.robot import RobotState
+from koala_bridge.sim.sensors.base import ErrorModelFactory
+from koala_bridge.sim.sensors.camera import CameraSensor
+from koala_bridge.sim.sensors.compass import CompassSensor
+from koala_bridge.sim.sensors.encoders import EncoderSensor
+from koala_bridge.sim.sensors.fan import RayFan
+from koala_bridge.sim.sensors.gyro import GyroSensor
+from koala_bridge.sim.sensors.ir import IrSensor
+from koala_bridge.sim.sensors.sonar import SonarSensor
+from koala_bridge.sim.types import Pose, Readings, WheelCommand
 
 # Fixed order of the per-sensor RNG streams (SeedSequence.spawn). Append only.
 RNG_STREAMS: tuple[str, ...] = ("drive", *SENSOR_NAMES)
@@ -164,7 +163,7 @@ class Simulator:
             return {}
         if given is None:
             try:
-                given = importlib.import_module("sim.models").ERROR_MODELS
+                given = importlib.import_module("koala_bridge.sim.models").ERROR_MODELS
             except (ImportError, AttributeError) as e:
                 raise ConfigError(
                     f"ideal = false for {wanted}, but no error models are available "

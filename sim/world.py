@@ -56,8 +56,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-
-from sim.schema import ConfigError, positive, reject_unknown, require
+from koala_bridge.core.schema import ConfigError, positive, reject_unknown, require
 
 SIDES = ("N", "E", "S", "W")
 # Unit step (dcol, drow) towards each side.

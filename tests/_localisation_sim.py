@@ -5,7 +5,7 @@ transports: each reading is encoded by the drivers into the bytes the service pu
 (range frames, CAN ``WheelOdometry``/``Gyro`` via the DBC, MAVLink ``SCALED_IMU``) and those bytes
 are handed to :meth:`LocalisationNode.on_frame`, which decodes them; the camera (no bus) goes to
 ``on_camera``. So the node is tested on decoded bus data at simulation speed (the
-``--clock fast`` equivalent without ports); tests/test_localisation_zenoh.py runs the real
+``--clock fast`` equivalent without ports); tests/e2e/test_localisation_zenoh.py runs the real
 service.
 
 The robot is driven by a scripted path in this helper (not in bridge/): one turn on the spot (the
@@ -24,16 +24,21 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-from bridge.localisation import LocalisationNode, LocalisationSettings
-from drivers.can_codec import KoalaCanCodec
-from drivers.mavlink_codec import CompassEncoder, MavlinkIdentity
-from drivers.messages import CompassSample, GyroFrame, RangeFrame, RangeKind, WheelOdometryFrame
-from drivers.rangeframes import NO_ECHO, encode_range_frame
-from sim.config import load_sim_config
-from sim.simulator import Simulator
-from sim.types import Readings, WheelCommand
-from sim.world import SIDE_STEP, World
+from koala_bridge.drivers.can_codec import KoalaCanCodec
+from koala_bridge.drivers.mavlink_codec import CompassEncoder, MavlinkIdentity
+from koala_bridge.drivers.messages import (
+    CompassSample,
+    GyroFrame,
+    RangeFrame,
+    RangeKind,
+    WheelOdometryFrame,
+)
+from koala_bridge.drivers.rangeframes import NO_ECHO, encode_range_frame
+from koala_bridge.runtime.localisation import LocalisationNode, LocalisationSettings
+from koala_bridge.sim.config import load_sim_config
+from koala_bridge.sim.simulator import Simulator
+from koala_bridge.sim.types import Readings, WheelCommand
+from koala_bridge.sim.world import SIDE_STEP, World
 
 ROOT = Path(__file__).resolve().parent.parent
 WORLDS = ["lab_walls_1", "lab_walls_2", "lab_walls_3", "lab_trilateration"]
@@ -233,7 +238,7 @@ def _override(loc: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
 
 def true_occupancy(world: World, rows: int, cols: int, res: float) -> np.ndarray:
     """``(rows, cols)``: True where a wall touches the cell's closed square (the truth the
-    occupancy grid is judged against, as in tests/test_estimation_occupancy.py)."""
+    occupancy grid is judged against, as in tests/unit/test_estimation_occupancy.py)."""
     truth = np.zeros((rows, cols), dtype=bool)
     tol = 1e-9
     for x0, y0, x1, y1 in world.segments:

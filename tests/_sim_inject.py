@@ -3,7 +3,7 @@
 Each function edits one bundle directory's CSV files in place (numpy on the exported columns,
 text columns and empty cells kept as they were), so what the calibration reads is the
 simulator's own recording with exactly one known change. Used by
-``tests/test_calibration_sim_inject.py``.
+``tests/integration/test_calibration_sim_inject.py``.
 """
 
 from __future__ import annotations

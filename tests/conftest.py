@@ -7,6 +7,11 @@
   SIGKILL), so no test leaves a bridge behind.
 - ``leak_check`` (autouse): fails the test that leaves a child process, a non-daemon thread, or an
   open socket / pty / file descriptor behind.
+
+Tests are kept by kind, and each folder's tests carry the marker of the same name:
+``tests/unit`` (pure functions, in-process, seconds), ``tests/integration`` (real transports and
+sessions on loopback, in-process) and ``tests/e2e`` (``koala-bridge`` as a subprocess; also marked
+``slow``). ``make test`` runs them all; ``pytest -m unit`` or ``pytest -m "not slow"`` picks.
 """
 
 from __future__ import annotations
@@ -30,6 +35,21 @@ REPO = Path(__file__).resolve().parents[1]
 DEFAULT_CONFIG = REPO / "config" / "default.toml"
 IDEAL_SECTIONS = ("robot.drive_error", "sensors.ir", "sensors.sonar", "sensors.encoders",
                   "sensors.gyro", "sensors.compass", "sensors.camera")
+
+
+# -- kinds ---------------------------------------------------------------------------------------
+
+KINDS = ("unit", "integration", "e2e")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Mark each test with its folder's kind (and end-to-end tests ``slow``)."""
+    for item in items:
+        kind = next((k for k in KINDS if k in item.path.parts), None)
+        if kind is not None:
+            item.add_marker(getattr(pytest.mark, kind))
+        if kind == "e2e":
+            item.add_marker(pytest.mark.slow)
 
 
 # -- ports -------------------------------------------------------------------------------------
@@ -174,7 +194,7 @@ class BridgeProcess:
 
 
 def bridge_command(*args: str) -> list[str]:
-    return [sys.executable, "-m", "bridge.cli", *args]
+    return [sys.executable, "-m", "koala_bridge", *args]
 
 
 def wait_endpoints(proc: subprocess.Popen[bytes], endpoints_file: Path, log_path: Path,

@@ -15,9 +15,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from koala_bridge.calibration.errors import BundleError
 from numpy.typing import NDArray
-
-from bridge.calibration.errors import BundleError
 
 log = logging.getLogger(__name__)
 
@@ -169,10 +168,10 @@ def load_bundle(directory: Path) -> Bundle:
 
 def load_input(path: Path, workdir: Path) -> Bundle:
     """Load a bundle directory, or export an MCAP recording into ``workdir`` and load that
-    (``koala-bridge export``'s :func:`bridge.recording.export_bundle`)."""
+    (``koala-bridge export``'s :func:`koala_bridge.recording.mcap_file.export_bundle`)."""
     path = Path(path)
     if path.suffix.lower() == ".mcap":
-        from bridge.recording import RecordingError, export_bundle
+        from koala_bridge.recording.mcap_file import RecordingError, export_bundle
 
         if not path.is_file():
             raise BundleError(f"{path}: no such recording")

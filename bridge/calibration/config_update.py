@@ -28,9 +28,8 @@ from typing import Any
 
 import numpy as np
 import tomli_w
-
-from bridge.calibration.pipeline import StreamResult
-from bridge.calibration.problem import split_params
+from koala_bridge.calibration.pipeline import StreamResult
+from koala_bridge.calibration.problem import split_params
 
 #: Keys the simulator reads, per section: written into the config.
 SIMULATED_KEYS: Mapping[str, frozenset[str]] = {
@@ -125,7 +124,7 @@ def _absent_error_terms(section: str) -> dict[str, Any]:
     model = _MODEL_OF.get(section)
     if model is None:
         return {}
-    from sim.config import ERROR_PARAMS
+    from koala_bridge.sim.config import ERROR_PARAMS
 
     module, name = ERROR_PARAMS[model]
     cls = getattr(importlib.import_module(module), name)

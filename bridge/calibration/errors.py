@@ -4,7 +4,7 @@ from __future__ import annotations
 
 
 class CalibrationError(Exception):
-    """Base of every error raised by :mod:`bridge.calibration`."""
+    """Base of every error raised by :mod:`koala_bridge.calibration`."""
 
 
 class BundleError(CalibrationError):

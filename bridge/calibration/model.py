@@ -32,8 +32,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-from bridge.calibration.errors import ModelConfigError
+from koala_bridge.calibration.errors import ModelConfigError
 
 log = logging.getLogger(__name__)
 
@@ -143,11 +142,11 @@ def check_config(config: Mapping[str, Any], where: str) -> None:
     wrong kind, is an error naming it (and the nearest valid name), not a key silently
     ignored. MODEL.toml may be partial: it is laid over the shipped ``config/default.toml``
     first, and the bridge's and the simulator's own loaders check the result."""
-    from bridge.cli.run import DEFAULT_CONFIG
-    from bridge.config import BridgeSettings, load_config, reject_unknown_sections
-    from bridge.localisation import LocalisationSettings
-    from sim.config import load_sim_config
-    from sim.schema import ConfigError
+    from koala_bridge.cli.run import DEFAULT_CONFIG
+    from koala_bridge.core.schema import ConfigError
+    from koala_bridge.runtime.localisation import LocalisationSettings
+    from koala_bridge.runtime.settings import BridgeSettings, load_config, reject_unknown_sections
+    from koala_bridge.sim.config import load_sim_config
 
     if not config:
         return

@@ -12,15 +12,13 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import stats
-
-from bridge.calibration.bundle import Bundle
-from bridge.calibration.effects import available_effects, get_effect
-from bridge.calibration.effects.base import EffectInstance
-from bridge.calibration.errors import EffectRegistryError
-from bridge.calibration.model import DeclaredModel
-from bridge.calibration.problem import SecondaryMetric, StreamProblem
-from bridge.calibration.selection import (
+from koala_bridge.calibration.bundle import Bundle
+from koala_bridge.calibration.effects import available_effects, get_effect
+from koala_bridge.calibration.effects.base import EffectInstance
+from koala_bridge.calibration.errors import EffectRegistryError
+from koala_bridge.calibration.model import DeclaredModel
+from koala_bridge.calibration.problem import SecondaryMetric, StreamProblem
+from koala_bridge.calibration.selection import (
     ALPHA,
     MAX_EFFECTS,
     Selection,
@@ -29,14 +27,15 @@ from bridge.calibration.selection import (
     parameter_se,
     select_effects,
 )
-from bridge.calibration.streams import (
+from koala_bridge.calibration.streams import (
     build_compass,
     build_gyro,
     build_landmarks,
     build_odometry,
     build_ranges,
 )
-from bridge.calibration.streams.compass import CompassProblem
+from koala_bridge.calibration.streams.compass import CompassProblem
+from scipy import stats
 
 log = logging.getLogger(__name__)
 

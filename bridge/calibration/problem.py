@@ -1,7 +1,7 @@
 """The stream problem: what every stream (gyro, compass, odometry, ranges, ...) gives the loop.
 
 A :class:`StreamProblem` predicts a stream's measurements from the reference with the declared
-model plus a list of :class:`~bridge.calibration.effects.EffectInstance`, and returns the residual
+model plus a list of :class:`calibration.effects.EffectInstance`, and returns the residual
 on the fit or the score part of the time split. Parameters of all instances are one vector:
 ``[nuisance..., free parameters of instance 1..., instance 2..., ...]``; nuisance parameters belong
 to the declared model itself (a compass's unknown north direction, a field magnitude) and are
@@ -16,9 +16,8 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
+from koala_bridge.calibration.effects.base import EffectInstance
 from numpy.typing import NDArray
-
-from bridge.calibration.effects.base import EffectInstance
 
 FloatArray = NDArray[np.float64]
 Part = Literal["fit", "score"]
@@ -56,7 +55,7 @@ class SecondaryMetric:
 
 @dataclass
 class StreamProblem(ABC):
-    """Base of the per-stream problems in :mod:`bridge.calibration.streams`."""
+    """Base of the per-stream problems in :mod:`koala_bridge.calibration.streams`."""
 
     name: str
     kind: str
@@ -147,7 +146,7 @@ class StreamProblem(ABC):
     ) -> tuple[str | None, float | None]:
         """``(key, value)``: the white-noise level of the residual of ``insts`` in the
         simulator's noise key of this stream's section (default: none; see
-        :func:`bridge.calibration.config_update.noise_keys`)."""
+        :func:`koala_bridge.calibration.config_update.noise_keys`)."""
         return None, None
 
     def describe(self) -> dict[str, Any]:

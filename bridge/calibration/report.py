@@ -8,7 +8,7 @@ report.json shape (issue 6)::
 
 A stream with a secondary metric (the gyro's windowed heading error) has a second entry with the
 same ``stream``, that metric, and the same effects. In a staged run (several inputs,
-:mod:`bridge.calibration.stages`) the document also lists ``inputs``, and each entry names its
+:mod:`koala_bridge.calibration.stages`) the document also lists ``inputs``, and each entry names its
 ``input`` and ``stage``, lists the effects carried from earlier stages (``evidence.carried_from``),
 and gives ``before_with_carried``, the stage's own starting point, while ``before`` stays the
 metric under the user's declared model.
@@ -24,9 +24,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-from bridge.calibration.pipeline import StreamResult
-from bridge.calibration.stages import Stage
+from koala_bridge.calibration.pipeline import StreamResult
+from koala_bridge.calibration.stages import Stage
 
 log = logging.getLogger(__name__)
 

@@ -18,7 +18,7 @@ Per stream, starting from the declared model (nuisance parameters fitted):
    (``rho`` near 1, the test runs on increments), sensor noise is white (``rho`` near 0).
    ``rho`` is the noise autocorrelation of the fit-part residual of the *full* model (every
    candidate at once), like the full-model variance of Mallows' Cp, estimated from first
-   differences (:func:`bridge.calibration.problem.lag1_autocorrelation`) so slow structure
+   differences (:func:`koala_bridge.calibration.problem.lag1_autocorrelation`) so slow structure
    that no candidate explains is not mistaken for correlated noise;
 3. the passing candidate with the largest held-out statistic ``L`` is added; repeat until none
    passes (or ``max_effects``).
@@ -35,10 +35,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from koala_bridge.calibration.effects.base import EffectInstance
+from koala_bridge.calibration.problem import FloatArray, StreamProblem, effective_size, split_params
 from scipy import optimize, stats
-
-from bridge.calibration.effects.base import EffectInstance
-from bridge.calibration.problem import FloatArray, StreamProblem, effective_size, split_params
 
 log = logging.getLogger(__name__)
 

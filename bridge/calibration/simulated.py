@@ -1,10 +1,10 @@
 """Record the simulator: a short run of :class:`sim.simulator.Simulator` into an MCAP recording.
 
-The messages are the bridge's own (``bridge.zenoh_io.sensor_messages`` / ``pose_message``) and go
-through :class:`bridge.recording.Recorder`, so ``bridge.recording.export_bundle`` turns the file
-into the same bundle a ``koala-bridge run --record`` would give, with the resolved config in its
-``meta.json``. The robot is driven in-process by :func:`weave_command` (no buses, no clock): a
-slow weave of alternating turns that stays near the start pose, so both wheel base and tick size
+The messages are the bridge's own (``runtime.zenoh_io.sensor_messages`` / ``pose_message``) and go
+through :class:`recording.mcap_file.Recorder`, so ``recording.mcap_file.export_bundle`` turns
+the file into the same bundle a ``koala-bridge run --record`` would give, with the resolved config
+in its ``meta.json``. The robot is driven in-process by :func:`weave_command` (no buses, no clock):
+a slow weave of alternating turns that stays near the start pose, so both wheel base and tick size
 are seen and walls are rarely touched. For tests and benches of the calibration loop.
 """
 
@@ -15,8 +15,8 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-from sim.simulator import Simulator
-from sim.types import WheelCommand
+from koala_bridge.sim.simulator import Simulator
+from koala_bridge.sim.types import WheelCommand
 
 #: Wheel command at time t (s) -> (left, right) surface speeds, m/s.
 CommandSchedule = Callable[[float], tuple[float, float]]
@@ -56,8 +56,8 @@ def record_simulator(
     :func:`weave_command`); the truth pose is recorded at ``pose_rate_hz`` (default: the
     config's ``[zenoh] pose_rate_hz``, else every step).
     """
-    from bridge.recording import Recorder, run_metadata
-    from bridge.zenoh_io import pose_message, sensor_messages
+    from koala_bridge.recording.mcap_file import Recorder, run_metadata
+    from koala_bridge.runtime.zenoh_io import pose_message, sensor_messages
 
     sim = Simulator(config)
     command = command or weave_command()

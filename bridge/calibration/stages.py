@@ -29,18 +29,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from bridge.calibration.bundle import load_input
-from bridge.calibration.config_update import (
+from koala_bridge.calibration.bundle import load_input
+from koala_bridge.calibration.config_update import (
     config_path,
     found_keys,
     is_simulated,
     noise_keys,
     updated_config,
 )
-from bridge.calibration.errors import BundleError
-from bridge.calibration.model import declared_model
-from bridge.calibration.pipeline import Options, Progress, StreamResult, calibrate
-from bridge.calibration.problem import split_params
+from koala_bridge.calibration.errors import BundleError
+from koala_bridge.calibration.model import declared_model
+from koala_bridge.calibration.pipeline import Options, Progress, StreamResult, calibrate
+from koala_bridge.calibration.problem import split_params
 
 
 @dataclass(frozen=True)
@@ -107,7 +107,7 @@ def _befores(results: Sequence[StreamResult]) -> dict[tuple[str, str], float]:
 @contextmanager
 def _quiet() -> Iterator[None]:
     """The second pass over a stage (for its *before* values) logs nothing new."""
-    logger = logging.getLogger("bridge.calibration")
+    logger = logging.getLogger("koala_bridge.calibration")
     level = logger.level
     logger.setLevel(logging.WARNING)
     try:

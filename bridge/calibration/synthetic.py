@@ -164,7 +164,7 @@ def make_bundle(
 
     meta = {
         "name": f"synthetic-{seed}",
-        "source": "bridge.calibration.synthetic",
+        "source": "koala_bridge.calibration.synthetic",
         "injected": {k: v for k, v in inj.__dict__.items() if v not in (0.0, (0.0, 0.0), ())},
         "units": {"compass.mx": "uT", "range.measured": "m"},
     }

@@ -1,7 +1,7 @@
-"""``python -m bridge.cli``: the same as the ``koala-bridge`` console script."""
+"""``python -m koala_bridge``: the same as the ``koala-bridge`` console script."""
 
 import sys
 
-from bridge.cli.main import main
+from koala_bridge.cli.main import main
 
 sys.exit(main())

@@ -4,7 +4,7 @@
 
 INPUT is a measurement bundle directory (docs/bundle-format.md) or an MCAP recording
 (converted by ``koala-bridge export`` first). Several inputs are calibrated in order, each on the
-model the ones before it produced (:mod:`bridge.calibration.stages`): a still recording first
+model the ones before it produced (:mod:`koala_bridge.calibration.stages`): a still recording first
 for the gyro bias, then one with motion. For each stream the declared model predicts the
 measurements from the reference; candidate effects are added greedily while they improve the
 held-out error beyond chance (see ``docs/calibration.md``). Writes ``DIR/report.json``,
@@ -19,12 +19,12 @@ import sys
 import tempfile
 from pathlib import Path
 
-from bridge.calibration.config_update import config_diff, not_simulated, write_config
-from bridge.calibration.errors import CalibrationError
-from bridge.calibration.model import read_config
-from bridge.calibration.pipeline import Options, check_effect_names
-from bridge.calibration.report import write_report
-from bridge.calibration.stages import all_keys, calibrate_stages
+from koala_bridge.calibration.config_update import config_diff, not_simulated, write_config
+from koala_bridge.calibration.errors import CalibrationError
+from koala_bridge.calibration.model import read_config
+from koala_bridge.calibration.pipeline import Options, check_effect_names
+from koala_bridge.calibration.report import write_report
+from koala_bridge.calibration.stages import all_keys, calibrate_stages
 
 log = logging.getLogger(__name__)
 

@@ -16,8 +16,8 @@ import argparse
 import logging
 import sys
 
-from bridge.export import export_bundle
-from bridge.recording import RecordingError
+from koala_bridge.recording.export import export_bundle
+from koala_bridge.recording.mcap_file import RecordingError
 
 log = logging.getLogger(__name__)
 

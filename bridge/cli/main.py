@@ -22,12 +22,12 @@ from types import ModuleType
 from typing import NoReturn
 
 SUBCOMMANDS: dict[str, str] = {
-    "run": "bridge.cli.run",
-    "calibrate": "bridge.cli.calibrate",
-    "export": "bridge.cli.export",
-    "replay": "bridge.cli.replay",
-    "monitor": "bridge.cli.monitor",
-    "snapshot": "bridge.cli.snapshot",
+    "run": "koala_bridge.cli.run",
+    "calibrate": "koala_bridge.cli.calibrate",
+    "export": "koala_bridge.cli.export",
+    "replay": "koala_bridge.cli.replay",
+    "monitor": "koala_bridge.cli.monitor",
+    "snapshot": "koala_bridge.cli.snapshot",
 }
 
 EPILOG = """\

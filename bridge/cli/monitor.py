@@ -19,11 +19,8 @@ import logging
 import sys
 import time
 
-from rich.console import Console
-from rich.live import Live
-
-from bridge.cli.main import positive, seconds
-from bridge.monitor import (
+from koala_bridge.cli.main import positive, seconds
+from koala_bridge.tools.monitor import (
     DEFAULT_CONNECT,
     DEFAULT_PREFIX,
     MonitorState,
@@ -32,6 +29,8 @@ from bridge.monitor import (
     target_from_endpoints_file,
     wait_for,
 )
+from rich.console import Console
+from rich.live import Live
 
 log = logging.getLogger(__name__)
 

@@ -33,7 +33,7 @@ import time
 from pathlib import Path
 from types import FrameType
 
-from bridge.cli.main import positive, seconds
+from koala_bridge.cli.main import positive, seconds
 
 log = logging.getLogger(__name__)
 
@@ -105,19 +105,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from bridge.buses import open_buses
-    from bridge.cli.run import DEFAULT_CONFIG
-    from bridge.config import (
+    from koala_bridge.cli.run import DEFAULT_CONFIG
+    from koala_bridge.recording.mcap_file import RecordingError, open_recording
+    from koala_bridge.runtime.buses import open_buses
+    from koala_bridge.runtime.endpoints import endpoints_of, write_endpoints_file
+    from koala_bridge.runtime.replay import SWITCH_INTERVAL_S, Replayer, ReplayStats, plan_replay
+    from koala_bridge.runtime.settings import (
         BridgeSettings,
         ConfigError,
         apply_override,
         load_config,
         parse_override,
     )
-    from bridge.endpoints import endpoints_of, write_endpoints_file
-    from bridge.recording import RecordingError, open_recording
-    from bridge.replay import SWITCH_INTERVAL_S, Replayer, ReplayStats, plan_replay
-    from bridge.zenoh_io import ZenohLink
+    from koala_bridge.runtime.zenoh_io import ZenohLink
 
     try:
         rec = open_recording(args.recording)

@@ -26,9 +26,10 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-from bridge.cli.main import seconds
-from bridge.clock import CLOCK_NAMES
-from bridge.config import (
+from koala_bridge.cli.main import seconds
+from koala_bridge.core.resources import default_config_path
+from koala_bridge.runtime.clock import CLOCK_NAMES
+from koala_bridge.runtime.settings import (
     BridgeSettings,
     ConfigError,
     apply_override,
@@ -39,7 +40,7 @@ from bridge.config import (
 log = logging.getLogger(__name__)
 
 # The repository's config, wherever the command is run from (as drivers.can_codec finds the DBC).
-DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "config" / "default.toml"
+DEFAULT_CONFIG = default_config_path()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -98,9 +99,9 @@ def resolve_config(args: argparse.Namespace) -> dict[str, Any]:
 
 def run(args: argparse.Namespace) -> int:
     # Imported here so that `koala-bridge --help` does not load the simulator and Zenoh.
-    from bridge.endpoints import write_endpoints_file
-    from bridge.service import BridgeService
-    from drivers.messages import DriverError
+    from koala_bridge.drivers.messages import DriverError
+    from koala_bridge.runtime.endpoints import write_endpoints_file
+    from koala_bridge.runtime.service import BridgeService
 
     try:
         config = resolve_config(args)
@@ -118,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
 
     recorder = None
     if args.record is not None:
-        from bridge.recording import Recorder, RecordingError, run_metadata
+        from koala_bridge.recording.mcap_file import Recorder, RecordingError, run_metadata
 
         try:
             recorder = Recorder(
@@ -177,9 +178,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _real_source(config: dict[str, Any], settings: BridgeSettings) -> Any:
-    """``--source real``: the robot's ports instead of the simulator (bridge/real_source.py)."""
-    from bridge.real_source import RealRobotSource
-    from sim.simulator import Simulator
+    """``--source real``: the robot's ports instead of the simulator (runtime/real_source.py)."""
+    from koala_bridge.runtime.real_source import RealRobotSource
+    from koala_bridge.sim.simulator import Simulator
 
     # The world and the robot's description answer the world queryable; nothing is simulated.
     description = Simulator(config)

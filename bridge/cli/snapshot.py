@@ -15,9 +15,9 @@ import argparse
 import logging
 import sys
 
-from bridge.cli.main import seconds
-from bridge.cli.monitor import add_target_arguments, resolve_target
-from bridge.snapshot import collect_scene, render_scene
+from koala_bridge.cli.main import seconds
+from koala_bridge.cli.monitor import add_target_arguments, resolve_target
+from koala_bridge.tools.snapshot import collect_scene, render_scene
 
 log = logging.getLogger(__name__)
 

@@ -10,8 +10,8 @@ The bridge service (and the example firmware) call these; docs/localisation.md e
 * :mod:`.messages` -- JSON-ready payloads of ``estimate/*`` and ``map/occupancy``.
 """
 
-from bridge.estimation.errors import DegenerateGeometryError, EstimationError
-from bridge.estimation.grid_localisation import (
+from koala_bridge.estimation.errors import DegenerateGeometryError, EstimationError
+from koala_bridge.estimation.grid_localisation import (
     GridLocaliser,
     GridModel,
     GridParams,
@@ -21,7 +21,7 @@ from bridge.estimation.grid_localisation import (
     uniform_prior,
     update,
 )
-from bridge.estimation.messages import (
+from koala_bridge.estimation.messages import (
     cell_message,
     decode_grid,
     decode_occupancy,
@@ -29,11 +29,11 @@ from bridge.estimation.messages import (
     occupancy_message,
     pose_message,
 )
-from bridge.estimation.occupancy import BeamModel, OccupancyGrid, OccupancyParams, beam_cells
-from bridge.estimation.pose_filter import PoseTracker, PoseTrackerParams, heading_from_field
-from bridge.estimation.probability import log_normalise, log_odds, prob_from_log_odds
-from bridge.estimation.trilateration import LandmarkFix, trilaterate3, wls_fix
-from bridge.estimation.wall_detection import sensor_sides, walls_from_ir
+from koala_bridge.estimation.occupancy import BeamModel, OccupancyGrid, OccupancyParams, beam_cells
+from koala_bridge.estimation.pose_filter import PoseTracker, PoseTrackerParams, heading_from_field
+from koala_bridge.estimation.probability import log_normalise, log_odds, prob_from_log_odds
+from koala_bridge.estimation.trilateration import LandmarkFix, trilaterate3, wls_fix
+from koala_bridge.estimation.wall_detection import sensor_sides, walls_from_ir
 
 __all__ = [
     "BeamModel",

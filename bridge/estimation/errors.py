@@ -9,7 +9,7 @@ from __future__ import annotations
 
 
 class EstimationError(ValueError):
-    """Root of every exception raised by :mod:`bridge.estimation`."""
+    """Root of every exception raised by :mod:`koala_bridge.estimation`."""
 
 
 class DegenerateGeometryError(EstimationError):

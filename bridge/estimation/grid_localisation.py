@@ -30,11 +30,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from koala_bridge.estimation.errors import EstimationError
+from koala_bridge.estimation.probability import log_normalise
+from koala_bridge.sim.world import SIDES, World
 from numpy.typing import NDArray
-
-from bridge.estimation.errors import EstimationError
-from bridge.estimation.probability import log_normalise
-from sim.world import SIDES, World
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]

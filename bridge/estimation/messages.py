@@ -21,10 +21,9 @@ import base64
 from typing import Any
 
 import numpy as np
+from koala_bridge.estimation.errors import EstimationError
+from koala_bridge.estimation.occupancy import decode_log_odds, encode_log_odds
 from numpy.typing import ArrayLike, NDArray
-
-from bridge.estimation.errors import EstimationError
-from bridge.estimation.occupancy import decode_log_odds, encode_log_odds
 
 KEY_POSE = "estimate/pose"
 KEY_CELL = "estimate/cell"

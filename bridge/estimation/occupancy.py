@@ -33,11 +33,10 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from koala_bridge.estimation.errors import EstimationError
+from koala_bridge.estimation.probability import prob_from_log_odds
+from koala_bridge.sim.world import World
 from numpy.typing import ArrayLike, NDArray
-
-from bridge.estimation.errors import EstimationError
-from bridge.estimation.probability import prob_from_log_odds
-from sim.world import World
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]

@@ -5,7 +5,7 @@ said where the robot is, the pose belief is unimodal; the motion and measurement
 range/bearing, heading) are smooth and only mildly non-linear at the centimetre/degree
 uncertainties involved; and an EKF step costs tens of microseconds, so it keeps up with 200 Hz
 odometry in pure numpy. Global ambiguity (no known start, a kidnapped robot) is the job of the
-histogram filter (:mod:`bridge.estimation.grid_localisation`) and :func:`wls_fix`, whose output
+histogram filter (:mod:`estimation.grid_localisation`) and :func:`wls_fix`, whose output
 re-initialises this filter.
 
 State ``x = [x, y, theta, b]``: position (m, world frame), heading (rad CCW from east, wrapped to
@@ -33,10 +33,9 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from koala_bridge.estimation.errors import EstimationError
 from numpy.typing import ArrayLike, NDArray
 from scipy.stats import chi2
-
-from bridge.estimation.errors import EstimationError
 
 FloatArray = NDArray[np.float64]
 

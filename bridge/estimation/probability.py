@@ -8,9 +8,8 @@ consistent, the log-odds ``l = ln(p / (1 - p))`` and its logistic inverse.
 from __future__ import annotations
 
 import numpy as np
+from koala_bridge.estimation.errors import EstimationError
 from numpy.typing import ArrayLike, NDArray
-
-from bridge.estimation.errors import EstimationError
 
 FloatArray = NDArray[np.float64]
 

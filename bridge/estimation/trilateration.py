@@ -11,7 +11,7 @@ Two estimators:
   ``(J^T W J)^-1`` and the weighted residual ``chi2`` for consistency checks and gating.
 
 Frames (docs/architecture.md): world x east, y north, metres; bearings in radians CCW from the
-robot's heading, as :class:`sim.types.LandmarkObservation` carries them.
+robot's heading, as :class:`koala_bridge.sim.types.LandmarkObservation` carries them.
 """
 
 from __future__ import annotations
@@ -20,9 +20,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from koala_bridge.estimation.errors import DegenerateGeometryError, EstimationError
 from numpy.typing import ArrayLike, NDArray
-
-from bridge.estimation.errors import DegenerateGeometryError, EstimationError
 
 FloatArray = NDArray[np.float64]
 

@@ -15,10 +15,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from koala_bridge.estimation.errors import EstimationError
+from koala_bridge.sim.world import SIDES
 from numpy.typing import ArrayLike
-
-from bridge.estimation.errors import EstimationError
-from sim.world import SIDES
 
 # Outward normal of each side of a cell, in SIDES order (N, E, S, W).
 _NORMALS = np.array([[0.0, 1.0], [1.0, 0.0], [0.0, -1.0], [-1.0, 0.0]])

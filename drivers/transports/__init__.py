@@ -27,7 +27,7 @@ from types import MappingProxyType
 from typing import Any
 from urllib.parse import unquote, urlsplit
 
-from drivers.transports.base import (
+from koala_bridge.drivers.transports.base import (
     ByteTransport,
     CanTransport,
     Endpoint,
@@ -52,18 +52,18 @@ __all__ = [
 
 BYTE_BACKENDS: Mapping[str, str] = MappingProxyType(
     {
-        "pty": "drivers.transports.pty:PtyTransport",
-        "tcp": "drivers.transports.tcp:TcpServerTransport",
-        "udp": "drivers.transports.udp:UdpTransport",
-        "loop": "drivers.transports.loop:LoopbackTransport",
+        "pty": "koala_bridge.drivers.transports.pty:PtyTransport",
+        "tcp": "koala_bridge.drivers.transports.tcp:TcpServerTransport",
+        "udp": "koala_bridge.drivers.transports.udp:UdpTransport",
+        "loop": "koala_bridge.drivers.transports.loop:LoopbackTransport",
     }
 )
 CAN_BACKENDS: Mapping[str, str] = MappingProxyType(
     {
-        "socketcand": "drivers.transports.socketcand:SocketcandServer",
-        "slcan": "drivers.transports.slcan:SlcanAdapter",
-        "virtual": "drivers.transports.pythoncan:VirtualCanTransport",
-        "python-can": "drivers.transports.pythoncan:PythonCanTransport",
+        "socketcand": "koala_bridge.drivers.transports.socketcand:SocketcandServer",
+        "slcan": "koala_bridge.drivers.transports.slcan:SlcanAdapter",
+        "virtual": "koala_bridge.drivers.transports.pythoncan:VirtualCanTransport",
+        "python-can": "koala_bridge.drivers.transports.pythoncan:PythonCanTransport",
     }
 )
 

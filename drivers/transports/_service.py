@@ -10,8 +10,7 @@ import threading
 from collections.abc import Callable
 
 import can
-
-from drivers.transports.base import StatsCounter
+from koala_bridge.drivers.transports.base import StatsCounter
 
 __all__ = ["FrameQueue", "ServiceThread", "Waker"]
 

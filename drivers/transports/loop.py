@@ -8,8 +8,13 @@ from __future__ import annotations
 import select
 import socket
 
-from drivers.messages import TransportClosedError
-from drivers.transports.base import ByteTransport, Endpoint, StatsCounter, TransportStats
+from koala_bridge.drivers.messages import TransportClosedError
+from koala_bridge.drivers.transports.base import (
+    ByteTransport,
+    Endpoint,
+    StatsCounter,
+    TransportStats,
+)
 
 __all__ = ["LoopbackTransport"]
 

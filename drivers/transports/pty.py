@@ -16,8 +16,13 @@ import time
 import tty
 from pathlib import Path
 
-from drivers.messages import TransportClosedError, TransportError
-from drivers.transports.base import ByteTransport, Endpoint, StatsCounter, TransportStats
+from koala_bridge.drivers.messages import TransportClosedError, TransportError
+from koala_bridge.drivers.transports.base import (
+    ByteTransport,
+    Endpoint,
+    StatsCounter,
+    TransportStats,
+)
 
 __all__ = ["PtyTransport"]
 

@@ -11,9 +11,13 @@ from __future__ import annotations
 from typing import Any
 
 import can
-
-from drivers.messages import TransportClosedError, TransportError
-from drivers.transports.base import CanTransport, Endpoint, StatsCounter, TransportStats
+from koala_bridge.drivers.messages import TransportClosedError, TransportError
+from koala_bridge.drivers.transports.base import (
+    CanTransport,
+    Endpoint,
+    StatsCounter,
+    TransportStats,
+)
 
 __all__ = ["PythonCanTransport", "VirtualCanTransport"]
 

@@ -28,12 +28,16 @@ import time
 from pathlib import Path
 
 import can
-
-from drivers.kteam import LineSplitter
-from drivers.messages import Reject, TransportClosedError
-from drivers.transports._service import FrameQueue, ServiceThread, Waker
-from drivers.transports.base import CanTransport, Endpoint, StatsCounter, TransportStats
-from drivers.transports.pty import PtyTransport
+from koala_bridge.drivers.kteam import LineSplitter
+from koala_bridge.drivers.messages import Reject, TransportClosedError
+from koala_bridge.drivers.transports._service import FrameQueue, ServiceThread, Waker
+from koala_bridge.drivers.transports.base import (
+    CanTransport,
+    Endpoint,
+    StatsCounter,
+    TransportStats,
+)
+from koala_bridge.drivers.transports.pty import PtyTransport
 
 __all__ = ["SlcanAdapter", "format_slcan_frame", "parse_slcan_frame"]
 

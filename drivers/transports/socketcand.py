@@ -36,10 +36,14 @@ import time
 from collections import deque
 
 import can
-
-from drivers.messages import TransportClosedError, TransportError
-from drivers.transports._service import FrameQueue, ServiceThread, Waker
-from drivers.transports.base import CanTransport, Endpoint, StatsCounter, TransportStats
+from koala_bridge.drivers.messages import TransportClosedError, TransportError
+from koala_bridge.drivers.transports._service import FrameQueue, ServiceThread, Waker
+from koala_bridge.drivers.transports.base import (
+    CanTransport,
+    Endpoint,
+    StatsCounter,
+    TransportStats,
+)
 
 __all__ = ["SocketcandServer", "format_frame_element", "parse_send_element"]
 

@@ -14,7 +14,7 @@ def __getattr__(name: str) -> Any:
     # that ``import sim.models.<model>`` stays free of the simulator (sim/config.py imports the
     # params classes lazily while it is itself being used).
     if name == "ERROR_MODELS":
-        from sim.models.adapters import ERROR_MODELS
+        from koala_bridge.sim.models.adapters import ERROR_MODELS
 
         return ERROR_MODELS
-    raise AttributeError(f"module 'sim.models' has no attribute {name!r}")
+    raise AttributeError(f"module 'koala_bridge.sim.models' has no attribute {name!r}")

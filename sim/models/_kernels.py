@@ -15,8 +15,7 @@ import math
 
 import numba
 import numpy as np
-
-from sim.raycast import first_hit
+from koala_bridge.sim.raycast import first_hit
 
 
 @numba.njit(cache=True, nogil=True)

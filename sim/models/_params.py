@@ -8,8 +8,8 @@ import typing
 from collections.abc import Mapping
 from typing import Any, TypeVar
 
-from sim.noise import LookupTable
-from sim.schema import ConfigError, reject_unknown
+from koala_bridge.core.schema import ConfigError, reject_unknown
+from koala_bridge.sim.noise import LookupTable
 
 T = TypeVar("T")
 

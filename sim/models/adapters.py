@@ -18,23 +18,22 @@ from types import MappingProxyType
 from typing import Any
 
 import numpy as np
-
-from sim.models import _kernels
-from sim.models import camera as camera_model
-from sim.models import compass as compass_model
-from sim.models import drive as drive_model
-from sim.models import gyro as gyro_model
-from sim.models import ir as ir_model
-from sim.models import sonar as sonar_model
-from sim.noise import BlockStream, LookupTable, Variates, rate_scaled_sigma
-from sim.robot import Motion, RobotState, arc_displacement
-from sim.sensors.base import fan_offsets
-from sim.sensors.camera import CameraTruth
-from sim.sensors.compass import CompassTruth
-from sim.sensors.gyro import GyroTruth
-from sim.sensors.ir import IrTruth
-from sim.sensors.sonar import SonarTruth
-from sim.types import (
+from koala_bridge.sim.models import _kernels
+from koala_bridge.sim.models import camera as camera_model
+from koala_bridge.sim.models import compass as compass_model
+from koala_bridge.sim.models import drive as drive_model
+from koala_bridge.sim.models import gyro as gyro_model
+from koala_bridge.sim.models import ir as ir_model
+from koala_bridge.sim.models import sonar as sonar_model
+from koala_bridge.sim.noise import BlockStream, LookupTable, Variates, rate_scaled_sigma
+from koala_bridge.sim.robot import Motion, RobotState, arc_displacement
+from koala_bridge.sim.sensors.base import fan_offsets
+from koala_bridge.sim.sensors.camera import CameraTruth
+from koala_bridge.sim.sensors.compass import CompassTruth
+from koala_bridge.sim.sensors.gyro import GyroTruth
+from koala_bridge.sim.sensors.ir import IrTruth
+from koala_bridge.sim.sensors.sonar import SonarTruth
+from koala_bridge.sim.types import (
     CameraReading,
     CompassReading,
     GyroReading,

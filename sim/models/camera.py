@@ -53,16 +53,15 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
-
-from sim.models import _kernels
-from sim.models._params import (
+from koala_bridge.core.schema import ConfigError
+from koala_bridge.sim.models import _kernels
+from koala_bridge.sim.models._params import (
     check_nonnegative,
     check_positive,
     check_probability,
     params_from_dict,
 )
-from sim.noise import Variates
-from sim.schema import ConfigError
+from koala_bridge.sim.noise import Variates
 
 
 @dataclass(frozen=True)

@@ -33,10 +33,9 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
-
-from sim.models._params import check_nonnegative, params_from_dict
-from sim.noise import Variates
-from sim.schema import ConfigError
+from koala_bridge.core.schema import ConfigError
+from koala_bridge.sim.models._params import check_nonnegative, params_from_dict
+from koala_bridge.sim.noise import Variates
 
 
 def _identity() -> tuple[tuple[float, ...], ...]:

@@ -43,10 +43,9 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
-
-from sim.models._params import check_nonnegative, check_positive, params_from_dict
-from sim.noise import Variates, rate_scaled_sigma
-from sim.schema import ConfigError
+from koala_bridge.core.schema import ConfigError
+from koala_bridge.sim.models._params import check_nonnegative, check_positive, params_from_dict
+from koala_bridge.sim.noise import Variates, rate_scaled_sigma
 
 
 @dataclass(frozen=True)

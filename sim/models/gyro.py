@@ -34,9 +34,8 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
-
-from sim.models._params import check_nonnegative, check_positive, params_from_dict
-from sim.noise import Variates, gauss_markov_step, rate_scaled_sigma
+from koala_bridge.sim.models._params import check_nonnegative, check_positive, params_from_dict
+from koala_bridge.sim.noise import Variates, gauss_markov_step, rate_scaled_sigma
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@ Sources
   +-3.0 %" with the range table 0–5 cm +-0.0, 5 cm +-0.01 cm, 10 cm +-0.04 cm, 30 cm +-0.3 cm,
   60 cm +-1.25 cm, 100 cm +-3 cm. We read each "+-" as one standard deviation of a Gaussian
   (the third column of a Webots ``lookupTable`` is a standard deviation), linearly interpolated
-  between rows and held beyond the last (``sim.noise.LookupTable``).
+  between rows and held beyond the last (``koala_bridge.sim.noise.LookupTable``).
 - Webots reference, DistanceSensor "infra-red": several rays within the aperture, each ray's
   weight ``exp(-(t_i / (aperture * gaussian_width))^2)`` normalised over the rays (``t_i`` the
   ray's angle from the axis); the response scaled by the reflectivity of the surface hit.
@@ -32,10 +32,9 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
-
-from sim.models import _kernels
-from sim.models._params import check_nonnegative, check_positive, params_from_dict
-from sim.noise import LookupTable, Variates
+from koala_bridge.sim.models import _kernels
+from koala_bridge.sim.models._params import check_nonnegative, check_positive, params_from_dict
+from koala_bridge.sim.noise import LookupTable, Variates
 
 
 def _seed004_ir_table() -> LookupTable:

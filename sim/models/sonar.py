@@ -37,11 +37,10 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
-
-from sim.models import _kernels
-from sim.models._params import check_nonnegative, check_probability, params_from_dict
-from sim.noise import LookupTable, Variates
-from sim.schema import ConfigError
+from koala_bridge.core.schema import ConfigError
+from koala_bridge.sim.models import _kernels
+from koala_bridge.sim.models._params import check_nonnegative, check_probability, params_from_dict
+from koala_bridge.sim.noise import LookupTable, Variates
 
 
 def _seed004_us_table() -> LookupTable:

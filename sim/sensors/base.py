@@ -1,6 +1,6 @@
 """The seam between ideal sensors and error models.
 
-Every sensor module in :mod:`sim.sensors` follows the same shape:
+Every sensor module in :mod:`koala_bridge.sim.sensors` follows the same shape:
 
 1. a pure function computes the sensor's *truth* -- a frozen dataclass holding the noise-free value
    and everything an error model may need (ray ranges, incidence angles, sample interval, ...);
@@ -21,10 +21,10 @@ A factory is called at every ``reset`` as ``factory(config, rng)`` with the sens
 and the sensor's own generator (for turn-on biases); it returns the model.
 The drive-error model is registered under the name ``"drive"``; its factory gets the whole
 :class:`sim.config.SimConfig` (it needs the wheel base and ``dt``) and the drive stream, and
-returns a :class:`sim.robot.DriveErrorModel`.
+returns a :class:`koala_bridge.sim.robot.DriveErrorModel`.
 
 Each sensor draws only from its own ``numpy.random.Generator`` (one child stream per sensor,
-:data:`sim.simulator.RNG_STREAMS`).
+:data:`koala_bridge.sim.simulator.RNG_STREAMS`).
 """
 
 from __future__ import annotations
@@ -33,8 +33,7 @@ from collections.abc import Callable
 from typing import Any, Protocol, TypeVar
 
 import numpy as np
-
-from sim.noise import Variates
+from koala_bridge.sim.noise import Variates
 
 TruthT = TypeVar("TruthT", contravariant=True)
 ReadingT = TypeVar("ReadingT", covariant=True)

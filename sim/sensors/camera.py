@@ -20,14 +20,13 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
-
-from sim.config import CameraConfig
-from sim.noise import Variates
-from sim.raycast import SegmentSet, first_hit
-from sim.robot import RobotState
-from sim.sensors.base import ErrorModel
-from sim.types import CameraReading, LandmarkObservation
-from sim.world import World
+from koala_bridge.sim.config import CameraConfig
+from koala_bridge.sim.noise import Variates
+from koala_bridge.sim.raycast import SegmentSet, first_hit
+from koala_bridge.sim.robot import RobotState
+from koala_bridge.sim.sensors.base import ErrorModel
+from koala_bridge.sim.types import CameraReading, LandmarkObservation
+from koala_bridge.sim.world import World
 
 # A landmark on a wall is not hidden by that wall: the sight line stops this short of it.
 LOS_TOLERANCE_M = 1e-9

@@ -21,13 +21,12 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-
-from sim.config import CompassConfig
-from sim.noise import Variates
-from sim.robot import RobotState
-from sim.sensors.base import ErrorModel
-from sim.types import CompassReading
-from sim.world import World
+from koala_bridge.sim.config import CompassConfig
+from koala_bridge.sim.noise import Variates
+from koala_bridge.sim.robot import RobotState
+from koala_bridge.sim.sensors.base import ErrorModel
+from koala_bridge.sim.types import CompassReading
+from koala_bridge.sim.world import World
 
 
 @dataclass(frozen=True, slots=True, eq=False)

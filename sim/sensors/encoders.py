@@ -17,9 +17,9 @@ from __future__ import annotations
 
 import math
 
-from sim.config import BasicSensorConfig
-from sim.robot import RobotState
-from sim.types import OdometryReading
+from koala_bridge.sim.config import BasicSensorConfig
+from koala_bridge.sim.robot import RobotState
+from koala_bridge.sim.types import OdometryReading
 
 
 def encoder_ticks(travel_m: float, ticks_per_metre: float) -> int:

@@ -6,8 +6,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-
-from sim.sensors.base import fan_offsets
+from koala_bridge.sim.sensors.base import fan_offsets
 
 
 @dataclass(frozen=True)

@@ -16,11 +16,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from sim.config import BasicSensorConfig
-from sim.noise import Variates
-from sim.robot import RobotState
-from sim.sensors.base import ErrorModel
-from sim.types import GyroReading
+from koala_bridge.sim.config import BasicSensorConfig
+from koala_bridge.sim.noise import Variates
+from koala_bridge.sim.robot import RobotState
+from koala_bridge.sim.sensors.base import ErrorModel
+from koala_bridge.sim.types import GyroReading
 
 
 @dataclass(frozen=True, slots=True)

@@ -10,7 +10,7 @@ Ambient light is the constant ``ambient_counts`` (no light sources are simulated
 Seam: ``IrSensor.measure(rays, index, start, variates)`` takes the simulator's cast of this
 step (:func:`sim.raycast.cast_fan_arrays`); with ``ideal = false`` the error model (seeds/004:
 reflectivity, distance error table +-3 %, ambient light; ``sim/models/ir.py``) gets the
-:class:`IrTruth` -- per-ray ranges -- and returns an :class:`~sim.types.IrReading`.
+:class:`IrTruth` -- per-ray ranges -- and returns an :class:`koala_bridge.sim.types.IrReading`.
 """
 
 from __future__ import annotations
@@ -20,12 +20,11 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
-
-from sim.config import IrConfig
-from sim.noise import Variates
-from sim.sensors.base import ErrorModel
-from sim.sensors.fan import RayFan
-from sim.types import IrReading
+from koala_bridge.sim.config import IrConfig
+from koala_bridge.sim.noise import Variates
+from koala_bridge.sim.sensors.base import ErrorModel
+from koala_bridge.sim.sensors.fan import RayFan
+from koala_bridge.sim.types import IrReading
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -24,13 +24,12 @@ from functools import cached_property
 
 import numba
 import numpy as np
-
-from sim.config import SonarConfig
-from sim.noise import Variates
-from sim.raycast import SegmentSet
-from sim.sensors.base import ErrorModel
-from sim.sensors.fan import RayFan
-from sim.types import SonarReading
+from koala_bridge.sim.config import SonarConfig
+from koala_bridge.sim.noise import Variates
+from koala_bridge.sim.raycast import SegmentSet
+from koala_bridge.sim.sensors.base import ErrorModel
+from koala_bridge.sim.sensors.fan import RayFan
+from koala_bridge.sim.types import SonarReading
 
 
 @dataclass(frozen=True, eq=False)

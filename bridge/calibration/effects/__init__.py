@@ -15,8 +15,8 @@ from __future__ import annotations
 import importlib
 from collections.abc import Callable
 
-from bridge.calibration.effects.base import Effect, EffectInstance
-from bridge.calibration.errors import EffectRegistryError
+from koala_bridge.calibration.effects.base import Effect, EffectInstance
+from koala_bridge.calibration.errors import EffectRegistryError
 
 __all__ = ["Effect", "EffectInstance", "available_effects", "get_effect", "register_effect"]
 

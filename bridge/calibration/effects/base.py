@@ -11,7 +11,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 if TYPE_CHECKING:
-    from bridge.calibration.problem import StreamProblem
+    from koala_bridge.calibration.problem import StreamProblem
 
 
 @dataclass(frozen=True)
@@ -56,7 +56,7 @@ class Effect(ABC):
     kinds: ClassVar[frozenset[str]] = frozenset()
     #: the effect transforms the model's output discontinuously (rounding): with it in the
     #: model, further candidates are judged on the smooth (unrounded) residual, see
-    #: :func:`bridge.calibration.selection.judge`
+    #: :func:`koala_bridge.calibration.selection.judge`
     output_transform: ClassVar[bool] = False
 
     def propose(self, problem: StreamProblem) -> list[EffectInstance]:

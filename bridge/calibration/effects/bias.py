@@ -5,16 +5,16 @@
 Writes the stream's native bias key (gyro: ``[sensors.gyro] bias_rad_s``, declared + b) or
 ``[sensors.<stream>.calibration] bias``. Not proposed where the declared model has a per-run
 (turn-on) bias: that is a nuisance parameter, and a bias beyond its declared spread is added
-by :func:`bridge.calibration.pipeline.run_stream` instead.
+by :func:`koala_bridge.calibration.pipeline.run_stream` instead.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-from bridge.calibration.effects import register_effect
-from bridge.calibration.effects.base import Effect, EffectInstance
-from bridge.calibration.effects.common import scalar_config
+from koala_bridge.calibration.effects import register_effect
+from koala_bridge.calibration.effects.base import Effect, EffectInstance
+from koala_bridge.calibration.effects.common import scalar_config
 
 
 @register_effect("bias")

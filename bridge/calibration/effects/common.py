@@ -6,8 +6,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-
-from bridge.calibration.effects.base import EffectInstance
+from koala_bridge.calibration.effects.base import EffectInstance
 
 
 def config_name(name: str) -> str:
@@ -49,9 +48,9 @@ def categorical_levels(values: np.ndarray, max_levels: int = 32) -> np.ndarray |
 
 def enough_orientations(problem: Any, harmonic: int, effect: str) -> bool:
     """Whether the compass stream's orientations can determine an iron effect
-    (:meth:`~bridge.calibration.streams.compass.CompassProblem.orientation_spread`); when not, a
+    (:meth:`calibration.streams.compass.CompassProblem.orientation_spread`); when not, a
     note on the stream says why the effect was not tried."""
-    from bridge.calibration.streams.compass import MIN_ORIENTATION_SPREAD
+    from koala_bridge.calibration.streams.compass import MIN_ORIENTATION_SPREAD
 
     spread = float(problem.orientation_spread(harmonic))
     if spread >= MIN_ORIENTATION_SPREAD:

@@ -14,10 +14,9 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-
-from bridge.calibration.effects import register_effect
-from bridge.calibration.effects.base import Effect, EffectInstance
-from bridge.calibration.effects.common import enough_orientations
+from koala_bridge.calibration.effects import register_effect
+from koala_bridge.calibration.effects.base import Effect, EffectInstance
+from koala_bridge.calibration.effects.common import enough_orientations
 
 
 def algebraic_centre(m: np.ndarray) -> np.ndarray:

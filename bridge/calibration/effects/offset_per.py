@@ -15,10 +15,9 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-
-from bridge.calibration.effects import register_effect
-from bridge.calibration.effects.base import Effect, EffectInstance
-from bridge.calibration.effects.common import categorical_levels, config_name
+from koala_bridge.calibration.effects import register_effect
+from koala_bridge.calibration.effects.base import Effect, EffectInstance
+from koala_bridge.calibration.effects.common import categorical_levels, config_name
 
 
 def offsets_of(params: Any) -> np.ndarray:

@@ -16,9 +16,8 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-
-from bridge.calibration.effects import register_effect
-from bridge.calibration.effects.base import Effect, EffectInstance
+from koala_bridge.calibration.effects import register_effect
+from koala_bridge.calibration.effects.base import Effect, EffectInstance
 
 
 def lattice_step(y: np.ndarray, tolerance: float = 0.01, share: float = 0.99) -> float | None:

@@ -11,9 +11,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from bridge.calibration.effects import register_effect
-from bridge.calibration.effects.base import Effect, EffectInstance
-from bridge.calibration.effects.common import scalar_config
+from koala_bridge.calibration.effects import register_effect
+from koala_bridge.calibration.effects.base import Effect, EffectInstance
+from koala_bridge.calibration.effects.common import scalar_config
 
 
 @register_effect("range_dependent")

@@ -13,10 +13,9 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-
-from bridge.calibration.effects import register_effect
-from bridge.calibration.effects.base import Effect, EffectInstance
-from bridge.calibration.effects.common import enough_orientations
+from koala_bridge.calibration.effects import register_effect
+from koala_bridge.calibration.effects.base import Effect, EffectInstance
+from koala_bridge.calibration.effects.common import enough_orientations
 
 #: Smallest (and, inverted, largest) axis gain of a plausible soft-iron correction.
 MIN_GAIN = 0.5

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from bridge.calibration.effects import register_effect
-from bridge.calibration.effects.base import Effect, EffectInstance
+from koala_bridge.calibration.effects import register_effect
+from koala_bridge.calibration.effects.base import Effect, EffectInstance
 
 
 @register_effect("wheel_base")

@@ -1,4 +1,4 @@
-"""Build one :class:`~bridge.calibration.problem.StreamProblem` per stream of a bundle.
+"""Build one :class:`koala_bridge.calibration.problem.StreamProblem` per stream of a bundle.
 
 What each stream is held against (the *reference*), in the order the bundle allows:
 
@@ -17,15 +17,14 @@ from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
+from koala_bridge.calibration.bundle import Bundle, Table
+from koala_bridge.calibration.effects.common import categorical_levels
+from koala_bridge.calibration.model import DeclaredModel
+from koala_bridge.calibration.problem import FloatArray, Split
+from koala_bridge.calibration.streams.compass import CompassProblem
+from koala_bridge.calibration.streams.odometry import OdometryProblem
+from koala_bridge.calibration.streams.scalar import ScalarProblem, fit_shared_curve, wrap_angle
 from scipy.integrate import cumulative_trapezoid
-
-from bridge.calibration.bundle import Bundle, Table
-from bridge.calibration.effects.common import categorical_levels
-from bridge.calibration.model import DeclaredModel
-from bridge.calibration.problem import FloatArray, Split
-from bridge.calibration.streams.compass import CompassProblem
-from bridge.calibration.streams.odometry import OdometryProblem
-from bridge.calibration.streams.scalar import ScalarProblem, fit_shared_curve, wrap_angle
 
 log = logging.getLogger(__name__)
 
@@ -288,7 +287,7 @@ def _declared_field_direction(
     truth = bundle.get("truth_pose")
     if model.compass_world is None or truth is None or "x" not in truth.columns:
         return None
-    from sim.sensors.compass import field_world
+    from koala_bridge.sim.sensors.compass import field_world
 
     earth, sources, dmin = model.compass_world
     x, y = np.interp(t, truth["t"], truth["x"]), np.interp(t, truth["t"], truth["y"])

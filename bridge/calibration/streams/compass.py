@@ -36,16 +36,15 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-
-from bridge.calibration.effects.base import EffectInstance
-from bridge.calibration.problem import (
+from koala_bridge.calibration.effects.base import EffectInstance
+from koala_bridge.calibration.problem import (
     FloatArray,
     Part,
     SecondaryMetric,
     StreamProblem,
     apply_all,
 )
-from bridge.calibration.streams.scalar import wrap_angle
+from koala_bridge.calibration.streams.scalar import wrap_angle
 
 #: Smallest orientation spread (:meth:`CompassProblem.orientation_spread`) at which the iron
 #: effects are proposed: below it the data cannot tell them from the constant.

@@ -25,10 +25,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from koala_bridge.calibration.effects.base import EffectInstance
+from koala_bridge.calibration.problem import FloatArray, Part, StreamProblem, apply_all
 from numpy.typing import NDArray
-
-from bridge.calibration.effects.base import EffectInstance
-from bridge.calibration.problem import FloatArray, Part, StreamProblem, apply_all
 
 
 @dataclass

@@ -20,9 +20,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-
-from bridge.calibration.effects.base import EffectInstance
-from bridge.calibration.problem import (
+from koala_bridge.calibration.effects.base import EffectInstance
+from koala_bridge.calibration.problem import (
     FloatArray,
     Part,
     SecondaryMetric,
@@ -72,7 +71,7 @@ def wrap_angle(a: FloatArray) -> FloatArray:
 
 @dataclass
 class ScalarProblem(StreamProblem):
-    """A scalar stream; see the module docstring. Built by :mod:`bridge.calibration.streams`."""
+    """A scalar stream; see the module docstring. Built by :mod:`calibration.streams`."""
 
     t: FloatArray = field(default_factory=lambda: np.empty(0))
     y: FloatArray = field(default_factory=lambda: np.empty(0))
@@ -95,7 +94,7 @@ class ScalarProblem(StreamProblem):
     integrate_window_s: float | None = None
     #: sigma of a declared per-run (turn-on) bias: > 0 makes the bias a nuisance parameter of
     #: the declared model, fitted in every model (the ``bias`` effect is then judged against
-    #: this spread instead, see :func:`bridge.calibration.pipeline.run_stream`)
+    #: this spread instead, see :func:`koala_bridge.calibration.pipeline.run_stream`)
     turn_on_bias_sigma: float = 0.0
     #: the simulator's white-noise key of this stream (gyroscope_noise_density, count_noise_sigma)
     noise_key: str | None = None

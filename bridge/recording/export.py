@@ -1,0 +1,180 @@
+"""Export a recording as a measurement bundle (docs/bundle-format.md).
+
+One CSV row per recorded reading, so a bundle holds exactly what the recording holds:
+
+==================  =========================================================================
+``truth_pose.csv``  ``t,x,y,theta`` — one row per ``/truth/pose`` message
+``odometry.csv``    ``t,left_ticks,right_ticks`` — one row per ``/sensors/odometry`` message
+``gyro.csv``        ``t,yaw_rate`` (rad/s) — one row per ``/sensors/gyro`` message
+``compass.csv``     ``t,mx,my,mz`` (uT, body FLU) — one row per ``/sensors/compass`` message
+``range.csv``       ``t,kind,sensor,measured,true_range,incidence_angle`` — one row per sensor of
+                    each ``/sensors/sonar`` (``measured`` m, empty = no echo) and ``/sensors/ir``
+                    (``measured`` counts) message; ``true_range`` m from the message's ``truth``
+                    companion (empty where the truth has none: nothing in range, or a bridge
+                    that does not publish it), ``incidence_angle`` rad between beam and surface
+                    normal where known
+``landmarks.csv``   ``t,landmark_id,range,bearing`` — one row per camera observation
+``landmark_map.csv`` ``id,x,y,colour`` — from the recording's world
+``meta.json``       recording, seed, config, ``robot`` (declared geometry), ``sensor`` (declared
+                    sensor parameters from the world answer), ``units``
+==================  =========================================================================
+
+A file is written only when the recording has its stream.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+from koala_bridge.recording.mcap_file import META_NAME, Recording, RecordingError, open_recording
+
+RANGE_KINDS = {"sonar": "sensors/sonar", "ir": "sensors/ir"}
+RANGE_COLUMNS = ("t", "kind", "sensor", "measured", "true_range", "incidence_angle")
+LANDMARK_COLUMNS = ("t", "landmark_id", "range", "bearing")
+
+
+def _cell(v: Any) -> str:
+    """A CSV cell: empty for None/NaN/inf, repr-exact for floats (round-trips bit for bit)."""
+    if v is None:
+        return ""
+    if isinstance(v, bool):
+        return str(int(v))
+    if isinstance(v, float):
+        return repr(v) if math.isfinite(v) else ""
+    return str(v)
+
+
+def _write_csv(path: Path, header: Sequence[str], rows: Iterable[Sequence[Any]]) -> int:
+    n = 0
+    with path.open("w", newline="", encoding="utf-8") as f:
+        w = csv.writer(f, lineterminator="\n")
+        w.writerow(header)
+        for row in rows:
+            w.writerow([_cell(v) for v in row])
+            n += 1
+    return n
+
+
+def _at(seq: Any, i: int) -> Any:
+    if isinstance(seq, list) and i < len(seq):
+        return seq[i]
+    return None
+
+
+def _range_rows(rec: Recording) -> list[tuple[Any, ...]]:
+    rows: list[tuple[Any, ...]] = []
+    messages = [
+        (m.log_time_ns, kind, m.json())
+        for kind, topic in RANGE_KINDS.items()
+        for m in rec.topic(topic)
+    ]
+    messages.sort(key=lambda x: x[0])  # stable: same-time sonar before IR
+    for _, kind, msg in messages:
+        measured = msg.get("ranges") if kind == "sonar" else msg.get("counts")
+        truth = msg.get("truth") or {}
+        true_ranges = truth.get("ranges")
+        incidence = truth.get("incidence")
+        for i, value in enumerate(measured or []):
+            rows.append((msg["t"], kind, i, value, _at(true_ranges, i), _at(incidence, i)))
+    return rows
+
+
+def _meta(rec: Recording, counts: dict[str, int]) -> dict[str, Any]:
+    run = rec.metadata.get(META_NAME, {})
+    world = rec.world or {}
+    robot_answer = world.get("robot") or {}
+    robot: dict[str, Any] = {
+        k: robot_answer[k]
+        for k in ("ticks_per_metre", "wheel_base_m", "wheel_diameter_m")
+        if k in robot_answer
+    }
+    start = world.get("start")
+    if isinstance(start, dict) and {"x", "y"} <= start.keys():
+        theta = start.get("theta")
+        if theta is None and "theta_deg" in start:
+            theta = math.radians(float(start["theta_deg"]))
+        robot["start_pose"] = {"x": start["x"], "y": start["y"], "theta": theta or 0.0}
+    sensor = {k: v for k, v in robot_answer.items() if k not in robot}
+    seed: Any = run.get("seed")
+    if isinstance(seed, str) and seed.lstrip("-").isdigit():
+        seed = int(seed)
+    return {
+        "source": f"koala-bridge recording ({run.get('source', 'sim')})",
+        "recording": str(rec.path.resolve()),
+        "recording_complete": rec.complete,
+        "format_version": rec.format_version,
+        "seed": seed,
+        "config_path": run.get("config_path"),
+        "config": run.get("config"),
+        "robot": robot,
+        "sensor": sensor,
+        "units": {
+            "t": "s (simulation time)",
+            "range.measured": {"sonar": "m", "ir": "counts"},
+            "range.true_range": "m",
+            "range.incidence_angle": "rad",
+            "compass": "uT",
+            "gyro.yaw_rate": "rad/s",
+            "odometry": "encoder ticks (cumulative)",
+        },
+        "rows": counts,
+        "notes": [
+            "One row per recorded message; range.csv and landmarks.csv: per sensor/observation.",
+            "range.csv: empty measured = no echo; empty true_range = nothing within range.",
+        ],
+    }
+
+
+def export_bundle(mcap_path: str | os.PathLike[str], out_dir: str | os.PathLike[str]) -> Path:
+    """Write the measurement bundle of the recording ``mcap_path`` into ``out_dir``.
+
+    Creates ``out_dir`` if needed and returns it. A recording cut short (SIGKILL) exports what it
+    holds. Raises :class:`recording.mcap_file.RecordingError` if the file is not a recording or
+    holds no reading at all.
+    """
+    rec = open_recording(mcap_path)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    counts: dict[str, int] = {}
+
+    def table(name: str, topic: str, header: Sequence[str]) -> None:
+        msgs = rec.topic(topic)
+        if msgs:
+            rows = ([d.get(col) for col in header] for d in (m.json() for m in msgs))
+            counts[name] = _write_csv(out / name, header, rows)
+
+    table("truth_pose.csv", "truth/pose", ("t", "x", "y", "theta"))
+    table("odometry.csv", "sensors/odometry", ("t", "left_ticks", "right_ticks"))
+    table("gyro.csv", "sensors/gyro", ("t", "yaw_rate"))
+    table("compass.csv", "sensors/compass", ("t", "mx", "my", "mz"))
+
+    ranges = _range_rows(rec)
+    if ranges:
+        counts["range.csv"] = _write_csv(out / "range.csv", RANGE_COLUMNS, ranges)
+
+    camera = rec.topic("sensors/camera")
+    if camera:
+        rows = (
+            (msg["t"], o.get("id"), o.get("range"), o.get("bearing"))
+            for msg in (m.json() for m in camera)
+            for o in msg.get("observations") or []
+        )
+        counts["landmarks.csv"] = _write_csv(out / "landmarks.csv", LANDMARK_COLUMNS, rows)
+
+    landmarks = (rec.world or {}).get("landmarks") or []
+    if landmarks:
+        rows = ((lm.get("id"), lm.get("x"), lm.get("y"), lm.get("colour", "")) for lm in landmarks)
+        counts["landmark_map.csv"] = _write_csv(
+            out / "landmark_map.csv", ("id", "x", "y", "colour"), rows
+        )
+
+    if not counts:
+        raise RecordingError(f"{mcap_path} holds no reading to export")
+    (out / "meta.json").write_text(json.dumps(_meta(rec, counts), indent=2) + "\n", "utf-8")
+    return out

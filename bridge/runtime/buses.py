@@ -1,0 +1,207 @@
+"""Open the transports the configuration asks for, and close them all again.
+
+One place maps ``[buses]`` settings to ``koala_bridge.drivers.transports`` backends (pty, UDP, TCP,
+socketcand, slcan-on-a-pty, python-can). :class:`OpenBuses` holds what was opened; if opening one
+fails, everything opened before it is closed and the error names the bus.
+
+Byte transports are not safe to use from two threads at once (a write may flush data held back
+for a slow client while a read does the same), so each is wrapped in :class:`LockedByteLink`:
+the simulation loop writes while a reader thread reads.
+"""
+
+from __future__ import annotations
+
+import errno
+import logging
+import select
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from koala_bridge.drivers.messages import TransportError
+from koala_bridge.drivers.transports.base import ByteTransport, CanTransport, TransportStats
+from koala_bridge.runtime.settings import BusesSettings
+
+log = logging.getLogger(__name__)
+
+HANGUP_RETRY_S = 0.02   # how often a reader re-checks a pty nobody has opened yet
+
+
+class BusOpenError(OSError):
+    """A bus could not be opened; the message names the bus and the cause."""
+
+
+class LockedByteLink:
+    """A :class:`ByteTransport` used by several threads: every call into it is serialised.
+
+    :meth:`wait` does not hold the lock while it blocks: where the transport has a ``fileno``
+    it polls that descriptor with a poll object of its own (a transport's internal poll object
+    may not be used by two threads at once), so the simulation loop can write and read counters
+    while a reader thread waits for input.
+    """
+
+    def __init__(self, transport: ByteTransport) -> None:
+        self.transport = transport
+        self._lock = threading.Lock()
+        fileno = getattr(transport, "fileno", None)
+        self._poll: select.poll | None = None
+        if fileno is not None:
+            self._poll = select.poll()
+            self._poll.register(fileno(), select.POLLIN)
+
+    @property
+    def is_datagram(self) -> bool:
+        return self.transport.is_datagram
+
+    def read(self, max_bytes: int = 65536) -> bytes:
+        with self._lock:
+            return self.transport.read(max_bytes)
+
+    def write(self, data: bytes) -> int:
+        with self._lock:
+            return self.transport.write(data)
+
+    def wait(self, timeout: float) -> bool:
+        """Block until input may be waiting or ``timeout`` s pass; True if readable."""
+        if self._poll is None:
+            with self._lock:
+                return self.transport.wait(timeout)
+        events = self._poll.poll(int(timeout * 1000))
+        if any(ev & select.POLLIN for _, ev in events):
+            return True
+        if events:  # a pty with no client reports hang-up at once: do not spin on it
+            time.sleep(min(timeout, HANGUP_RETRY_S))
+        return False
+
+    @property
+    def stats(self) -> TransportStats:
+        with self._lock:
+            return self.transport.stats
+
+    def close(self) -> None:
+        with self._lock:
+            self.transport.close()
+
+
+@dataclass
+class OpenBuses:
+    """Every transport the bridge serves, by bus name (the names used in ``status``)."""
+
+    kteam: LockedByteLink | None = None
+    rangefinders: LockedByteLink | None = None
+    mavlink: LockedByteLink | None = None
+    can: dict[str, CanTransport] = field(default_factory=dict)
+
+    def byte_links(self) -> dict[str, LockedByteLink]:
+        links = {"kteam": self.kteam, "rangefinders": self.rangefinders, "mavlink": self.mavlink}
+        return {name: link for name, link in links.items() if link is not None}
+
+    def stats(self) -> dict[str, TransportStats]:
+        out = {name: link.stats for name, link in self.byte_links().items()}
+        out.update({name: t.stats for name, t in self.can.items()})
+        return out
+
+    def close(self) -> None:
+        """Close every transport (each one even if another fails)."""
+        closables: list[tuple[str, LockedByteLink | CanTransport]] = [
+            *self.byte_links().items(),
+            *self.can.items(),
+        ]
+        for name, closable in closables:
+            try:
+                closable.close()
+            except Exception:  # closing must go on for the others
+                log.exception("closing %s failed", name)
+        self.kteam = self.rangefinders = self.mavlink = None
+        self.can.clear()
+
+
+#: The configuration key that moves a bus to another port, for the "port in use" hint.
+PORT_KEYS = {"mavlink": "buses.mavlink.port", "can.socketcand": "buses.can.socketcand_port"}
+
+
+def address_in_use(e: BaseException) -> bool:
+    """Whether ``e`` (or an exception it was raised from) says the address is already in use."""
+    seen: BaseException | None = e
+    while seen is not None:
+        if isinstance(seen, OSError) and seen.errno == errno.EADDRINUSE:
+            return True
+        if "address already in use" in str(seen).lower():
+            return True
+        seen = seen.__cause__
+    return False
+
+
+def _open(name: str, factory: Callable[[], object]) -> object:
+    try:
+        return factory()
+    except (TransportError, OSError) as e:
+        hint = ""
+        if name in PORT_KEYS and address_in_use(e):
+            hint = (
+                f" (another koala-bridge running? --set {PORT_KEYS[name]}=N picks another "
+                "port, 0 any free one)"
+            )
+        raise BusOpenError(f"cannot open bus {name}: {e}{hint}") from e
+
+
+def open_buses(settings: BusesSettings) -> OpenBuses:
+    """Open every enabled bus of ``settings``; on failure close what was opened and raise."""
+    # Imported here: a backend's dependencies load only when its bus is enabled.
+    buses = OpenBuses()
+    try:
+        if settings.kteam or settings.rangefinders:
+            from koala_bridge.drivers.transports.pty import PtyTransport
+        if settings.kteam:
+            buses.kteam = LockedByteLink(_open("kteam", PtyTransport))  # type: ignore[arg-type]
+        if settings.rangefinders:
+            buses.rangefinders = LockedByteLink(
+                _open("rangefinders", PtyTransport)  # type: ignore[arg-type]
+            )
+        mav = settings.mavlink
+        if mav.enabled:
+            buses.mavlink = LockedByteLink(_open("mavlink", lambda: _mavlink_transport(settings)))  # type: ignore[arg-type]
+        can = settings.can
+        if can.socketcand:
+            from koala_bridge.drivers.transports.socketcand import SocketcandServer
+
+            buses.can["can.socketcand"] = _open(  # type: ignore[assignment]
+                "can.socketcand",
+                lambda: SocketcandServer(can.socketcand_host, can.socketcand_port, can.channel),
+            )
+        if can.slcan:
+            from koala_bridge.drivers.transports.slcan import SlcanAdapter
+
+            buses.can["can.slcan"] = _open("can.slcan", SlcanAdapter)  # type: ignore[assignment]
+        if can.virtual:
+            from koala_bridge.drivers.transports.pythoncan import VirtualCanTransport
+
+            buses.can["can.virtual"] = _open(  # type: ignore[assignment]
+                "can.virtual", lambda: VirtualCanTransport(can.virtual_channel)
+            )
+        if can.socketcan:
+            from koala_bridge.drivers.transports.pythoncan import PythonCanTransport
+
+            buses.can["can.socketcan"] = _open(  # type: ignore[assignment]
+                "can.socketcan", lambda: PythonCanTransport("socketcan", can.socketcan_channel)
+            )
+    except BaseException:
+        buses.close()
+        raise
+    return buses
+
+
+def _mavlink_transport(settings: BusesSettings) -> ByteTransport:
+    mav = settings.mavlink
+    if mav.transport == "udp":
+        from koala_bridge.drivers.transports.udp import UdpTransport
+
+        return UdpTransport(mav.host, mav.port)
+    if mav.transport == "tcp":
+        from koala_bridge.drivers.transports.tcp import TcpServerTransport
+
+        return TcpServerTransport(mav.host, mav.port)
+    from koala_bridge.drivers.transports.pty import PtyTransport
+
+    return PtyTransport()

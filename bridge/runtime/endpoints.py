@@ -1,0 +1,160 @@
+"""Where each client connects: the endpoints file (for programs) and the start banner (for people).
+
+The endpoints file is JSON with exactly this shape (issue 2, item 8)::
+
+    {"serial": {"kteam": PATH, "rangefinders": PATH},
+     "can": {"socketcand": {"host": H, "port": P, "channel": C}, "slcan": PATH, "dbc": ABS_PATH},
+     "mavlink": {"url": PYMAVLINK_CONNECTION_STRING},
+     "zenoh": {"endpoints": [...], "prefix": PREFIX}}
+
+A bus that is disabled in the configuration appears as ``null``. The file is written atomically
+(a temporary file in the same directory, then ``os.replace``), so a reader never sees half a file,
+and only after every endpoint accepts clients.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from koala_bridge.drivers.can_codec import DEFAULT_DBC_PATH
+
+if TYPE_CHECKING:
+    from koala_bridge.runtime.buses import OpenBuses
+    from koala_bridge.runtime.settings import BridgeSettings
+
+
+@dataclass(frozen=True)
+class SocketcandEndpoint:
+    host: str
+    port: int
+    channel: str
+
+
+@dataclass(frozen=True)
+class Endpoints:
+    """Every place a client can connect to, as the bridge opened them."""
+
+    kteam: str | None = None
+    rangefinders: str | None = None
+    socketcand: SocketcandEndpoint | None = None
+    slcan: str | None = None
+    dbc: str | None = None
+    mavlink_url: str | None = None
+    zenoh_endpoints: tuple[str, ...] = ()
+    zenoh_prefix: str = ""
+    virtual_can_channel: str | None = None      # in-process only: not in the file
+    extra: dict[str, str] = field(default_factory=dict)
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """The endpoints file's content (see the module docstring)."""
+        sc = self.socketcand
+        return {
+            "serial": {"kteam": self.kteam, "rangefinders": self.rangefinders},
+            "can": {
+                "socketcand": (
+                    {"host": sc.host, "port": sc.port, "channel": sc.channel} if sc else None
+                ),
+                "slcan": self.slcan,
+                "dbc": self.dbc,
+            },
+            "mavlink": {"url": self.mavlink_url},
+            "zenoh": {"endpoints": list(self.zenoh_endpoints), "prefix": self.zenoh_prefix},
+        }
+
+    def describe(self) -> str:
+        """A few lines telling a person where each client connects, with a one-line example."""
+        off = "(disabled)"
+        lines = ["koala-bridge is serving. Connect clients to:"]
+        lines.append(
+            f"  K-Team serial (ASCII)   {self.kteam or off}"
+            + ("   e.g. serial.Serial(PATH, 115200)" if self.kteam else "")
+        )
+        lines.append(f"  Range frames (binary)   {self.rangefinders or off}")
+        if self.socketcand:
+            sc = self.socketcand
+            lines.append(
+                f"  CAN socketcand          {sc.host}:{sc.port} channel {sc.channel}"
+                f"   e.g. can.Bus(interface='socketcand', host='{sc.host}', port={sc.port},"
+                f" channel='{sc.channel}')"
+            )
+        else:
+            lines.append(f"  CAN socketcand          {off}")
+        lines.append(
+            f"  CAN slcan               {self.slcan or off}"
+            + (f"   e.g. can.Bus(interface='slcan', channel='{self.slcan}')" if self.slcan else "")
+        )
+        if self.virtual_can_channel:
+            lines.append(
+                f"  CAN virtual             channel '{self.virtual_can_channel}' (in-process only)"
+            )
+        lines.append(f"  CAN database (DBC)      {self.dbc or off}")
+        lines.append(
+            f"  MAVLink                 {self.mavlink_url or off}"
+            + (
+                f"   e.g. mavutil.mavlink_connection('{self.mavlink_url}')"
+                if self.mavlink_url
+                else ""
+            )
+        )
+        if self.zenoh_prefix:
+            where = ", ".join(self.zenoh_endpoints) or "(no listen endpoint: see [zenoh] connect)"
+            lines.append(f"  Zenoh                   {where}  prefix {self.zenoh_prefix}")
+        else:
+            lines.append(f"  Zenoh                   {off}")
+        for name, where in sorted(self.extra.items()):
+            lines.append(f"  {name:<23} {where}")
+        return "\n".join(lines)
+
+
+def endpoints_of(buses: OpenBuses, settings: BridgeSettings, zenoh: bool = True) -> Endpoints:
+    """Where clients connect to ``buses`` opened from ``settings`` (``run`` and ``replay``).
+
+    ``zenoh``: whether a Zenoh session listens on ``[zenoh] listen`` under ``[zenoh] prefix``.
+    """
+    socketcand = None
+    if "can.socketcand" in buses.can:
+        ep = buses.can["can.socketcand"].endpoint
+        socketcand = SocketcandEndpoint(str(ep.host), int(ep.port or 0), str(ep.channel))
+    mav_url = None
+    if buses.mavlink is not None:
+        ep = buses.mavlink.transport.endpoint
+        mav_url = settings.buses.mavlink.client_url(pty_path=ep.path, bound_port=ep.port)
+    return Endpoints(
+        kteam=buses.kteam.transport.endpoint.path if buses.kteam else None,
+        rangefinders=buses.rangefinders.transport.endpoint.path if buses.rangefinders else None,
+        socketcand=socketcand,
+        slcan=buses.can["can.slcan"].endpoint.path if "can.slcan" in buses.can else None,
+        dbc=str(DEFAULT_DBC_PATH.resolve()),
+        mavlink_url=mav_url,
+        zenoh_endpoints=settings.zenoh.listen if zenoh else (),
+        zenoh_prefix=settings.zenoh.prefix if zenoh else "",
+        virtual_can_channel=(
+            buses.can["can.virtual"].endpoint.channel if "can.virtual" in buses.can else None
+        ),
+    )
+
+
+def write_endpoints_file(path: str | os.PathLike[str], endpoints: Endpoints) -> Path:
+    """Write ``endpoints`` as JSON to ``path`` atomically (temporary file + rename)."""
+    target = Path(path).resolve()
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            json.dump(endpoints.to_json_dict(), f, indent=2)
+            f.write("\n")
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, target)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    return target

@@ -1,0 +1,732 @@
+"""The estimator node: localisation and mapping from what the robot's buses carry.
+
+:class:`LocalisationNode` owns the estimators of :mod:`koala_bridge.estimation` -- the pose EKF
+(:class:`estimation.PoseTracker`), the grid (histogram) localiser and the occupancy grid
+-- and feeds them with **decoded bus frames**: it is handed the raw bytes the robot put on its
+buses (:meth:`LocalisationNode.on_frame`, the same call shape as a recorder's
+``record_frame``) and decodes them with the project's codecs:
+
+=======================  ======================================  ============================
+bus                      codec (``drivers``)                     estimator input
+=======================  ======================================  ============================
+``can``                  ``can_codec.KoalaCanCodec`` (the DBC)   ``WheelOdometry``, ``Gyro``
+``mavlink``              ``mavlink_codec.CompassDecoder``        ``SCALED_IMU`` field
+``serial/rangefinders``  ``rangeframes.RangeFrameDecoder``       IR counts, sonar mm
+``serial/kteam``         ``kteam.parse_reply``                   ``n`` IR counts, ``h`` ticks
+=======================  ======================================  ============================
+
+So it runs the same against the simulator (``runtime/service.py`` hands it every frame it sends)
+and against a real Koala (``runtime/real_source.py`` hands it every frame it reads). The camera
+has no bus: in simulation the service passes the simulator's *measured* landmark observations
+(:meth:`LocalisationNode.on_camera`); a real robot has none. The node never sees the truth.
+
+One source per quantity, as in ``real_source``: K-Team ``n``/``h`` replies (answers to whoever
+polls the robot) are used only until a streaming source (range frames, CAN ``WheelOdometry``)
+has been seen.
+
+What it does with them (docs/localisation.md, "In the bridge"):
+
+* **pose** -- ``WheelOdometry`` frames predict (at ``predict_rate_hz``: the counters are
+  cumulative, so the frames in between are skipped undecoded), every ``Gyro`` frame supplies the
+  heading change; the compass (at ``compass_rate_hz``, after hard-iron removal: configured, or
+  fitted online to the circle the horizontal field draws once the robot has turned through most
+  headings) and camera landmarks correct; near a cell centre, IR sensors facing a known wall of
+  the cell fix the coordinate across that wall (``PoseTracker.on_coordinate``).
+* **grid** -- moves come from the pose: when the estimated position enters a neighbouring cell
+  (by ``move_hysteresis_m`` past the boundary) the grid filter predicts a move to that side; a
+  wall observation is made once per cell visit, from the first IR frame taken within
+  ``observe_radius_m`` of the cell centre (the lab's model assumes a cell-centred robot).
+* **occupancy** -- IR (and optionally sonar) ranges are integrated at the estimated pose, at
+  most ``update_hz`` scans per second (the heavy step).
+
+Outputs go through the ``publish(suffix, payload)`` callback the owner gives (Zenoh + recorder)
+at the configured rates, in the frames' time (simulation seconds in simulation):
+``estimate/pose``, ``estimate/cell``, ``estimate/grid``, ``map/occupancy``
+(:mod:`koala_bridge.estimation.messages`).
+
+Configuration: ``[localisation]`` with ``[localisation.pose]``, ``[localisation.grid]``,
+``[localisation.occupancy]`` (``config/default.toml`` shows every key); no section = off.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import can
+import numpy as np
+from koala_bridge.core.schema import ConfigError, reject_unknown
+from koala_bridge.drivers.can_codec import KoalaCanCodec, wrap_int32
+from koala_bridge.drivers.kteam import LineSplitter, parse_reply
+from koala_bridge.drivers.mavlink_codec import CompassDecoder
+from koala_bridge.drivers.messages import (
+    CompassSample,
+    GyroFrame,
+    KteamReply,
+    RangeKind,
+    WheelOdometryFrame,
+)
+from koala_bridge.drivers.rangeframes import NO_ECHO, RangeFrameDecoder
+from koala_bridge.estimation import (
+    BeamModel,
+    GridLocaliser,
+    GridParams,
+    OccupancyGrid,
+    OccupancyParams,
+    PoseTracker,
+    PoseTrackerParams,
+    heading_from_field,
+    sensor_sides,
+    walls_from_ir,
+)
+from koala_bridge.estimation.messages import (
+    KEY_CELL,
+    KEY_GRID,
+    KEY_OCCUPANCY,
+    KEY_POSE,
+    cell_message,
+    grid_message,
+    occupancy_message,
+    pose_message,
+)
+from koala_bridge.sim.config import SimConfig
+from koala_bridge.sim.world import SIDE_STEP, SIDES, World
+
+log = logging.getLogger(__name__)
+
+SECTION = "localisation"
+FROM_ROBOT = "from_robot"
+GRID_PRIORS = ("start", "uniform")
+HARD_IRON_BINS = 12          # heading bins (30 deg) the online hard-iron fit wants filled ...
+HARD_IRON_MIN_BINS = 10      # ... at least this many of them
+HARD_IRON_PER_BIN = 20       # samples kept per bin
+WALL_FIX_MAX_OFF_NORMAL = math.radians(20.0)  # as the coverage firmware's wall fixes
+# Counts usable as a range: below, the curve is flat (far); above, the sensor saturates.
+WALL_FIX_COUNTS = (40.0, 1000.0)
+Publish = Callable[[str, dict[str, Any]], None]
+
+
+# --------------------------------------------------------------------------- settings
+
+
+def _num(d: Mapping[str, Any], key: str, sec: str, *, low: float | None = 0.0,
+         strict: bool = False) -> float:
+    if key not in d:
+        raise ConfigError(f"[{sec}] missing required key '{key}'")
+    v = d[key]
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(float(v)):
+        raise ConfigError(f"[{sec}] '{key}' must be a finite number, got {v!r}")
+    if low is not None and (float(v) <= low if strict else float(v) < low):
+        raise ConfigError(f"[{sec}] '{key}' must be {'>' if strict else '>='} {low}, got {v!r}")
+    return float(v)
+
+
+def _flag(d: Mapping[str, Any], key: str, sec: str) -> bool:
+    if not isinstance(d.get(key), bool):
+        raise ConfigError(f"[{sec}] '{key}' must be true or false, got {d.get(key)!r}")
+    return bool(d[key])
+
+
+def _floats(d: Mapping[str, Any], key: str, sec: str, sizes: Sequence[int]) -> tuple[float, ...]:
+    v = d.get(key)
+    if not isinstance(v, list) or len(v) not in sizes or not all(
+        isinstance(e, int | float) and not isinstance(e, bool) for e in v
+    ):
+        raise ConfigError(f"[{sec}] '{key}' must be a list of {' or '.join(map(str, sizes))} "
+                          f"numbers, got {v!r}")
+    return tuple(float(e) for e in v)
+
+
+def _table(d: Mapping[str, Any], key: str, sec: str) -> Mapping[str, Any]:
+    v = d.get(key)
+    if not isinstance(v, Mapping):
+        raise ConfigError(f"[{sec}.{key}] missing or not a table")
+    return v
+
+
+@dataclass(frozen=True)
+class PoseSettings:
+    """``[localisation.pose]``: the EKF's noise model and its measurement options."""
+
+    odo_distance_var_per_m: float
+    odo_heading_var_per_m: float
+    odo_heading_var_per_rad: float
+    gyroscope_noise_density: float
+    gyroscope_random_walk: float
+    gyro_bias_sigma0: float
+    gyro_timeout_s: float
+    predict_rate_hz: float
+    compass_rate_hz: float
+    compass_sigma_deg: float
+    compass_hard_iron_uT: tuple[float, ...]   # () = estimate online
+    gate_probability: float
+    landmark_range_sigma_m: float
+    landmark_range_sigma_rel: float
+    landmark_far_from_m: float
+    landmark_far_doubling_m: float
+    landmark_bearing_sigma_deg: float
+    ir_wall_fixes: bool
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> PoseSettings:
+        s = f"{SECTION}.pose"
+        reject_unknown(d, list(cls.__dataclass_fields__), s)
+        gate = _num(d, "gate_probability", s, strict=True)
+        if gate >= 1.0:
+            raise ConfigError(f"[{s}] 'gate_probability' must be < 1, got {gate}")
+        numbers = {
+            k: _num(d, k, s, strict=k in ("compass_sigma_deg", "landmark_range_sigma_m",
+                                           "landmark_bearing_sigma_deg", "landmark_far_doubling_m",
+                                           "gyro_timeout_s", "predict_rate_hz",
+                                           "compass_rate_hz"))
+            for k in cls.__dataclass_fields__
+            if k not in ("compass_hard_iron_uT", "gate_probability", "ir_wall_fixes")
+        }
+        return cls(
+            **numbers,
+            compass_hard_iron_uT=_floats(d, "compass_hard_iron_uT", s, (0, 2, 3)),
+            gate_probability=gate,
+            ir_wall_fixes=_flag(d, "ir_wall_fixes", s),
+        )
+
+
+@dataclass(frozen=True)
+class GridSettings:
+    """``[localisation.grid]``: the histogram filter and when it moves and observes."""
+
+    p_move: float
+    p_hit: float
+    p_clear: float
+    ir_wall_threshold_counts: float
+    observe_radius_m: float
+    move_hysteresis_m: float
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> GridSettings:
+        s = f"{SECTION}.grid"
+        reject_unknown(d, list(cls.__dataclass_fields__), s)
+        out = cls(**{k: _num(d, k, s) for k in cls.__dataclass_fields__})
+        for k in ("p_move", "p_hit", "p_clear"):
+            if getattr(out, k) > 1.0:
+                raise ConfigError(f"[{s}] '{k}' is a probability (0..1), got {getattr(out, k)}")
+        return out
+
+
+@dataclass(frozen=True)
+class OccupancySettings:
+    """``[localisation.occupancy]``: the log-odds grid and which readings go into it."""
+
+    resolution_m: float
+    update_hz: float
+    l_occ: float
+    l_free: float
+    occ_share_cells: float
+    l_min: float
+    l_max: float
+    mark_free_on_no_echo: bool
+    ir: bool
+    ir_no_echo_counts: float
+    ir_range_error: float
+    sonar: bool
+    sonar_range_error: float
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> OccupancySettings:
+        s = f"{SECTION}.occupancy"
+        reject_unknown(d, list(cls.__dataclass_fields__), s)
+        flags = ("mark_free_on_no_echo", "ir", "sonar")
+        signed = ("l_free", "l_min")
+        nums = {
+            k: _num(d, k, s, low=None if k in signed else 0.0,
+                    strict=k in ("resolution_m", "update_hz", "l_max", "occ_share_cells"))
+            for k in cls.__dataclass_fields__ if k not in flags
+        }
+        if not nums["l_min"] < 0 < nums["l_max"]:
+            raise ConfigError(f"[{s}] needs l_min < 0 < l_max")
+        return cls(**nums, **{k: _flag(d, k, s) for k in flags})  # type: ignore[arg-type]
+
+
+@dataclass(frozen=True)
+class LocalisationSettings:
+    """``[localisation]``: on/off, publication rates (simulation time), the prior."""
+
+    enabled: bool
+    pose_rate_hz: float
+    cell_rate_hz: float
+    grid_rate_hz: float
+    occupancy_rate_hz: float
+    initial_pose: tuple[float, ...]     # () = the world's start; else (x_m, y_m, theta_deg)
+    initial_sigma_xy_m: float
+    initial_sigma_theta_deg: float
+    grid_prior: str                     # "start" | "uniform"
+    use_landmarks: bool
+    pose: PoseSettings
+    grid: GridSettings
+    occupancy: OccupancySettings
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> LocalisationSettings:
+        s = SECTION
+        reject_unknown(d, list(cls.__dataclass_fields__), s)
+        prior = d.get("grid_prior")
+        if prior not in GRID_PRIORS:
+            raise ConfigError(f"[{s}] 'grid_prior' must be one of {', '.join(GRID_PRIORS)}, "
+                              f"got {prior!r}")
+        rates = {k: _num(d, k, s, strict=True)
+                 for k in ("pose_rate_hz", "cell_rate_hz", "grid_rate_hz", "occupancy_rate_hz")}
+        return cls(
+            enabled=_flag(d, "enabled", s),
+            **rates,
+            initial_pose=_floats(d, "initial_pose", s, (0, 3)),
+            initial_sigma_xy_m=_num(d, "initial_sigma_xy_m", s, strict=True),
+            initial_sigma_theta_deg=_num(d, "initial_sigma_theta_deg", s, strict=True),
+            grid_prior=str(prior),
+            use_landmarks=_flag(d, "use_landmarks", s),
+            pose=PoseSettings.from_dict(_table(d, "pose", s)),
+            grid=GridSettings.from_dict(_table(d, "grid", s)),
+            occupancy=OccupancySettings.from_dict(_table(d, "occupancy", s)),
+        )
+
+    @classmethod
+    def from_config(cls, config: Mapping[str, Any]) -> LocalisationSettings | None:
+        """The typed ``[localisation]`` section, or None when it is absent or disabled."""
+        d = config.get(SECTION)
+        if d is None:
+            return None
+        if not isinstance(d, Mapping):
+            raise ConfigError(f"[{SECTION}] must be a table")
+        settings = cls.from_dict(d)
+        return settings if settings.enabled else None
+
+
+# --------------------------------------------------------------------------- the node
+
+
+@dataclass
+class NodeCounters:
+    """What the node took in and what it made of it (``status`` carries a copy)."""
+
+    frames: dict[str, int] = field(default_factory=dict)       # decoded, per input kind
+    rejected: dict[str, int] = field(default_factory=dict)     # undecodable, per bus
+    odometry_resets: int = 0       # encoder counters set by a client (K-Team G) or a jump
+    grid_moves: int = 0
+    grid_observations: int = 0
+    wall_fixes: int = 0
+    occupancy_scans: int = 0
+    clock_restarts: int = 0
+    hard_iron_uT: list[float] | None = None
+
+    def took(self, kind: str) -> None:
+        self.frames[kind] = self.frames.get(kind, 0) + 1
+
+    def bad(self, bus: str, n: int = 1) -> None:
+        if n:
+            self.rejected[bus] = self.rejected.get(bus, 0) + n
+
+
+class _HardIron:
+    """Online hard-iron estimate: the horizontal field, binned by the EKF's heading, draws a circle
+    centred on the offset (Kasa least-squares fit, as the coverage firmware's calibration turn)."""
+
+    def __init__(self) -> None:
+        self.bins: list[list[tuple[float, float]]] = [[] for _ in range(HARD_IRON_BINS)]
+
+    def add(self, heading: float, mx: float, my: float) -> np.ndarray | None:
+        k = int((heading + math.pi) / (2 * math.pi) * HARD_IRON_BINS) % HARD_IRON_BINS
+        if len(self.bins[k]) < HARD_IRON_PER_BIN:
+            self.bins[k].append((mx, my))
+        if sum(1 for b in self.bins if b) < HARD_IRON_MIN_BINS:
+            return None
+        xy = np.array([p for b in self.bins for p in b])
+        a = np.column_stack([2 * xy, np.ones(len(xy))])
+        sol, *_ = np.linalg.lstsq(a, np.sum(xy**2, axis=1), rcond=None)
+        return np.array([sol[0], sol[1], 0.0])
+
+
+class LocalisationNode:
+    """Estimators fed with decoded bus frames; publishes ``estimate/*`` and ``map/occupancy``.
+
+    Thread-safe: frames may come from several reader threads (a real robot's ports).
+
+    Args:
+        settings: the ``[localisation]`` section, typed.
+        robot: the robot and its known map (``koala_bridge.sim.config.load_sim_config`` of the run's
+            configuration: wheel base, ticks per metre, IR poses and response curve, sonar poses,
+            the world's grid, walls, landmarks and magnetic north).
+        publish: called with ``(key suffix, JSON-ready payload)`` for each output message.
+    """
+
+    def __init__(self, settings: LocalisationSettings, robot: SimConfig, publish: Publish) -> None:
+        self.settings = settings
+        self.world: World = robot.world
+        self._publish = publish
+        self._lock = threading.Lock()
+        self.counters = NodeCounters()
+        r, ir, sonar = robot.robot, robot.sensors.ir, robot.sensors.sonar
+        ps = settings.pose
+        self.tracker = PoseTracker(PoseTrackerParams(
+            wheel_base_m=r.wheel_base_m,
+            ticks_per_metre=r.ticks_per_metre,
+            odo_distance_var_per_m=ps.odo_distance_var_per_m,
+            odo_heading_var_per_m=ps.odo_heading_var_per_m,
+            odo_heading_var_per_rad=ps.odo_heading_var_per_rad,
+            gyroscope_noise_density=ps.gyroscope_noise_density,
+            gyroscope_random_walk=ps.gyroscope_random_walk,
+            gyro_bias_sigma0=ps.gyro_bias_sigma0,
+            gyro_timeout_s=ps.gyro_timeout_s,
+            compass_sigma_rad=math.radians(ps.compass_sigma_deg),
+            gate_probability=ps.gate_probability,
+        ))
+        self._ticks_per_metre = r.ticks_per_metre
+        self._max_wheel_speed = r.max_wheel_speed_mps
+        x0, y0, th0 = self._initial_pose()
+        sxy, sth = settings.initial_sigma_xy_m, math.radians(settings.initial_sigma_theta_deg)
+        self.tracker.reset(x0, y0, th0, np.diag([sxy**2, sxy**2, sth**2]))
+        g = settings.grid
+        start = self._cell_at(x0, y0)
+        self.grid = GridLocaliser(
+            self.world, GridParams(g.p_move, g.p_hit, g.p_clear),
+            start if settings.grid_prior == "start" else None,
+        )
+        self._cell = start            # the pose's cell the grid filter last moved to
+        self._observed_visit = False  # a wall observation made since entering self._cell
+        o = settings.occupancy
+        self.occupancy = OccupancyGrid.for_world(self.world, o.resolution_m, OccupancyParams(
+            l_occ=o.l_occ, l_free=o.l_free, occ_share_cells=o.occ_share_cells, l_min=o.l_min,
+            l_max=o.l_max, mark_free_on_no_echo=o.mark_free_on_no_echo,
+        ))
+        self._ir_poses = np.asarray(ir.poses, dtype=float)
+        self._ir_curve = (np.asarray(ir.response_counts, dtype=float)[::-1],
+                          np.asarray(ir.response_range_m, dtype=float)[::-1])
+        self._ir_beam = BeamModel(math.radians(ir.aperture_deg), o.ir_range_error, ir.max_range_m)
+        self._sonar_poses = np.asarray(sonar.poses, dtype=float)
+        self._sonar_beam = BeamModel(math.radians(sonar.aperture_deg), o.sonar_range_error,
+                                     sonar.max_range_m, sonar.min_range_m)
+        self._landmarks = {lm.id: (lm.x, lm.y) for lm in self.world.landmarks}
+        self._north = math.radians(self.world.earth_field.north_deg)
+        hard = ps.compass_hard_iron_uT
+        self._hard_iron: np.ndarray | None = (
+            np.array([*hard, 0.0][:3]) if hard else None)
+        self._hard_iron_fit = _HardIron() if not hard else None
+        # decoders, one per bus (streams keep their partial frames)
+        self._can = KoalaCanCodec()
+        self._mavlink = CompassDecoder()
+        self._ranges = RangeFrameDecoder()
+        self._kteam = LineSplitter()
+        self._streamed: set[str] = set()       # "ir", "odometry": a streaming source was seen
+        self._raw_ticks: tuple[int, int] | None = None
+        self._ticks = (0, 0)                   # counters fed to the EKF (resets removed)
+        self._odo_t: float | None = None
+        self._odometry_id = self._can.frame_ids["WheelOdometry"]
+        self._predict_period = 1.0 / ps.predict_rate_hz
+        self._compass_period = 1.0 / ps.compass_rate_hz
+        self._compass_t = -math.inf
+        self._last_occupancy = -math.inf
+        periods = {KEY_POSE: settings.pose_rate_hz, KEY_CELL: settings.cell_rate_hz,
+                   KEY_GRID: settings.grid_rate_hz, KEY_OCCUPANCY: settings.occupancy_rate_hz}
+        self._period = {k: 1.0 / hz for k, hz in periods.items()}
+        self._next = {k: -math.inf for k in periods}
+        self._next_due = -math.inf
+        self._last_t = -math.inf
+
+    def _restart_clock(self, t: float) -> None:
+        """Time went backwards (the simulator was reset, e.g. a second ``run``): restart every
+        schedule from ``t``. The estimates carry on; the encoder counters' jump back to 0 is
+        taken as a client reset (:meth:`_odometry`)."""
+        log.info("localisation: time went back from %.3f to %.3f s; schedules restarted",
+                 self._last_t, t)
+        self._next = dict.fromkeys(self._next, -math.inf)
+        self._next_due = -math.inf
+        self._odo_t = None
+        self._compass_t = -math.inf
+        self._last_occupancy = -math.inf
+        self.tracker.t = t
+        self.counters.clock_restarts += 1
+
+    def _now(self, t: float) -> None:
+        if t < self._last_t - 0.5:
+            self._restart_clock(t)
+        self._last_t = t
+
+    @classmethod
+    def from_config(cls, config: Mapping[str, Any], robot: SimConfig,
+                    publish: Publish) -> LocalisationNode | None:
+        """A node for ``config``'s ``[localisation]`` section, or None when it is off."""
+        settings = LocalisationSettings.from_config(config)
+        return None if settings is None else cls(settings, robot, publish)
+
+    def _initial_pose(self) -> tuple[float, float, float]:
+        p = self.settings.initial_pose
+        if p:
+            return p[0], p[1], math.radians(p[2])
+        start = self.world.start
+        if start is None:
+            raise ConfigError(f"[{SECTION}] 'initial_pose' = [] needs a world with a start pose")
+        return start.x, start.y, start.theta
+
+    def _cell_at(self, x: float, y: float) -> tuple[int, int]:
+        col, row = self.world.cell_of(x, y)
+        return (min(max(col, 0), self.world.cols - 1), min(max(row, 0), self.world.rows - 1))
+
+    # -- input ---------------------------------------------------------------------------
+
+    def on_frame(self, bus: str, direction: str, t: float, data: bytes, **fields: object) -> None:
+        """One raw frame seen on ``bus`` (a recorder's ``record_frame`` shape). Only what the
+        robot sends (``from_robot``) is used; CAN frames carry ``can_id``/``extended``."""
+        if direction != FROM_ROBOT:
+            return
+        with self._lock:
+            self._now(t)
+            if bus == "can":
+                self._on_can(t, data, fields)
+            elif bus == "mavlink":
+                self._on_mavlink(t, data)
+            elif bus == "serial/rangefinders":
+                self._on_ranges(t, data)
+            elif bus == "serial/kteam":
+                self._on_kteam(t, data)
+            self._maybe_publish(t)
+
+    def on_camera(self, t: float, observations: Sequence[Any]) -> None:
+        """Landmark observations (objects with ``id``, ``range`` m, ``bearing`` rad CCW from the
+        heading): the simulator's measured camera reading, which has no bus."""
+        if not self.settings.use_landmarks:
+            return
+        ps = self.settings.pose
+        with self._lock:
+            self._now(t)
+            for ob in observations:
+                xy = self._landmarks.get(int(ob.id))
+                if xy is None or not (math.isfinite(ob.range) and math.isfinite(ob.bearing)):
+                    continue
+                # Camera range error grows with distance (seeds/000 eq. 10-12).
+                far = max(0.0, ob.range - ps.landmark_far_from_m) / ps.landmark_far_doubling_m
+                sr = ps.landmark_range_sigma_m + ps.landmark_range_sigma_rel * ob.range * 2.0**far
+                self.tracker.on_landmark(t, xy, ob.range, ob.bearing, sr,
+                                         math.radians(ps.landmark_bearing_sigma_deg))
+                self.counters.took("landmark")
+            self._maybe_publish(t)
+
+    def _on_can(self, t: float, data: bytes, fields: Mapping[str, object]) -> None:
+        can_id = fields.get("can_id")
+        if not isinstance(can_id, int):
+            self.counters.bad("can")
+            return
+        # The counters are cumulative: a frame between two predictions carries nothing the next
+        # one does not, so it is not even decoded (predict_rate_hz; the heavy part is cantools).
+        if can_id == self._odometry_id and self._odo_t is not None \
+                and t - self._odo_t < self._predict_period - 1e-9:
+            return
+        msg = can.Message(arbitration_id=can_id, data=data,
+                          is_extended_id=bool(fields.get("extended", False)))
+        frame = self._can.decode(msg)
+        if isinstance(frame, WheelOdometryFrame):
+            self._streamed.add("odometry")
+            self._odometry(t, frame.left_ticks, frame.right_ticks)
+        elif isinstance(frame, GyroFrame):
+            self.counters.took("gyro")
+            self.tracker.on_gyro(t, frame.yaw_rate)
+        else:  # a Reject, or a MotorCommand (not the robot's)
+            self.counters.bad("can")
+
+    def _on_mavlink(self, t: float, data: bytes) -> None:
+        before = self._mavlink.rejected
+        for m in self._mavlink.feed(data):
+            if isinstance(m, CompassSample):
+                self._compass(t, m.x_ut, m.y_ut, m.z_ut)
+        self.counters.bad("mavlink", self._mavlink.rejected - before)
+
+    def _on_ranges(self, t: float, data: bytes) -> None:
+        before = self._ranges.rejected
+        for f in self._ranges.feed(data):
+            if f.kind == RangeKind.IR:
+                self._streamed.add("ir")
+                self._ir(t, np.asarray(f.readings, dtype=float))
+            else:
+                self._sonar(t, f.readings)
+        self.counters.bad("serial/rangefinders", self._ranges.rejected - before)
+
+    def _on_kteam(self, t: float, data: bytes) -> None:
+        for line in self._kteam.feed(data):
+            reply = parse_reply(line) if isinstance(line, bytes) else None
+            if not isinstance(reply, KteamReply):
+                continue
+            try:
+                values = reply.ints
+            except ValueError:
+                continue
+            if reply.letter == "n" and "ir" not in self._streamed \
+                    and len(values) == len(self._ir_poses):
+                self._ir(t, np.asarray(values, dtype=float))
+            elif reply.letter == "h" and "odometry" not in self._streamed and len(values) == 2:
+                self._odometry(t, values[0], values[1])
+
+    # -- estimators ----------------------------------------------------------------------
+
+    def _odometry(self, t: float, left: int, right: int) -> None:
+        """Cumulative counters -> the EKF, with client resets (K-Team ``G``) and int32 wraps
+        removed: a step the wheels cannot have made in the time is a reset, not a motion."""
+        self.counters.took("odometry")
+        if self._raw_ticks is None:
+            self._raw_ticks = (left, right)
+            self._odo_t = t
+            self.tracker.on_odometry(t, *self._ticks)
+            return
+        dl = wrap_int32(left - self._raw_ticks[0])
+        dr = wrap_int32(right - self._raw_ticks[1])
+        dt = max(t - (self._odo_t if self._odo_t is not None else t), 0.01)
+        # (after a clock restart _odo_t is None: the first step is judged over one 10 ms step)
+        limit = (2.0 * self._max_wheel_speed * dt + 0.01) * self._ticks_per_metre
+        self._raw_ticks = (left, right)
+        self._odo_t = t
+        if abs(dl) > limit or abs(dr) > limit:
+            self.counters.odometry_resets += 1
+            dl = dr = 0
+        self._ticks = (self._ticks[0] + dl, self._ticks[1] + dr)
+        self.tracker.on_odometry(t, *self._ticks)
+        self._follow_cells()
+
+    def _compass(self, t: float, mx: float, my: float, mz: float) -> None:
+        self.counters.took("compass")
+        if t - self._compass_t < self._compass_period - 1e-9:
+            return
+        self._compass_t = t
+        if self._hard_iron is None:
+            assert self._hard_iron_fit is not None
+            self._hard_iron = self._hard_iron_fit.add(self.tracker.pose[2], mx, my)
+            if self._hard_iron is None:
+                return
+            self.counters.hard_iron_uT = [round(float(v), 3) for v in self._hard_iron]
+            log.info("localisation: hard-iron offset %s uT (online fit)", self._hard_iron[:2])
+        self.tracker.on_compass(t, heading_from_field((mx, my, mz), self._north, self._hard_iron))
+
+    def _ir(self, t: float, counts: np.ndarray) -> None:
+        self.counters.took("ir")
+        x, y, th = self.tracker.pose
+        cx, cy = self.world.cell_centre(*self._cell)
+        g = self.settings.grid
+        if not self._observed_visit and math.hypot(x - cx, y - cy) <= g.observe_radius_m:
+            self._observed_visit = True
+            walls = walls_from_ir(counts, th, self._ir_poses, g.ir_wall_threshold_counts,
+                                  cell_m=self.world.cell_m)
+            self.grid.observe(walls)
+            self.counters.grid_observations += 1
+            if self.settings.pose.ir_wall_fixes:
+                self._wall_fixes(t, counts)
+        o = self.settings.occupancy
+        if o.ir and t - self._last_occupancy >= 1.0 / o.update_hz:
+            self._last_occupancy = t
+            ranges = np.where(counts < o.ir_no_echo_counts, np.inf,
+                              np.interp(counts, *self._ir_curve))
+            self.occupancy.integrate_scan(self.tracker.pose, self._ir_poses, ranges,
+                                          self._ir_beam)
+            self.counters.occupancy_scans += 1
+
+    def _wall_fixes(self, t: float, counts: np.ndarray) -> None:
+        """A sensor facing a known wall of the current cell within 20 deg of its normal measures
+        the robot's coordinate across that wall (range from the response curve)."""
+        x, y, th = self.tracker.pose
+        cell, cm = self._cell, self.world.cell_m
+        sides = sensor_sides(th, self._ir_poses, cm, WALL_FIX_MAX_OFF_NORMAL)
+        c, s = math.cos(th), math.sin(th)
+        for i, k in enumerate(sides):
+            n = float(counts[i])
+            if k is None or not self.world.has_wall(*cell, SIDES[k]) \
+                    or not WALL_FIX_COUNTS[0] <= n < WALL_FIX_COUNTS[1]:
+                continue
+            r = float(np.interp(n, *self._ir_curve))
+            bx, by, yaw = self._ir_poses[i]
+            phi = th + yaw
+            sigma = 0.004 + 0.05 * r
+            side = SIDES[k]
+            if side in ("N", "S"):
+                wall = (cell[1] + (1 if side == "N" else 0)) * cm
+                ok = self.tracker.on_coordinate(t, 1, wall - r * math.sin(phi) - (s * bx + c * by),
+                                                sigma)
+            else:
+                wall = (cell[0] + (1 if side == "E" else 0)) * cm
+                ok = self.tracker.on_coordinate(t, 0, wall - r * math.cos(phi) - (c * bx - s * by),
+                                                sigma)
+            self.counters.wall_fixes += int(ok)
+
+    def _sonar(self, t: float, readings: Sequence[int]) -> None:
+        self.counters.took("sonar")
+        o = self.settings.occupancy
+        if not o.sonar:
+            return
+        ranges = np.array([np.inf if v == NO_ECHO else v / 1000.0 for v in readings])
+        if ranges.size == len(self._sonar_poses):
+            self.occupancy.integrate_scan(self.tracker.pose, self._sonar_poses, ranges,
+                                          self._sonar_beam)
+
+    def _follow_cells(self) -> None:
+        """Grid moves from the pose: entering a neighbouring cell by ``move_hysteresis_m`` past
+        the boundary is a move to that side (a jump of several cells, several moves)."""
+        x, y, _ = self.tracker.pose
+        w = self.world
+        col, row = self._cell
+        h = self.settings.grid.move_hysteresis_m
+        x0, y0 = col * w.cell_m, row * w.cell_m
+        side = None
+        if x >= x0 + w.cell_m + h and col + 1 < w.cols:
+            side = "E"
+        elif x <= x0 - h and col > 0:
+            side = "W"
+        elif y >= y0 + w.cell_m + h and row + 1 < w.rows:
+            side = "N"
+        elif y <= y0 - h and row > 0:
+            side = "S"
+        if side is None:
+            return
+        self.grid.move(side)
+        self.counters.grid_moves += 1
+        dc, dr = SIDE_STEP[side]
+        self._cell = (col + dc, row + dr)
+        self._observed_visit = False
+        self._follow_cells()  # the other axis, or a jump of more than one cell
+
+    # -- output --------------------------------------------------------------------------
+
+    def _maybe_publish(self, t: float) -> None:
+        # On a fixed schedule in the frames' time (no drift from frame spacing; no catch-up
+        # burst after a gap).
+        if t < self._next_due - 1e-9:  # the common case: nothing due (every frame asks)
+            return
+        due = [k for k, nxt in self._next.items() if t >= nxt - 1e-9]
+        for key in due:
+            nxt = self._next[key] + self._period[key]
+            self._next[key] = nxt if nxt > t else t + self._period[key]
+            self._publish(key, self._message(key, t))
+        self._next_due = min(self._next.values())
+
+    def _message(self, key: str, t: float) -> dict[str, Any]:
+        if key == KEY_POSE:
+            return pose_message(t, *self.tracker.pose, self.tracker.pose_cov)
+        if key == KEY_CELL:
+            cell = self.grid.guess()
+            return cell_message(t, cell, self.grid.probability(cell))
+        if key == KEY_GRID:
+            return grid_message(t, self.grid.probabilities(), self.world.cell_m)
+        o = self.settings.occupancy
+        return occupancy_message(t, self.occupancy.log_odds, self.occupancy.resolution_m, o.l_max)
+
+    def snapshot(self) -> dict[str, Any]:
+        """Counters for ``status`` (JSON-ready)."""
+        with self._lock:
+            c = self.counters
+            return {
+                "frames": dict(c.frames),
+                "rejected": dict(c.rejected),
+                "gated_out": dict(self.tracker.counters.rejected),
+                "odometry_resets": c.odometry_resets,
+                "grid_moves": c.grid_moves,
+                "grid_observations": c.grid_observations,
+                "wall_fixes": c.wall_fixes,
+                "occupancy_scans": c.occupancy_scans,
+                "clock_restarts": c.clock_restarts,
+                "hard_iron_uT": c.hard_iron_uT,
+            }

@@ -1,0 +1,494 @@
+"""The real robot as the source: its ports, read with the same codecs, published and recorded as
+in simulation (``koala-bridge run --source real``).
+
+Nothing comes from the simulator: every reading is decoded from the robot's own ports, named in
+the ``[real]`` section of the configuration (docs/recording.md, "Real drivers")::
+
+    [real]
+    kteam = "/dev/ttyUSB0"              # serial device or pyserial URL (socket://, rfc2217://, loop://)
+    kteam_baud = 115200
+    kteam_poll = ["N", "H"]             # commands asked at kteam_poll_hz: N -> sensors/ir,
+    kteam_poll_hz = 10.0                #   H -> sensors/odometry, unless a streaming bus below
+                                        #   serves that key (then the poll is only recorded)
+    rangefinders = "/dev/ttyUSB1"       # range frames: kind 1 -> sensors/ir, 2 -> sensors/sonar
+    rangefinders_baud = 115200
+    can_interface = "socketcand"        # python-can interface; WheelOdometry -> sensors/odometry,
+    can_channel = "koala0"              #   Gyro -> sensors/gyro (config/koala.dbc)
+    can_options = { host = "192.168.1.20", port = 29536 }   # extra can.Bus keyword arguments
+    mavlink = "udpin:0.0.0.0:14550"     # MAVLink connection string; SCALED_IMU -> sensors/compass
+
+Every key is optional: a port not named is not opened. ``t`` of every message is the host's
+monotonic time since the start, in seconds (a real robot has no simulation time; its own sample
+stamps stay in the raw frames of the recording). The rest of the configuration (robot, world,
+zenoh) is read as for a simulated run: the world and robot description answer the ``world``
+queryable, so monitor and snapshot work unchanged. No ``truth/pose`` is published.
+
+With ``[localisation] enabled``, every frame read from the robot also goes to the estimator node
+(:class:`runtime.localisation.LocalisationNode`), which decodes it as it decodes the simulated
+buses and publishes ``estimate/*`` and ``map/occupancy`` (no camera: it has no bus).
+
+:class:`RealRobotSource` has the simulated service's life cycle: ``open() -> Endpoints``,
+``run(stop, duration_s)``, ``close()``, the ``tap`` recorder, ``clock.real_time_factor``.
+"""
+
+from __future__ import annotations
+
+import logging
+import socket
+import threading
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import can
+import serial
+from koala_bridge.core.schema import ConfigError, reject_unknown
+from koala_bridge.drivers.can_codec import KoalaCanCodec
+from koala_bridge.drivers.kteam import LineSplitter, format_command, parse_reply
+from koala_bridge.drivers.mavlink_codec import CompassDecoder
+from koala_bridge.drivers.messages import (
+    CompassSample,
+    GyroFrame,
+    KteamCommand,
+    KteamReply,
+    RangeKind,
+    WheelOdometryFrame,
+)
+from koala_bridge.drivers.rangeframes import NO_ECHO, RangeFrameDecoder, encode_range_frame
+from koala_bridge.runtime.counters import BusCounters
+from koala_bridge.runtime.endpoints import Endpoints
+from koala_bridge.runtime.localisation import LocalisationNode
+from koala_bridge.runtime.service import Tap, start_reader
+from koala_bridge.runtime.settings import BridgeSettings
+from koala_bridge.runtime.zenoh_io import ZENOH_BUS, ZenohLink, status_message
+from koala_bridge.sim.config import load_sim_config
+
+log = logging.getLogger(__name__)
+
+READ_TIMEOUT_S = 0.1
+KTEAM_REPLY_TIMEOUT_S = 0.5
+POLLABLE = {"N": "sensors/ir", "H": "sensors/odometry"}
+
+
+@dataclass(frozen=True)
+class RealPorts:
+    """``[real]``: where the robot's ports are (every key optional)."""
+
+    kteam: str | None = None
+    kteam_baud: int = 115200
+    kteam_poll: tuple[str, ...] = ()
+    kteam_poll_hz: float = 10.0
+    rangefinders: str | None = None
+    rangefinders_baud: int = 115200
+    can_interface: str | None = None
+    can_channel: str | None = None
+    can_options: Mapping[str, Any] = field(default_factory=dict)
+    mavlink: str | None = None
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> RealPorts:
+        s = "real"
+        reject_unknown(d, list(cls.__dataclass_fields__), s)
+        poll = tuple(str(c) for c in d.get("kteam_poll", ()))
+        for c in poll:
+            if c not in POLLABLE:
+                raise ConfigError(f"[{s}] 'kteam_poll': {c!r} is not one of {sorted(POLLABLE)}")
+        hz = float(d.get("kteam_poll_hz", 10.0))
+        if poll and not hz > 0:
+            raise ConfigError(f"[{s}] 'kteam_poll_hz' must be > 0, got {hz!r}")
+        if bool(d.get("can_interface")) != bool(d.get("can_channel")):
+            raise ConfigError(f"[{s}] 'can_interface' and 'can_channel' go together")
+        if poll and not d.get("kteam"):
+            raise ConfigError(f"[{s}] 'kteam_poll' needs 'kteam' (the K-Team serial port)")
+        return cls(
+            kteam=d.get("kteam"),
+            kteam_baud=int(d.get("kteam_baud", 115200)),
+            kteam_poll=poll,
+            kteam_poll_hz=hz,
+            rangefinders=d.get("rangefinders"),
+            rangefinders_baud=int(d.get("rangefinders_baud", 115200)),
+            can_interface=d.get("can_interface"),
+            can_channel=d.get("can_channel"),
+            can_options=dict(d.get("can_options", {})),
+            mavlink=d.get("mavlink"),
+        )
+
+    @classmethod
+    def from_config(cls, config: Mapping[str, Any]) -> RealPorts:
+        real = config.get("real")
+        if not isinstance(real, Mapping) or not real:
+            raise ConfigError(
+                "--source real needs a [real] section naming the robot's ports "
+                "(kteam, rangefinders, can_interface/can_channel, mavlink; docs/recording.md)"
+            )
+        return cls.from_dict(real)
+
+
+class MavlinkLink:
+    """The receiving end of a MAVLink connection string: ``udpin:HOST:PORT`` (listen for
+    datagrams), ``udp:HOST:PORT`` (same), ``tcp:HOST:PORT`` (connect), or a serial device /
+    pyserial URL with an optional ``,BAUD``."""
+
+    def __init__(self, url: str) -> None:
+        self.url = url
+        self.is_datagram = False
+        self._sock: socket.socket | None = None
+        self._serial: serial.SerialBase | None = None
+        kind, _, rest = url.partition(":")
+        if kind in ("udpin", "udp") and rest:
+            host, port = _host_port(rest, url)
+            self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            self._sock.bind((host, port))
+            self.is_datagram = True
+        elif kind == "tcp" and rest:
+            self._sock = socket.create_connection(_host_port(rest, url), timeout=5.0)
+        else:
+            path, _, baud = url.partition(",")
+            self._serial = serial.serial_for_url(path, baudrate=int(baud or 115200), timeout=0)
+        if self._sock is not None:
+            self._sock.settimeout(READ_TIMEOUT_S)
+
+    def read(self) -> bytes:
+        if self._sock is not None:
+            try:
+                return self._sock.recv(65536)
+            except TimeoutError:
+                return b""
+        assert self._serial is not None
+        self._serial.timeout = READ_TIMEOUT_S
+        return bytes(self._serial.read(max(1, self._serial.in_waiting)))
+
+    def close(self) -> None:
+        if self._sock is not None:
+            self._sock.close()
+        if self._serial is not None:
+            self._serial.close()
+
+
+def _host_port(text: str, url: str) -> tuple[str, int]:
+    host, _, port = text.rpartition(":")
+    if not host or not port.isdigit():
+        raise ConfigError(f"[real] 'mavlink': expected HOST:PORT in {url!r}")
+    return host, int(port)
+
+
+class _RealClock:
+    """Host time since the start; a real robot runs in real time (factor 1 by definition)."""
+
+    def __init__(self) -> None:
+        self._t0 = time.monotonic()
+
+    def start(self) -> None:
+        self._t0 = time.monotonic()
+
+    def now(self) -> float:
+        return time.monotonic() - self._t0
+
+    def real_time_factor(self, sim_t: float) -> float:
+        return 1.0
+
+
+@dataclass
+class _LastReadings:
+    t: float = 0.0
+
+
+class RealRobotSource:
+    """Reads the real robot's ports, publishes on Zenoh, records through ``tap``.
+
+    Args:
+        config: the whole configuration (with ``[real]``).
+        settings: its bridge sections (Zenoh settings, status rate).
+        world_answer: the ``world`` queryable's answer (world + robot description).
+        tap: optional recorder.
+    """
+
+    def __init__(
+        self,
+        config: Mapping[str, Any],
+        settings: BridgeSettings,
+        world_answer: Callable[[], Mapping[str, Any]],
+        tap: Tap | None = None,
+    ) -> None:
+        self.ports = RealPorts.from_config(config)
+        self.settings = settings
+        self.tap = tap
+        self.clock = _RealClock()
+        self.counters = BusCounters()
+        self._world_answer = world_answer
+        self.zenoh: ZenohLink | None = None
+        self._kteam: serial.SerialBase | None = None
+        self._kteam_lock = threading.Lock()
+        self._ranges: serial.SerialBase | None = None
+        self._can: can.BusABC | None = None
+        self._mavlink: MavlinkLink | None = None
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._can_codec = KoalaCanCodec()
+        self.last = _LastReadings()
+        p = self.ports
+        self._streamed = ({"sensors/ir"} if p.rangefinders else set()) | (
+            {"sensors/odometry"} if p.can_interface else set()
+        )
+        # The estimator node, fed with every frame read from the robot (_frame); None when off.
+        self.localisation = LocalisationNode.from_config(
+            config, load_sim_config(config), self._publish
+        )
+
+    # -- life cycle --------------------------------------------------------------------------
+
+    def world_answer(self) -> Mapping[str, Any]:
+        return self._world_answer()
+
+    def open(self) -> Endpoints:
+        """Open the robot's ports and the Zenoh session, start the readers."""
+        p = self.ports
+        try:
+            if p.kteam:
+                self._kteam = self._open_serial("kteam", p.kteam, p.kteam_baud)
+            if p.rangefinders:
+                self._ranges = self._open_serial(
+                    "rangefinders", p.rangefinders, p.rangefinders_baud
+                )
+            if p.can_interface:
+                try:
+                    self._can = can.Bus(
+                        interface=p.can_interface, channel=p.can_channel, **dict(p.can_options)
+                    )
+                except (can.CanError, OSError, ValueError) as e:
+                    raise OSError(f"cannot open CAN {p.can_interface}/{p.can_channel}: {e}") from e
+            if p.mavlink:
+                try:
+                    self._mavlink = MavlinkLink(p.mavlink)
+                except (OSError, serial.SerialException, ValueError) as e:
+                    raise OSError(f"cannot open MAVLink {p.mavlink!r}: {e}") from e
+            self.zenoh = ZenohLink(self.settings.zenoh, self._world_answer, self.counters)
+        except BaseException:
+            self.close()
+            raise
+        if self.tap is not None:
+            # Every port opened gets its channel in the recording, frames or not; the Zenoh
+            # keys are what the robot sends, so they appear with their first message.
+            opened = (
+                ("serial/kteam", self._kteam),
+                ("serial/rangefinders", self._ranges),
+                ("can", self._can),
+                ("mavlink", self._mavlink),
+            )
+            self.tap.declare(["status"], [bus for bus, port in opened if port is not None])
+        self.clock.start()
+        if self._ranges is not None:
+            self._spawn("rangefinders", self._range_reader(self._ranges))
+        if self._can is not None:
+            self._spawn("can", self._can_reader(self._can))
+        if self._mavlink is not None:
+            self._spawn("mavlink", self._mavlink_reader(self._mavlink))
+        return Endpoints(
+            zenoh_endpoints=self.settings.zenoh.listen, zenoh_prefix=self.settings.zenoh.prefix
+        )
+
+    def run(self, stop: threading.Event, duration_s: float | None = None) -> _LastReadings:
+        """Poll K-Team and publish ``status`` until ``stop`` or ``duration_s`` host seconds."""
+        if self.zenoh is None:
+            raise RuntimeError("open() before run()")
+        duration = self.settings.run.duration_s if duration_s is None else duration_s
+        status_period = 1.0 / self.settings.zenoh.status_rate_hz
+        poll_period = 1.0 / self.ports.kteam_poll_hz if self.ports.kteam_poll else None
+        next_status = status_period
+        next_poll = 0.0
+        while not stop.is_set():
+            now = self.clock.now()
+            if duration and now >= duration:
+                break
+            if poll_period is not None and now >= next_poll:
+                for letter in self.ports.kteam_poll:
+                    self._poll_kteam(letter)
+                next_poll += poll_period
+            if now >= next_status:
+                self._publish_status()
+                next_status += status_period
+            wake = min(next_status, next_poll if poll_period is not None else next_status)
+            stop.wait(max(0.0, min(wake - self.clock.now(), READ_TIMEOUT_S)))
+        self.last.t = self.clock.now()
+        self._publish_status()
+        return self.last
+
+    def close(self) -> None:
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout=5.0)
+        self._threads.clear()
+        for port in (self._kteam, self._ranges):
+            if port is not None:
+                port.close()
+        self._kteam = self._ranges = None
+        if self._can is not None:
+            self._can.shutdown()
+            self._can = None
+        if self._mavlink is not None:
+            self._mavlink.close()
+            self._mavlink = None
+        if self.zenoh is not None:
+            self.zenoh.close()
+            self.zenoh = None
+
+    def __enter__(self) -> RealRobotSource:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- helpers -----------------------------------------------------------------------------
+
+    @staticmethod
+    def _open_serial(name: str, url: str, baud: int) -> serial.SerialBase:
+        try:
+            return serial.serial_for_url(url, baudrate=baud, timeout=READ_TIMEOUT_S)
+        except (serial.SerialException, ValueError) as e:
+            raise OSError(f"cannot open {name} port {url!r}: {e}") from e
+
+    def _spawn(self, name: str, step: Callable[[], None]) -> None:
+        thread = start_reader(
+            name, step, self._stop, thread_prefix="real",
+            transient=(OSError, serial.SerialException, can.CanError), logger=log,
+        )
+        self._threads.append(thread)
+
+    def _publish(self, suffix: str, message: dict[str, Any]) -> None:
+        if self.zenoh is not None:
+            self.zenoh.publish(suffix, message)
+        if self.tap is not None:
+            self.tap.record(suffix, message["t"], message)
+
+    def _frame(self, bus: str, direction: str, t: float, data: bytes, **fields: object) -> None:
+        if self.tap is not None:
+            self.tap.record_frame(bus, direction, t, data, **fields)
+        if self.localisation is not None:
+            self.localisation.on_frame(bus, direction, t, data, **fields)
+
+    def _publish_status(self) -> None:
+        counts = self.counters.snapshot()
+        buses = {name: {**c, "dropped": 0} for name, c in counts.items() if name != ZENOH_BUS}
+        msg = status_message(self.clock.now(), 1.0, buses)
+        msg["source"] = "real"
+        if self.localisation is not None:
+            msg["localisation"] = self.localisation.snapshot()
+        self._publish("status", msg)
+
+    # -- readers -----------------------------------------------------------------------------
+
+    def _range_reader(self, port: serial.SerialBase) -> Callable[[], None]:
+        decoder = RangeFrameDecoder()
+
+        def step() -> None:
+            data = port.read(max(1, port.in_waiting))
+            if not data:
+                return
+            before = decoder.rejected
+            frames = decoder.feed(data)
+            t = self.clock.now()
+            self.counters.rejected("rangefinders", decoder.rejected - before)
+            for f in frames:
+                self.counters.received("rangefinders")
+                self._frame("serial/rangefinders", "from_robot", t, encode_range_frame(f))
+                if f.kind == RangeKind.IR:
+                    self._publish("sensors/ir", {"t": t, "counts": list(f.readings)})
+                else:
+                    ranges = [None if r == NO_ECHO else r / 1000.0 for r in f.readings]
+                    self._publish("sensors/sonar", {"t": t, "ranges": ranges})
+
+        return step
+
+    def _can_reader(self, bus: can.BusABC) -> Callable[[], None]:
+        codec = self._can_codec
+
+        def step() -> None:
+            msg = bus.recv(timeout=READ_TIMEOUT_S)
+            if msg is None:
+                return
+            t = self.clock.now()
+            self._frame(
+                "can",
+                "from_robot",
+                t,
+                bytes(msg.data),
+                can_id=msg.arbitration_id,
+                extended=msg.is_extended_id,
+            )
+            frame = codec.decode(msg)
+            if isinstance(frame, WheelOdometryFrame):
+                self.counters.received("can")
+                self._publish(
+                    "sensors/odometry",
+                    {"t": t, "left_ticks": frame.left_ticks, "right_ticks": frame.right_ticks},
+                )
+            elif isinstance(frame, GyroFrame):
+                self.counters.received("can")
+                self._publish("sensors/gyro", {"t": t, "yaw_rate": frame.yaw_rate})
+            else:  # a Reject, or a frame the robot does not send (MotorCommand)
+                self.counters.rejected("can")
+
+        return step
+
+    def _mavlink_reader(self, link: MavlinkLink) -> Callable[[], None]:
+        decoder = CompassDecoder()
+
+        def step() -> None:
+            data = link.read()
+            if not data:
+                return
+            t = self.clock.now()
+            self._frame("mavlink", "from_robot", t, data)
+            before = decoder.rejected
+            out = decoder.feed_datagram(data) if link.is_datagram else decoder.feed(data)
+            self.counters.rejected("mavlink", decoder.rejected - before)
+            for m in out:
+                self.counters.received("mavlink")
+                if isinstance(m, CompassSample):
+                    self._publish(
+                        "sensors/compass", {"t": t, "mx": m.x_ut, "my": m.y_ut, "mz": m.z_ut}
+                    )
+
+        return step
+
+    def _poll_kteam(self, letter: str) -> None:
+        port = self._kteam
+        if port is None:
+            return
+        command = format_command(KteamCommand(letter))
+        t = self.clock.now()
+        with self._kteam_lock:
+            try:
+                port.reset_input_buffer()
+                port.write(command)
+                self._frame("serial/kteam", "to_robot", t, command)
+                self.counters.sent("kteam")
+                port.timeout = KTEAM_REPLY_TIMEOUT_S
+                line = port.read_until(b"\n")
+            except (OSError, serial.SerialException) as e:
+                log.warning("kteam: %s", e)
+                return
+        t = self.clock.now()
+        if not line.endswith(b"\n"):
+            self.counters.rejected("kteam")
+            log.debug("kteam: no reply to %s", letter)
+            return
+        self._frame("serial/kteam", "from_robot", t, line)
+        splitter = LineSplitter()
+        lines = [x for x in splitter.feed(line) if isinstance(x, bytes)]
+        reply = parse_reply(lines[0]) if lines else None
+        if not isinstance(reply, KteamReply) or reply.letter != letter.lower():
+            self.counters.rejected("kteam")
+            return
+        self.counters.received("kteam")
+        values = list(reply.ints)
+        # One source per key: a streaming bus wins over polling (the poll is still recorded).
+        if POLLABLE[letter] in self._streamed:
+            return
+        if letter == "N":
+            self._publish("sensors/ir", {"t": t, "counts": values})
+        elif letter == "H" and len(values) == 2:
+            self._publish(
+                "sensors/odometry", {"t": t, "left_ticks": values[0], "right_ticks": values[1]}
+            )

@@ -1,0 +1,355 @@
+"""Replay a recording's raw bus frames on the buses, with their original timing.
+
+What the robot sent (``dir = from_robot`` frames of ``/bus/...`` channels) goes back out on the
+same transports ``run`` serves (``[buses]`` of the configuration): range frames on the
+rangefinders pty, CAN frames on every CAN interface, MAVLink datagrams/bytes on the MAVLink link.
+Frame ``i`` leaves at ``start + (t_i - t_0) / speed`` on the monotonic clock, computed from the
+start (no drift); the loop sleeps until shortly before the deadline and spins the rest, so a frame
+leaves within a fraction of a millisecond of its time (docs/recording.md has the measurement).
+
+K-Team ASCII is request/response, so its replies are not replayed as a stream: a command from
+the client is answered with the latest recorded reply to the same letter at the current replay
+time (``h,...`` for ``H``), or with the K-Team error reply if the recording has none.
+
+The recorded Zenoh messages (``truth/pose``, ``sensors/*``, ``status``, ``estimate/*``, ...) go
+back out on a Zenoh session at their times too, byte for byte, under ``[zenoh] prefix``, and the
+session answers ``<prefix>/world`` with the recording's world: ``monitor`` and ``snapshot`` work
+during a replay as during a run.
+
+:func:`plan_replay` refuses, with a message naming the reason, a recording it cannot replay:
+another format version, no bus channel, no frame from the robot.
+"""
+
+from __future__ import annotations
+
+import bisect
+import logging
+import threading
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import can
+from koala_bridge.drivers.kteam import LineSplitter, error_reply, format_reply, parse_command
+from koala_bridge.drivers.messages import Reject, RejectReason, TransportError
+from koala_bridge.recording.mcap_file import (
+    BUSES,
+    FORMAT_VERSION,
+    FROM_ROBOT,
+    PROFILE,
+    Recording,
+    UnsupportedRecordingError,
+)
+from koala_bridge.runtime.buses import LockedByteLink, OpenBuses
+from koala_bridge.runtime.zenoh_io import ZenohLink
+
+log = logging.getLogger(__name__)
+
+SPIN_S = 0.002  # sleep until this close to a deadline, then spin: sleep overshoots ~0.1-1 ms
+SWITCH_INTERVAL_S = 0.0005  # GIL hand-over while replaying (CPython's default: 5 ms)
+STREAM_BUSES = ("serial/rangefinders", "can", "mavlink")
+ZENOH = "zenoh"  # the pseudo-bus of replayed Zenoh messages in plans and statistics
+
+
+@dataclass(frozen=True)
+class ReplayFrame:
+    """One frame to put back on a bus at recorded time ``t`` (simulation seconds); for
+    ``bus == "zenoh"``, a recorded JSON payload to publish on ``<prefix>/<key>``."""
+
+    t: float
+    bus: str
+    data: bytes
+    can_id: int | None = None
+    extended: bool = False
+    key: str | None = None
+
+
+@dataclass
+class ReplayPlan:
+    """The frames of a recording, sorted by time, and the K-Team replies by letter."""
+
+    frames: list[ReplayFrame]
+    kteam_replies: dict[str, tuple[list[float], list[bytes]]]
+    counts: dict[str, int]
+    t0: float
+    t_end: float
+
+
+def plan_replay(
+    rec: Recording, buses: tuple[str, ...] | None = None, zenoh: bool = True
+) -> ReplayPlan:
+    """The frames to replay from ``rec``; raises :class:`UnsupportedRecordingError` with the
+    reason if there is nothing this version can replay. ``buses`` limits the buses replayed;
+    ``zenoh`` adds the recorded Zenoh messages (bus ``"zenoh"``, counted under that name)."""
+    name = rec.path.name
+    if rec.profile != PROFILE and rec.format_version is None:
+        raise UnsupportedRecordingError(
+            f"{name} is an MCAP file but not a koala-bridge recording (profile {rec.profile!r}, "
+            "no 'koala-bridge' metadata): nothing to replay"
+        )
+    if rec.format_version != FORMAT_VERSION:
+        raise UnsupportedRecordingError(
+            f"{name} is recording format version {rec.format_version}; this koala-bridge "
+            f"replays version {FORMAT_VERSION} only"
+        )
+    bus_topics = sorted(t for t in rec.topics if t.startswith("/bus/"))
+    if not bus_topics:
+        others = ", ".join(rec.topics) or "nothing"
+        raise UnsupportedRecordingError(
+            f"{name} has no bus channel (/bus/serial/kteam, /bus/serial/rangefinders, /bus/can, "
+            f"/bus/mavlink), only {others}: there are no raw frames to put back on a bus"
+        )
+    wanted = set(buses or BUSES)
+    frames: list[ReplayFrame] = []
+    replies: dict[str, tuple[list[float], list[bytes]]] = {}
+    counts: dict[str, int] = {}
+    unknown: set[str] = set()
+    zenoh_frames: list[ReplayFrame] = []
+    for m in rec.messages:
+        if not m.topic.startswith("/bus/"):
+            if zenoh:
+                zenoh_frames.append(ReplayFrame(m.t, ZENOH, m.data, key=m.topic.lstrip("/")))
+            continue
+        bus = m.topic[len("/bus/") :]
+        if bus not in BUSES:
+            unknown.add(bus)
+            continue
+        if bus not in wanted:
+            continue
+        msg = m.json()
+        if msg.get("dir") != FROM_ROBOT:
+            continue
+        data = m.frame_bytes()
+        if bus == "serial/kteam":
+            for line in data.splitlines():
+                if line:
+                    times, lines = replies.setdefault(chr(line[0]), ([], []))
+                    times.append(m.t)
+                    lines.append(line + b"\r\n")
+        else:
+            cid = msg.get("can_id")
+            frames.append(
+                ReplayFrame(
+                    m.t, bus, data, None if cid is None else int(cid), bool(msg.get("extended"))
+                )
+            )
+        counts[bus] = counts.get(bus, 0) + 1
+    if unknown:
+        log.warning("%s: bus channels this version does not know are skipped: %s", name, unknown)
+    if not counts:
+        raise UnsupportedRecordingError(
+            f"{name} holds no frame sent by the robot (dir = from_robot) on "
+            f"{', '.join(sorted(wanted))}: nothing to replay"
+        )
+    if zenoh_frames:
+        frames += zenoh_frames
+        counts[ZENOH] = len(zenoh_frames)
+    frames.sort(key=lambda f: f.t)  # stable: equal times keep file order
+    for letter, (ts, ls) in list(replies.items()):
+        order = sorted(range(len(ts)), key=ts.__getitem__)
+        replies[letter] = ([ts[i] for i in order], [ls[i] for i in order])
+    times = [f.t for f in frames] + [ts[0] for ts, _ in replies.values() if ts]
+    t_end = max([f.t for f in frames] + [ts[-1] for ts, _ in replies.values() if ts])
+    return ReplayPlan(frames, replies, counts, min(times), t_end)
+
+
+@dataclass
+class ReplayStats:
+    """What a replay did: frames sent per bus, and how late each frame left (wall seconds)."""
+
+    sent: dict[str, int] = field(default_factory=dict)
+    failed: dict[str, int] = field(default_factory=dict)
+    lateness: list[float] = field(default_factory=list)
+    kteam_answered: int = 0
+    stopped_early: bool = False
+
+    def lateness_quantile(self, q: float) -> float:
+        if not self.lateness:
+            return 0.0
+        xs = sorted(self.lateness)
+        return xs[min(len(xs) - 1, int(q * len(xs)))]
+
+
+class Replayer:
+    """Puts a :class:`ReplayPlan` on open buses. ``run(stop)`` blocks until done or stopped."""
+
+    def __init__(
+        self,
+        plan: ReplayPlan,
+        buses: OpenBuses,
+        speed: float = 1.0,
+        linger_s: float = 0.5,
+        monotonic: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+        zenoh: ZenohLink | None = None,
+        on_sent_all: Callable[[ReplayStats], None] | None = None,
+    ) -> None:
+        """``on_sent_all`` is called once every frame has been sent, before the linger (the
+        command line says so, for the client that waits for the end of the stream)."""
+        if not speed > 0:
+            raise ValueError(f"speed must be > 0, got {speed!r}")
+        self.plan = plan
+        self.buses = buses
+        self.zenoh = zenoh
+        self.speed = speed
+        self.linger_s = linger_s
+        self._monotonic = monotonic
+        self._sleep = sleep
+        self._on_sent_all = on_sent_all
+        self._start: float | None = None
+        self.stats = ReplayStats()
+        missing = [b for b in plan.counts if not self._has_bus(b)]
+        if missing:
+            log.warning("recorded buses not enabled in the configuration, skipped: %s", missing)
+
+    def _has_bus(self, bus: str) -> bool:
+        return {
+            "serial/kteam": self.buses.kteam is not None,
+            "serial/rangefinders": self.buses.rangefinders is not None,
+            "mavlink": self.buses.mavlink is not None,
+            "can": bool(self.buses.can),
+            ZENOH: self.zenoh is not None,
+        }[bus]
+
+    def replay_time(self) -> float:
+        """The recording's time now (simulation seconds); ``t0`` before the start."""
+        if self._start is None:
+            return self.plan.t0
+        return self.plan.t0 + max(0.0, self._monotonic() - self._start) * self.speed
+
+    def run(self, stop: threading.Event) -> ReplayStats:
+        kteam = None
+        if self.buses.kteam is not None and self.plan.kteam_replies:
+            kteam = threading.Thread(
+                target=self._answer_kteam,
+                args=(self.buses.kteam, stop),
+                name="replay-kteam",
+                daemon=True,
+            )
+        self._start = self._monotonic()
+        if kteam is not None:
+            kteam.start()
+        try:
+            for frame in self.plan.frames:
+                due = self._start + (frame.t - self.plan.t0) / self.speed
+                if not self._wait_until(due, stop):
+                    self.stats.stopped_early = True
+                    break
+                self._send(frame)
+                self.stats.lateness.append(self._monotonic() - due)
+            else:
+                # K-Team answers go on until the recording's last reply time.
+                end = self._start + (self.plan.t_end - self.plan.t0) / self.speed
+                if not self._wait_until(end, stop):
+                    self.stats.stopped_early = True
+                else:
+                    if self._on_sent_all is not None:
+                        self._on_sent_all(self.stats)
+                    self._linger(stop)
+        finally:
+            if kteam is not None:
+                stop.set()
+                kteam.join(timeout=2.0)
+        return self.stats
+
+    def _linger(self, stop: threading.Event) -> None:
+        """Keep the buses open ``linger_s`` after the last frame, pushing out what a pty still
+        holds: closing a pty's master discards what its client has not read yet."""
+        deadline = self._monotonic() + self.linger_s
+        while self._monotonic() < deadline and not stop.is_set():
+            for link in (self.buses.rangefinders, self.buses.mavlink):
+                flush = getattr(link.transport, "flush", None) if link is not None else None
+                if flush is not None:
+                    try:
+                        flush()
+                    except TransportError:
+                        pass
+            stop.wait(0.01)
+
+    def _wait_until(self, due: float, stop: threading.Event) -> bool:
+        while True:
+            if stop.is_set():
+                return False
+            remaining = due - self._monotonic()
+            if remaining <= 0:
+                return True
+            if remaining > SPIN_S:
+                # Wake up regularly to see ``stop``; finish the last SPIN_S by spinning.
+                stop.wait(min(remaining - SPIN_S, 0.1))
+            else:
+                # Spin without holding the GIL: the transports' I/O threads (socketcand) must
+                # run meanwhile, or they wait up to a GIL switch interval (5 ms).
+                self._sleep(0)
+
+    def _send(self, frame: ReplayFrame) -> None:
+        try:
+            if frame.bus == ZENOH:
+                if self.zenoh is None:
+                    return
+                assert frame.key is not None
+                self.zenoh.publish_json(frame.key, frame.data)
+            elif frame.bus == "can":
+                if not self.buses.can:
+                    return
+                msg = can.Message(
+                    arbitration_id=frame.can_id or 0,
+                    is_extended_id=frame.extended,
+                    data=frame.data,
+                    timestamp=frame.t,
+                )
+                for transport in self.buses.can.values():
+                    transport.send(msg)
+            else:
+                link = (
+                    self.buses.rangefinders
+                    if frame.bus == "serial/rangefinders"
+                    else self.buses.mavlink
+                )
+                if link is None:
+                    return
+                link.write(frame.data)
+        except TransportError as e:
+            n = self.stats.failed.get(frame.bus, 0)
+            if n == 0:
+                log.warning("replay on %s failed (further failures not logged): %s", frame.bus, e)
+            self.stats.failed[frame.bus] = n + 1
+            return
+        self.stats.sent[frame.bus] = self.stats.sent.get(frame.bus, 0) + 1
+
+    def _answer_kteam(self, link: LockedByteLink, stop: threading.Event) -> None:
+        splitter = LineSplitter()
+        while not stop.is_set():
+            try:
+                if not link.wait(0.1):
+                    continue
+                data = link.read()
+                for line in splitter.feed(data) if data else []:
+                    link.write(self.kteam_reply(line))
+                    self.stats.kteam_answered += 1
+            except TransportError as e:
+                if stop.is_set():
+                    return
+                log.warning("replay kteam: %s", e)
+                stop.wait(0.1)
+
+    def kteam_reply(self, line: bytes | Reject) -> bytes:
+        """The recorded answer to one command line at the current replay time."""
+        cmd = line if isinstance(line, Reject) else parse_command(line)
+        if isinstance(cmd, Reject):
+            return format_reply(error_reply(cmd))
+        times, lines = self.plan.kteam_replies.get(cmd.letter.lower(), ([], []))
+        i = bisect.bisect_right(times, self.replay_time()) - 1
+        if i < 0:
+            reject = Reject(RejectReason.UNSUPPORTED, f"no recorded reply to {cmd.letter}")
+            return format_reply(error_reply(reject))
+        return lines[i]
+
+
+def settings_for_replay(
+    recorded_config: Mapping[str, Any] | None, fallback: Mapping[str, Any]
+) -> Mapping[str, Any]:
+    """The configuration whose ``[buses]`` the replay serves: the recorded one if it has buses."""
+    if recorded_config and "buses" in recorded_config:
+        return recorded_config
+    return fallback

@@ -1,0 +1,547 @@
+"""The bridge service: steps the simulator on a clock and serves every bus and Zenoh.
+
+Threads (all owned here, all joined by :meth:`BridgeService.close`):
+
+- the **simulation loop** (the caller's thread, :meth:`BridgeService.run`): waits for step ``n``
+  on the clock, applies the wheel command in force (:class:`runtime.robot_io.MotorArbiter`), steps
+  the simulator, and sends each reading that became due: binary range frames on the
+  rangefinders pty, CAN ``WheelOdometry`` / ``Gyro`` on every CAN interface, MAVLink
+  ``SCALED_IMU`` (and ``HEARTBEAT`` at ``heartbeat_hz``), and the Zenoh messages. Sample times are
+  simulation times; a reading is on the wire within the step that produced it.
+- one **reader thread per input**: K-Team commands (answered at once from the latest readings)
+  and CAN frames from each interface (``MotorCommand``). What clients send on the rangefinders
+  pty and the MAVLink link is read by the simulation loop itself, every ``DRAIN_PERIOD_S`` of
+  wall time, as it is the only thread using those transports. Input that does not decode is
+  rejected and counted and changes nothing else.
+
+``status`` counters per bus: ``sent`` (writes/frames handed to clients, from the transport),
+``received`` (well-formed frames the bridge acted on or accepted), ``rejected`` (input discarded:
+by the codec here plus what the transport itself refused), ``dropped`` (output thrown away because
+no client was connected or a client could not keep up).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any, Protocol
+
+import numpy as np
+from koala_bridge.drivers.can_codec import KoalaCanCodec
+from koala_bridge.drivers.kteam import KteamLimits, LineSplitter, format_reply, parse_command
+from koala_bridge.drivers.mavlink_codec import CompassDecoder, CompassEncoder, MavlinkIdentity
+from koala_bridge.drivers.messages import (
+    CompassSample,
+    GyroFrame,
+    MotorCommandFrame,
+    RangeFrame,
+    RangeKind,
+    Reject,
+    TransportError,
+    WheelOdometryFrame,
+)
+from koala_bridge.drivers.rangeframes import NO_ECHO, encode_range_frame
+from koala_bridge.estimation.messages import KEY_CELL, KEY_GRID, KEY_OCCUPANCY, KEY_POSE
+from koala_bridge.runtime.buses import LockedByteLink, OpenBuses, open_buses
+from koala_bridge.runtime.clock import Clock, make_clock
+from koala_bridge.runtime.counters import BusCounters
+from koala_bridge.runtime.endpoints import Endpoints, endpoints_of
+from koala_bridge.runtime.localisation import LocalisationNode
+from koala_bridge.runtime.robot_io import KteamResponder, MotorArbiter, RobotPort, RobotUnits
+from koala_bridge.runtime.settings import BridgeSettings
+from koala_bridge.runtime.zenoh_io import (
+    ZENOH_BUS,
+    ZenohLink,
+    pose_message,
+    sensor_messages,
+    status_message,
+)
+from koala_bridge.sim.raycast import cast_fan_arrays
+from koala_bridge.sim.simulator import Simulator
+from koala_bridge.sim.types import Readings
+
+log = logging.getLogger(__name__)
+
+READ_TIMEOUT_S = 0.1        # how long a reader thread blocks before it checks for stop
+DRAIN_PERIOD_S = 0.02       # wall time between reads of the output links' input
+GYRO_LIMIT = 20.0           # rad/s: the DBC range of Gyro.yaw_rate
+
+
+class Tap(Protocol):
+    """Something that sees what the bridge publishes and every raw bus frame (a recorder)."""
+
+    def declare(self, keys: Iterable[str] = (), buses: Iterable[str] = ()) -> None: ...
+
+    def record(self, channel: str, t: float, payload: Mapping[str, Any]) -> None: ...
+
+    def record_frame(
+        self, bus: str, direction: str, t: float, data: bytes, **fields: object
+    ) -> None: ...
+
+
+class BridgeService:
+    """Simulator + buses + Zenoh for one run. ``open()``, then ``run(stop)``, then ``close()``.
+
+    Args:
+        config: the whole configuration (parsed TOML after command-line overrides).
+        settings: its bridge sections, typed (:meth:`BridgeSettings.from_config`).
+        seed: the run's seed; None uses ``[sim] seed``.
+        clock: paces the loop; by default the clock named in ``[run] clock``.
+        tap: optional recorder of Zenoh messages and bus frames.
+    """
+
+    def __init__(
+        self,
+        config: Mapping[str, Any],
+        settings: BridgeSettings,
+        seed: int | None = None,
+        clock: Clock | None = None,
+        tap: Tap | None = None,
+    ) -> None:
+        self.settings = settings
+        self.sim = Simulator(config)
+        self.seed = seed
+        self.dt = self.sim.dt
+        self.clock = clock or make_clock(settings.run.clock, self.dt)
+        self.tap = tap
+        robot = self.sim.config.robot
+        self.units = RobotUnits(robot.ticks_per_metre, robot.speed_unit_s)
+        self.counters = BusCounters()
+        self.arbiter = MotorArbiter(settings.buses.motor_watchdog_s)
+        self.port = RobotPort(n_ir=len(self.sim.config.sensors.ir.poses))
+        self.kteam = KteamResponder(
+            self.port,
+            self.arbiter,
+            self.units,
+            KteamLimits(max_speed=settings.buses.kteam_max_speed, sensors=self.port.n_ir),
+        )
+        self.can_codec = KoalaCanCodec()
+        mav = settings.buses.mavlink
+        self.mav_encoder = CompassEncoder(MavlinkIdentity(mav.system_id, mav.component_id))
+        self.buses = OpenBuses()
+        self.zenoh: ZenohLink | None = None
+        self.endpoints: Endpoints | None = None
+        self._stop_readers = threading.Event()
+        self._readers: list[threading.Thread] = []
+        self._range_seq = {RangeKind.IR: 0, RangeKind.SONAR: 0}
+        self._last_readings: Readings | None = None
+        self._ir_axis: tuple[np.ndarray, np.ndarray] | None = None
+        self._initial: Readings | None = None
+        self._write_errors: set[str] = set()
+        self._drains: list[Callable[[], None]] = []
+        self._last_drain = 0.0
+        zs = settings.zenoh
+        self._pose_period = max(1, round(1.0 / (zs.pose_rate_hz * self.dt)))
+        self._status_period = max(1, round(1.0 / (zs.status_rate_hz * self.dt)))
+        self._heartbeat_period = max(1, round(1.0 / (mav.heartbeat_hz * self.dt)))
+        # The estimator node ([localisation]): fed with the frames this service puts on the
+        # buses (_send_bytes, _send_can) and the camera's observations (no bus); None when off.
+        self.localisation = LocalisationNode.from_config(
+            config, self.sim.config, self._publish_estimate
+        )
+
+    # -- lifecycle ---------------------------------------------------------------------------
+
+    def world_answer(self) -> dict[str, Any]:
+        """The answer of the ``<prefix>/world`` queryable: the world plus ``robot``."""
+        return {**self.sim.world.to_dict(), "robot": self.sim.robot_description()}
+
+    def open(self) -> Endpoints:
+        """Open every bus and the Zenoh session, start the readers; return where clients connect.
+
+        When this returns, every endpoint accepts clients.
+        """
+        try:
+            # Reset first: the first step loads compiled ray casting, so data flows as soon as
+            # the endpoints are announced.
+            self._initial = self.sim.reset(self.seed)
+            self.buses = open_buses(self.settings.buses)
+            self.zenoh = ZenohLink(self.settings.zenoh, self.world_answer, self.counters)
+            self._start_readers()
+        except BaseException:
+            self.close()
+            raise
+        self.endpoints = endpoints_of(self.buses, self.settings)
+        return self.endpoints
+
+    def close(self) -> None:
+        """Stop the readers, close every transport and the Zenoh session. Idempotent."""
+        self._stop_readers.set()
+        for t in self._readers:
+            t.join(timeout=5.0)
+            if t.is_alive():
+                log.warning("reader thread %s did not stop", t.name)
+        self._readers.clear()
+        self.buses.close()
+        if self.zenoh is not None:
+            self.zenoh.close()
+            self.zenoh = None
+
+    def __enter__(self) -> BridgeService:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- simulation loop ---------------------------------------------------------------------
+
+    def run(self, stop: threading.Event, duration_s: float | None = None) -> Readings:
+        """Step until ``stop`` is set or ``duration_s`` simulation seconds have run (None: the
+        configured ``[run] duration_s``; 0: no limit). Returns the last readings."""
+        if self.zenoh is None:
+            raise RuntimeError("open() the service before run()")
+        duration = self.settings.run.duration_s if duration_s is None else duration_s
+        last_step = round(duration / self.dt) if duration > 0 else None
+        r = self._initial if self._initial is not None else self.sim.reset(self.seed)
+        self._initial = None
+        if self.tap is not None:
+            self.tap.declare(self._published_keys(r), self._tap_buses())
+        self.clock.start()
+        self._emit(r, 0)
+        n = 0
+        while not stop.is_set() and (last_step is None or n < last_step):
+            if not self.clock.wait_for_step(n + 1, timeout=READ_TIMEOUT_S):
+                continue
+            r = self.sim.step(self.arbiter.command(self.sim.t))
+            n += 1
+            self._emit(r, n)
+        # The final counters, unless the last step just published them (one status per t).
+        if n == 0 or n % self._status_period != 0:
+            self._publish_status(r.t)
+        return r
+
+    def _published_keys(self, r: Readings) -> list[str]:
+        """Every Zenoh key this run publishes (``r``: the step-0 readings, where every sensor
+        reads), in the order a recording lists them."""
+        keys = ["truth/pose", *sensor_messages(r), "status"]
+        if self.localisation is not None:
+            keys += [KEY_POSE, KEY_CELL, KEY_GRID, KEY_OCCUPANCY]
+        return keys
+
+    def _tap_buses(self) -> list[str]:
+        """The recorder's names of the buses this run serves."""
+        names = list(self.buses.byte_links()) + (["can"] if self.buses.can else [])
+        return [_tap_bus(name) for name in names]
+
+    def _emit(self, r: Readings, n: int) -> None:
+        """Hand the readings of step ``n`` to every bus and to Zenoh."""
+        self.port.update(r)
+        self._last_readings = r
+        if self.buses.rangefinders is not None:
+            if r.ir is not None:
+                counts = np.clip(np.asarray(r.ir.counts), 0, 1023).astype(int)
+                self._send_range(RangeKind.IR, r.t, tuple(int(c) for c in counts))
+            if r.sonar is not None:
+                self._send_range(RangeKind.SONAR, r.t, _sonar_mm(r.sonar.ranges))
+        if self.buses.can:
+            if r.odometry is not None:
+                left, right = self.port.robot_counters(
+                    (int(r.odometry.left_ticks), int(r.odometry.right_ticks))
+                )
+                self._send_can(WheelOdometryFrame(left, right), r.t)
+            if r.gyro is not None and math.isfinite(r.gyro.yaw_rate):
+                rate = max(-GYRO_LIMIT, min(GYRO_LIMIT, float(r.gyro.yaw_rate)))
+                self._send_can(GyroFrame(rate), r.t)
+        if self.buses.mavlink is not None:
+            if n % self._heartbeat_period == 0:
+                self._send_bytes("mavlink", self.buses.mavlink, self.mav_encoder.heartbeat(), r.t)
+            if r.compass is not None:
+                m = r.compass.field_uT
+                t_ms = int(round(r.t * 1000))
+                sample = CompassSample(t_ms, float(m[0]), float(m[1]), float(m[2]))
+                self._send_bytes(
+                    "mavlink", self.buses.mavlink, self.mav_encoder.scaled_imu(sample), r.t
+                )
+        if self.localisation is not None and r.camera is not None:
+            self.localisation.on_camera(r.t, r.camera.observations)
+        self._publish(r, n)
+        self._drain_output_links()
+
+    def _publish(self, r: Readings, n: int) -> None:
+        assert self.zenoh is not None
+        messages = sensor_messages(r, None if r.ir is None else self._ir_incidence(r))
+        if n % self._pose_period == 0:
+            messages = {"truth/pose": pose_message(r), **messages}
+        for suffix, message in messages.items():
+            try:
+                self.zenoh.publish(suffix, message)
+            except TransportError as e:  # the loop and the other buses go on
+                self._write_failed(ZENOH_BUS, e)
+            if self.tap is not None:
+                self.tap.record(suffix, r.t, message)
+        if n % self._status_period == 0 and n > 0:
+            self._publish_status(r.t)
+
+    def _ir_incidence(self, r: Readings) -> np.ndarray:
+        """(n,) rad: incidence of each IR sensor's axis ray on the surface at its truth range
+        (nan where nothing is in range), for ``sensors/ir`` ``truth.incidence``.
+
+        :class:`sim.types.IrReading` carries the axis ranges but not their incidence, so the
+        axis rays are cast again with the simulator's own compiled cast
+        (:func:`sim.raycast.cast_fan_arrays`) from the reading's pose: 16 rays, same walls, same
+        equations, hence the same surface as ``truth_ranges``.
+        """
+        assert r.ir is not None
+        if self._ir_axis is None:
+            fan = self.sim.ir.fan
+            body = np.ascontiguousarray(fan.body[:, fan.k // 2 :: fan.k])
+            self._ir_axis = (body, np.full(fan.n, self.sim.ir.max_range_m))
+        body, max_range = self._ir_axis
+        p = r.pose
+        rays, _ = cast_fan_arrays(self.sim.walls, body, max_range, p.x, p.y, p.theta)
+        return np.where(np.isfinite(np.asarray(r.ir.truth_ranges, dtype=float)), rays[5], np.nan)
+
+    def status(self, t: float) -> dict[str, Any]:
+        """The ``status`` message: real-time factor and per-bus counters."""
+        counts = self.counters.snapshot()
+        buses: dict[str, dict[str, int]] = {}
+        for name, st in self.buses.stats().items():
+            mine = counts.get(name, {"sent": 0, "received": 0, "rejected": 0})
+            buses[name] = {
+                "sent": st.sent,
+                "received": mine["received"],
+                "rejected": mine["rejected"] + st.rejected,
+                "dropped": st.dropped,
+            }
+        if ZENOH_BUS in counts:
+            buses[ZENOH_BUS] = {**counts[ZENOH_BUS], "dropped": 0}
+        msg = status_message(t, self.clock.real_time_factor(t), buses)
+        msg["motor_command_source"] = self.arbiter.source
+        msg["leds"] = self.port.led_states()  # K-Team L: [lateral, frontal], 0 off / 1 on
+        if self.localisation is not None:
+            msg["localisation"] = self.localisation.snapshot()
+        return msg
+
+    def _publish_status(self, t: float) -> None:
+        if self.zenoh is None:
+            return
+        msg = self.status(t)
+        try:
+            self.zenoh.publish("status", msg)
+        except TransportError as e:
+            self._write_failed(ZENOH_BUS, e)
+        if self.tap is not None:
+            self.tap.record("status", t, msg)
+
+    def _publish_estimate(self, suffix: str, msg: dict[str, Any]) -> None:
+        """The localisation node's output: Zenoh and the recorder, like every other key."""
+        if self.zenoh is not None:
+            try:
+                self.zenoh.publish(suffix, msg)
+            except TransportError as e:
+                self._write_failed(ZENOH_BUS, e)
+        if self.tap is not None:
+            self.tap.record(suffix, msg["t"], msg)
+
+    # -- output helpers ----------------------------------------------------------------------
+
+    def _send_range(self, kind: RangeKind, t: float, readings: tuple[int, ...]) -> None:
+        seq = self._range_seq[kind]
+        self._range_seq[kind] = (seq + 1) & 0xFFFF
+        t_us = int(round(t * 1e6)) & 0xFFFFFFFF
+        data = encode_range_frame(RangeFrame(kind, seq, t_us, readings))
+        assert self.buses.rangefinders is not None
+        self._send_bytes("rangefinders", self.buses.rangefinders, data, t)
+
+    def _send_bytes(self, bus: str, link: LockedByteLink, data: bytes, t: float) -> None:
+        try:
+            link.write(data)
+        except TransportError as e:
+            self._write_failed(bus, e)
+            return
+        if self.tap is not None:
+            self.tap.record_frame(_tap_bus(bus), "from_robot", t, data)
+        if self.localisation is not None:
+            self.localisation.on_frame(_tap_bus(bus), "from_robot", t, data)
+
+    def _send_can(self, frame: WheelOdometryFrame | GyroFrame, t: float) -> None:
+        msg = self.can_codec.encode(frame)
+        msg.timestamp = t
+        for name, transport in self.buses.can.items():
+            try:
+                transport.send(msg)
+            except TransportError as e:
+                self._write_failed(name, e)
+        if self.tap is not None:
+            self.tap.record_frame(
+                "can", "from_robot", t, bytes(msg.data), can_id=msg.arbitration_id,
+                extended=msg.is_extended_id,
+            )
+        if self.localisation is not None:
+            self.localisation.on_frame(
+                "can", "from_robot", t, bytes(msg.data), can_id=msg.arbitration_id,
+                extended=msg.is_extended_id,
+            )
+
+    def _write_failed(self, bus: str, e: Exception) -> None:
+        if bus not in self._write_errors:  # log once per bus, the loop goes on
+            self._write_errors.add(bus)
+            log.warning("writing to %s failed (further failures not logged): %s", bus, e)
+
+    # -- readers -----------------------------------------------------------------------------
+
+    def _start_readers(self) -> None:
+        b = self.buses
+        if b.kteam is not None:
+            self._spawn("kteam", self._kteam_reader(b.kteam))
+        for name, transport in b.can.items():
+            self._spawn(name, self._can_reader(name, transport))
+        # The rangefinders and MAVLink links are written by the simulation loop; it also reads
+        # what clients send there (_drain_output_links), so that no transport is used by two
+        # threads at once.
+        self._drains = []
+        if b.rangefinders is not None:
+            self._drains.append(self._reject_all_reader("rangefinders", b.rangefinders))
+        if b.mavlink is not None:
+            self._drains.append(self._mavlink_reader(b.mavlink))
+
+    def _spawn(self, name: str, step: Callable[[], None]) -> None:
+        self._readers.append(start_reader(name, step, self._stop_readers))
+
+    def _kteam_reader(self, link: LockedByteLink) -> Callable[[], None]:
+        splitter = LineSplitter()
+        responder = self.kteam
+
+        def step() -> None:
+            if not link.wait(READ_TIMEOUT_S):
+                return
+            data = link.read()
+            if not data:
+                return
+            t = self.port.t
+            if self.tap is not None:
+                self.tap.record_frame("serial/kteam", "to_robot", t, data)
+            for line in splitter.feed(data):
+                cmd = line if isinstance(line, Reject) else parse_command(line, responder.specs)
+                if isinstance(cmd, Reject):
+                    self.counters.rejected("kteam")
+                    log.debug("kteam: rejected %s (%s)", cmd.raw, cmd.detail)
+                    reply = responder.reject(cmd)
+                else:
+                    self.counters.received("kteam")
+                    reply = responder.respond(cmd)
+                self._send_bytes("kteam", link, format_reply(reply), t)
+
+        return step
+
+    def _drain_output_links(self) -> None:
+        """Read what clients sent on the links the loop writes (at most every DRAIN_PERIOD_S)."""
+        now = time.monotonic()
+        if now - self._last_drain < DRAIN_PERIOD_S:
+            return
+        self._last_drain = now
+        for drain in self._drains:
+            try:
+                drain()
+            except TransportError as e:
+                self._write_failed("input", e)
+
+    def _reject_all_reader(self, bus: str, link: LockedByteLink) -> Callable[[], None]:
+        """An output-only link: anything a client sends is rejected (and counted)."""
+
+        def step() -> None:
+            for _ in range(64):  # bounded: the loop must not stall on a flood
+                if not link.read():
+                    return
+                self.counters.rejected(bus)
+
+        return step
+
+    def _mavlink_reader(self, link: LockedByteLink) -> Callable[[], None]:
+        decoder = CompassDecoder()
+
+        def step() -> None:
+            for _ in range(64):  # bounded: the loop must not stall on a flood
+                data = link.read()
+                if not data:
+                    return
+                one(data)
+
+        def one(data: bytes) -> None:
+            before = (decoder.decoded + decoder.ignored, decoder.rejected)
+            if link.is_datagram:
+                decoder.feed_datagram(data)
+            else:
+                decoder.feed(data)
+            # Valid MAVLink from a ground station (its HEARTBEAT, requests) is accepted and
+            # ignored; the compass has no commands.
+            self.counters.received("mavlink", decoder.decoded + decoder.ignored - before[0])
+            self.counters.rejected("mavlink", decoder.rejected - before[1])
+            if self.tap is not None:
+                self.tap.record_frame("mavlink", "to_robot", self.port.t, data)
+
+        return step
+
+    def _can_reader(self, name: str, transport: Any) -> Callable[[], None]:
+        codec = self.can_codec
+
+        def step() -> None:
+            msg = transport.recv(timeout=READ_TIMEOUT_S)
+            if msg is None:
+                return
+            if self.tap is not None:
+                self.tap.record_frame(
+                    "can", "to_robot", self.port.t, bytes(msg.data), can_id=msg.arbitration_id,
+                    extended=msg.is_extended_id, transport=name,
+                )
+            frame = codec.decode(msg)
+            if isinstance(frame, MotorCommandFrame):
+                self.counters.received(name)
+                self.arbiter.set(frame.left_speed, frame.right_speed, name)
+            else:
+                # A Reject, or a frame only the robot sends (WheelOdometry, Gyro) coming from a
+                # client: either way the robot does not act on it.
+                self.counters.rejected(name)
+                log.debug("%s: rejected %s", name, frame)
+
+        return step
+
+
+def _sonar_mm(ranges: Any) -> tuple[int, ...]:
+    """Sonar ranges (m, nan = no echo) as u16 millimetres with ``0xFFFF`` = no echo."""
+    out = []
+    for r in np.asarray(ranges, dtype=float):
+        out.append(NO_ECHO if not math.isfinite(r) else int(min(max(round(r * 1000), 0), 0xFFFE)))
+    return tuple(out)
+
+
+def start_reader(
+    name: str,
+    step: Callable[[], None],
+    stop: threading.Event,
+    *,
+    thread_prefix: str = "bridge",
+    transient: tuple[type[Exception], ...] = (TransportError,),
+    logger: logging.Logger = log,
+) -> threading.Thread:
+    """Start a daemon thread ``<thread_prefix>-<name>`` that calls ``step`` until ``stop`` is
+    set; return it.
+
+    A ``transient`` error (a port failing) is logged as a warning and waited out for
+    :data:`READ_TIMEOUT_S` before the next ``step``, or ends the thread if ``stop`` is set by then
+    (the port was closed under it). Any other exception is logged with its traceback and the loop
+    goes on: a reader must outlive any one bad input.
+    """
+
+    def loop() -> None:
+        while not stop.is_set():
+            try:
+                step()
+            except transient as e:
+                if stop.is_set():
+                    return
+                logger.warning("%s: %s", name, e)
+                stop.wait(READ_TIMEOUT_S)
+            except Exception:
+                logger.exception("%s reader failed on one input; going on", name)
+
+    thread = threading.Thread(target=loop, name=f"{thread_prefix}-{name}", daemon=True)
+    thread.start()
+    return thread
+
+
+def _tap_bus(bus: str) -> str:
+    return {"kteam": "serial/kteam", "rangefinders": "serial/rangefinders"}.get(bus, bus)

@@ -1,0 +1,254 @@
+"""The calibrate subcommand end to end: report shape, plots, written config, errors."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+from koala_bridge.calibration.bundle import load_input
+from koala_bridge.calibration.effects import Effect, available_effects, register_effect
+from koala_bridge.calibration.effects.hard_iron import algebraic_centre
+from koala_bridge.calibration.effects.quantisation import lattice_step
+from koala_bridge.calibration.errors import (
+    BundleError,
+    EffectRegistryError,
+)
+from koala_bridge.cli import calibrate as cli
+
+DATA = Path(__file__).parents[1] / "data" / "real"
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _matplotlib_fonts_loaded() -> None:
+    """Render once before the per-test leak check takes its baseline: matplotlib's font cache
+    keeps the font files it has loaded open for the life of the process, by design."""
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots()
+    ax.set_title("t")
+    ax.plot([0, 1], [0, 1], ".")
+    fig.suptitle("x")
+    fig.savefig(io.BytesIO(), format="png")
+    plt.close(fig)
+
+
+def _args(*argv: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    cli.add_arguments(parser)
+    return parser.parse_args(list(argv))
+
+
+def test_report_shape_and_written_config(tmp_path: Path) -> None:
+    model = tmp_path / "model.toml"
+    model.write_text('[robot]\nname = "lego"\nwheel_base_m = 0.15\n', encoding="utf-8")
+    out, new = tmp_path / "out", tmp_path / "new.toml"
+    args = _args(
+        str(DATA / "lego_brenner"),
+        "--config",
+        str(model),
+        "--out",
+        str(out),
+        "--write-config",
+        str(new),
+        "--quiet",
+    )
+    assert cli.run(args) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert list(report) == ["streams"]
+    entry = report["streams"][0]
+    assert list(entry) == ["stream", "metric", "unit", "before", "after", "split", "effects"]
+    assert entry["stream"] == "odometry" and entry["unit"] == "m"
+    assert (
+        list(entry["split"]) == ["fit", "score"]
+        and entry["split"]["fit"][1] == entry["split"]["score"][0]
+    )
+    assert all(list(e) == ["name", "params", "evidence"] for e in entry["effects"])
+    md = (out / "report.md").read_text()
+    assert "```diff" in md and "wheel_base_m" in md
+    assert (out / "residuals_odometry.png").stat().st_size > 1000
+    cfg = tomllib.loads(new.read_text())
+    assert cfg["robot"]["name"] == "lego"  # the rest of the model is kept
+    assert 0.165 < cfg["robot"]["wheel_base_m"] < 0.195
+    assert "ticks_per_metre" in cfg["robot"]
+
+
+def test_ir_config_keys(tmp_path: Path) -> None:
+    new = tmp_path / "new.toml"
+    assert (
+        cli.run(
+            _args(
+                str(DATA / "khepera2_ir"),
+                "--out",
+                str(tmp_path / "o"),
+                "--write-config",
+                str(new),
+                "--no-plots",
+                "--quiet",
+            )
+        )
+        == 0
+    )
+    ir = tomllib.loads(new.read_text())["sensors"]["ir"]
+    assert len(ir["per_sensor_offset_counts"]) == 8
+    assert len(ir["response_range_m"]) == len(ir["response_counts"]) >= 2
+
+
+def test_effects_by_the_names_the_report_prints(tmp_path: Path) -> None:
+    """``--effects`` takes an effect (``offset_per``) or one proposal of it, as the report
+    names it (``offset_per:sensor``)."""
+    out = tmp_path / "out"
+    argv = [str(DATA / "khepera2_ir"), f"--out={out}", "--quiet", "--no-plots"]
+    assert cli.run(_args(*argv, "--effects", "offset_per:sensor")) == 0
+    (entry,) = json.loads((out / "report.json").read_text())["streams"]
+    assert [e["name"] for e in entry["effects"]] == ["offset_per:sensor"]
+    assert entry["after"] < entry["before"] / 1.5
+
+
+def test_staged_inputs_carry_effects_into_the_next_model(tmp_path: Path) -> None:
+    """Two inputs: the second is calibrated on the model the first wrote; the report says
+    which stage found what, and ``before`` stays the declared model's error."""
+    out, new = tmp_path / "out", tmp_path / "imu.toml"
+    inputs = [str(DATA / "mpu6050_gyro_static"), str(DATA / "mpu6050_turns")]
+    assert cli.run(_args(*inputs, f"--out={out}", f"--write-config={new}", "--quiet")) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["inputs"] == inputs
+    entries = {(e["stage"], e["stream"], e["metric"]): e for e in report["streams"]}
+    turns_gyro = entries[(2, "gyro", "heading_error_10s_window_rms")]
+    assert turns_gyro["input"] == str(DATA / "mpu6050_turns")
+    (bias,) = (e for e in turns_gyro["effects"] if e["name"] == "bias")
+    assert bias["evidence"]["carried_from"] == str(DATA / "mpu6050_gyro_static")
+    assert bias["evidence"]["stage"] == 1
+    # before: the declared (ideal) gyro; before_with_carried: with the still recording's bias.
+    assert turns_gyro["before_with_carried"] < turns_gyro["before"]
+    still_gyro = entries[(1, "gyro", "rms_rate_error")]
+    assert "before_with_carried" not in still_gyro
+    assert "not a whole bridge" in new.read_text()  # no --config: a fragment, and it says so
+    written = tomllib.loads(new.read_text())["sensors"]
+    assert written["gyro"]["bias_rad_s"] == pytest.approx(0.0196, abs=3e-4)
+    assert len(written["compass"]["hard_iron_uT"]) == 3
+    md = (out / "report.md").read_text()
+    assert "stage 2 (`" in md and "Carried from earlier stages" in md
+    assert (out / "stage2_residuals_compass.png").is_file()
+
+
+def test_help_first_line_and_example() -> None:
+    assert cli.__doc__ is not None and cli.__doc__.splitlines()[0].strip()
+    parser = argparse.ArgumentParser()
+    cli.add_arguments(parser)
+    assert "examples:" in parser.format_help()
+
+
+def test_bad_inputs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Each bad input is one line on stderr naming it, exit code 2, no traceback."""
+    not_mcap = tmp_path / "run.mcap"
+    not_mcap.write_bytes(b"hello")
+    with pytest.raises(BundleError, match="MCAP"):
+        load_input(not_mcap, tmp_path)
+    with pytest.raises(BundleError):
+        load_input(tmp_path / "missing", tmp_path)
+    bad_model = tmp_path / "model.toml"
+    bad_model.write_text("[robot\n", encoding="utf-8")
+    typo = tmp_path / "typo.toml"
+    typo.write_text("[robot]\nwheel_bass_m = 0.15\n", encoding="utf-8")
+    text_cell = tmp_path / "text_cell"
+    text_cell.mkdir()
+    (text_cell / "gyro.csv").write_text("t,yaw_rate\n0,0.1\n0.1,abc\n", encoding="utf-8")
+    no_reference = tmp_path / "no_reference"
+    no_reference.mkdir()
+    (no_reference / "truth_pose.csv").write_text("t,x,y\n0,1,1\n1,1,1\n", encoding="utf-8")
+    for argv in (
+        [str(text_cell)],  # a text cell in a numeric column
+        [str(no_reference)],  # nothing to hold against the reference
+        [str(DATA / "khepera2_ir"), "--effects", "bais"],  # no such effect
+        [str(DATA / "lego_brenner"), "--config", str(typo)],  # a misspelt key
+        [str(tmp_path / "missing")],
+        [str(tmp_path / "missing.mcap")],
+        [str(not_mcap)],
+        [str(DATA / "lego_brenner"), "--config", str(bad_model)],
+        [str(DATA / "lego_brenner"), str(not_mcap)],  # a bad second stage
+    ):
+        capsys.readouterr()
+        assert cli.run(_args(*argv, "--out", str(tmp_path / "o"), "--quiet", "--no-plots")) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("koala-bridge calibrate: "), err
+
+
+def test_registry_rejects_duplicates() -> None:
+    effects = available_effects()
+    assert {
+        "bias",
+        "scale",
+        "bias_drift",
+        "covariate",
+        "range_dependent",
+        "hard_iron",
+        "soft_iron",
+        "tick_scale",
+        "wheel_base",
+        "wheel_ratio",
+        "time_offset",
+        "glitch",
+        "quantisation",
+    } <= set(effects)
+    with pytest.raises(EffectRegistryError):
+        register_effect("bias")(type("OtherBias", (Effect,), {}))
+
+
+def test_helpers() -> None:
+    import numpy as np
+
+    assert lattice_step(np.array([0.1, 0.3, 0.35, 0.5, 1.0])) == pytest.approx(0.05)
+    assert lattice_step(np.random.default_rng(0).normal(size=100)) is None
+    a = np.linspace(0, 2 * np.pi, 50)
+    pts = np.column_stack([3 + 2 * np.cos(a), -1 + 2 * np.sin(a)])
+    assert np.allclose(algebraic_centre(pts), [3, -1])
+
+
+def test_a_compass_that_did_not_turn_gets_no_iron(tmp_path: Path) -> None:
+    """Standing still, a hard or soft iron cannot be told from north: neither is tried, the
+    report says why, and nothing singular reaches the written config (a stationary recording
+    once got a soft iron of 3e15)."""
+    rng = np.random.default_rng(3)
+    t = np.arange(0.0, 30.0, 0.05)
+    bundle = tmp_path / "still"
+    bundle.mkdir()
+    theta = np.full_like(t, 0.7)
+    np.savetxt(
+        bundle / "truth_pose.csv",
+        np.column_stack([t, t * 0 + 1, t * 0 + 1, theta]),
+        delimiter=",",
+        header="t,x,y,theta",
+        comments="",
+    )
+    field = 20.0 * np.array([np.cos(np.pi / 2 - 0.7), np.sin(np.pi / 2 - 0.7)])
+    m = np.array([[1.1, 0.05], [0.05, 0.9]]) @ field + np.array([8.0, -5.0])
+    mxy = m + rng.normal(0, 0.3, (t.size, 2))
+    np.savetxt(
+        bundle / "compass.csv",
+        np.column_stack([t, mxy, t * 0 - 43]),
+        delimiter=",",
+        header="t,mx,my,mz",
+        comments="",
+    )
+    out, new = tmp_path / "out", tmp_path / "new.toml"
+    assert cli.run(_args(str(bundle), f"--out={out}", f"--write-config={new}", "--quiet")) == 0
+    (compass,) = json.loads((out / "report.json").read_text())["streams"]
+    assert compass["stream"] == "compass" and compass["effects"] == []
+    md = (out / "report.md").read_text()
+    assert "hard_iron not tried" in md and "soft_iron not tried" in md
+    assert "soft_iron" not in tomllib.loads(new.read_text()).get("sensors", {}).get("compass", {})
+
+
+def test_a_singular_soft_iron_is_not_plausible() -> None:
+    soft = available_effects()["soft_iron"]
+    assert soft.plausible(None, np.array([0.2, 0.05]))  # type: ignore[arg-type]
+    assert not soft.plausible(None, np.array([-0.9996, 0.0]))  # type: ignore[arg-type]

@@ -1,0 +1,123 @@
+"""Sonar (seeds/004 US table, specular loss, late echoes, crosstalk, glitches).
+
+Model: sim/models/sonar.py.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from _stats import assert_mean, assert_normal_variance, assert_rate, assert_uniform_counts
+from koala_bridge.sim.models.sonar import SonarErrorParams, measure, reflect, same_cycle
+from koala_bridge.sim.noise import LookupTable
+
+N = 20000
+MAXR = 3.0
+
+
+@pytest.mark.parametrize(("d", "sigma"), [(0.10, 0.001), (0.30, 0.007), (0.60, 0.025),
+                                          (1.00, 0.066), (0.45, 0.016)])
+def test_error_spread_at_the_seed004_table_ranges(d: float, sigma: float) -> None:
+    rng = np.random.default_rng(int(d * 1000))
+    r = measure(np.full((N, 1), d), np.zeros((N, 1)), MAXR, SonarErrorParams(), rng)
+    # power: IR's +-3% table instead of the ultrasonic +-6.6% one
+    assert_normal_variance(r.ranges - d, sigma**2, mean=0.0, wrong=(sigma * 0.03 / 0.066) ** 2
+                           if d >= 0.3 else (sigma * 1.5) ** 2)
+    assert np.all(r.truth_ranges == d)
+
+
+def test_no_echo_beyond_the_critical_angle() -> None:
+    p = SonarErrorParams(critical_angle_deg=22.5)
+    rays = np.full((N, 5), 1.0)
+    inc = np.full((N, 5), math.radians(22.6))
+    r = measure(rays, inc, MAXR, p, np.random.default_rng(50))
+    assert np.all(np.isnan(r.ranges))
+    assert np.all(r.truth_ranges == 1.0)                       # truth still sees the wall
+    inc[:, 2] = math.radians(22.4)                             # one ray within: echo
+    r = measure(rays, inc, MAXR, p, np.random.default_rng(50))
+    assert not np.any(np.isnan(r.ranges))
+
+
+def test_nearest_direct_ray_wins_and_truth_keeps_incidence() -> None:
+    rays = np.array([[1.2, 0.9, 1.0, np.inf, 2.0]])
+    inc = np.radians([[5.0, 40.0, 10.0, np.nan, 0.0]])
+    exact = SonarErrorParams(distance_error=LookupTable.from_rows([[0.0, 0.0], [1.0, 0.0]]))
+    r = measure(rays, inc, MAXR, exact, np.random.default_rng(1))
+    assert r.truth_ranges[0] == 0.9 and r.incidence[0] == pytest.approx(math.radians(40))
+    assert r.ranges[0] == 1.0                                  # 0.9 lost (specular), 1.0 direct
+    ideal = measure(rays, inc, MAXR, SonarErrorParams(ideal=True), np.random.default_rng(1))
+    assert ideal.ranges[0] == 0.9
+
+
+def test_late_echo_rate_and_round_trip_length() -> None:
+    p = SonarErrorParams(late_echo_probability=0.3)
+    rays = np.full((N, 1), 0.8)
+    inc = np.full((N, 1), math.radians(60))
+    leg = np.full((N, 1), 1.6)                                 # p1 -> p2 -> sensor
+    r = measure(rays, inc, MAXR, p, np.random.default_rng(51), second_leg_m=leg)
+    late = ~np.isnan(r.ranges)
+    assert_rate(int(late.sum()), N, 0.3, wrong=0.33)
+    # round trip (0.8 + 1.6) / 2 = 1.2 m, with the table's sigma at 1.2 m (held at 0.066)
+    assert_mean(r.ranges[late], 1.2, 0.066)
+    assert np.all(r.kind[late] == 2)
+
+
+def _pair(n: int) -> dict[str, np.ndarray]:
+    # Sonar 0 at the origin looking +x sees nothing; sonar 1 beside it hits a post at (0.5, 0.05),
+    # inside sonar 0's cone: crosstalk path (0.5 + |p - s0|) / 2.
+    return {
+        "sensor_xy": np.array([[0.0, 0.0], [0.0, 0.1]]),
+        "sensor_heading": np.array([0.0, 0.0]),
+        "hit_xy": np.tile(np.array([[[np.nan, np.nan]], [[0.5, 0.05]]]), (1, 1, 1)),
+    }
+
+
+def test_crosstalk_rate_path_and_firing_groups() -> None:
+    p = SonarErrorParams(crosstalk_probability=0.2)
+    geo = _pair(1)
+    d1 = math.hypot(0.5, 0.05)
+    rays = np.array([[np.inf], [d1]])
+    inc = np.array([[np.nan], [0.0]])
+    rng = np.random.default_rng(52)
+    hits = []
+    for _ in range(5000):
+        r = measure(rays, inc, MAXR, p, rng, **geo)
+        hits.append(r.ranges[0])
+    hits_a = np.array(hits)
+    heard = ~np.isnan(hits_a)
+    assert_rate(int(heard.sum()), 5000, 0.2, wrong=0.25)
+    expect = 0.5 * (d1 + math.hypot(0.5, 0.05))
+    assert_mean(hits_a[heard], expect, 0.02, wrong=expect + 0.02)   # table sigma at 0.5 m
+    separate = SonarErrorParams(crosstalk_probability=1.0, firing_groups=((0,), (1,)))
+    r = measure(rays, inc, MAXR, separate, rng, **geo)
+    assert np.isnan(r.ranges[0])
+    assert same_cycle(3, ((0, 2), (1,))).tolist() == [[False, False, True], [False, False, False],
+                                                      [True, False, False]]
+
+
+def test_glitch_rate_and_uniform_values() -> None:
+    p = SonarErrorParams(glitch_probability=0.05, min_range_m=0.2)
+    r = measure(np.full((N, 1), 1.0), np.zeros((N, 1)), MAXR, p, np.random.default_rng(53))
+    g = r.kind == 4
+    assert_rate(int(g.sum()), N, 0.05, wrong=0.07)
+    vals = r.ranges[g]
+    assert vals.min() >= 0.2 and vals.max() <= MAXR
+    assert_uniform_counts(np.histogram(vals, bins=10, range=(0.2, MAXR))[0])
+
+
+def test_beyond_max_range_is_no_echo_and_reflect() -> None:
+    r = measure(np.full((3, 2), 5.0), np.zeros((3, 2)), MAXR, SonarErrorParams(),
+                np.random.default_rng(1))
+    assert np.all(np.isnan(r.ranges)) and np.all(np.isnan(r.truth_ranges))
+    d = reflect(np.array([[1.0, 0.0]]), np.array([[-1.0, 0.0]]))
+    assert d.tolist() == [[-1.0, 0.0]]
+
+
+def test_same_seed_bit_identical() -> None:
+    p = SonarErrorParams(glitch_probability=0.1, late_echo_probability=0.5)
+    args = (np.full((8, 5), 1.0), np.full((8, 5), 0.1), MAXR, p)
+    a = measure(*args, np.random.default_rng(9)).ranges
+    b = measure(*args, np.random.default_rng(9)).ranges
+    assert np.array_equal(a, b, equal_nan=True)
