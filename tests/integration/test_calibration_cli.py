@@ -15,9 +15,11 @@ from koala_bridge.calibration.effects.hard_iron import algebraic_centre
 from koala_bridge.calibration.effects.quantisation import lattice_step
 from koala_bridge.calibration.errors import (
     BundleError,
+    CalibrationError,
     EffectRegistryError,
 )
 from koala_bridge.cli import calibrate as cli
+from koala_bridge.cli.main import main
 
 DATA = Path(__file__).parents[1] / "data" / "real"
 
@@ -177,7 +179,11 @@ def test_bad_inputs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
         [str(DATA / "lego_brenner"), str(not_mcap)],  # a bad second stage
     ):
         capsys.readouterr()
-        assert cli.run(_args(*argv, "--out", str(tmp_path / "o"), "--quiet", "--no-plots")) == 2
+        # The subcommand raises; cli/main.py prints the one line (core/errors.py's tree).
+        with pytest.raises(CalibrationError):
+            cli.run(_args(*argv, "--out", str(tmp_path / "o"), "--quiet", "--no-plots"))
+        argv = ["calibrate", *argv, "--out", str(tmp_path / "o"), "--quiet", "--no-plots"]
+        assert main(argv) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("koala-bridge calibrate: "), err
 
