@@ -41,17 +41,10 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
+from koala_bridge.core.geometry import wrap_angle
 from koala_bridge.sim.config import RobotConfig
 from koala_bridge.sim.noise import Variates
 from koala_bridge.sim.raycast import SegmentSet, point_segment_distances, sweep_circle
-
-_TAU = 2.0 * math.pi
-
-
-def wrap_angle(a: float) -> float:
-    """Wrap an angle to (-pi, pi]."""
-    w = math.remainder(a, _TAU)     # in [-pi, pi], exact
-    return math.pi if w == -math.pi else w
 
 
 @dataclass(frozen=True, slots=True)

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
+from koala_bridge.core.geometry import TAU
 from koala_bridge.sim.config import CameraConfig
 from koala_bridge.sim.noise import Variates
 from koala_bridge.sim.raycast import SegmentSet, first_hit
@@ -53,17 +54,16 @@ class CameraTruth:
         return self.rows[:, 4]
 
 
-_TAU = 2.0 * math.pi
-
-
 @numba.njit(cache=True, nogil=True)
 def _wrap(a: float) -> float:  # pragma: no cover - compiled
-    # sim.robot.wrap_angle: to (-pi, pi]
-    w = a - _TAU * np.rint(a / _TAU)
+    """:func:`koala_bridge.core.geometry.wrap_angle`, the same formula compiled for the kernel
+    below (numba has ``np.fmod``, not ``math.fmod``; both are C's exact fmod), to (-pi, pi].
+    tests/unit/test_geometry.py checks the two agree bit for bit."""
+    w = np.fmod(a, TAU)
     if w > math.pi:
-        w -= _TAU
+        w -= TAU
     elif w <= -math.pi:
-        w += _TAU
+        w += TAU
     return w
 
 

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from koala_bridge.core.grid import Grid
 from koala_bridge.estimation import DegenerateGeometryError, EstimationError, trilaterate3, wls_fix
-from koala_bridge.sim.world import World
 from scipy.stats import chi2
 
 WORLDS = Path(__file__).resolve().parents[2] / "config" / "worlds"
@@ -37,7 +37,7 @@ def test_closed_form_is_exact_on_noise_free_ranges() -> None:
 
 def test_closed_form_in_the_lab_trilateration_world() -> None:
     d = tomllib.loads((WORLDS / "lab_trilateration.toml").read_text())
-    world = World.from_dict(d["world"])
+    world = Grid.from_dict(d["world"])
     lm = np.array([[m.x, m.y] for m in world.landmarks])
     for col, row in world.free_cells():
         p = np.array(world.cell_centre(col, row))
