@@ -20,7 +20,6 @@ import timeit
 from collections.abc import Callable
 
 import numpy as np
-
 from koala_bridge.estimation import GridModel, PoseTracker, PoseTrackerParams, predict, update
 from koala_bridge.estimation.grid_localisation import uniform_prior
 from koala_bridge.sim.world import SIDES, World

@@ -46,10 +46,6 @@ from koala_bridge.calibration.problem import (
 )
 from koala_bridge.core.geometry import wrap_angle
 
-#: Smallest orientation spread (:meth:`CompassProblem.orientation_spread`) at which the iron
-#: effects are proposed: below it the data cannot tell them from the constant.
-MIN_ORIENTATION_SPREAD = 0.1
-
 
 @dataclass
 class CompassState:
