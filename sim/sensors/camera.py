@@ -11,6 +11,9 @@ and distance, recognition error, distance and angular errors; ``sim/models/camer
 :class:`CameraTruth`: the visible landmarks with, for each, the viewing angle (between the
 landmark's facing direction and the direction from the landmark to the camera), its ``a_max``,
 and the ids of all landmarks of the world (to draw a wrong id from).
+
+Error model: ``sim/models/camera.py`` (its params, pure functions and
+:class:`~koala_bridge.sim.models.camera.CameraErrorModel`); config section ``[sensors.camera]``.
 """
 
 from __future__ import annotations

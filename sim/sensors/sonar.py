@@ -14,6 +14,9 @@ step (:func:`sim.raycast.cast_fan_arrays`); with ``ideal = false`` the error mod
 error table +-6.6 %, specular reflection beyond a critical incidence angle, late echoes via a
 second wall, crosstalk, glitches; ``sim/models/sonar.py``) gets the :class:`SonarTruth`: every
 ray's world geometry, range, incidence and wall index, and the walls.
+
+Error model: ``sim/models/sonar.py`` (its params, pure functions and
+:class:`~koala_bridge.sim.models.sonar.SonarErrorModel`); config section ``[sensors.sonar]``.
 """
 
 from __future__ import annotations

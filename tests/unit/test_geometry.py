@@ -59,3 +59,13 @@ def test_circle_centre_recovers_circle_and_sphere() -> None:
     u = rng.normal(size=(200, 3))
     sphere = 4 * u / np.linalg.norm(u, axis=1, keepdims=True) + [1, 2, 3]
     np.testing.assert_allclose(circle_centre(sphere), [1, 2, 3], atol=1e-9)
+
+
+def test_equals_the_exact_ieee_remainder() -> None:
+    """fmod is exact and the one shift by 2 pi is exact too (Sterbenz), so the result is the
+    exact IEEE remainder moved from -pi to pi: what sim/robot.py computed before (the simulator's
+    streams are bit-identical across the change)."""
+    rng = np.random.default_rng(7)
+    for a in [*BOUNDARIES, *rng.uniform(-1e4, 1e4, 3000), *rng.normal(0, 3, 3000)]:
+        r = math.remainder(float(a), TAU)
+        assert wrap_angle(float(a)) == (math.pi if r == -math.pi else r), a
