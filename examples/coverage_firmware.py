@@ -83,7 +83,6 @@ from koala_bridge.estimation import (
 
 log = logging.getLogger("coverage_firmware")
 
-SIDE_HEADING = {"E": 0.0, "N": math.pi / 2, "W": math.pi, "S": -math.pi / 2}
 OPPOSITE = {"N": "S", "S": "N", "E": "W", "W": "E"}
 LAB_ORDER = ("W", "N", "S", "E")  # seeds/003 "Full grid navigation": left, up, down, right
 

@@ -66,19 +66,6 @@ class SegmentSet:
     def __len__(self) -> int:
         return int(self.segments.shape[0])
 
-    def subset(self, mask: np.ndarray) -> SegmentSet:
-        """The segments selected by a boolean ``(M,)`` mask (indices renumbered)."""
-        return SegmentSet(
-            segments=self.segments[mask],
-            ax=self.ax[:, mask],
-            ay=self.ay[:, mask],
-            ex=self.ex[:, mask],
-            ey=self.ey[:, mask],
-            inv_len=self.inv_len[mask],
-            inv_len2=self.inv_len2[mask],
-            packed=np.ascontiguousarray(self.packed[:, mask]),
-        )
-
 
 def merge_collinear(segments: np.ndarray) -> np.ndarray:
     """Join horizontal and vertical segments that lie on one line and touch or overlap.

@@ -191,15 +191,6 @@ def _second_leg(seg: np.ndarray, ox: float, oy: float, dx: float, dy: float, rr:
 
 
 @numba.njit(cache=True, nogil=True)
-def second_leg_kernel(seg: np.ndarray, ox: np.ndarray, oy: np.ndarray, dx: np.ndarray,
-                      dy: np.ndarray, rr: np.ndarray, wall: np.ndarray, max_range: float,
-                      out: np.ndarray) -> None:  # pragma: no cover - compiled
-    """:func:`_second_leg` per ray (flat arrays); inf: none."""
-    for r in range(rr.shape[0]):
-        out[r] = _second_leg(seg, ox[r], oy[r], dx[r], dy[r], rr[r], wall[r], max_range)
-
-
-@numba.njit(cache=True, nogil=True)
 def sonar_ring_kernel(seg: np.ndarray, rays: np.ndarray, index: np.ndarray, start: int, n: int,
                       k: int, fp: np.ndarray, flags: np.ndarray, tx: np.ndarray, ty: np.ndarray,
                       cycle: np.ndarray, u: np.ndarray, z: np.ndarray, out: np.ndarray

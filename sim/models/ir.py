@@ -104,11 +104,6 @@ def counts_from_distances(ray_dists_m: np.ndarray, weights: np.ndarray,
     return (np.asarray(reflectivity) * response.value(d)) @ weights
 
 
-def range_noise_sigma(d_m: np.ndarray, params: IrErrorParams) -> np.ndarray:
-    """Distance error sigma (m) at ``d_m`` from the seed-004 table."""
-    return params.distance_error.value(d_m)
-
-
 def measure(ray_dists_m: np.ndarray, ray_offsets_rad: np.ndarray, response: LookupTable,
             params: IrErrorParams, rng: Variates,
             reflectivity: np.ndarray | float | None = None, weights: np.ndarray | None = None

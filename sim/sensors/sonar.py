@@ -62,14 +62,6 @@ class SonarTruth:
         return self._rows(4)
 
     @property
-    def ray_incidence(self) -> np.ndarray:
-        return self._rows(5)
-
-    @property
-    def ray_wall(self) -> np.ndarray:
-        return self.index[self.start:self.start + self.n * self.k].reshape(self.n, self.k)
-
-    @property
     def world_rays(self) -> tuple[np.ndarray, ...]:
         """(ox, oy, dx, dy), each (n, k), world frame."""
         return tuple(self._rows(i) for i in range(4))
