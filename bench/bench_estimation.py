@@ -20,9 +20,9 @@ import timeit
 from collections.abc import Callable
 
 import numpy as np
+from koala_bridge.core.grid import SIDES, Grid
 from koala_bridge.estimation import GridModel, PoseTracker, PoseTrackerParams, predict, update
 from koala_bridge.estimation.grid_localisation import uniform_prior
-from koala_bridge.core.grid import SIDES, Grid
 
 GRID_TARGET_S = 1e-3
 
