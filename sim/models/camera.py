@@ -59,6 +59,7 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
+from koala_bridge.core.geometry import wrap_angle
 from koala_bridge.core.schema import ConfigError
 from koala_bridge.sim.models import _kernels
 from koala_bridge.sim.models._params import (
@@ -224,7 +225,7 @@ def viewing_angle(landmark_xy: np.ndarray, facing_rad: np.ndarray, robot_xy: np.
     the landmark to the robot: the ``a`` of seeds/000 eq. 5. ``landmark_xy`` (m, 2)."""
     v = np.asarray(robot_xy, dtype=float)[None, :] - np.asarray(landmark_xy, dtype=float)
     ang = np.arctan2(v[:, 1], v[:, 0]) - np.asarray(facing_rad, dtype=float)
-    return np.abs(np.arctan2(np.sin(ang), np.cos(ang)))
+    return np.abs(wrap_angle(ang))
 
 
 # ------------------------------------------------------------------ the simulator's model

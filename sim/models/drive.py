@@ -47,6 +47,7 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
+from koala_bridge.core.geometry import wrap_angle
 from koala_bridge.core.schema import ConfigError
 from koala_bridge.sim.models._params import check_nonnegative, check_positive, params_from_dict
 from koala_bridge.sim.noise import BlockStream, Variates, rate_scaled_sigma
@@ -131,7 +132,7 @@ def integrate_wheel_steps(
         r = ds / dth
         dx = r * (math.sin(theta + dth) - math.sin(theta))
         dy = -r * (math.cos(theta + dth) - math.cos(theta))
-    th = math.atan2(math.sin(theta + dth), math.cos(theta + dth))
+    th = wrap_angle(theta + dth)
     return x + dx, y + dy, th
 
 

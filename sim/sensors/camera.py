@@ -23,10 +23,9 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
-from koala_bridge.core.geometry import TAU
 from koala_bridge.sim.config import CameraConfig
 from koala_bridge.sim.noise import Variates
-from koala_bridge.sim.raycast import SegmentSet, first_hit
+from koala_bridge.sim.raycast import SegmentSet, first_hit, wrap_angle_compiled
 from koala_bridge.sim.robot import RobotState
 from koala_bridge.sim.sensors.base import ErrorModel
 from koala_bridge.sim.types import CameraReading, LandmarkObservation
@@ -58,19 +57,6 @@ class CameraTruth:
 
 
 @numba.njit(cache=True, nogil=True)
-def _wrap(a: float) -> float:  # pragma: no cover - compiled
-    """:func:`koala_bridge.core.geometry.wrap_angle`, the same formula compiled for the kernel
-    below (numba has ``np.fmod``, not ``math.fmod``; both are C's exact fmod), to (-pi, pi].
-    tests/unit/test_geometry.py checks the two agree bit for bit."""
-    w = np.fmod(a, TAU)
-    if w > math.pi:
-        w -= TAU
-    elif w <= -math.pi:
-        w += TAU
-    return w
-
-
-@numba.njit(cache=True, nogil=True)
 def visible_landmarks(
     landmarks: np.ndarray, seg: np.ndarray, cx: float, cy: float, theta: float, axis: float,
     min_range: float, max_range: float, cos_half_fov: float, out: np.ndarray,
@@ -98,8 +84,8 @@ def visible_landmarks(
         direction = math.atan2(vy, vx)
         out[c, 0] = landmarks[i, 0]
         out[c, 1] = d
-        out[c, 2] = _wrap(direction - theta)
-        out[c, 3] = _wrap(direction + math.pi - landmarks[i, 3])
+        out[c, 2] = wrap_angle_compiled(direction - theta)
+        out[c, 3] = wrap_angle_compiled(direction + math.pi - landmarks[i, 3])
         out[c, 4] = landmarks[i, 4]
         c += 1
     return c
