@@ -138,7 +138,7 @@ def test_ekf_is_consistent_on_a_synthetic_trajectory(landmarks: bool) -> None:
     for i in range(runs):
         T, E, C = synthetic_run(100 + i, steps, landmarks)
         e = E[:, :3] - T[:, :3]
-        e[:, 2] = (e[:, 2] + math.pi) % (2 * math.pi) - math.pi
+        e[:, 2] = wrap_angle(e[:, 2])
         nees[i] = np.einsum("ki,kij,kj->k", e, np.linalg.inv(C[:, :3, :3]), e)
         sq[i] = e[:, 0] ** 2 + e[:, 1] ** 2
     lo, hi = chi2.ppf([0.0005, 0.9995], runs * 3) / runs

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import pytest
 from _localisation_sim import WORLDS, coverage_cells, wheel_command, world_config
-from koala_bridge.core.geometry import circle_centre
+from koala_bridge.core.geometry import circle_centre, wrap_angle
 from koala_bridge.estimation import PoseTracker, PoseTrackerParams, heading_from_field
 from koala_bridge.sim.types import WheelCommand
 
@@ -93,7 +93,7 @@ def run_tracking(world_name: str, seconds: float, seed: int) -> dict[str, float]
                         trk.on_landmark(t, landmarks[ob.id], ob.range, ob.bearing, sr, sb)
             ex, ey, eth = trk.pose
             err2[name].append((ex - r.pose.x) ** 2 + (ey - r.pose.y) ** 2)
-            herr2[name].append(math.remainder(eth - r.pose.theta, math.tau) ** 2)
+            herr2[name].append(wrap_angle(eth - r.pose.theta) ** 2)
         if t < spin_until:
             if r.compass is not None:
                 fields.append(r.compass.field_uT[:2].copy())
