@@ -66,3 +66,15 @@ def test_a_wrong_arrow_breaks_a_contract(layout: Path, tmp_path: Path) -> None:
     p = lint(bad)
     assert p.returncode != 0
     assert "koala_bridge.estimation.trilateration -> koala_bridge.sim.world" in p.stdout, p.stdout
+
+
+def test_firmware_side_code_loads_without_the_simulator() -> None:
+    """What a firmware imports (the codecs and the estimators, with the grid they localise on)
+    loads no module of the simulator."""
+    code = ("import sys, koala_bridge.drivers.kteam, koala_bridge.drivers.rangeframes, "
+            "koala_bridge.drivers.can_codec, koala_bridge.drivers.mavlink_codec, "
+            "koala_bridge.estimation, koala_bridge.core.grid; "
+            "print(sorted(m for m in sys.modules if m.startswith('koala_bridge.sim')))")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.strip() == "[]", p.stdout
