@@ -8,7 +8,7 @@ the time of the whole calibration including that load, and their ratio. Target: 
 ``--rates N``: runs every case of ``koala_bridge.calibration.synthetic.CASES`` plus clean bundles on
 N seeds each and prints the detection and false-positive rates quoted in docs/calibration.md.
 ``--sim N``: records the simulator under ``config/default.toml`` (every model on, 30 s,
-``koala_bridge.calibration.simulated``) on N seeds, calibrates each ``.mcap`` against that config and
+``koala_bridge.tools.sim_recording``) on N seeds, calibrates each ``.mcap`` against that config and
 prints how many got any effect (the declared model is the config itself: expected none).
 
     .venv/bin/python bench/bench_calibrate.py            # the 1-hour bench
@@ -99,7 +99,7 @@ def sim_recordings(n: int, workdir: Path) -> int:
     import tomllib
 
     from koala_bridge.calibration.bundle import load_input
-    from koala_bridge.calibration.simulated import record_simulator
+    from koala_bridge.tools.sim_recording import record_simulator
 
     with (Path(__file__).parents[1] / "config" / "default.toml").open("rb") as fh:
         config = tomllib.load(fh)

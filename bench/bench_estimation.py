@@ -20,10 +20,9 @@ import timeit
 from collections.abc import Callable
 
 import numpy as np
-
+from koala_bridge.core.grid import SIDES, Grid
 from koala_bridge.estimation import GridModel, PoseTracker, PoseTrackerParams, predict, update
 from koala_bridge.estimation.grid_localisation import uniform_prior
-from koala_bridge.sim.world import SIDES, World
 
 GRID_TARGET_S = 1e-3
 
@@ -33,7 +32,7 @@ def best_time(fn: Callable[[], object], number: int, repeat: int) -> float:
     return min(timeit.repeat(fn, number=number, repeat=repeat)) / number
 
 
-def big_world(n: int, seed: int) -> World:
+def big_world(n: int, seed: int) -> Grid:
     """An ``n x n`` grid of 0.5 m cells with random interior walls on ~20 % of cell sides."""
     rng = np.random.default_rng(seed)
     walls = [
@@ -43,7 +42,7 @@ def big_world(n: int, seed: int) -> World:
         for s in ("N", "E")
         if rng.random() < 0.2
     ]
-    return World.from_dict({"name": f"bench_{n}x{n}", "cell_m": 0.5, "cols": n, "rows": n,
+    return Grid.from_dict({"name": f"bench_{n}x{n}", "cell_m": 0.5, "cols": n, "rows": n,
                             "walls": walls})
 
 

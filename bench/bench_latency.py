@@ -45,9 +45,14 @@ STAMP = struct.Struct("<d")
 # -- child: the bridge ---------------------------------------------------------------------------
 
 def serve(config_overrides: list[str], ready_file: Path, log_file: Path) -> int:
-    from koala_bridge.runtime.settings import BridgeSettings, apply_override, load_config, parse_override
     from koala_bridge.runtime.endpoints import write_endpoints_file
     from koala_bridge.runtime.service import BridgeService
+    from koala_bridge.runtime.settings import (
+        BridgeSettings,
+        apply_override,
+        load_config,
+        parse_override,
+    )
 
     config = load_config(REPO / "config" / "default.toml")
     for text in ["run.clock=realtime", *config_overrides]:
@@ -226,10 +231,9 @@ def bridge_clients(ep: dict[str, Any], mav_port: int, c: Collector) -> None:
     import can
     import serial
     import zenoh
-    from pymavlink.dialects.v20 import common as mavlink2
-
     from koala_bridge.drivers.messages import RangeKind
     from koala_bridge.drivers.rangeframes import RangeFrameDecoder
+    from pymavlink.dialects.v20 import common as mavlink2
 
     def rangefinders(record: Callable[[Any], None]) -> None:
         decoder = RangeFrameDecoder()

@@ -44,8 +44,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     sys.path.insert(0, str(REPO))
-    from koala_bridge.runtime.settings import BridgeSettings, apply_override
     from koala_bridge.runtime.service import BridgeService
+    from koala_bridge.runtime.settings import BridgeSettings, apply_override
 
     config = tomllib.loads((REPO / "config" / "default.toml").read_text())
     for key, value in (

@@ -34,9 +34,8 @@ from pathlib import Path
 import can
 import numpy as np
 import serial
-
-from koala_bridge.recording.mcap_file import FROM_ROBOT, open_recording
 from koala_bridge.drivers.rangeframes import RangeFrameDecoder, encode_range_frame
+from koala_bridge.recording.mcap_file import FROM_ROBOT, open_recording
 
 REPO = Path(__file__).resolve().parents[1]
 BUSES = ("serial/rangefinders", "can", "mavlink")

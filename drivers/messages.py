@@ -36,20 +36,13 @@ __all__ = [
 # --------------------------------------------------------------------------- errors
 
 
-class DriverError(Exception):
-    """Root of every exception raised by :mod:`drivers`."""
-
-
-class FrameError(DriverError, ValueError):
-    """A value cannot be encoded in (or was wrongly decoded from) a wire format."""
-
-
-class TransportError(DriverError, OSError):
-    """A transport could not be opened or failed while moving bytes."""
-
-
-class TransportClosedError(TransportError):
-    """An operation was attempted on a transport after :meth:`close`."""
+# Defined once in the project's error tree (core/errors.py); re-exported here, their old home.
+from koala_bridge.core.errors import (  # noqa: E402
+    DriverError,
+    FrameError,
+    TransportClosedError,
+    TransportError,
+)
 
 
 class RejectReason(StrEnum):

@@ -54,7 +54,19 @@ from typing import Any
 import can
 import numpy as np
 import serial
-
+from koala_bridge.core.geometry import circle_centre
+from koala_bridge.core.geometry import wrap_angle as wrap
+from koala_bridge.core.grid import SIDE_STEP, SIDES, Grid
+from koala_bridge.drivers.can_codec import KoalaCanCodec, load_koala_dbc
+from koala_bridge.drivers.kteam import LineSplitter, format_command, parse_reply
+from koala_bridge.drivers.mavlink_codec import CompassDecoder
+from koala_bridge.drivers.messages import (
+    CompassSample,
+    GyroFrame,
+    KteamCommand,
+    KteamReply,
+    WheelOdometryFrame,
+)
 from koala_bridge.estimation import (
     BeamModel,
     GridLocaliser,
@@ -68,27 +80,11 @@ from koala_bridge.estimation import (
     sensor_sides,
     walls_from_ir,
 )
-from koala_bridge.drivers.can_codec import KoalaCanCodec, load_koala_dbc
-from koala_bridge.drivers.kteam import LineSplitter, format_command, parse_reply
-from koala_bridge.drivers.mavlink_codec import CompassDecoder
-from koala_bridge.drivers.messages import (
-    CompassSample,
-    GyroFrame,
-    KteamCommand,
-    KteamReply,
-    WheelOdometryFrame,
-)
-from koala_bridge.sim.world import SIDE_STEP, SIDES, World
 
 log = logging.getLogger("coverage_firmware")
 
-SIDE_HEADING = {"E": 0.0, "N": math.pi / 2, "W": math.pi, "S": -math.pi / 2}
 OPPOSITE = {"N": "S", "S": "N", "E": "W", "W": "E"}
 LAB_ORDER = ("W", "N", "S", "E")  # seeds/003 "Full grid navigation": left, up, down, right
-
-
-def wrap(a: float) -> float:
-    return math.remainder(a, math.tau)
 
 
 # --------------------------------------------------------------------------- parameters
@@ -205,7 +201,7 @@ class Links:
 class CoverageFirmware:
     """Calibrate, localise, cover. Time is *robot* time: encoder frames / their rate."""
 
-    def __init__(self, links: Links, robot: RobotParams, world: World, args: argparse.Namespace):
+    def __init__(self, links: Links, robot: RobotParams, world: Grid, args: argparse.Namespace):
         self.links = links
         self.robot = robot
         self.world = world
@@ -417,15 +413,13 @@ class CoverageFirmware:
         self.collect_fields = False
         self.stop()
         xy = np.array([f[:2] for _, f in self.spin_fields])
-        a = np.column_stack([2 * xy, np.ones(len(xy))])
-        sol, *_ = np.linalg.lstsq(a, np.sum(xy**2, axis=1), rcond=None)
-        self.hard_iron = np.array([sol[0], sol[1], 0.0])
+        self.hard_iron = np.array([*circle_centre(xy), 0.0])
         heading = self.compass_heading_at_rest()
         x, y, _ = self.tracker.pose
         self.tracker.reset(x, y, heading, np.diag([1e-6, 1e-6, math.radians(3) ** 2]),
                            t=self.t, gyro_bias=self.tracker.gyro_bias)
-        log.info("hard iron %.2f %.2f uT from %d samples, heading %.1f deg", sol[0], sol[1],
-                 len(xy), math.degrees(heading))
+        log.info("hard iron %.2f %.2f uT from %d samples, heading %.1f deg", self.hard_iron[0],
+                 self.hard_iron[1], len(xy), math.degrees(heading))
 
     def compass_heading_at_rest(self, seconds: float = 0.5) -> float:
         """Circular mean of the compass headings over ``seconds`` of standing still."""
@@ -630,7 +624,7 @@ def _step(cell: tuple[int, int], side: str) -> tuple[int, int]:
 
 
 def _path_to_nearest(
-    world: World, start: tuple[int, int], goals: set[tuple[int, int]]
+    world: Grid, start: tuple[int, int], goals: set[tuple[int, int]]
 ) -> list[str]:
     """Sides of a shortest path from ``start`` to the nearest of ``goals`` (breadth first)."""
     prev: dict[tuple[int, int], tuple[tuple[int, int], str] | None] = {start: None}
@@ -650,7 +644,7 @@ def _path_to_nearest(
     return []
 
 
-def _reachable(world: World, start: tuple[int, int]) -> set[tuple[int, int]]:
+def _reachable(world: Grid, start: tuple[int, int]) -> set[tuple[int, int]]:
     seen, todo = {start}, [start]
     while todo:
         c = todo.pop()
@@ -704,7 +698,7 @@ def main(argv: list[str] | None = None) -> int:
 
     endpoints = json.loads(args.endpoints_file.read_text())
     robot = RobotParams.from_config(tomllib.loads(args.config.read_text()))
-    world = World.from_dict(tomllib.loads(args.world.read_text())["world"])
+    world = Grid.from_dict(tomllib.loads(args.world.read_text())["world"])
     links = Links(endpoints)
     try:
         report = CoverageFirmware(links, robot, world, args).run()

@@ -4,8 +4,6 @@ Pure: every function takes its state, parameters and a ``numpy.random.Generator`
 arrays; nothing here keeps state or touches a global RNG (docs/architecture.md "Randomness").
 
 Contents
-- :func:`gaussian` — zero-mean white noise of a given standard deviation (array or scalar sigma).
-- :func:`turn_on_bias` — a constant offset drawn once per run (at ``reset``).
 - :func:`random_walk_step` — one step of a Wiener process given a continuous-time density
   (Kalibr / allan-variance convention: ``sigma * sqrt(dt)``).
 - :func:`gauss_markov_step` — one exactly discretised step of a first-order Gauss–Markov process
@@ -25,21 +23,6 @@ import numpy as np
 from koala_bridge.core.schema import ConfigError
 
 ArrayLike = float | np.ndarray
-
-
-def gaussian(rng: np.random.Generator, sigma: ArrayLike, size: int | tuple[int, ...] | None = None
-             ) -> np.ndarray:
-    """Zero-mean Gaussian samples with standard deviation ``sigma`` (broadcast against ``size``)."""
-    sigma_arr = np.asarray(sigma, dtype=float)
-    shape = sigma_arr.shape if size is None else size
-    return sigma_arr * rng.standard_normal(shape)
-
-
-def turn_on_bias(rng: np.random.Generator, sigma: ArrayLike,
-                 size: int | tuple[int, ...] | None = None) -> np.ndarray:
-    """A bias drawn once per power-up: N(0, sigma^2). Same distribution as :func:`gaussian`; the
-    separate name documents that the caller keeps the value for the whole run."""
-    return gaussian(rng, sigma, size)
 
 
 def random_walk_step(x: ArrayLike, density: float, dt: float, rng: np.random.Generator

@@ -16,10 +16,26 @@ hits: ``cos(incidence) = |d . n| = |d x e| / |e| = |den| / |e|`` (0 = head-on, p
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numba
 import numpy as np
+from koala_bridge.core.geometry import TAU
+
+
+@numba.njit(cache=True, nogil=True)
+def wrap_angle_compiled(a: float) -> float:  # pragma: no cover - compiled
+    """:func:`koala_bridge.core.geometry.wrap_angle` for the compiled kernels (the camera's
+    visibility test, the sonar and camera error models): the same formula, to (-pi, pi] (numba
+    has ``np.fmod``, not ``math.fmod``; both are C's exact fmod). tests/unit/test_geometry.py
+    checks the two agree bit for bit."""
+    w = np.fmod(a, TAU)
+    if w > math.pi:
+        w -= TAU
+    elif w <= -math.pi:
+        w += TAU
+    return w
 
 
 @dataclass(frozen=True)
@@ -65,19 +81,6 @@ class SegmentSet:
 
     def __len__(self) -> int:
         return int(self.segments.shape[0])
-
-    def subset(self, mask: np.ndarray) -> SegmentSet:
-        """The segments selected by a boolean ``(M,)`` mask (indices renumbered)."""
-        return SegmentSet(
-            segments=self.segments[mask],
-            ax=self.ax[:, mask],
-            ay=self.ay[:, mask],
-            ex=self.ex[:, mask],
-            ey=self.ey[:, mask],
-            inv_len=self.inv_len[mask],
-            inv_len2=self.inv_len2[mask],
-            packed=np.ascontiguousarray(self.packed[:, mask]),
-        )
 
 
 def merge_collinear(segments: np.ndarray) -> np.ndarray:

@@ -29,7 +29,7 @@ as the surface speed of a nominal wheel; each wheel's surface moves by its own d
 while the pose follows the unequal wheels.
 
 Seam for the drive-error model (issue 3, seeds/000 eq. 1-4, wheel slip): :func:`step` takes an
-optional ``drive_error`` object (see :class:`DriveErrorModel`). It receives the ideal body-frame
+optional ``drive_error`` object (see :class:`DriveErrorSeam`). It receives the ideal body-frame
 displacement of the step and returns the displacement that really happens (and may change the
 wheel travel the encoders see); collision handling applies to the displacement it returns.
 """
@@ -41,17 +41,10 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
+from koala_bridge.core.geometry import wrap_angle
 from koala_bridge.sim.config import RobotConfig
 from koala_bridge.sim.noise import Variates
 from koala_bridge.sim.raycast import SegmentSet, point_segment_distances, sweep_circle
-
-_TAU = 2.0 * math.pi
-
-
-def wrap_angle(a: float) -> float:
-    """Wrap an angle to (-pi, pi]."""
-    w = math.remainder(a, _TAU)     # in [-pi, pi], exact
-    return math.pi if w == -math.pi else w
 
 
 @dataclass(frozen=True, slots=True)
@@ -90,7 +83,7 @@ class Motion:
     right_m: float
 
 
-class DriveErrorModel(Protocol):
+class DriveErrorSeam(Protocol):
     """Seam for drive errors (seeds/000 eq. 1-4) and wheel slip; implemented in ``sim/models``."""
 
     def perturb(self, ideal: Motion, state: RobotState, rng: Variates) -> Motion:
@@ -138,7 +131,7 @@ def step(
     params: RobotConfig,
     walls: SegmentSet,
     rng: Variates | None = None,
-    drive_error: DriveErrorModel | None = None,
+    drive_error: DriveErrorSeam | None = None,
 ) -> RobotState:
     """Advance the robot by one fixed step ``dt`` at the given wheel surface speeds (m/s).
 

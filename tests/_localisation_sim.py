@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from koala_bridge.core.geometry import wrap_angle
 from koala_bridge.drivers.can_codec import KoalaCanCodec
 from koala_bridge.drivers.mavlink_codec import CompassEncoder, MavlinkIdentity
 from koala_bridge.drivers.messages import (
@@ -124,7 +125,7 @@ def wheel_command(pose: Any, goal: tuple[float, float], wheel_base: float,
                   vmax: float) -> WheelCommand:
     """Turn on the spot towards ``goal``, then drive at it with a heading correction."""
     dx, dy = goal[0] - pose.x, goal[1] - pose.y
-    err = math.remainder(math.atan2(dy, dx) - pose.theta, math.tau)
+    err = wrap_angle(math.atan2(dy, dx) - pose.theta)
     w = max(-2.0, min(2.0, 3.0 * err))
     v = 0.0 if abs(err) > 0.2 else min(vmax, 0.8 * math.hypot(dx, dy) + 0.02)
     left, right = v - w * wheel_base / 2, v + w * wheel_base / 2
@@ -216,7 +217,7 @@ def run(world_name: str, seconds: float, seed: int,
         for m in pub.get("estimate/pose", []):
             x, y, th = truth[round(m["t"], 6)]
             e2.append((m["x"] - x) ** 2 + (m["y"] - y) ** 2)
-            h2.append(math.remainder(m["theta"] - th, math.tau) ** 2)
+            h2.append(wrap_angle(m["theta"] - th) ** 2)
         out.rmse_m[label] = math.sqrt(float(np.mean(e2)))
         out.max_err_m[label] = math.sqrt(float(np.max(e2)))
         out.heading_rmse_deg[label] = math.degrees(math.sqrt(float(np.mean(h2))))

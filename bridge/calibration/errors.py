@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
+from koala_bridge.core.errors import CalibrationError
 
-class CalibrationError(Exception):
-    """Base of every error raised by :mod:`koala_bridge.calibration`."""
+__all__ = ["BundleError", "CalibrationError", "EffectRegistryError", "ModelConfigError"]
 
 
 class BundleError(CalibrationError):

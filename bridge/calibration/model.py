@@ -142,7 +142,7 @@ def check_config(config: Mapping[str, Any], where: str) -> None:
     wrong kind, is an error naming it (and the nearest valid name), not a key silently
     ignored. MODEL.toml may be partial: it is laid over the shipped ``config/default.toml``
     first, and the bridge's and the simulator's own loaders check the result."""
-    from koala_bridge.cli.run import DEFAULT_CONFIG
+    from koala_bridge.core.resources import default_config_path
     from koala_bridge.core.schema import ConfigError
     from koala_bridge.runtime.localisation import LocalisationSettings
     from koala_bridge.runtime.settings import BridgeSettings, load_config, reject_unknown_sections
@@ -150,7 +150,7 @@ def check_config(config: Mapping[str, Any], where: str) -> None:
 
     if not config:
         return
-    merged = _laid_over(load_config(DEFAULT_CONFIG), config)
+    merged = _laid_over(load_config(default_config_path()), config)
     try:
         reject_unknown_sections(merged)
         BridgeSettings.from_config(merged)

@@ -123,10 +123,6 @@ def check_effect_names(names: Sequence[str]) -> None:
         )
 
 
-def count_work(problems: Sequence[StreamProblem]) -> int:
-    return sum(len(candidates_for(p)) for p in problems)
-
-
 def run_stream(
     problem: StreamProblem, options: Options, progress: Progress | None = None
 ) -> StreamResult:

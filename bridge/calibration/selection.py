@@ -62,10 +62,6 @@ class Fit:
     def rss_fit(self) -> float:
         return float(np.sum(self.r_fit**2))
 
-    @property
-    def rss_score(self) -> float:
-        return float(np.sum(self.r_score**2))
-
 
 @dataclass
 class Trial:

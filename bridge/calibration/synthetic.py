@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from koala_bridge.core.geometry import wrap_angle
 
 #: The declared model the synthetic bundles are checked against (what MODEL.toml would say).
 DECLARED: Mapping[str, Any] = {
@@ -159,7 +160,7 @@ def make_bundle(
     dx, dy = lm[li, 1] - px, lm[li, 2] - py
     rng_ = np.hypot(dx, dy) + rng_lm.normal(0, NOISE["landmark_range"], ti.size)
     brg = np.arctan2(dy, dx) - pth + rng_lm.normal(0, NOISE["landmark_bearing"], ti.size)
-    brg = np.pi - np.mod(np.pi - brg, 2 * np.pi)
+    brg = wrap_angle(brg)
     _write(out / "landmarks.csv", "t,landmark_id,range,bearing", [ti, lm[li, 0], rng_, brg])
 
     meta = {

@@ -20,7 +20,6 @@ import tempfile
 from pathlib import Path
 
 from koala_bridge.calibration.config_update import config_diff, not_simulated, write_config
-from koala_bridge.calibration.errors import CalibrationError
 from koala_bridge.calibration.model import read_config
 from koala_bridge.calibration.pipeline import Options, check_effect_names
 from koala_bridge.calibration.report import write_report
@@ -129,8 +128,8 @@ def _progress_bar(enabled: bool):  # type: ignore[no-untyped-def]
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the calibration; 0 on success, 2 on a bad input or config, 1 when the output
-    cannot be written."""
+    """Run the calibration; 0 on success, 1 when the output cannot be written. A bad input or
+    config raises a CalibrationError, which cli/main.py reports in one line (exit 2)."""
     try:
         config = read_config(args.config)
         effects = (
@@ -171,9 +170,6 @@ def run(args: argparse.Namespace) -> int:
                 not_simulated(all_keys(stages)),
                 fragment=args.config is None,
             )
-    except CalibrationError as e:
-        print(f"koala-bridge calibrate: {e}", file=sys.stderr)
-        return 2
     except OSError as e:  # the report or the config cannot be written
         print(f"koala-bridge calibrate: {e}", file=sys.stderr)
         return 1

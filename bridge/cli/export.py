@@ -17,7 +17,6 @@ import logging
 import sys
 
 from koala_bridge.recording.export import export_bundle
-from koala_bridge.recording.mcap_file import RecordingError
 
 log = logging.getLogger(__name__)
 
@@ -30,11 +29,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
+    try:  # a RecordingError is reported by cli/main.py
         out = export_bundle(args.recording, args.bundle)
-    except RecordingError as e:
-        print(f"koala-bridge export: {e}", file=sys.stderr)
-        return 2
     except OSError as e:
         print(f"koala-bridge export: cannot write the bundle {args.bundle}: {e.strerror or e}",
               file=sys.stderr)

@@ -1,5 +1,8 @@
 """``koala-bridge``: one entry point, one module per subcommand.
 
+A :class:`~koala_bridge.core.errors.KoalaBridgeError` that a subcommand raises is caught here,
+once, and printed as one line ``koala-bridge <subcommand>: <message>`` (exit 2).
+
 Subcommands are listed in :data:`SUBCOMMANDS` (name -> module). Only the subcommand being run
 is imported; the others' one-line help is read from their source (``ast``), so
 ``koala-bridge run`` does not pay for the imports of ``calibrate`` and a broken subcommand cannot
@@ -20,6 +23,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from types import ModuleType
 from typing import NoReturn
+
+from koala_bridge.core.errors import KoalaBridgeError
+
+log = logging.getLogger(__name__)
 
 SUBCOMMANDS: dict[str, str] = {
     "run": "koala_bridge.cli.run",
@@ -162,7 +169,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
-    return int(args._module.run(args))
+    try:
+        return int(args._module.run(args))
+    except KoalaBridgeError as e:
+        # The one place a project error becomes a line on stderr (core/errors.py); the cause,
+        # if any, is in the traceback that --log-level DEBUG shows.
+        log.debug("%s failed", args.command, exc_info=True)
+        print(f"koala-bridge {args.command}: {e}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -10,9 +10,7 @@ import difflib
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-
-class ConfigError(ValueError):
-    """A configuration value or key is invalid. The message names the section and the key."""
+from koala_bridge.core.errors import ConfigError  # re-exported: its old home
 
 
 def reject_unknown(d: Mapping[str, Any], allowed: Iterable[str], section: str) -> None:

@@ -7,9 +7,9 @@ never an exception.
 
 from __future__ import annotations
 
+from koala_bridge.core.errors import EstimationError
 
-class EstimationError(ValueError):
-    """Root of every exception raised by :mod:`koala_bridge.estimation`."""
+__all__ = ["DegenerateGeometryError", "EstimationError"]
 
 
 class DegenerateGeometryError(EstimationError):

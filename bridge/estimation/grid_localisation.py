@@ -8,7 +8,7 @@ row-major from the south-west corner. Blocked cells hold ``-inf``.
 Two steps, as in any Bayes filter:
 
 * :func:`predict` -- the motion model. The robot commands a move to the neighbour on one side
-  (``N``/``E``/``S``/``W``). From every cell whose move is open (``World.can_move``) the mass goes
+  (``N``/``E``/``S``/``W``). From every cell whose move is open (``Grid.can_move``) the mass goes
   to the neighbour with ``p_move`` (the lab's 0.8) and stays with ``1 - p_move``; from a cell whose
   move is blocked by a wall, the grid edge or a blocked cell, all the mass stays. This is a
   convolution of the whole belief with a kernel conditioned on the command and the map -- the
@@ -30,9 +30,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from koala_bridge.core.grid import SIDES, Grid
 from koala_bridge.estimation.errors import EstimationError
 from koala_bridge.estimation.probability import log_normalise
-from koala_bridge.sim.world import SIDES, World
 from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
@@ -44,15 +44,15 @@ SIDE_INDEX = {s: i for i, s in enumerate(SIDES)}
 
 @dataclass(frozen=True)
 class GridModel:
-    """The map facts the filter needs, as arrays precomputed once from a :class:`World`.
+    """The map facts the filter needs, as arrays precomputed once from a :class:`Grid`.
 
     Attributes:
         rows, cols: grid size in cells.
         free: ``(rows, cols)`` True where the cell is not blocked.
         walls: ``(4, rows, cols)`` True where side ``N, E, S, W`` of the cell is a wall
-            (``World.wall_signature``).
+            (``Grid.wall_signature``).
         movable: ``(4, rows, cols)`` True where the robot can move out through that side
-            (``World.can_move``).
+            (``Grid.can_move``).
     """
 
     rows: int
@@ -62,7 +62,7 @@ class GridModel:
     movable: BoolArray
 
     @classmethod
-    def from_world(cls, world: World) -> GridModel:
+    def from_world(cls, world: Grid) -> GridModel:
         rows, cols = world.rows, world.cols
         free = np.zeros((rows, cols), dtype=bool)
         walls = np.zeros((4, rows, cols), dtype=bool)
@@ -138,7 +138,7 @@ def predict(log_belief: FloatArray, model: GridModel, side: str, p_move: float) 
     mov = model.movable[k]
     go = np.where(mov, p_move * b, 0.0)
     out = b - go
-    # World.can_move is False at the grid's edge, so nothing is shifted off the array.
+    # Grid.can_move is False at the grid's edge, so nothing is shifted off the array.
     if side == "N":
         out[1:, :] += go[:-1, :]
     elif side == "S":
@@ -213,7 +213,7 @@ class GridLocaliser:
 
     def __init__(
         self,
-        world: World,
+        world: Grid,
         params: GridParams,
         start: tuple[int, int] | None = None,
     ) -> None:

@@ -33,9 +33,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from koala_bridge.core.grid import Grid
 from koala_bridge.estimation.errors import EstimationError
 from koala_bridge.estimation.probability import prob_from_log_odds
-from koala_bridge.sim.world import World
 from numpy.typing import ArrayLike, NDArray
 
 FloatArray = NDArray[np.float64]
@@ -197,7 +197,7 @@ class OccupancyGrid:
         self.observed = np.zeros((rows, cols), dtype=bool)
 
     @classmethod
-    def for_world(cls, world: World, resolution_m: float, params: OccupancyParams) -> OccupancyGrid:
+    def for_world(cls, world: Grid, resolution_m: float, params: OccupancyParams) -> OccupancyGrid:
         """A grid covering the world's bounding box at ``resolution_m``."""
         cols = math.ceil(world.width_m / resolution_m - 1e-9)
         rows = math.ceil(world.height_m / resolution_m - 1e-9)

@@ -33,6 +33,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from koala_bridge.core.geometry import wrap_angle
 from koala_bridge.estimation.errors import EstimationError
 from numpy.typing import ArrayLike, NDArray
 from scipy.stats import chi2
@@ -40,14 +41,6 @@ from scipy.stats import chi2
 FloatArray = NDArray[np.float64]
 
 STATE_DIM = 4  # x, y, theta, gyro bias
-
-
-def _wrap(a: float) -> float:
-    """Scalar :func:`wrap_angle` to (-pi, pi] (math, not numpy: this is on the hot path)."""
-    w = math.fmod(a + math.pi, 2.0 * math.pi)
-    if w <= 0.0:
-        w += 2.0 * math.pi
-    return w - math.pi
 
 
 # --------------------------------------------------------------------------- pure functions
@@ -91,7 +84,7 @@ def predict(
     dth = dtheta - x[3] * bias_time
     thm = th + 0.5 * dth
     c, s = math.cos(thm), math.sin(thm)
-    xn = np.array([x[0] + ds * c, x[1] + ds * s, _wrap(th + dth), x[3]])
+    xn = np.array([x[0] + ds * c, x[1] + ds * s, wrap_angle(th + dth), x[3]])
     F = np.eye(STATE_DIM)
     F[0, 2] = -ds * s
     F[1, 2] = ds * c
@@ -118,7 +111,7 @@ def innovation(
     h = H @ x if hx is None else np.atleast_1d(np.asarray(hx, dtype=float))
     y = za - h
     for i in angle_rows:
-        y[i] = _wrap(y[i])
+        y[i] = wrap_angle(y[i])
     S = H @ P @ H.T + np.atleast_2d(np.asarray(R, dtype=float))
     return y, S
 
@@ -155,7 +148,7 @@ def _correct(
     K = np.linalg.solve(S, H @ P).T  # = P H^T S^-1 (S and P symmetric)
     xn = x + K @ y
     if xn.size > 2:
-        xn[2] = _wrap(xn[2])
+        xn[2] = wrap_angle(xn[2])
     ikh = np.eye(x.size) - K @ H
     Pn = ikh @ P @ ikh.T + K @ R @ K.T
     return xn, 0.5 * (Pn + Pn.T)
@@ -169,7 +162,7 @@ def landmark_model(x: FloatArray, landmark_xy: ArrayLike) -> tuple[FloatArray, F
     if q == 0.0:
         raise EstimationError("the estimate coincides with the landmark")
     r = math.sqrt(q)
-    hx = np.array([r, _wrap(math.atan2(dy, dx) - x[2])])
+    hx = np.array([r, wrap_angle(math.atan2(dy, dx) - x[2])])
     H = np.array([[-dx / r, -dy / r, 0.0, 0.0], [dy / q, -dx / q, -1.0, 0.0]])
     return hx, H
 
@@ -200,7 +193,7 @@ def heading_from_field(
     m = np.asarray(field_body_uT, dtype=float)
     if hard_iron_uT is not None:
         m = m - np.asarray(hard_iron_uT, dtype=float)
-    return _wrap(north_rad - math.atan2(m[1], m[0]))
+    return wrap_angle(north_rad - math.atan2(m[1], m[0]))
 
 
 # --------------------------------------------------------------------------- stateful wrapper
@@ -286,7 +279,7 @@ class PoseTracker:
         gyro_bias: float = 0.0,
     ) -> None:
         """Set the pose and its ``(3, 3)`` covariance; the bias keeps its prior."""
-        self.x = np.array([x, y, _wrap(theta), gyro_bias])
+        self.x = np.array([x, y, wrap_angle(theta), gyro_bias])
         P = np.zeros((STATE_DIM, STATE_DIM))
         P[:3, :3] = np.asarray(cov, dtype=float)
         P[3, 3] = self.params.gyro_bias_sigma0**2

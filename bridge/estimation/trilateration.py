@@ -20,6 +20,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from koala_bridge.core.geometry import wrap_angle
 from koala_bridge.estimation.errors import DegenerateGeometryError, EstimationError
 from numpy.typing import ArrayLike, NDArray
 
@@ -29,12 +30,6 @@ FloatArray = NDArray[np.float64]
 COLLINEAR_SIN = 1e-6
 # Above this condition number of J^T W J the fix is undetermined (e.g. collinear landmarks).
 MAX_CONDITION = 1e10
-
-
-def wrap_angle(a: ArrayLike) -> FloatArray:
-    """Wrap angles to (-pi, pi] (docs/architecture.md)."""
-    w = np.mod(np.asarray(a, dtype=float) + math.pi, 2.0 * math.pi) - math.pi
-    return np.where(w == -math.pi, math.pi, w)
 
 
 def trilaterate3(landmarks: ArrayLike, ranges: ArrayLike) -> FloatArray:

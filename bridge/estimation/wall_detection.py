@@ -15,8 +15,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from koala_bridge.core.grid import SIDES
 from koala_bridge.estimation.errors import EstimationError
-from koala_bridge.sim.world import SIDES
 from numpy.typing import ArrayLike
 
 # Outward normal of each side of a cell, in SIDES order (N, E, S, W).

@@ -60,8 +60,7 @@ TO_ROBOT = "to_robot"
 DIRECTIONS = (FROM_ROBOT, TO_ROBOT)
 
 
-class RecordingError(Exception):
-    """A recording cannot be written or read."""
+from koala_bridge.core.errors import RecordingError  # noqa: E402 - the tree's, re-exported
 
 
 class UnsupportedRecordingError(RecordingError):

@@ -28,7 +28,7 @@ log = logging.getLogger(__name__)
 HANGUP_RETRY_S = 0.02   # how often a reader re-checks a pty nobody has opened yet
 
 
-class BusOpenError(OSError):
+class BusOpenError(TransportError):
     """A bus could not be opened; the message names the bus and the cause."""
 
 

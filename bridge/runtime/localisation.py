@@ -59,6 +59,7 @@ from typing import Any
 
 import can
 import numpy as np
+from koala_bridge.core.geometry import circle_centre
 from koala_bridge.core.schema import ConfigError, reject_unknown
 from koala_bridge.drivers.can_codec import KoalaCanCodec, wrap_int32
 from koala_bridge.drivers.kteam import LineSplitter, parse_reply
@@ -342,9 +343,7 @@ class _HardIron:
         if sum(1 for b in self.bins if b) < HARD_IRON_MIN_BINS:
             return None
         xy = np.array([p for b in self.bins for p in b])
-        a = np.column_stack([2 * xy, np.ones(len(xy))])
-        sol, *_ = np.linalg.lstsq(a, np.sum(xy**2, axis=1), rcond=None)
-        return np.array([sol[0], sol[1], 0.0])
+        return np.array([*circle_centre(xy), 0.0])
 
 
 class LocalisationNode:

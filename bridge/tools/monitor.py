@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import zenoh
+from koala_bridge.core.geometry import wrap_angle
 from koala_bridge.runtime.zenoh_io import zenoh_error_text
 from rich.console import Group
 from rich.panel import Panel
@@ -241,12 +242,6 @@ def _pose(v: Any) -> tuple[float, float, float] | None:
     if isinstance(v, dict) and all(isinstance(v.get(k), int | float) for k in ("x", "y", "theta")):
         return float(v["x"]), float(v["y"]), float(v["theta"])
     return None
-
-
-def wrap_angle(a: float) -> float:
-    """Wrap to (-pi, pi]."""
-    w = math.remainder(a, 2 * math.pi)
-    return math.pi if w == -math.pi else w
 
 
 def render_poses(streams: Mapping[str, StreamStats]) -> Table:

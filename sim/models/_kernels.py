@@ -15,7 +15,7 @@ import math
 
 import numba
 import numpy as np
-from koala_bridge.sim.raycast import first_hit
+from koala_bridge.sim.raycast import first_hit, wrap_angle_compiled
 
 
 @numba.njit(cache=True, nogil=True)
@@ -144,7 +144,7 @@ def sonar_kernel(d: np.ndarray, inc: np.ndarray, max_range: float, tx: np.ndarra
                     vx = hit_xy[jj, q, 0] - sensor_xy[i, 0]
                     vy = hit_xy[jj, q, 1] - sensor_xy[i, 1]
                     ang = math.atan2(vy, vx) - heading[i]
-                    ang = math.atan2(math.sin(ang), math.cos(ang))
+                    ang = wrap_angle_compiled(ang)
                     if abs(ang) > half_ap:
                         continue
                     p = 0.5 * (d[jj, q] + math.hypot(vx, vy))
@@ -188,15 +188,6 @@ def _second_leg(seg: np.ndarray, ox: float, oy: float, dx: float, dy: float, rr:
     if t < np.inf:
         return t + math.hypot(sx + rx * t - ox, sy + ry * t - oy)
     return np.inf
-
-
-@numba.njit(cache=True, nogil=True)
-def second_leg_kernel(seg: np.ndarray, ox: np.ndarray, oy: np.ndarray, dx: np.ndarray,
-                      dy: np.ndarray, rr: np.ndarray, wall: np.ndarray, max_range: float,
-                      out: np.ndarray) -> None:  # pragma: no cover - compiled
-    """:func:`_second_leg` per ray (flat arrays); inf: none."""
-    for r in range(rr.shape[0]):
-        out[r] = _second_leg(seg, ox[r], oy[r], dx[r], dy[r], rr[r], wall[r], max_range)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -320,7 +311,7 @@ def camera_kernel(rows: np.ndarray, all_ids: np.ndarray, fp: np.ndarray, u: np.n
         out[c, 0] = lid
         out[c, 1] = max(d + near * z[3 * q] + far * abs(z[3 * q + 1]), 0.0)
         bb = rows[q, 2] + bsig * z[3 * q + 2]
-        out[c, 2] = math.atan2(math.sin(bb), math.cos(bb))
+        out[c, 2] = wrap_angle_compiled(bb)
         out[c, 3] = q
         c += 1
     return c

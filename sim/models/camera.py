@@ -44,6 +44,12 @@ Bearing, eq. 13–14: the two cameras are approximated by one virtual camera bet
 is that geometry, which the ray geometry here gives directly); eq. 14 "(alpha_C +- random()) *
 alpha_ang" is read as ``bearing_est = bearing + bearing_sigma * N(0, 1)`` ("This again is a
 Gaussian error").
+
+The simulator's stateful model is :class:`CameraErrorModel` (end of this module; the truth it
+perturbs comes from ``sim/sensors/camera.py``, its factory :func:`error_model` is registered in
+``sim.models.ERROR_MODELS``). Compiled kernel (``sim/models/_kernels.py``): ``camera_kernel`` (with
+``_distance_term``); the truth's visibility test is ``sim/sensors/camera.py``
+``visible_landmarks``.
 """
 
 from __future__ import annotations
@@ -53,6 +59,7 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
+from koala_bridge.core.geometry import wrap_angle
 from koala_bridge.core.schema import ConfigError
 from koala_bridge.sim.models import _kernels
 from koala_bridge.sim.models._params import (
@@ -62,6 +69,8 @@ from koala_bridge.sim.models._params import (
     params_from_dict,
 )
 from koala_bridge.sim.noise import Variates
+from koala_bridge.sim.sensors.camera import CameraTruth
+from koala_bridge.sim.types import CameraReading, LandmarkObservation
 
 
 @dataclass(frozen=True)
@@ -216,4 +225,37 @@ def viewing_angle(landmark_xy: np.ndarray, facing_rad: np.ndarray, robot_xy: np.
     the landmark to the robot: the ``a`` of seeds/000 eq. 5. ``landmark_xy`` (m, 2)."""
     v = np.asarray(robot_xy, dtype=float)[None, :] - np.asarray(landmark_xy, dtype=float)
     ang = np.arctan2(v[:, 1], v[:, 0]) - np.asarray(facing_rad, dtype=float)
-    return np.abs(np.arctan2(np.sin(ang), np.cos(ang)))
+    return np.abs(wrap_angle(ang))
+
+
+# ------------------------------------------------------------------ the simulator's model
+
+
+class CameraErrorModel:
+    """The stateful camera error model the simulator calls (``sim/sensors/camera.py`` seam):
+    the params, the per-run state, and ``measure(truth, variates)`` built on the functions
+    above, drawing the same variates in the same order as :func:`measure`."""
+
+    def __init__(self, params: CameraErrorParams) -> None:
+        self.params = params
+        self.fp = kernel_constants(params)
+
+    def measure(self, truth: CameraTruth, rng: Variates) -> CameraReading:
+        # measure on the truth's rows, with its draws (3 uniforms and 3 normals per
+        # landmark in view).
+        m = truth.rows.shape[0]
+        if self.params.ideal or m == 0:
+            return CameraReading(observations=truth.observations, truth=truth.observations)
+        u = np.asarray(rng.random(3 * m))
+        z = np.asarray(rng.standard_normal(3 * m))
+        out = np.empty((m, 4))
+        c = _kernels.camera_kernel(truth.rows, truth.all_ids, self.fp, u, z, out)
+        measured = tuple(LandmarkObservation(int(i), r, b) for i, r, b, _s in
+                         out[:c].tolist())
+        return CameraReading(observations=measured, truth=truth.observations)
+
+
+def error_model(cfg: Any, rng: np.random.Generator) -> CameraErrorModel:
+    """The simulator's factory (``sim.models.ERROR_MODELS``), called at every reset with the
+    ``[sensors.camera]`` config and the sensor's own generator."""
+    return CameraErrorModel(cfg.errors)

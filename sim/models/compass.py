@@ -24,6 +24,10 @@ calibration / SITL ``SIM_MAG_*`` parameters)::
 ampere of the left and right motor currents ``i``, the currents taken proportional to the wheel
 speeds (``motor_current_A_per_mps``; a DC motor's current follows its load, and on a flat floor
 the load grows with speed through friction; the sign flips with the direction of rotation).
+
+The simulator's stateful model is :class:`CompassErrorModel` (end of this module; the truth it
+perturbs comes from ``sim/sensors/compass.py``, its factory :func:`error_model` is registered in
+``sim.models.ERROR_MODELS``). No compiled kernel: a 3-vector per step.
 """
 
 from __future__ import annotations
@@ -35,7 +39,9 @@ from typing import Any, ClassVar
 import numpy as np
 from koala_bridge.core.schema import ConfigError
 from koala_bridge.sim.models._params import check_nonnegative, params_from_dict
-from koala_bridge.sim.noise import Variates
+from koala_bridge.sim.noise import BlockStream, Variates
+from koala_bridge.sim.sensors.compass import CompassTruth
+from koala_bridge.sim.types import CompassReading
 
 
 def _identity() -> tuple[tuple[float, ...], ...]:
@@ -109,3 +115,30 @@ def measure_with(b: Sequence[float], left_mps: float, right_mps: float,
     return (s00 * bx + s01 * by + s02 * bz + h0 + m00 * il + m01 * ir + sig * n[0],
             s10 * bx + s11 * by + s12 * bz + h1 + m10 * il + m11 * ir + sig * n[1],
             s20 * bx + s21 * by + s22 * bz + h2 + m20 * il + m21 * ir + sig * n[2])
+
+
+# ------------------------------------------------------------------ the simulator's model
+
+
+class CompassErrorModel:
+    """The stateful compass error model the simulator calls (``sim/sensors/compass.py`` seam):
+    the params, the per-run state, and ``measure(truth, variates)`` built on the functions
+    above, drawing the same variates in the same order as :func:`measure`."""
+
+    def __init__(self, params: CompassErrorParams) -> None:
+        self.params = params
+        self.coeffs = coefficients(params)
+
+    def measure(self, truth: CompassTruth, rng: Variates) -> CompassReading:
+        if self.params.ideal:
+            return CompassReading(field_uT=truth.field_body_uT, truth_field_uT=truth.field_body_uT)
+        n = rng.normal_list(3) if isinstance(rng, BlockStream) else rng.standard_normal(3).tolist()
+        b = measure_with(truth.field_body, truth.left_speed, truth.right_speed,
+                                       self.coeffs, n)
+        return CompassReading(field_uT=np.array(b), truth_field_uT=truth.field_body_uT)
+
+
+def error_model(cfg: Any, rng: np.random.Generator) -> CompassErrorModel:
+    """The simulator's factory (``sim.models.ERROR_MODELS``), called at every reset with the
+    ``[sensors.compass]`` config and the sensor's own generator."""
+    return CompassErrorModel(cfg.errors)

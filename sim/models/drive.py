@@ -34,6 +34,10 @@ wheel realises an independent fraction ``U(wall_traction_min, wall_traction_max)
 pushing against a wall twists the robot. The encoders still count the *commanded* rotation
 (the caller reports odometry from the commanded steps), so dead reckoning drifts from the truth
 pose as on the real robot.
+
+The simulator's stateful model is :class:`DriveErrorModel` (end of this module; the motion it
+perturbs comes from ``sim/robot.py``, its factory :func:`error_model` is registered in
+``sim.models.ERROR_MODELS``). No compiled kernel: two wheels per step are cheapest in plain Python.
 """
 
 from __future__ import annotations
@@ -43,9 +47,11 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
+from koala_bridge.core.geometry import wrap_angle
 from koala_bridge.core.schema import ConfigError
 from koala_bridge.sim.models._params import check_nonnegative, check_positive, params_from_dict
-from koala_bridge.sim.noise import Variates, rate_scaled_sigma
+from koala_bridge.sim.noise import BlockStream, Variates, rate_scaled_sigma
+from koala_bridge.sim.robot import Motion, RobotState, arc_displacement
 
 
 @dataclass(frozen=True)
@@ -126,7 +132,7 @@ def integrate_wheel_steps(
         r = ds / dth
         dx = r * (math.sin(theta + dth) - math.sin(theta))
         dy = -r * (math.cos(theta + dth) - math.cos(theta))
-    th = math.atan2(math.sin(theta + dth), math.cos(theta + dth))
+    th = wrap_angle(theta + dth)
     return x + dx, y + dy, th
 
 
@@ -136,3 +142,44 @@ def heading_error_variance(
     """Variance of the accumulated heading error (rad^2) of a run of steps, no wall contact:
     ``sigma^2 * sum(l_k^2 + r_k^2) / b^2`` (independent per-wheel factors, dtheta = (r - l)/b)."""
     return float(sigma_step**2 * np.sum(steps_left_m**2 + steps_right_m**2) / wheel_base_m**2)
+
+
+# ------------------------------------------------------------------ the simulator's model
+
+
+class DriveErrorModel:
+    """seeds/000 eq. 1–4 per wheel plus wall slip; implements ``sim.robot.DriveErrorSeam``.
+
+    The truth pose moves by the perturbed wheel steps; the motion's wheel travel (what the
+    encoders count) stays the commanded one.
+    """
+
+    def __init__(self, params: DriveErrorParams, wheel_base_m: float, dt: float
+                 ) -> None:
+        self.params = params
+        self.wheel_base_m = wheel_base_m
+        self.dt = dt
+        self.sigma = rate_scaled_sigma(params.drive_error, 1.0 / dt, params.reference_rate_hz)
+
+    def perturb(self, ideal: Motion, state: RobotState, rng: Variates) -> Motion:
+        if self.params.ideal:
+            return ideal
+        if isinstance(rng, BlockStream):
+            eps = rng.normal_list(2)
+            u = rng.uniform_list(2)
+        else:
+            eps = rng.standard_normal(2).tolist()
+            u = rng.random(2).tolist()
+        left, right = perturb_wheel_steps_with(
+            ideal.left_m, ideal.right_m, self.sigma, self.params, eps[0], eps[1], u[0], u[1],
+            state.collided)
+        dt = self.dt
+        dx, dy, dth = arc_displacement(left / dt, right / dt, self.wheel_base_m, dt)
+        return Motion(dx, dy, dth, ideal.left_m, ideal.right_m)
+
+
+def error_model(cfg: Any, rng: np.random.Generator) -> DriveErrorModel:
+    """The simulator's factory (``sim.models.ERROR_MODELS``): the whole SimConfig, since the
+    model needs the wheel base and the step."""
+    # The drive model needs the wheel base and the step: its factory gets the whole SimConfig.
+    return DriveErrorModel(cfg.robot.drive.errors, cfg.robot.wheel_base_m, cfg.sim.dt_s)

@@ -25,6 +25,10 @@ sqrt(T)). ``b(0) = bias_rad_s + N(0, turn_on_bias_sigma^2)``: a fixed bias (what
 measured, ``koala-bridge calibrate --write-config``) plus a turn-on bias drawn at reset; ``s`` a
 fixed scale-factor error. With a finite ``bias_correlation_time_s`` the bias is a Gauss–Markov
 process (Gazebo's IMU noise) with the same short-term walk density.
+
+The simulator's stateful model is :class:`GyroErrorModel` (end of this module; the truth it
+perturbs comes from ``sim/sensors/gyro.py``, its factory :func:`error_model` is registered in
+``sim.models.ERROR_MODELS``). No compiled kernel: three scalars per step.
 """
 
 from __future__ import annotations
@@ -35,7 +39,9 @@ from typing import Any, ClassVar
 
 import numpy as np
 from koala_bridge.sim.models._params import check_nonnegative, check_positive, params_from_dict
-from koala_bridge.sim.noise import Variates, gauss_markov_step, rate_scaled_sigma
+from koala_bridge.sim.noise import BlockStream, Variates, gauss_markov_step, rate_scaled_sigma
+from koala_bridge.sim.sensors.gyro import GyroTruth
+from koala_bridge.sim.types import GyroReading
 
 
 @dataclass(frozen=True)
@@ -147,3 +153,38 @@ def measure_batch(yaw_rates: np.ndarray, dt: float, bias0: np.ndarray, params: G
     scale = 1.0 + params.scale_factor_error + s_step * rng.standard_normal((r, n))
     white = params.gyroscope_noise_density / math.sqrt(dt) * rng.standard_normal((r, n))
     return scale * yaw_rates + bias + white, bias
+
+
+# ------------------------------------------------------------------ the simulator's model
+
+
+class GyroErrorModel:
+    """The stateful gyro error model the simulator calls (``sim/sensors/gyro.py`` seam):
+    the params, the per-run state, and ``measure(truth, variates)`` built on the functions
+    above, drawing the same variates in the same order as :func:`measure`."""
+
+    def __init__(self, params: GyroErrorParams, rate_hz: float,
+                 rng: np.random.Generator) -> None:
+        self.params = params
+        self.period = 1.0 / rate_hz
+        self.bias = initial_state(params, rng).bias    # turn-on bias
+        self._dt = self.period
+        self._constants = step_constants(params, self.period)
+
+    def measure(self, truth: GyroTruth, rng: Variates) -> GyroReading:
+        if self.params.ideal:
+            return GyroReading(yaw_rate=truth.yaw_rate, truth_yaw_rate=truth.yaw_rate)
+        dt = truth.interval_s if truth.interval_s > 0 else self.period
+        if dt != self._dt:
+            self._dt = dt
+            self._constants = step_constants(self.params, dt)
+        z = rng.normal_list(3) if isinstance(rng, BlockStream) else rng.standard_normal(3).tolist()
+        rate, self.bias = measure_with(truth.yaw_rate, self.bias, self.params,
+                                                  self._constants, z[0], z[1], z[2])
+        return GyroReading(yaw_rate=rate, truth_yaw_rate=truth.yaw_rate)
+
+
+def error_model(cfg: Any, rng: np.random.Generator) -> GyroErrorModel:
+    """The simulator's factory (``sim.models.ERROR_MODELS``), called at every reset with the
+    ``[sensors.gyro]`` config and the sensor's own generator."""
+    return GyroErrorModel(cfg.errors, cfg.rate_hz, rng)

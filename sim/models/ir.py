@@ -24,10 +24,16 @@ flat wall across the beam both agree. ``A`` is the ambient light level; strong a
 narrows the emitter-on/emitter-off difference the Koala measures (``ambient_saturation``).
 ``o_s`` is sensor ``s``'s own offset (``per_sensor_offset_counts``, 0 when empty).
 The noise-free companion is ``c`` with ``z = n = 0`` and no ambient effect.
+
+The simulator's stateful model is :class:`IrErrorModel` (end of this module; the truth it perturbs
+comes from ``sim/sensors/ir.py``, its factory :func:`error_model` is registered in
+``sim.models.ERROR_MODELS``). Compiled kernel (``sim/models/_kernels.py``): ``ir_kernel`` (with
+``interp``).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -35,6 +41,9 @@ import numpy as np
 from koala_bridge.sim.models import _kernels
 from koala_bridge.sim.models._params import check_nonnegative, check_positive, params_from_dict
 from koala_bridge.sim.noise import LookupTable, Variates
+from koala_bridge.sim.sensors.base import fan_offsets
+from koala_bridge.sim.sensors.ir import IrTruth
+from koala_bridge.sim.types import IrReading
 
 
 def _seed004_ir_table() -> LookupTable:
@@ -95,11 +104,6 @@ def counts_from_distances(ray_dists_m: np.ndarray, weights: np.ndarray,
     return (np.asarray(reflectivity) * response.value(d)) @ weights
 
 
-def range_noise_sigma(d_m: np.ndarray, params: IrErrorParams) -> np.ndarray:
-    """Distance error sigma (m) at ``d_m`` from the seed-004 table."""
-    return params.distance_error.value(d_m)
-
-
 def measure(ray_dists_m: np.ndarray, ray_offsets_rad: np.ndarray, response: LookupTable,
             params: IrErrorParams, rng: Variates,
             reflectivity: np.ndarray | float | None = None, weights: np.ndarray | None = None
@@ -152,3 +156,42 @@ def kernel_constants(w: np.ndarray, rho: np.ndarray, response: LookupTable,
 
 
 _NO_Z = np.zeros(0)
+
+
+# ------------------------------------------------------------------ the simulator's model
+
+
+class IrErrorModel:
+    """The stateful ir error model the simulator calls (``sim/sensors/ir.py`` seam):
+    the params, the per-run state, and ``measure(truth, variates)`` built on the functions
+    above, drawing the same variates in the same order as :func:`measure`."""
+
+    def __init__(self, params: IrErrorParams, response: LookupTable,
+                 ray_offsets: np.ndarray, n_sensors: int) -> None:
+        self.params = params
+        self.response = response
+        self.ray_offsets = ray_offsets
+        self.weights = np.ascontiguousarray(ray_weights(ray_offsets, params.gaussian_width))
+        self.rho = np.full((n_sensors, ray_offsets.shape[0]), params.reflectivity)
+        self.n = n_sensors
+        self.n_draws = 0 if params.ideal else 3 * n_sensors
+        self.constants = kernel_constants(self.weights, self.rho, response, params)
+
+    def measure(self, truth: IrTruth, rng: Variates) -> IrReading:
+        # measure_with, with the kernel's constant arguments computed once.
+        z = np.asarray(rng.standard_normal(self.n_draws)) if self.n_draws else _NO_Z
+        out = np.empty((3, self.n), dtype=np.int64)
+        w, rho, rx, ry, ex, ey, fp, off = self.constants
+        _kernels.ir_kernel(truth.ray_ranges, z, w, rho, rx, ry, ex, ey, fp, off, out)
+        return IrReading(counts=out[0], ambient=out[1], truth_counts=out[2],
+                         truth_ranges=truth.axis_ranges)
+
+
+def error_model(cfg: Any, rng: np.random.Generator) -> IrErrorModel:
+    """The simulator's factory (``sim.models.ERROR_MODELS``), called at every reset with the
+    ``[sensors.ir]`` config and the sensor's own generator."""
+    # The response table is the IR core's ([sensors.ir] response_range_m -> response_counts).
+    table = LookupTable(cfg.response_range_m, cfg.response_counts,
+                        np.zeros(cfg.response_range_m.shape[0]))
+    return IrErrorModel(cfg.errors, table, fan_offsets(cfg.rays, math.radians(cfg.aperture_deg)),
+                        int(cfg.poses.shape[0]))

@@ -27,6 +27,12 @@ Model, per sensor (rays ``k``; incidence = angle between ray and surface normal)
     range      = echo + sigma(echo) * z          (seed-004 table; clipped at 0)
     glitch:    with probability glitch_probability the reading is U(min_range_m, max_range_m)
     beyond max range: nan (no echo)
+
+The simulator's stateful model is :class:`SonarErrorModel` (end of this module; the truth it
+perturbs comes from ``sim/sensors/sonar.py``, its factory :func:`error_model` is registered in
+``sim.models.ERROR_MODELS``). Compiled kernels (``sim/models/_kernels.py``): ``sonar_kernel``
+(:func:`measure`) and ``sonar_ring_kernel`` with ``_second_leg`` (:class:`SonarErrorModel`, on the
+simulator's cast).
 """
 
 from __future__ import annotations
@@ -41,6 +47,8 @@ from koala_bridge.core.schema import ConfigError
 from koala_bridge.sim.models import _kernels
 from koala_bridge.sim.models._params import check_nonnegative, check_probability, params_from_dict
 from koala_bridge.sim.noise import LookupTable, Variates
+from koala_bridge.sim.sensors.sonar import SonarTruth
+from koala_bridge.sim.types import SonarReading
 
 
 def _seed004_us_table() -> LookupTable:
@@ -178,3 +186,56 @@ def reflect(directions: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """Specular reflection of unit ``directions`` (..., 2) off surfaces with unit ``normals``."""
     dot = (directions * normals).sum(axis=-1, keepdims=True)
     return directions - 2.0 * dot * normals
+
+
+# ------------------------------------------------------------------ the simulator's model
+
+
+class SonarErrorModel:
+    """The sonar model on the simulator's cast: one compiled call (second legs, crosstalk
+    geometry, echoes, noise) with the variates of :func:`sim.models.sonar.measure` pre-drawn."""
+
+    def __init__(self, params: SonarErrorParams, half_aperture_rad: float,
+                 n_sensors: int, min_range_m: float, max_range_m: float) -> None:
+        self.params = p = params
+        self.half_aperture_rad = half_aperture_rad
+        self.n = n_sensors
+        self.cycle = same_cycle(n_sensors, p.firing_groups)
+        self.use_cross = bool(p.crosstalk_probability > 0 and n_sensors > 1 and self.cycle.any())
+        self.table_x = p.distance_error.x
+        self.table_y = p.distance_error.y
+        self.fp = np.array([max_range_m, min_range_m, math.radians(p.critical_angle_deg),
+                            p.late_echo_probability, p.crosstalk_probability,
+                            p.glitch_probability, p.min_range_m, half_aperture_rad])
+        # The draws of sim.models.sonar.measure: 3 n uniforms and n normals, and n^2 uniforms
+        # more when two sonars share a firing cycle (uniforms and normals are separate streams,
+        # so the 3 n + n^2 uniforms are one contiguous draw).
+        self.n_uniforms = 0 if p.ideal else 3 * n_sensors + (n_sensors ** 2 if self.use_cross
+                                                              else 0)
+        self.n_normals = 0 if p.ideal else n_sensors
+        # ideal, use_leg (late echoes need the walls), use_cross
+        self.flags = np.array([p.ideal, p.late_echo_probability > 0, self.use_cross],
+                              dtype=np.int64)
+        self.flags_no_walls = np.array([p.ideal, False, self.use_cross], dtype=np.int64)
+
+    def measure(self, truth: SonarTruth, rng: Variates) -> SonarReading:
+        n = truth.n
+        flags = self.flags if truth.walls is not None else self.flags_no_walls
+        u = np.asarray(rng.random(self.n_uniforms)) if self.n_uniforms else _NONE
+        z = np.asarray(rng.standard_normal(self.n_normals)) if self.n_normals else _NONE
+        seg = truth.walls.packed if truth.walls is not None else _NO_SEG
+        out = np.empty((3, n))
+        _kernels.sonar_ring_kernel(seg, truth.rays, truth.index, truth.start, n, truth.k, self.fp,
+                                   flags, self.table_x, self.table_y, self.cycle, u, z, out)
+        return SonarReading(ranges=out[0], truth_ranges=out[1], incidence=out[2])
+
+
+_NONE = np.zeros(0)
+_NO_SEG = np.zeros((5, 0))
+
+
+def error_model(cfg: Any, rng: np.random.Generator) -> SonarErrorModel:
+    """The simulator's factory (``sim.models.ERROR_MODELS``), called at every reset with the
+    ``[sensors.sonar]`` config and the sensor's own generator."""
+    return SonarErrorModel(cfg.errors, 0.5 * math.radians(cfg.aperture_deg),
+                           int(cfg.poses.shape[0]), cfg.min_range_m, cfg.max_range_m)

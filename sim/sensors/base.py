@@ -21,7 +21,7 @@ A factory is called at every ``reset`` as ``factory(config, rng)`` with the sens
 and the sensor's own generator (for turn-on biases); it returns the model.
 The drive-error model is registered under the name ``"drive"``; its factory gets the whole
 :class:`sim.config.SimConfig` (it needs the wheel base and ``dt``) and the drive stream, and
-returns a :class:`koala_bridge.sim.robot.DriveErrorModel`.
+returns a :class:`koala_bridge.sim.robot.DriveErrorSeam`.
 
 Each sensor draws only from its own ``numpy.random.Generator`` (one child stream per sensor,
 :data:`koala_bridge.sim.simulator.RNG_STREAMS`).
@@ -47,7 +47,7 @@ class ErrorModel(Protocol[TruthT, ReadingT]):
 
 
 ErrorModelFactory = Callable[[Any, np.random.Generator], Any]
-"""``factory(sensor_config, rng) -> ErrorModel`` (``factory(sim_config, rng) -> DriveErrorModel``
+"""``factory(sensor_config, rng) -> ErrorModel`` (``factory(sim_config, rng) -> DriveErrorSeam``
 for "drive")."""
 
 

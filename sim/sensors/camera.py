@@ -11,6 +11,9 @@ and distance, recognition error, distance and angular errors; ``sim/models/camer
 :class:`CameraTruth`: the visible landmarks with, for each, the viewing angle (between the
 landmark's facing direction and the direction from the landmark to the camera), its ``a_max``,
 and the ids of all landmarks of the world (to draw a wrong id from).
+
+Error model: ``sim/models/camera.py`` (its params, pure functions and
+:class:`~koala_bridge.sim.models.camera.CameraErrorModel`); config section ``[sensors.camera]``.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ import numba
 import numpy as np
 from koala_bridge.sim.config import CameraConfig
 from koala_bridge.sim.noise import Variates
-from koala_bridge.sim.raycast import SegmentSet, first_hit
+from koala_bridge.sim.raycast import SegmentSet, first_hit, wrap_angle_compiled
 from koala_bridge.sim.robot import RobotState
 from koala_bridge.sim.sensors.base import ErrorModel
 from koala_bridge.sim.types import CameraReading, LandmarkObservation
@@ -53,20 +56,6 @@ class CameraTruth:
         return self.rows[:, 4]
 
 
-_TAU = 2.0 * math.pi
-
-
-@numba.njit(cache=True, nogil=True)
-def _wrap(a: float) -> float:  # pragma: no cover - compiled
-    # sim.robot.wrap_angle: to (-pi, pi]
-    w = a - _TAU * np.rint(a / _TAU)
-    if w > math.pi:
-        w -= _TAU
-    elif w <= -math.pi:
-        w += _TAU
-    return w
-
-
 @numba.njit(cache=True, nogil=True)
 def visible_landmarks(
     landmarks: np.ndarray, seg: np.ndarray, cx: float, cy: float, theta: float, axis: float,
@@ -95,8 +84,8 @@ def visible_landmarks(
         direction = math.atan2(vy, vx)
         out[c, 0] = landmarks[i, 0]
         out[c, 1] = d
-        out[c, 2] = _wrap(direction - theta)
-        out[c, 3] = _wrap(direction + math.pi - landmarks[i, 3])
+        out[c, 2] = wrap_angle_compiled(direction - theta)
+        out[c, 3] = wrap_angle_compiled(direction + math.pi - landmarks[i, 3])
         out[c, 4] = landmarks[i, 4]
         c += 1
     return c

@@ -13,6 +13,9 @@ A level compass's heading, clockwise from magnetic north, is ``atan2(b_y, b_x)``
 
 Seam: ``CompassSensor.measure(state, variates)``; an error model (issue 3: hard/soft iron,
 motor-current disturbance) gets :class:`CompassTruth`, which includes the wheel speeds.
+
+Error model: ``sim/models/compass.py`` (its params, pure functions and
+:class:`~koala_bridge.sim.models.compass.CompassErrorModel`); config section ``[sensors.compass]``.
 """
 
 from __future__ import annotations

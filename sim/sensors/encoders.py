@@ -41,5 +41,5 @@ class EncoderSensor:
         self._tpm_right = ticks_per_metre if rho == 1.0 else ticks_per_metre * (1 + rho) / 2
 
     def measure(self, state: RobotState) -> OdometryReading:
-        return OdometryReading(math.floor(state.left_travel_m * self._tpm_left + 0.5),
-                               math.floor(state.right_travel_m * self._tpm_right + 0.5))
+        return OdometryReading(encoder_ticks(state.left_travel_m, self._tpm_left),
+                               encoder_ticks(state.right_travel_m, self._tpm_right))

@@ -10,6 +10,9 @@ scale error, turn-on bias, angle random walk, bias random walk) gets :class:`Gyr
 interval).
 The sensor object keeps the heading of its previous sample; the simulator builds a new one on
 every reset.
+
+Error model: ``sim/models/gyro.py`` (its params, pure functions and
+:class:`~koala_bridge.sim.models.gyro.GyroErrorModel`); config section ``[sensors.gyro]``.
 """
 
 from __future__ import annotations

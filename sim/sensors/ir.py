@@ -11,6 +11,9 @@ Seam: ``IrSensor.measure(rays, index, start, variates)`` takes the simulator's c
 step (:func:`sim.raycast.cast_fan_arrays`); with ``ideal = false`` the error model (seeds/004:
 reflectivity, distance error table +-3 %, ambient light; ``sim/models/ir.py``) gets the
 :class:`IrTruth` -- per-ray ranges -- and returns an :class:`koala_bridge.sim.types.IrReading`.
+
+Error model: ``sim/models/ir.py`` (its params, pure functions and
+:class:`~koala_bridge.sim.models.ir.IrErrorModel`); config section ``[sensors.ir]``.
 """
 
 from __future__ import annotations

@@ -14,6 +14,9 @@ step (:func:`sim.raycast.cast_fan_arrays`); with ``ideal = false`` the error mod
 error table +-6.6 %, specular reflection beyond a critical incidence angle, late echoes via a
 second wall, crosstalk, glitches; ``sim/models/sonar.py``) gets the :class:`SonarTruth`: every
 ray's world geometry, range, incidence and wall index, and the walls.
+
+Error model: ``sim/models/sonar.py`` (its params, pure functions and
+:class:`~koala_bridge.sim.models.sonar.SonarErrorModel`); config section ``[sensors.sonar]``.
 """
 
 from __future__ import annotations
@@ -57,14 +60,6 @@ class SonarTruth:
     def ray_ranges(self) -> np.ndarray:
         """(n, k) m (inf: nothing within max range)."""
         return self._rows(4)
-
-    @property
-    def ray_incidence(self) -> np.ndarray:
-        return self._rows(5)
-
-    @property
-    def ray_wall(self) -> np.ndarray:
-        return self.index[self.start:self.start + self.n * self.k].reshape(self.n, self.k)
 
     @property
     def world_rays(self) -> tuple[np.ndarray, ...]:

@@ -17,6 +17,7 @@ import can
 import cantools
 import pytest
 import serial
+from koala_bridge.core.geometry import wrap_angle as wrap
 from koala_bridge.drivers.messages import RangeKind
 from koala_bridge.drivers.rangeframes import RangeFrameDecoder
 
@@ -52,10 +53,6 @@ def wait_still(watch, timeout: float = 60.0) -> dict:
             return b
         a = b
     raise AssertionError("robot did not come to rest")
-
-
-def wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
 
 
 # On the fast clock the robot drives on while the test reacts (a few ms idle, seconds on a busy

@@ -19,6 +19,7 @@ import numpy as np
 import serial
 import tomli_w
 from conftest import REPO
+from koala_bridge.core.geometry import wrap_angle
 from koala_bridge.estimation import decode_grid, decode_occupancy
 from koala_bridge.recording.mcap_file import open_recording
 
@@ -65,7 +66,7 @@ def test_bridge_publishes_estimates_near_the_truth(bridge: Any, zenoh_watch: Any
         if abs(truth["t"] - m["t"]) > 0.011:
             continue
         errs.append(math.hypot(m["x"] - truth["x"], m["y"] - truth["y"]))
-        herrs.append(abs(math.remainder(m["theta"] - truth["theta"], math.tau)))
+        herrs.append(abs(wrap_angle(m["theta"] - truth["theta"])))
     assert len(errs) > 100
     rmse = math.sqrt(float(np.mean(np.square(errs))))
     assert rmse < 0.05 and max(errs) < 0.10, (rmse, max(errs))

@@ -33,8 +33,8 @@ from koala_bridge.calibration.config_update import found_keys, noise_keys, updat
 from koala_bridge.calibration.model import declared_model
 from koala_bridge.calibration.pipeline import StreamResult, calibrate
 from koala_bridge.calibration.selection import prewhiten
-from koala_bridge.calibration.simulated import record_simulator
 from koala_bridge.recording.mcap_file import export_bundle
+from koala_bridge.tools.sim_recording import record_simulator
 from scipy import stats
 
 ROOT = Path(__file__).parents[2]

@@ -1,15 +1,15 @@
 """Undeclared effects injected into a simulator recording: named, recovered, held-out error halved.
 
 The simulator is recorded once (``config/default.toml``, every model on, seed 3, 60 s of
-``simulated.weave_command``) and exported to a bundle; each case copies the bundle, injects into
-the exported measurements an effect ``config/default.toml`` does not declare (each effect, and
-four pairs; ``tests/_sim_inject.py``), and calibrates against the config the run was recorded
-with. A case passes when on the injected stream exactly the injected effects are named, each
-parameter is within its tolerance, and the held-out metric at least halves, and no other stream
-gets an effect. The one exception to halving is a gyro ``bias`` alone: the declared per-run
-turn-on bias is fitted in every model, *before* included, so a constant leaves the held-out
-error as it was (it is named because its value is implausible under the declared spread). The
-clean recording adds no effect anywhere -- so no case's effect is found without its injection.
+``tools.sim_recording.weave_command``) and exported to a bundle; each case copies the bundle,
+injects into the exported measurements an effect ``config/default.toml`` does not declare (each
+effect, and four pairs; ``tests/_sim_inject.py``), and calibrates against the config the run was
+recorded with. A case passes when on the injected stream exactly the injected effects are named,
+each parameter is within its tolerance, and the held-out metric at least halves, and no other
+stream gets an effect. The one exception to halving is a gyro ``bias`` alone: the declared per-run
+turn-on bias is fitted in every model, *before* included, so a constant leaves the held-out error
+as it was (it is named because its value is implausible under the declared spread). The clean
+recording adds no effect anywhere -- so no case's effect is found without its injection.
 
 Not tested here, with the reasons and measured numbers below ``CASES``: quantisation (the
 simulated sonar's noise is far too large against any step), and one wheel's tick error alone
@@ -58,8 +58,8 @@ from _sim_inject import (
 from koala_bridge.calibration.bundle import load_bundle
 from koala_bridge.calibration.model import declared_model
 from koala_bridge.calibration.pipeline import StreamResult, calibrate
-from koala_bridge.calibration.simulated import record_simulator
 from koala_bridge.recording.mcap_file import export_bundle
+from koala_bridge.tools.sim_recording import record_simulator
 
 ROOT = Path(__file__).parents[2]
 SEED = 3

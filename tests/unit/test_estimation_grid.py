@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from koala_bridge.core.grid import SIDE_STEP, SIDES, Grid
 from koala_bridge.estimation import (
     EstimationError,
     GridLocaliser,
@@ -24,7 +25,6 @@ from koala_bridge.estimation import (
 )
 from koala_bridge.estimation.grid_localisation import wall_log_likelihood
 from koala_bridge.sim.raycast import SegmentSet, cast_rays
-from koala_bridge.sim.world import SIDE_STEP, SIDES, World
 
 ROOT = Path(__file__).resolve().parents[2]
 WALL_WORLDS = ["lab_walls_1", "lab_walls_2", "lab_walls_3"]
@@ -39,9 +39,9 @@ MAX_MOVES = 25
 OPPOSITE = {"N": "S", "S": "N", "E": "W", "W": "E"}
 
 
-def load_world(name: str) -> World:
+def load_world(name: str) -> Grid:
     text = (ROOT / "config" / "worlds" / f"{name}.toml").read_text()
-    return World.from_dict(tomllib.loads(text)["world"])
+    return Grid.from_dict(tomllib.loads(text)["world"])
 
 
 def test_log_odds_pair_is_consistent() -> None:
@@ -162,7 +162,7 @@ def test_known_start_tracks_a_tour_without_oscillating() -> None:
     assert loc.probability(true) > 0.9
 
 
-def simulate_lab_run(world: World, seed: int) -> tuple[int | None, bool]:
+def simulate_lab_run(world: Grid, seed: int) -> tuple[int | None, bool]:
     """One run of the convergence protocol with the lab's probabilities (move succeeds 0.8 when
     open; wall reported 0.9 when there, no wall 0.7 when not). Returns (moves when the filter
     named a cell or None, whether the named cell was the true one)."""
@@ -210,7 +210,7 @@ def koala_ir() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return poses, np.array(ir["response_range_m"]), np.array(ir["response_counts"], dtype=float)
 
 
-def ideal_ir_counts(world: World, x: float, y: float, heading: float) -> np.ndarray:
+def ideal_ir_counts(world: Grid, x: float, y: float, heading: float) -> np.ndarray:
     poses, rr, cc = koala_ir()
     c, s = math.cos(heading), math.sin(heading)
     ox = x + c * poses[:, 0] - s * poses[:, 1]

@@ -8,10 +8,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from koala_bridge.core.grid import Grid
 from koala_bridge.estimation import BeamModel, OccupancyGrid, OccupancyParams, beam_cells
 from koala_bridge.estimation.occupancy import decode_log_odds, encode_log_odds
 from koala_bridge.sim.raycast import SegmentSet, cast_rays
-from koala_bridge.sim.world import World
 
 ROOT = Path(__file__).resolve().parents[2]
 RES = 0.05
@@ -20,9 +20,9 @@ IR_BEAM = BeamModel(math.radians(1.72), 0.03, max_range_m=0.25)
 SONAR_BEAM = BeamModel(math.radians(22.9), 0.066, max_range_m=2.5, min_range_m=0.25)
 
 
-def load_world(name: str) -> World:
+def load_world(name: str) -> Grid:
     text = (ROOT / "config" / "worlds" / f"{name}.toml").read_text()
-    return World.from_dict(tomllib.loads(text)["world"])
+    return Grid.from_dict(tomllib.loads(text)["world"])
 
 
 def sensor_poses(kind: str) -> np.ndarray:
@@ -32,7 +32,7 @@ def sensor_poses(kind: str) -> np.ndarray:
     return poses
 
 
-def true_occupancy(world: World, grid: OccupancyGrid) -> np.ndarray:
+def true_occupancy(world: Grid, grid: OccupancyGrid) -> np.ndarray:
     """A cell is occupied when a wall segment touches its closed square."""
     occ = np.zeros((grid.rows, grid.cols), dtype=bool)
     tol = 1e-9
@@ -62,7 +62,7 @@ def ideal_ranges(
     return out
 
 
-def map_world(world: World, kind: str, beam: BeamModel, rays: int) -> OccupancyGrid:
+def map_world(world: Grid, kind: str, beam: BeamModel, rays: int) -> OccupancyGrid:
     grid = OccupancyGrid.for_world(world, RES, OccupancyParams())
     walls = SegmentSet.from_segments(world.segments)
     poses = sensor_poses(kind)

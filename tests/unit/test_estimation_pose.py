@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from koala_bridge.core.geometry import wrap_angle
 from koala_bridge.estimation import PoseTracker, PoseTrackerParams, heading_from_field
 from koala_bridge.estimation.pose_filter import (
     HEADING_H,
@@ -19,10 +20,6 @@ from scipy.stats import chi2
 LANDMARKS = np.array([[0.05, 1.95], [1.95, 1.95], [1.95, 0.05], [0.05, 0.05]])
 
 
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
-
-
 def test_odometry_increment_and_noise_free_prediction_follow_the_arc() -> None:
     ds, dth = odometry_increment(0.1, 0.1 + 0.285 * 0.2, 0.285)
     assert ds == pytest.approx(0.1285) and dth == pytest.approx(0.2)
@@ -32,7 +29,7 @@ def test_odometry_increment_and_noise_free_prediction_follow_the_arc() -> None:
     for _ in range(n):
         x, P = predict(x, P, 2 * math.pi * 0.5 / n, 2 * math.pi / n, np.zeros((2, 2)))
     np.testing.assert_allclose(x[:2], [1.0, 1.0], atol=1e-9)
-    assert abs(_wrap(x[2])) < 1e-9
+    assert abs(wrap_angle(x[2])) < 1e-9
     np.testing.assert_array_equal(P, 0.0)
 
 
@@ -51,7 +48,7 @@ def test_landmark_jacobian_matches_finite_differences() -> None:
         dx[j] = eps
         hp, _ = landmark_model(x + dx, [1.9, 1.7])
         num = (hp - hx) / eps
-        num[1] = _wrap(num[1] * eps) / eps
+        num[1] = wrap_angle(num[1] * eps) / eps
         np.testing.assert_allclose(H[:, j], num, atol=1e-5)
 
 
@@ -60,8 +57,8 @@ def test_scalar_heading_update_is_the_textbook_fusion() -> None:
     P = np.diag([1.0, 1.0, 0.04, 1e-4])
     xn, Pn = update(x, P, [-3.1], [[0.01]], HEADING_H, [x[2]], (0,))
     # the innovation wraps: -3.1 - 3.1 = 0.083 rad, not -6.2
-    innov = _wrap(-3.1 - 3.1)
-    assert _wrap(xn[2] - (3.1 + 0.04 / 0.05 * innov)) == pytest.approx(0.0, abs=1e-12)
+    innov = wrap_angle(-3.1 - 3.1)
+    assert wrap_angle(xn[2] - (3.1 + 0.04 / 0.05 * innov)) == pytest.approx(0.0, abs=1e-12)
     assert Pn[2, 2] == pytest.approx(1 / (1 / 0.04 + 1 / 0.01))
 
 
@@ -70,7 +67,7 @@ def test_heading_from_field_round_trip() -> None:
     for theta in np.linspace(-3.1, 3.1, 13):
         a = north - theta  # field direction seen from the body
         m = [20 * math.cos(a) + 3.0, 20 * math.sin(a) - 1.0, -43.0]
-        assert _wrap(heading_from_field(m, north, [3.0, -1.0, 0.0]) - theta) == pytest.approx(
+        assert wrap_angle(heading_from_field(m, north, [3.0, -1.0, 0.0]) - theta) == pytest.approx(
             0.0, abs=1e-12
         )
 
@@ -105,7 +102,8 @@ def synthetic_run(
         ds, dth = v * DT, w * DT
         thm = truth[2] + 0.5 * dth
         truth = np.array(
-            [truth[0] + ds * math.cos(thm), truth[1] + ds * math.sin(thm), _wrap(truth[2] + dth),
+            [truth[0] + ds * math.cos(thm), truth[1] + ds * math.sin(thm),
+             wrap_angle(truth[2] + dth),
              truth[3] + rng.normal(0, GYRO_RW * math.sqrt(DT))]
         )
         ds_m = ds + rng.normal(0, math.sqrt(ODO_VAR_PER_M * ds))
@@ -120,7 +118,7 @@ def synthetic_run(
             d = lm - truth[:2]
             z = [
                 math.hypot(*d) + rng.normal(0, RANGE_SIGMA),
-                _wrap(math.atan2(d[1], d[0]) - truth[2] + rng.normal(0, BEARING_SIGMA)),
+                wrap_angle(math.atan2(d[1], d[0]) - truth[2] + rng.normal(0, BEARING_SIGMA)),
             ]
             hx, H = landmark_model(x, lm)
             x, P = update(x, P, z, np.diag([RANGE_SIGMA**2, BEARING_SIGMA**2]), H, hx, (1,))
@@ -140,7 +138,7 @@ def test_ekf_is_consistent_on_a_synthetic_trajectory(landmarks: bool) -> None:
     for i in range(runs):
         T, E, C = synthetic_run(100 + i, steps, landmarks)
         e = E[:, :3] - T[:, :3]
-        e[:, 2] = (e[:, 2] + math.pi) % (2 * math.pi) - math.pi
+        e[:, 2] = wrap_angle(e[:, 2])
         nees[i] = np.einsum("ki,kij,kj->k", e, np.linalg.inv(C[:, :3, :3]), e)
         sq[i] = e[:, 0] ** 2 + e[:, 1] ** 2
     lo, hi = chi2.ppf([0.0005, 0.9995], runs * 3) / runs

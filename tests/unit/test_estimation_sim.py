@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import pytest
 from _localisation_sim import WORLDS, coverage_cells, wheel_command, world_config
+from koala_bridge.core.geometry import circle_centre, wrap_angle
 from koala_bridge.estimation import PoseTracker, PoseTrackerParams, heading_from_field
 from koala_bridge.sim.types import WheelCommand
 
@@ -35,14 +36,6 @@ def sim_config(world: str, seed_models: bool = True) -> dict[str, Any]:
                 sec["ideal"] = False
         d["robot"]["drive_error"]["ideal"] = False
     return d
-
-
-def fit_circle(xy: np.ndarray) -> np.ndarray:
-    """Least-squares circle centre (Kasa fit) of ``(n, 2)`` points."""
-    a = np.column_stack([2 * xy, np.ones(len(xy))])
-    b = np.sum(xy**2, axis=1)
-    sol, *_ = np.linalg.lstsq(a, b, rcond=None)
-    return np.asarray(sol[:2])
 
 
 def camera_sigmas(range_m: float) -> tuple[float, float]:
@@ -100,14 +93,14 @@ def run_tracking(world_name: str, seconds: float, seed: int) -> dict[str, float]
                         trk.on_landmark(t, landmarks[ob.id], ob.range, ob.bearing, sr, sb)
             ex, ey, eth = trk.pose
             err2[name].append((ex - r.pose.x) ** 2 + (ey - r.pose.y) ** 2)
-            herr2[name].append(math.remainder(eth - r.pose.theta, math.tau) ** 2)
+            herr2[name].append(wrap_angle(eth - r.pose.theta) ** 2)
         if t < spin_until:
             if r.compass is not None:
                 fields.append(r.compass.field_uT[:2].copy())
             cmd = WheelCommand(-0.5 * robot["wheel_base_m"], 0.5 * robot["wheel_base_m"])
         else:
             if hard_iron is None:
-                hard_iron = fit_circle(np.array(fields))
+                hard_iron = circle_centre(np.array(fields))
             goal = goals[gi]
             if math.hypot(goal[0] - r.pose.x, goal[1] - r.pose.y) < 0.03:
                 gi = (gi + 1) % len(goals)

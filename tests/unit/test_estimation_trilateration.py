@@ -8,8 +8,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from koala_bridge.core.geometry import wrap_angle
+from koala_bridge.core.grid import Grid
 from koala_bridge.estimation import DegenerateGeometryError, EstimationError, trilaterate3, wls_fix
-from koala_bridge.sim.world import World
 from scipy.stats import chi2
 
 WORLDS = Path(__file__).resolve().parents[2] / "config" / "worlds"
@@ -21,7 +22,7 @@ def _ranges(landmarks: np.ndarray, p: np.ndarray) -> np.ndarray:
 
 def _bearings(landmarks: np.ndarray, pose: np.ndarray) -> np.ndarray:
     a = np.arctan2(landmarks[:, 1] - pose[1], landmarks[:, 0] - pose[0]) - pose[2]
-    return np.mod(a + math.pi, 2 * math.pi) - math.pi
+    return wrap_angle(a)
 
 
 def test_closed_form_is_exact_on_noise_free_ranges() -> None:
@@ -37,7 +38,7 @@ def test_closed_form_is_exact_on_noise_free_ranges() -> None:
 
 def test_closed_form_in_the_lab_trilateration_world() -> None:
     d = tomllib.loads((WORLDS / "lab_trilateration.toml").read_text())
-    world = World.from_dict(d["world"])
+    world = Grid.from_dict(d["world"])
     lm = np.array([[m.x, m.y] for m in world.landmarks])
     for col, row in world.free_cells():
         p = np.array(world.cell_centre(col, row))
@@ -111,7 +112,7 @@ def test_wls_covariance_is_consistent(with_bearings: bool) -> None:
             b = _bearings(lm, pose) + rng.normal(0, sb, 4)
             fix = wls_fix(lm, r, sr, b, sb)
             e = fix.x - pose
-            e[2] = (e[2] + math.pi) % (2 * math.pi) - math.pi
+            e[2] = wrap_angle(e[2])
         else:
             fix = wls_fix(lm, r, sr)
             e = fix.x - pose[:2]

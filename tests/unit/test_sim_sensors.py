@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 from _sim_support import box_world, config_with_world, ideal_config
+from koala_bridge.core.geometry import wrap_angle
 from koala_bridge.sim.raycast import SegmentSet, cast_rays, first_hit_before, merge_collinear
 from koala_bridge.sim.simulator import Simulator
 from koala_bridge.sim.types import WheelCommand
@@ -149,7 +150,7 @@ def test_integrated_gyro_equals_heading_change() -> None:
         for _ in range(rng.integers(1, 9)):
             r = sim.step(cmd)
             d = r.pose.theta - heading
-            unwrapped += (d + math.pi) % (2 * math.pi) - math.pi
+            unwrapped += wrap_angle(d)
             heading = r.pose.theta
             if r.gyro is not None:
                 integral += r.gyro.yaw_rate * (r.t - last_t)
@@ -168,7 +169,7 @@ def test_compass_heading_matches_truth_without_local_sources(theta_deg: float) -
     bx, by, bz = r.compass.field_uT
     heading_cw_from_north = math.atan2(by, bx)         # FLU: field to the left = heading east
     theta = math.radians(90.0) - heading_cw_from_north  # CCW from east
-    err = math.remainder(theta - math.radians(theta_deg), 2 * math.pi)
+    err = wrap_angle(theta - math.radians(theta_deg))
     assert err == pytest.approx(0, abs=1e-12)
     assert bz == -43.0
     assert math.hypot(bx, by) == pytest.approx(20.0)

@@ -5,13 +5,23 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-if TYPE_CHECKING:
-    from koala_bridge.calibration.problem import StreamProblem
+
+class StreamProblem(Protocol):
+    """What every effect may assume of a stream's problem: its kind. Each effect reads the
+    attributes of the kinds it applies to (``calibration/streams``).
+
+    A protocol here rather than an import of :class:`koala_bridge.calibration.problem.StreamProblem`
+    (which implements it): the problem holds effect instances, so effects sit below problems and
+    the two modules do not import each other.
+    """
+
+    @property
+    def kind(self) -> str: ...
 
 
 @dataclass(frozen=True)

@@ -46,12 +46,16 @@ def categorical_levels(values: np.ndarray, max_levels: int = 32) -> np.ndarray |
     return levels if 2 <= levels.size <= max_levels else None
 
 
+#: Smallest orientation spread (``CompassProblem.orientation_spread`` in calibration/streams/
+#: compass.py) at which the iron effects are proposed: below it the data cannot tell them from the
+#: constant. Here, not in the stream module, because effects sit below the streams that use them.
+MIN_ORIENTATION_SPREAD = 0.1
+
+
 def enough_orientations(problem: Any, harmonic: int, effect: str) -> bool:
     """Whether the compass stream's orientations can determine an iron effect
     (:meth:`calibration.streams.compass.CompassProblem.orientation_spread`); when not, a
     note on the stream says why the effect was not tried."""
-    from koala_bridge.calibration.streams.compass import MIN_ORIENTATION_SPREAD
-
     spread = float(problem.orientation_spread(harmonic))
     if spread >= MIN_ORIENTATION_SPREAD:
         return True

@@ -17,13 +17,7 @@ import numpy as np
 from koala_bridge.calibration.effects import register_effect
 from koala_bridge.calibration.effects.base import Effect, EffectInstance
 from koala_bridge.calibration.effects.common import enough_orientations
-
-
-def algebraic_centre(m: np.ndarray) -> np.ndarray:
-    """Centre of the circle/sphere through points ``m`` (N, d): solve |m|^2 = 2 h.m + c."""
-    a = np.column_stack([2 * m, np.ones(len(m))])
-    sol, *_ = np.linalg.lstsq(a, np.sum(m**2, axis=1), rcond=None)
-    return np.asarray(sol[:-1], dtype=float)
+from koala_bridge.core.geometry import circle_centre
 
 
 @register_effect("hard_iron")
@@ -47,7 +41,7 @@ class HardIron(Effect):
             sol, *_ = np.linalg.lstsq(a, np.r_[m[:, 0], m[:, 1]], rcond=None)
             h = sol[2:4]
         else:
-            h = algebraic_centre(m[:, :d])
+            h = circle_centre(m[:, :d])
         dh = h - problem.h_declared[:d]
         names = ("dh_x", "dh_y", "dh_z")[:d]
         return [EffectInstance(self.name, self, names, tuple(float(v) for v in dh))]

@@ -23,7 +23,8 @@ from koala_bridge.calibration.model import DeclaredModel
 from koala_bridge.calibration.problem import FloatArray, Split
 from koala_bridge.calibration.streams.compass import CompassProblem
 from koala_bridge.calibration.streams.odometry import OdometryProblem
-from koala_bridge.calibration.streams.scalar import ScalarProblem, fit_shared_curve, wrap_angle
+from koala_bridge.calibration.streams.scalar import ScalarProblem, fit_shared_curve
+from koala_bridge.core.geometry import wrap_angle
 from scipy.integrate import cumulative_trapezoid
 
 log = logging.getLogger(__name__)

@@ -44,11 +44,7 @@ from koala_bridge.calibration.problem import (
     StreamProblem,
     apply_all,
 )
-from koala_bridge.calibration.streams.scalar import wrap_angle
-
-#: Smallest orientation spread (:meth:`CompassProblem.orientation_spread`) at which the iron
-#: effects are proposed: below it the data cannot tell them from the constant.
-MIN_ORIENTATION_SPREAD = 0.1
+from koala_bridge.core.geometry import wrap_angle
 
 
 @dataclass

@@ -28,6 +28,7 @@ from koala_bridge.calibration.problem import (
     StreamProblem,
     apply_all,
 )
+from koala_bridge.core.geometry import wrap_angle
 
 log = logging.getLogger(__name__)
 
@@ -62,11 +63,6 @@ class ScalarState:
         if rounding and self.quant_step:
             y = self.quant_step * np.round(y / self.quant_step)
         return np.asarray(y, dtype=float)
-
-
-def wrap_angle(a: FloatArray) -> FloatArray:
-    """Wrap to (-pi, pi]."""
-    return np.asarray(np.pi - np.mod(np.pi - a, 2 * np.pi), dtype=float)
 
 
 @dataclass

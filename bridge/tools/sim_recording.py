@@ -6,6 +6,9 @@ the file into the same bundle a ``koala-bridge run --record`` would give, with t
 in its ``meta.json``. The robot is driven in-process by :func:`weave_command` (no buses, no clock):
 a slow weave of alternating turns that stays near the start pose, so both wheel base and tick size
 are seen and walls are rarely touched. For tests and benches of the calibration loop.
+
+A tool, not part of ``calibration/``: it needs the bridge's live message builders and the
+recorder, and calibration itself reads only files (the layer contracts in pyproject.toml).
 """
 
 from __future__ import annotations

@@ -1,0 +1,61 @@
+"""Small plane-geometry helpers that the simulator, the estimators, calibration and the tools share.
+
+The lowest layer (core): stdlib and numpy only, so the firmware-side code (``estimation/``) can
+use them without the simulator. Angles are radians, CCW from +x (docs/architecture.md, Frames).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import overload
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+FloatArray = NDArray[np.float64]
+
+TAU = 2.0 * math.pi
+
+
+@overload
+def wrap_angle(a: float) -> float: ...
+
+
+@overload
+def wrap_angle(a: ArrayLike) -> FloatArray: ...
+
+
+def wrap_angle(a: float | ArrayLike) -> float | FloatArray:
+    """Wrap an angle (or an array of them) to (-pi, pi].
+
+    One formula for scalars (``math``, the hot path of the filters) and arrays (``numpy``), bit
+    for bit the same: ``fmod(a, 2 pi)`` is exact (IEEE 754), which leaves ``(-2 pi, 2 pi)``, then
+    one shift by ``2 pi`` lands in ``(-pi, pi]``. So ``pi`` stays ``pi`` and ``-pi`` becomes
+    ``pi``. The simulator's numba kernels call ``sim/raycast.py`` ``wrap_angle_compiled``, the
+    same formula compiled (numba has ``np.fmod`` but not ``math.fmod``). NaN stays NaN.
+    """
+    if isinstance(a, float | int):  # np.float64 is a float
+        w = math.fmod(a, TAU)
+        if w > math.pi:
+            w -= TAU
+        elif w <= -math.pi:
+            w += TAU
+        return w
+    arr = np.fmod(np.asarray(a, dtype=float), TAU)
+    arr = np.where(arr > math.pi, arr - TAU, arr)
+    return np.where(arr <= -math.pi, arr + TAU, arr)
+
+
+def circle_centre(points: ArrayLike) -> FloatArray:
+    """Centre ``(d,)`` of the circle (d = 2) or sphere (d = 3) through ``points`` ``(N, d)``.
+
+    The algebraic (Kasa) least-squares fit: ``|m|^2 = 2 h.m + c`` is linear in the centre ``h``
+    and ``c = r^2 - |h|^2`` (I. Kasa, "A circle fitting procedure and its error analysis", IEEE
+    Trans. Instrum. Meas. 25(1), 1976). A magnetometer's hard-iron offset is the centre of the
+    circle the horizontal field draws while the robot turns. Needs ``N >= d + 1`` points not all
+    on one line (plane).
+    """
+    m = np.asarray(points, dtype=float)
+    a = np.column_stack([2 * m, np.ones(len(m))])
+    sol, *_ = np.linalg.lstsq(a, np.sum(m**2, axis=1), rcond=None)
+    return np.asarray(sol[:-1], dtype=float)
