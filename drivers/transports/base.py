@@ -11,11 +11,46 @@ import threading
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Self
+from typing import Any, Self
+from urllib.parse import unquote, urlsplit
 
 import can
 
-__all__ = ["ByteTransport", "CanTransport", "Endpoint", "StatsCounter", "TransportStats"]
+__all__ = [
+    "ByteTransport",
+    "CanTransport",
+    "Endpoint",
+    "StatsCounter",
+    "TransportStats",
+    "UrlParts",
+    "split_url",
+]
+
+
+@dataclass(frozen=True, slots=True)
+class UrlParts:
+    """A transport URL split into what backends read from it (``scheme://host:port/path``).
+
+    ``rest`` is everything after ``scheme:`` unparsed, for backends whose address is not a
+    network location (a pyserial URL behind ``serial:``, a device path).
+    """
+
+    scheme: str
+    host: str | None
+    port: int | None
+    path: str
+    rest: str
+
+
+def split_url(url: str) -> UrlParts:
+    """Split ``url``; a bad port (not a number, out of range) raises :class:`ValueError`."""
+    parts = urlsplit(url)
+    scheme, _, rest = url.partition(":")
+    try:
+        port = parts.port
+    except ValueError as e:
+        raise ValueError(f"{url!r}: {e}") from e
+    return UrlParts(parts.scheme.lower(), parts.hostname, port, unquote(parts.path), rest)
 
 
 @dataclass(frozen=True, slots=True)
@@ -81,6 +116,13 @@ class Endpoint:
 
 
 class _Closable(ABC):
+    @classmethod
+    def from_url(cls, url: str, **options: Any) -> Self:
+        """Open the backend named by ``url`` (its own URL syntax, see the module docstring of
+        :mod:`koala_bridge.drivers.transports`); ``options`` go to the constructor and win over
+        what the URL says. The default reads no URL at all."""
+        return cls(**options)
+
     @abstractmethod
     def close(self) -> None:
         """Release every resource; idempotent; joins any thread the transport started."""

@@ -31,7 +31,7 @@ def test_every_backend_module_imports() -> None:
 
 def test_unknown_scheme_lists_the_known_ones() -> None:
     with pytest.raises(ValueError, match="pty"):
-        open_byte_transport("serial:///dev/ttyS0")
+        open_byte_transport("rs485:///dev/ttyS0")
 
 
 @pytest.mark.parametrize("url", ["pty://", "tcp://127.0.0.1:0", "udp://127.0.0.1:9", "loop://"])
