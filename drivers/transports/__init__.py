@@ -54,7 +54,7 @@ __all__ = [
     "Endpoint",
     "StatsCounter",
     "TransportStats",
-    "mavlink_baudrate",
+    "mavlink_connection_options",
     "mavlink_connection_url",
     "open_byte_transport",
     "open_can_transport",
@@ -102,8 +102,8 @@ def mavlink_connection_url(connection: str) -> str:
     """The registry URL of a pymavlink-style connection string, for reading a robot's MAVLink:
     ``udpin:HOST:PORT`` and ``udp:HOST:PORT`` listen there (``udpin://``), ``tcp:HOST:PORT``
     connects (``tcp-client://``), anything else is a serial device or pyserial URL with an
-    optional ``,BAUD`` (``serial:``; pass the rate as the ``baudrate`` option, see
-    :func:`mavlink_baudrate`)."""
+    optional ``,BAUD`` (``serial:``; the rate is an option, see
+    :func:`mavlink_connection_options`)."""
     kind, sep, rest = connection.partition(":")
     if sep and rest and not rest.startswith("//"):
         if kind in ("udpin", "udp"):
@@ -114,10 +114,15 @@ def mavlink_connection_url(connection: str) -> str:
     return f"serial:{path}"
 
 
-def mavlink_baudrate(connection: str, default: int = 115200) -> int:
-    """The ``,BAUD`` of a serial MAVLink connection string (``/dev/ttyACM0,57600``)."""
+def mavlink_connection_options(connection: str) -> dict[str, Any]:
+    """The options that go with :func:`mavlink_connection_url`: the ``baudrate`` of a serial
+    connection string (``/dev/ttyACM0,57600``; 115200 without one), nothing for a socket."""
+    if not mavlink_connection_url(connection).startswith("serial:"):
+        return {}
     _, sep, baud = connection.partition(",")
-    return int(baud) if sep and baud.isdigit() else default
+    if sep and not baud.isdigit():
+        raise ValueError(f"{connection!r}: the baud rate after ',' must be a number")
+    return {"baudrate": int(baud) if sep else 115200}
 
 
 def pymavlink_url(endpoint: Endpoint) -> str:
