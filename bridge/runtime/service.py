@@ -59,7 +59,6 @@ from koala_bridge.runtime.zenoh_io import (
     sensor_messages,
     status_message,
 )
-from koala_bridge.sim.raycast import cast_fan_arrays
 from koala_bridge.sim.simulator import Simulator
 from koala_bridge.sim.types import Readings
 
@@ -128,7 +127,6 @@ class BridgeService:
         self._readers: list[threading.Thread] = []
         self._range_seq = {RangeKind.IR: 0, RangeKind.SONAR: 0}
         self._last_readings: Readings | None = None
-        self._ir_axis: tuple[np.ndarray, np.ndarray] | None = None
         self._initial: Readings | None = None
         self._write_errors: set[str] = set()
         self._drains: list[Callable[[], None]] = []
@@ -262,7 +260,7 @@ class BridgeService:
 
     def _publish(self, r: Readings, n: int) -> None:
         assert self.zenoh is not None
-        messages = sensor_messages(r, None if r.ir is None else self._ir_incidence(r))
+        messages = sensor_messages(r, None if r.ir is None else r.ir.truth_incidence)
         if n % self._pose_period == 0:
             messages = {"truth/pose": pose_message(r), **messages}
         for suffix, message in messages.items():
@@ -274,25 +272,6 @@ class BridgeService:
                 self.tap.record(suffix, r.t, message)
         if n % self._status_period == 0 and n > 0:
             self._publish_status(r.t)
-
-    def _ir_incidence(self, r: Readings) -> np.ndarray:
-        """(n,) rad: incidence of each IR sensor's axis ray on the surface at its truth range
-        (nan where nothing is in range), for ``sensors/ir`` ``truth.incidence``.
-
-        :class:`sim.types.IrReading` carries the axis ranges but not their incidence, so the
-        axis rays are cast again with the simulator's own compiled cast
-        (:func:`sim.raycast.cast_fan_arrays`) from the reading's pose: 16 rays, same walls, same
-        equations, hence the same surface as ``truth_ranges``.
-        """
-        assert r.ir is not None
-        if self._ir_axis is None:
-            fan = self.sim.ir.fan
-            body = np.ascontiguousarray(fan.body[:, fan.k // 2 :: fan.k])
-            self._ir_axis = (body, np.full(fan.n, self.sim.ir.max_range_m))
-        body, max_range = self._ir_axis
-        p = r.pose
-        rays, _ = cast_fan_arrays(self.sim.walls, body, max_range, p.x, p.y, p.theta)
-        return np.where(np.isfinite(np.asarray(r.ir.truth_ranges, dtype=float)), rays[5], np.nan)
 
     def status(self, t: float) -> dict[str, Any]:
         """The ``status`` message: real-time factor and per-bus counters."""
