@@ -101,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
     # Imported here so that `koala-bridge --help` does not load the simulator and Zenoh.
     from koala_bridge.drivers.messages import DriverError
     from koala_bridge.runtime.endpoints import write_endpoints_file
-    from koala_bridge.runtime.service import BridgeService
+    from koala_bridge.runtime.sim_source import SimulatedRobotSource
 
     try:
         config = resolve_config(args)
@@ -109,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
         if args.source == "real":
             service = _real_source(config, settings)
         else:
-            service = BridgeService(config, settings)
+            service = SimulatedRobotSource(config, settings)
     except ConfigError as e:
         hint = ""
         if "missing required key" in str(e):

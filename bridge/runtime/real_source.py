@@ -67,8 +67,8 @@ from koala_bridge.drivers.transports.serialport import serial_url
 from koala_bridge.runtime.counters import BusCounters
 from koala_bridge.runtime.endpoints import Endpoints
 from koala_bridge.runtime.localisation import LocalisationNode
-from koala_bridge.runtime.service import Tap, start_reader
 from koala_bridge.runtime.settings import BridgeSettings
+from koala_bridge.runtime.sim_source import Tap, start_reader
 from koala_bridge.runtime.zenoh_io import ZENOH_BUS, ZenohLink, status_message
 from koala_bridge.sim.config import load_sim_config
 

@@ -1,10 +1,12 @@
-"""The bridge service: steps the simulator on a clock and serves every bus and Zenoh.
+"""The simulated robot as the source: steps the simulator on a clock and serves every bus and
+Zenoh (one of the two :class:`runtime.source.Source` implementations; the other is
+:mod:`runtime.real_source`).
 
-Threads (all owned here, all joined by :meth:`BridgeService.close`):
+Threads (all owned here, all joined by :meth:`SimulatedRobotSource.close`):
 
-- the **simulation loop** (the caller's thread, :meth:`BridgeService.run`): waits for step ``n``
-  on the clock, applies the wheel command in force (:class:`runtime.robot_io.MotorArbiter`), steps
-  the simulator, and sends each reading that became due: binary range frames on the
+- the **simulation loop** (the caller's thread, :meth:`SimulatedRobotSource.run`): waits for step
+  ``n`` on the clock, applies the wheel command in force (:class:`runtime.robot_io.MotorArbiter`),
+  steps the simulator, and sends each reading that became due: binary range frames on the
   rangefinders pty, CAN ``WheelOdometry`` / ``Gyro`` on every CAN interface, MAVLink
   ``SCALED_IMU`` (and ``HEARTBEAT`` at ``heartbeat_hz``), and the Zenoh messages. Sample times are
   simulation times; a reading is on the wire within the step that produced it.
@@ -81,7 +83,7 @@ class Tap(Protocol):
     ) -> None: ...
 
 
-class BridgeService:
+class SimulatedRobotSource:
     """Simulator + buses + Zenoh for one run. ``open()``, then ``run(stop)``, then ``close()``.
 
     Args:
@@ -178,7 +180,7 @@ class BridgeService:
             self.zenoh.close()
             self.zenoh = None
 
-    def __enter__(self) -> BridgeService:
+    def __enter__(self) -> SimulatedRobotSource:
         return self
 
     def __exit__(self, *exc: object) -> None:
