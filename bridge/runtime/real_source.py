@@ -27,8 +27,12 @@ With ``[localisation] enabled``, every frame read from the robot also goes to th
 (:class:`runtime.localisation.LocalisationNode`), which decodes it as it decodes the simulated
 buses and publishes ``estimate/*`` and ``map/occupancy`` (no camera: it has no bus).
 
-:class:`RealRobotSource` has the simulated service's life cycle: ``open() -> Endpoints``,
-``run(stop, duration_s)``, ``close()``, the ``tap`` recorder, ``clock.real_time_factor``.
+:class:`RealRobotSource` is a :class:`runtime.source.Source`, as the simulated robot is: ``open()
+-> Endpoints``, ``run(stop, duration_s)``, ``close()``, the ``tap`` recorder,
+``clock.real_time_factor``. Its ports open through the transport registry
+(:mod:`koala_bridge.drivers.transports`): ``kteam`` and ``rangefinders`` as ``serial:PORT``,
+CAN as ``python-can://INTERFACE/CHANNEL``, MAVLink as ``udpin://``, ``tcp-client://`` or
+``serial:`` (:func:`~koala_bridge.drivers.transports.mavlink_connection_url`).
 """
 
 from __future__ import annotations
@@ -68,7 +72,7 @@ from koala_bridge.runtime.counters import BusCounters
 from koala_bridge.runtime.endpoints import Endpoints
 from koala_bridge.runtime.localisation import LocalisationNode
 from koala_bridge.runtime.settings import BridgeSettings
-from koala_bridge.runtime.sim_source import Tap, start_reader
+from koala_bridge.runtime.source import Tap, start_reader, until_text
 from koala_bridge.runtime.zenoh_io import ZENOH_BUS, ZenohLink, status_message
 from koala_bridge.sim.config import load_sim_config
 
@@ -276,6 +280,13 @@ class RealRobotSource:
         self.last.t = self.clock.now()
         self._publish_status()
         return self.last
+
+    def describe(self) -> str:
+        return f"Reading the real robot's ports {until_text(self.settings.run.duration_s)}."
+
+    def summary(self) -> str:
+        rtf = self.clock.real_time_factor(self.last.t)
+        return f"Stopped at t = {self.last.t:.3f} s (real-time factor {rtf:.2f})."
 
     def close(self) -> None:
         self._stop.set()

@@ -28,8 +28,8 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable, Iterable, Mapping
-from typing import Any, Protocol
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import numpy as np
 from koala_bridge.drivers.can_codec import KoalaCanCodec
@@ -54,6 +54,7 @@ from koala_bridge.runtime.endpoints import Endpoints, endpoints_of
 from koala_bridge.runtime.localisation import LocalisationNode
 from koala_bridge.runtime.robot_io import KteamResponder, MotorArbiter, RobotPort, RobotUnits
 from koala_bridge.runtime.settings import BridgeSettings
+from koala_bridge.runtime.source import READ_TIMEOUT_S, Tap, start_reader, until_text
 from koala_bridge.runtime.zenoh_io import (
     ZENOH_BUS,
     ZenohLink,
@@ -66,25 +67,13 @@ from koala_bridge.sim.types import Readings
 
 log = logging.getLogger(__name__)
 
-READ_TIMEOUT_S = 0.1        # how long a reader thread blocks before it checks for stop
 DRAIN_PERIOD_S = 0.02       # wall time between reads of the output links' input
 GYRO_LIMIT = 20.0           # rad/s: the DBC range of Gyro.yaw_rate
 
 
-class Tap(Protocol):
-    """Something that sees what the bridge publishes and every raw bus frame (a recorder)."""
-
-    def declare(self, keys: Iterable[str] = (), buses: Iterable[str] = ()) -> None: ...
-
-    def record(self, channel: str, t: float, payload: Mapping[str, Any]) -> None: ...
-
-    def record_frame(
-        self, bus: str, direction: str, t: float, data: bytes, **fields: object
-    ) -> None: ...
-
-
 class SimulatedRobotSource:
-    """Simulator + buses + Zenoh for one run. ``open()``, then ``run(stop)``, then ``close()``.
+    """Simulator + buses + Zenoh for one run: a :class:`runtime.source.Source` (``open()``, then
+    ``run(stop)``, then ``close()``).
 
     Args:
         config: the whole configuration (parsed TOML after command-line overrides).
@@ -130,6 +119,7 @@ class SimulatedRobotSource:
         self._range_seq = {RangeKind.IR: 0, RangeKind.SONAR: 0}
         self._last_readings: Readings | None = None
         self._initial: Readings | None = None
+        self._last: Readings | None = None
         self._write_errors: set[str] = set()
         self._drains: list[Callable[[], None]] = []
         self._last_drain = 0.0
@@ -211,7 +201,17 @@ class SimulatedRobotSource:
         # The final counters, unless the last step just published them (one status per t).
         if n == 0 or n % self._status_period != 0:
             self._publish_status(r.t)
+        self._last = r
         return r
+
+    def describe(self) -> str:
+        run = self.settings.run
+        return f"Simulating ({run.clock} clock) {until_text(run.duration_s)}."
+
+    def summary(self) -> str:
+        t = 0.0 if self._last is None else self._last.t
+        rtf = self.clock.real_time_factor(t)
+        return f"Stopped at t = {t:.3f} s (real-time factor {rtf:.2f})."
 
     def _published_keys(self, r: Readings) -> list[str]:
         """Every Zenoh key this run publishes (``r``: the step-0 readings, where every sensor
@@ -487,41 +487,6 @@ def _sonar_mm(ranges: Any) -> tuple[int, ...]:
     for r in np.asarray(ranges, dtype=float):
         out.append(NO_ECHO if not math.isfinite(r) else int(min(max(round(r * 1000), 0), 0xFFFE)))
     return tuple(out)
-
-
-def start_reader(
-    name: str,
-    step: Callable[[], None],
-    stop: threading.Event,
-    *,
-    thread_prefix: str = "bridge",
-    transient: tuple[type[Exception], ...] = (TransportError,),
-    logger: logging.Logger = log,
-) -> threading.Thread:
-    """Start a daemon thread ``<thread_prefix>-<name>`` that calls ``step`` until ``stop`` is
-    set; return it.
-
-    A ``transient`` error (a port failing) is logged as a warning and waited out for
-    :data:`READ_TIMEOUT_S` before the next ``step``, or ends the thread if ``stop`` is set by then
-    (the port was closed under it). Any other exception is logged with its traceback and the loop
-    goes on: a reader must outlive any one bad input.
-    """
-
-    def loop() -> None:
-        while not stop.is_set():
-            try:
-                step()
-            except transient as e:
-                if stop.is_set():
-                    return
-                logger.warning("%s: %s", name, e)
-                stop.wait(READ_TIMEOUT_S)
-            except Exception:
-                logger.exception("%s reader failed on one input; going on", name)
-
-    thread = threading.Thread(target=loop, name=f"{thread_prefix}-{name}", daemon=True)
-    thread.start()
-    return thread
 
 
 def _tap_bus(bus: str) -> str:
