@@ -148,6 +148,7 @@ class PtyTransport(ByteTransport):
         return len(self._pending)
 
     def wait(self, timeout: float | None) -> bool:
+        self._fd()  # closed: refused, as read and write are
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
             remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
