@@ -72,13 +72,12 @@ from koala_bridge.runtime.counters import BusCounters
 from koala_bridge.runtime.endpoints import Endpoints
 from koala_bridge.runtime.localisation import LocalisationNode
 from koala_bridge.runtime.settings import BridgeSettings
-from koala_bridge.runtime.source import Tap, start_reader, until_text
+from koala_bridge.runtime.source import READ_TIMEOUT_S, Tap, start_reader, until_text
 from koala_bridge.runtime.zenoh_io import ZENOH_BUS, ZenohLink, status_message
 from koala_bridge.sim.config import load_sim_config
 
 log = logging.getLogger(__name__)
 
-READ_TIMEOUT_S = 0.1
 KTEAM_REPLY_TIMEOUT_S = 0.5
 POLLABLE = {"N": "sensors/ir", "H": "sensors/odometry"}
 

@@ -1,8 +1,11 @@
 """The two transport interfaces -- byte streams and CAN -- and their shared bookkeeping.
 
 A transport moves bytes or CAN frames and nothing else; which codec reads them is the caller's
-business. Every transport binds to 127.0.0.1 by default, has :meth:`close`, is a context manager,
-and reports counters through :attr:`stats` (for the bridge's ``status``).
+business. Every transport that serves clients binds to 127.0.0.1 by default; the robot-side
+ones (``serial``, ``tcp-client``, ``udpin``) open what their URL names. Each has :meth:`close`, is a
+context manager, reports counters through :attr:`stats` (for the bridge's ``status``), and is
+opened from its URL by its own :meth:`from_url` (through the registry,
+:func:`koala_bridge.drivers.transports.open_byte_transport` / ``open_can_transport``).
 """
 
 from __future__ import annotations
@@ -99,9 +102,11 @@ class Endpoint:
     """Where a client connects to a transport.
 
     Attributes:
-        kind: backend name (``pty``, ``tcp``, ``udp``, ``loop``, ``socketcand``, ``slcan``,
-            ``virtual``, ``python-can``).
-        path: device path for pty-based backends (the stable symlink if one was asked for).
+        kind: backend name, the URL scheme that opened it (``pty``, ``tcp``, ``tcp-client``,
+            ``udp``, ``udpin``, ``serial``, ``loop``, ``socketcand``, ``slcan``, ``virtual``,
+            ``python-can``).
+        path: device path for pty-based backends (the stable symlink if one was asked for);
+            the device or pyserial URL of a ``serial`` port.
         host / port: socket address for network backends (for ``udp``, where datagrams are sent).
         channel: CAN channel name (socketcand bus name, python-can channel).
         interface: python-can interface name for the ``python-can`` and ``virtual`` backends.
