@@ -103,7 +103,10 @@ def mavlink_connection_url(connection: str) -> str:
     ``udpin:HOST:PORT`` and ``udp:HOST:PORT`` listen there (``udpin://``), ``tcp:HOST:PORT``
     connects (``tcp-client://``), anything else is a serial device or pyserial URL with an
     optional ``,BAUD`` (``serial:``; the rate is an option, see
-    :func:`mavlink_connection_options`)."""
+    :func:`mavlink_connection_options`). A URL of this registry's robot-side backends
+    (``udpin://``, ``tcp-client://``, ``serial:``) is taken as it is."""
+    if connection.startswith(("udpin://", "tcp-client://", "serial:")):
+        return connection.partition(",")[0] if connection.startswith("serial:") else connection
     kind, sep, rest = connection.partition(":")
     if sep and rest and not rest.startswith("//"):
         if kind in ("udpin", "udp"):

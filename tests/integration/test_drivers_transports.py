@@ -98,6 +98,9 @@ def test_mavlink_connection_strings_map_to_registry_urls() -> None:
     assert mavlink_connection_url("tcp:192.168.1.2:5760") == "tcp-client://192.168.1.2:5760"
     assert mavlink_connection_url("/dev/ttyACM0,57600") == "serial:/dev/ttyACM0"
     assert mavlink_connection_url("socket://10.0.0.1:4001") == "serial:socket://10.0.0.1:4001"
+    assert mavlink_connection_url("udpin://0.0.0.0:14550") == "udpin://0.0.0.0:14550"
+    assert mavlink_connection_url("serial:/dev/ttyACM0,9600") == "serial:/dev/ttyACM0"
+    assert mavlink_connection_options("serial:/dev/ttyACM0,9600") == {"baudrate": 9600}
     assert mavlink_connection_options("/dev/ttyACM0,57600") == {"baudrate": 57600}
     assert mavlink_connection_options("/dev/ttyACM0") == {"baudrate": 115200}
     assert mavlink_connection_options("udpin:0.0.0.0:14550") == {}
