@@ -24,13 +24,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import sys
 from pathlib import Path
 
 from koala_bridge.cli.main import positive, seconds
-
-log = logging.getLogger(__name__)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -100,7 +97,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from koala_bridge.cli.run import DEFAULT_CONFIG
+    from koala_bridge.core.resources import default_config_path
     from koala_bridge.recording.mcap_file import RecordingError, open_recording
     from koala_bridge.runtime.replay import ReplaySource, plan_replay
     from koala_bridge.runtime.session import run_session
@@ -125,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
             config = load_config(args.config)
         else:
             text = rec.metadata.get("koala-bridge", {}).get("config")
-            config = json.loads(text) if text else load_config(DEFAULT_CONFIG)
+            config = json.loads(text) if text else load_config(default_config_path())
         for o in args.overrides:
             config = apply_override(config, *parse_override(o))
         settings = BridgeSettings.from_config(config)

@@ -18,7 +18,6 @@ examples:
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
 from pathlib import Path
 from typing import Any
@@ -33,8 +32,6 @@ from koala_bridge.runtime.settings import (
     load_config,
     parse_override,
 )
-
-log = logging.getLogger(__name__)
 
 # The repository's config, wherever the command is run from (as drivers.can_codec finds the DBC).
 DEFAULT_CONFIG = default_config_path()
