@@ -3,9 +3,9 @@ transport's latency measured in the same run.
 
 Two child processes, clients in this one:
 
-- ``--serve``: a bridge (`bridge.service.BridgeService`, real-time clock, the robot driving so
-  that every encoder sample is distinct) that logs, for every step, ``time.monotonic()`` right
-  after the simulator produced the step's readings. CLOCK_MONOTONIC is system-wide on Linux, so
+- ``--serve``: a bridge (`koala_bridge.runtime.sim_source.SimulatedRobotSource`, real-time
+  clock, the robot driving so that every encoder sample is distinct) that logs, for every step,
+  ``time.monotonic()`` right after the simulator produced the step's readings. CLOCK_MONOTONIC is system-wide on Linux, so
   the client's decode time minus that is the sample's latency.
 - ``--bare``: the bare transports: the same kinds of link (a pty, a TCP server, UDP datagrams, a
   Zenoh publisher) carrying raw payloads of the same size at the same rates, each stamped with
@@ -46,18 +46,18 @@ STAMP = struct.Struct("<d")
 
 def serve(config_overrides: list[str], ready_file: Path, log_file: Path) -> int:
     from koala_bridge.runtime.endpoints import write_endpoints_file
-    from koala_bridge.runtime.service import BridgeService
     from koala_bridge.runtime.settings import (
         BridgeSettings,
         apply_override,
         load_config,
         parse_override,
     )
+    from koala_bridge.runtime.sim_source import SimulatedRobotSource
 
     config = load_config(REPO / "config" / "default.toml")
     for text in ["run.clock=realtime", *config_overrides]:
         config = apply_override(config, *parse_override(text))
-    service = BridgeService(config, BridgeSettings.from_config(config))
+    service = SimulatedRobotSource(config, BridgeSettings.from_config(config))
     steps: list[tuple[float, float, int]] = []
     simulate = service.sim.step
 

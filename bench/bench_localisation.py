@@ -2,9 +2,9 @@
 
     python -m bench.bench_localisation [--seconds S] [--window W]     (also run by `make bench`)
 
-What is timed: one :class:`koala_bridge.runtime.service.BridgeService` on ``config/default.toml`` (every error
-model on, every bus open on free loopback ports, Zenoh publishing), fast clock, the robot driving
-an arc -- alternately *with* its :class:`koala_bridge.runtime.localisation.LocalisationNode` and *without*
+What is timed: one :class:`koala_bridge.runtime.sim_source.SimulatedRobotSource` on
+``config/default.toml`` (every error model on, every bus open on free loopback ports, Zenoh
+publishing), fast clock, the robot driving an arc -- alternately *with* its :class:`koala_bridge.runtime.localisation.LocalisationNode` and *without*
 (the node detached), in windows of ``W`` simulated seconds, in the same process and the same run.
 Each figure is the best window (the least disturbed on a shared machine, the ``timeit``
 convention) with the median beside it. The algorithms alone are in bench/bench_estimation.py.
@@ -44,8 +44,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     sys.path.insert(0, str(REPO))
-    from koala_bridge.runtime.service import BridgeService
     from koala_bridge.runtime.settings import BridgeSettings, apply_override
+    from koala_bridge.runtime.sim_source import SimulatedRobotSource
 
     config = tomllib.loads((REPO / "config" / "default.toml").read_text())
     for key, value in (
@@ -56,7 +56,7 @@ def main(argv: list[str] | None = None) -> int:
         (["localisation", "enabled"], True),
     ):
         config = apply_override(config, key, value)
-    service = BridgeService(config, BridgeSettings.from_config(config))
+    service = SimulatedRobotSource(config, BridgeSettings.from_config(config))
     node = service.localisation
     assert node is not None
     service.open()

@@ -33,6 +33,9 @@ class IrReading:
     ambient: np.ndarray         # (n,) int, ambient light counts 0..1023 (K-Team 'O')
     truth_counts: np.ndarray    # (n,) int, noise-free counts
     truth_ranges: np.ndarray    # (n,) float m, distance along the sensor axis (inf: nothing)
+    # (n,) float rad, incidence of the axis ray on the surface at truth_ranges (nan: nothing);
+    # None only in a reading built by hand (tests), the simulator always sets it.
+    truth_incidence: np.ndarray | None = None
 
 
 @dataclass(frozen=True, slots=True)

@@ -1,6 +1,6 @@
 """In-process runs of the localisation node on the simulator, through the drivers' encodings.
 
-:class:`BusFeed` does what ``BridgeService._emit`` does with a step's readings, minus the
+:class:`BusFeed` does what ``SimulatedRobotSource._emit`` does with a step's readings, minus the
 transports: each reading is encoded by the drivers into the bytes the service puts on the buses
 (range frames, CAN ``WheelOdometry``/``Gyro`` via the DBC, MAVLink ``SCALED_IMU``) and those bytes
 are handed to :meth:`LocalisationNode.on_frame`, which decodes them; the camera (no bus) goes to

@@ -18,12 +18,8 @@ examples:
 from __future__ import annotations
 
 import argparse
-import logging
-import signal
 import sys
-import threading
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
 from koala_bridge.cli.main import seconds
@@ -36,8 +32,6 @@ from koala_bridge.runtime.settings import (
     load_config,
     parse_override,
 )
-
-log = logging.getLogger(__name__)
 
 # The repository's config, wherever the command is run from (as drivers.can_codec finds the DBC).
 DEFAULT_CONFIG = default_config_path()
@@ -99,17 +93,13 @@ def resolve_config(args: argparse.Namespace) -> dict[str, Any]:
 
 def run(args: argparse.Namespace) -> int:
     # Imported here so that `koala-bridge --help` does not load the simulator and Zenoh.
-    from koala_bridge.drivers.messages import DriverError
-    from koala_bridge.runtime.endpoints import write_endpoints_file
-    from koala_bridge.runtime.service import BridgeService
+    from koala_bridge.runtime.session import run_session
+    from koala_bridge.runtime.source import make_source
 
     try:
         config = resolve_config(args)
         settings = BridgeSettings.from_config(config)
-        if args.source == "real":
-            service = _real_source(config, settings)
-        else:
-            service = BridgeService(config, settings)
+        source = make_source(args.source, config, settings)
     except ConfigError as e:
         hint = ""
         if "missing required key" in str(e):
@@ -117,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"koala-bridge run: configuration error: {e}{hint}", file=sys.stderr)
         return 2
 
-    recorder = None
+    after_close = None
     if args.record is not None:
         from koala_bridge.recording.mcap_file import Recorder, RecordingError, run_metadata
 
@@ -125,64 +115,20 @@ def run(args: argparse.Namespace) -> int:
             recorder = Recorder(
                 args.record,
                 metadata=run_metadata(args.source, config, args.config),
-                world=service.world_answer(),
+                world=source.world_answer(),
             )
         except RecordingError as e:
             print(f"koala-bridge run: {e}", file=sys.stderr)
             return 1
-        service.tap = recorder
+        source.tap = recorder
 
-    stop = threading.Event()
-
-    def on_signal(signum: int, frame: FrameType | None) -> None:
-        log.info("%s received: stopping", signal.Signals(signum).name)
-        stop.set()
-
-    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        try:
-            endpoints = service.open()
-        except (OSError, DriverError) as e:
-            print(f"koala-bridge run: {e}", file=sys.stderr)
-            return 1
-        print(endpoints.describe(), flush=True)
-        if settings.run.endpoints_file:
-            target = settings.run.endpoints_file
-            try:
-                path = write_endpoints_file(target, endpoints)
-            except OSError as e:
-                print(
-                    f"koala-bridge run: cannot write the endpoints file {target}: "
-                    f"{e.strerror or e}",
-                    file=sys.stderr,
-                )
-                return 1
-            print(f"  Endpoints file          {path}", flush=True)
-        clock = settings.run.clock
-        until = f"for {settings.run.duration_s:g} s" if settings.run.duration_s else "until Ctrl-C"
-        if args.source == "real":
-            print(f"Reading the real robot's ports {until}.", flush=True)
-        else:
-            print(f"Simulating ({clock} clock) {until}.", flush=True)
-        last = service.run(stop)
-        rtf = service.clock.real_time_factor(last.t)
-        print(f"Stopped at t = {last.t:.3f} s (real-time factor {rtf:.2f}).", flush=True)
-    finally:
-        service.close()
-        if recorder is not None:
+        def after_close() -> str:
             recorder.close()
-            print(f"Recorded {recorder.written} messages to {recorder.path}.", flush=True)
-        for s, handler in previous.items():
-            signal.signal(s, handler)
-    return 0
+            return f"Recorded {recorder.written} messages to {recorder.path}."
 
-
-def _real_source(config: dict[str, Any], settings: BridgeSettings) -> Any:
-    """``--source real``: the robot's ports instead of the simulator (runtime/real_source.py)."""
-    from koala_bridge.runtime.real_source import RealRobotSource
-    from koala_bridge.sim.simulator import Simulator
-
-    # The world and the robot's description answer the world queryable; nothing is simulated.
-    description = Simulator(config)
-    world = {**description.world.to_dict(), "robot": description.robot_description()}
-    return RealRobotSource(config, settings, lambda: world)
+    return run_session(
+        source,
+        prog="koala-bridge run",
+        endpoints_file=settings.run.endpoints_file or None,
+        after_close=after_close,
+    )

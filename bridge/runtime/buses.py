@@ -1,8 +1,10 @@
 """Open the transports the configuration asks for, and close them all again.
 
-One place maps ``[buses]`` settings to ``koala_bridge.drivers.transports`` backends (pty, UDP, TCP,
-socketcand, slcan-on-a-pty, python-can). :class:`OpenBuses` holds what was opened; if opening one
-fails, everything opened before it is closed and the error names the bus.
+:func:`bus_urls` maps ``[buses]`` settings to transport URLs (pty, UDP, TCP, socketcand,
+slcan-on-a-pty, python-can), and the transport registry (:mod:`koala_bridge.drivers.transports`)
+opens them -- the same registry the real-robot source and the tests open their ports with.
+:class:`OpenBuses` holds what was opened; if opening one fails, everything opened before it is
+closed and the error names the bus.
 
 Byte transports are not safe to use from two threads at once (a write may flush data held back
 for a slow client while a read does the same), so each is wrapped in :class:`LockedByteLink`:
@@ -16,11 +18,13 @@ import logging
 import select
 import threading
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
+from urllib.parse import quote
 
 from koala_bridge.drivers.messages import TransportError
+from koala_bridge.drivers.transports import open_byte_transport, open_can_transport
 from koala_bridge.drivers.transports.base import ByteTransport, CanTransport, TransportStats
+from koala_bridge.drivers.transports.pythoncan import python_can_url
 from koala_bridge.runtime.settings import BusesSettings
 
 log = logging.getLogger(__name__)
@@ -133,9 +137,40 @@ def address_in_use(e: BaseException) -> bool:
     return False
 
 
-def _open(name: str, factory: Callable[[], object]) -> object:
+def bus_urls(settings: BusesSettings) -> dict[str, str]:
+    """The transport URL of every enabled bus of ``settings``, by bus name, in opening order
+    (:mod:`koala_bridge.drivers.transports` opens them)."""
+    urls: dict[str, str] = {}
+    if settings.kteam:
+        urls["kteam"] = "pty://"
+    if settings.rangefinders:
+        urls["rangefinders"] = "pty://"
+    mav = settings.mavlink
+    if mav.enabled:
+        urls["mavlink"] = (
+            "pty://" if mav.transport == "pty" else f"{mav.transport}://{mav.host}:{mav.port}"
+        )
+    can = settings.can
+    if can.socketcand:
+        urls["can.socketcand"] = (
+            f"socketcand://{can.socketcand_host}:{can.socketcand_port}/{quote(can.channel)}"
+        )
+    if can.slcan:
+        urls["can.slcan"] = "slcan://"
+    if can.virtual:
+        urls["can.virtual"] = f"virtual:///{quote(can.virtual_channel)}"
+    if can.socketcan:
+        urls["can.socketcan"] = python_can_url("socketcan", can.socketcan_channel)
+    return urls
+
+
+def open_bus(name: str, url: str) -> ByteTransport | CanTransport:
+    """Open bus ``name`` at ``url`` through the transport registry; a failure raises
+    :class:`BusOpenError` naming the bus (and, for a port in use, the key that moves it)."""
     try:
-        return factory()
+        if name.startswith("can."):
+            return open_can_transport(url)
+        return open_byte_transport(url)
     except (TransportError, OSError) as e:
         hint = ""
         if name in PORT_KEYS and address_in_use(e):
@@ -148,60 +183,15 @@ def _open(name: str, factory: Callable[[], object]) -> object:
 
 def open_buses(settings: BusesSettings) -> OpenBuses:
     """Open every enabled bus of ``settings``; on failure close what was opened and raise."""
-    # Imported here: a backend's dependencies load only when its bus is enabled.
     buses = OpenBuses()
     try:
-        if settings.kteam or settings.rangefinders:
-            from koala_bridge.drivers.transports.pty import PtyTransport
-        if settings.kteam:
-            buses.kteam = LockedByteLink(_open("kteam", PtyTransport))  # type: ignore[arg-type]
-        if settings.rangefinders:
-            buses.rangefinders = LockedByteLink(
-                _open("rangefinders", PtyTransport)  # type: ignore[arg-type]
-            )
-        mav = settings.mavlink
-        if mav.enabled:
-            buses.mavlink = LockedByteLink(_open("mavlink", lambda: _mavlink_transport(settings)))  # type: ignore[arg-type]
-        can = settings.can
-        if can.socketcand:
-            from koala_bridge.drivers.transports.socketcand import SocketcandServer
-
-            buses.can["can.socketcand"] = _open(  # type: ignore[assignment]
-                "can.socketcand",
-                lambda: SocketcandServer(can.socketcand_host, can.socketcand_port, can.channel),
-            )
-        if can.slcan:
-            from koala_bridge.drivers.transports.slcan import SlcanAdapter
-
-            buses.can["can.slcan"] = _open("can.slcan", SlcanAdapter)  # type: ignore[assignment]
-        if can.virtual:
-            from koala_bridge.drivers.transports.pythoncan import VirtualCanTransport
-
-            buses.can["can.virtual"] = _open(  # type: ignore[assignment]
-                "can.virtual", lambda: VirtualCanTransport(can.virtual_channel)
-            )
-        if can.socketcan:
-            from koala_bridge.drivers.transports.pythoncan import PythonCanTransport
-
-            buses.can["can.socketcan"] = _open(  # type: ignore[assignment]
-                "can.socketcan", lambda: PythonCanTransport("socketcan", can.socketcan_channel)
-            )
+        for name, url in bus_urls(settings).items():
+            transport = open_bus(name, url)
+            if isinstance(transport, CanTransport):
+                buses.can[name] = transport
+            else:
+                setattr(buses, name, LockedByteLink(transport))
     except BaseException:
         buses.close()
         raise
     return buses
-
-
-def _mavlink_transport(settings: BusesSettings) -> ByteTransport:
-    mav = settings.mavlink
-    if mav.transport == "udp":
-        from koala_bridge.drivers.transports.udp import UdpTransport
-
-        return UdpTransport(mav.host, mav.port)
-    if mav.transport == "tcp":
-        from koala_bridge.drivers.transports.tcp import TcpServerTransport
-
-        return TcpServerTransport(mav.host, mav.port)
-    from koala_bridge.drivers.transports.pty import PtyTransport
-
-    return PtyTransport()

@@ -15,7 +15,7 @@ bus                      codec (``drivers``)                     estimator input
 ``serial/kteam``         ``kteam.parse_reply``                   ``n`` IR counts, ``h`` ticks
 =======================  ======================================  ============================
 
-So it runs the same against the simulator (``runtime/service.py`` hands it every frame it sends)
+So it runs the same against the simulator (``runtime/sim_source.py`` hands it every frame it sends)
 and against a real Koala (``runtime/real_source.py`` hands it every frame it reads). The camera
 has no bus: in simulation the service passes the simulator's *measured* landmark observations
 (:meth:`LocalisationNode.on_camera`); a real robot has none. The node never sees the truth.

@@ -27,14 +27,17 @@ With ``[localisation] enabled``, every frame read from the robot also goes to th
 (:class:`runtime.localisation.LocalisationNode`), which decodes it as it decodes the simulated
 buses and publishes ``estimate/*`` and ``map/occupancy`` (no camera: it has no bus).
 
-:class:`RealRobotSource` has the simulated service's life cycle: ``open() -> Endpoints``,
-``run(stop, duration_s)``, ``close()``, the ``tap`` recorder, ``clock.real_time_factor``.
+:class:`RealRobotSource` is a :class:`runtime.source.Source`, as the simulated robot is: ``open()
+-> Endpoints``, ``run(stop, duration_s)``, ``close()``, the ``tap`` recorder,
+``clock.real_time_factor``. Its ports open through the transport registry
+(:mod:`koala_bridge.drivers.transports`): ``kteam`` and ``rangefinders`` as ``serial:PORT``,
+CAN as ``python-can://INTERFACE/CHANNEL``, MAVLink as ``udpin://``, ``tcp-client://`` or
+``serial:`` (:func:`~koala_bridge.drivers.transports.mavlink_connection_url`).
 """
 
 from __future__ import annotations
 
 import logging
-import socket
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -42,7 +45,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import can
-import serial
 from koala_bridge.core.schema import ConfigError, reject_unknown
 from koala_bridge.drivers.can_codec import KoalaCanCodec
 from koala_bridge.drivers.kteam import LineSplitter, format_command, parse_reply
@@ -56,17 +58,26 @@ from koala_bridge.drivers.messages import (
     WheelOdometryFrame,
 )
 from koala_bridge.drivers.rangeframes import NO_ECHO, RangeFrameDecoder, encode_range_frame
+from koala_bridge.drivers.transports import (
+    ByteTransport,
+    CanTransport,
+    mavlink_connection_options,
+    mavlink_connection_url,
+    open_byte_transport,
+    open_can_transport,
+)
+from koala_bridge.drivers.transports.pythoncan import python_can_url
+from koala_bridge.drivers.transports.serialport import serial_url
 from koala_bridge.runtime.counters import BusCounters
 from koala_bridge.runtime.endpoints import Endpoints
 from koala_bridge.runtime.localisation import LocalisationNode
-from koala_bridge.runtime.service import Tap, start_reader
 from koala_bridge.runtime.settings import BridgeSettings
+from koala_bridge.runtime.source import READ_TIMEOUT_S, Tap, start_reader, until_text
 from koala_bridge.runtime.zenoh_io import ZENOH_BUS, ZenohLink, status_message
 from koala_bridge.sim.config import load_sim_config
 
 log = logging.getLogger(__name__)
 
-READ_TIMEOUT_S = 0.1
 KTEAM_REPLY_TIMEOUT_S = 0.5
 POLLABLE = {"N": "sensors/ir", "H": "sensors/odometry"}
 
@@ -125,54 +136,6 @@ class RealPorts:
         return cls.from_dict(real)
 
 
-class MavlinkLink:
-    """The receiving end of a MAVLink connection string: ``udpin:HOST:PORT`` (listen for
-    datagrams), ``udp:HOST:PORT`` (same), ``tcp:HOST:PORT`` (connect), or a serial device /
-    pyserial URL with an optional ``,BAUD``."""
-
-    def __init__(self, url: str) -> None:
-        self.url = url
-        self.is_datagram = False
-        self._sock: socket.socket | None = None
-        self._serial: serial.SerialBase | None = None
-        kind, _, rest = url.partition(":")
-        if kind in ("udpin", "udp") and rest:
-            host, port = _host_port(rest, url)
-            self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            self._sock.bind((host, port))
-            self.is_datagram = True
-        elif kind == "tcp" and rest:
-            self._sock = socket.create_connection(_host_port(rest, url), timeout=5.0)
-        else:
-            path, _, baud = url.partition(",")
-            self._serial = serial.serial_for_url(path, baudrate=int(baud or 115200), timeout=0)
-        if self._sock is not None:
-            self._sock.settimeout(READ_TIMEOUT_S)
-
-    def read(self) -> bytes:
-        if self._sock is not None:
-            try:
-                return self._sock.recv(65536)
-            except TimeoutError:
-                return b""
-        assert self._serial is not None
-        self._serial.timeout = READ_TIMEOUT_S
-        return bytes(self._serial.read(max(1, self._serial.in_waiting)))
-
-    def close(self) -> None:
-        if self._sock is not None:
-            self._sock.close()
-        if self._serial is not None:
-            self._serial.close()
-
-
-def _host_port(text: str, url: str) -> tuple[str, int]:
-    host, _, port = text.rpartition(":")
-    if not host or not port.isdigit():
-        raise ConfigError(f"[real] 'mavlink': expected HOST:PORT in {url!r}")
-    return host, int(port)
-
-
 class _RealClock:
     """Host time since the start; a real robot runs in real time (factor 1 by definition)."""
 
@@ -218,11 +181,11 @@ class RealRobotSource:
         self.counters = BusCounters()
         self._world_answer = world_answer
         self.zenoh: ZenohLink | None = None
-        self._kteam: serial.SerialBase | None = None
+        self._kteam: ByteTransport | None = None
         self._kteam_lock = threading.Lock()
-        self._ranges: serial.SerialBase | None = None
-        self._can: can.BusABC | None = None
-        self._mavlink: MavlinkLink | None = None
+        self._ranges: ByteTransport | None = None
+        self._can: CanTransport | None = None
+        self._mavlink: ByteTransport | None = None
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._can_codec = KoalaCanCodec()
@@ -245,24 +208,27 @@ class RealRobotSource:
         """Open the robot's ports and the Zenoh session, start the readers."""
         p = self.ports
         try:
+            # Every port through the transport registry, as the simulated buses are.
             if p.kteam:
-                self._kteam = self._open_serial("kteam", p.kteam, p.kteam_baud)
-            if p.rangefinders:
-                self._ranges = self._open_serial(
-                    "rangefinders", p.rangefinders, p.rangefinders_baud
+                self._kteam = _open_port(
+                    "kteam port", p.kteam, serial_url(p.kteam), lambda: {"baudrate": p.kteam_baud}
                 )
-            if p.can_interface:
+            if p.rangefinders:
+                self._ranges = _open_port(
+                    "rangefinders port", p.rangefinders, serial_url(p.rangefinders),
+                    lambda: {"baudrate": p.rangefinders_baud},
+                )
+            if p.can_interface and p.can_channel:
+                url = python_can_url(p.can_interface, p.can_channel)
                 try:
-                    self._can = can.Bus(
-                        interface=p.can_interface, channel=p.can_channel, **dict(p.can_options)
-                    )
-                except (can.CanError, OSError, ValueError) as e:
+                    self._can = open_can_transport(url, **dict(p.can_options))
+                except (OSError, ValueError) as e:
                     raise OSError(f"cannot open CAN {p.can_interface}/{p.can_channel}: {e}") from e
             if p.mavlink:
-                try:
-                    self._mavlink = MavlinkLink(p.mavlink)
-                except (OSError, serial.SerialException, ValueError) as e:
-                    raise OSError(f"cannot open MAVLink {p.mavlink!r}: {e}") from e
+                self._mavlink = _open_port(
+                    "MAVLink", p.mavlink, mavlink_connection_url(p.mavlink),
+                    lambda: mavlink_connection_options(p.mavlink or ""),
+                )
             self.zenoh = ZenohLink(self.settings.zenoh, self._world_answer, self.counters)
         except BaseException:
             self.close()
@@ -314,21 +280,23 @@ class RealRobotSource:
         self._publish_status()
         return self.last
 
+    def describe(self) -> str:
+        return f"Reading the real robot's ports {until_text(self.settings.run.duration_s)}."
+
+    def summary(self) -> str:
+        rtf = self.clock.real_time_factor(self.last.t)
+        return f"Stopped at t = {self.last.t:.3f} s (real-time factor {rtf:.2f})."
+
     def close(self) -> None:
         self._stop.set()
         for t in self._threads:
             t.join(timeout=5.0)
         self._threads.clear()
-        for port in (self._kteam, self._ranges):
+        for port in (self._kteam, self._ranges, self._can, self._mavlink):
             if port is not None:
                 port.close()
-        self._kteam = self._ranges = None
-        if self._can is not None:
-            self._can.shutdown()
-            self._can = None
-        if self._mavlink is not None:
-            self._mavlink.close()
-            self._mavlink = None
+        self._kteam = self._ranges = self._mavlink = None
+        self._can = None
         if self.zenoh is not None:
             self.zenoh.close()
             self.zenoh = None
@@ -341,17 +309,10 @@ class RealRobotSource:
 
     # -- helpers -----------------------------------------------------------------------------
 
-    @staticmethod
-    def _open_serial(name: str, url: str, baud: int) -> serial.SerialBase:
-        try:
-            return serial.serial_for_url(url, baudrate=baud, timeout=READ_TIMEOUT_S)
-        except (serial.SerialException, ValueError) as e:
-            raise OSError(f"cannot open {name} port {url!r}: {e}") from e
-
     def _spawn(self, name: str, step: Callable[[], None]) -> None:
         thread = start_reader(
             name, step, self._stop, thread_prefix="real",
-            transient=(OSError, serial.SerialException, can.CanError), logger=log,
+            transient=(OSError, can.CanError), logger=log,
         )
         self._threads.append(thread)
 
@@ -378,11 +339,11 @@ class RealRobotSource:
 
     # -- readers -----------------------------------------------------------------------------
 
-    def _range_reader(self, port: serial.SerialBase) -> Callable[[], None]:
+    def _range_reader(self, port: ByteTransport) -> Callable[[], None]:
         decoder = RangeFrameDecoder()
 
         def step() -> None:
-            data = port.read(max(1, port.in_waiting))
+            data = port.read() if port.wait(READ_TIMEOUT_S) else b""
             if not data:
                 return
             before = decoder.rejected
@@ -400,7 +361,7 @@ class RealRobotSource:
 
         return step
 
-    def _can_reader(self, bus: can.BusABC) -> Callable[[], None]:
+    def _can_reader(self, bus: CanTransport) -> Callable[[], None]:
         codec = self._can_codec
 
         def step() -> None:
@@ -431,11 +392,11 @@ class RealRobotSource:
 
         return step
 
-    def _mavlink_reader(self, link: MavlinkLink) -> Callable[[], None]:
+    def _mavlink_reader(self, link: ByteTransport) -> Callable[[], None]:
         decoder = CompassDecoder()
 
         def step() -> None:
-            data = link.read()
+            data = link.read() if link.wait(READ_TIMEOUT_S) else b""
             if not data:
                 return
             t = self.clock.now()
@@ -460,13 +421,12 @@ class RealRobotSource:
         t = self.clock.now()
         with self._kteam_lock:
             try:
-                port.reset_input_buffer()
+                _discard_input(port)
                 port.write(command)
                 self._frame("serial/kteam", "to_robot", t, command)
                 self.counters.sent("kteam")
-                port.timeout = KTEAM_REPLY_TIMEOUT_S
-                line = port.read_until(b"\n")
-            except (OSError, serial.SerialException) as e:
+                line = _read_line(port, KTEAM_REPLY_TIMEOUT_S)
+            except OSError as e:
                 log.warning("kteam: %s", e)
                 return
         t = self.clock.now()
@@ -492,3 +452,36 @@ class RealRobotSource:
             self._publish(
                 "sensors/odometry", {"t": t, "left_ticks": values[0], "right_ticks": values[1]}
             )
+
+
+def _open_port(
+    what: str, name: str, url: str, options: Callable[[], dict[str, Any]] = dict
+) -> ByteTransport:
+    """Open one of the robot's byte ports through the transport registry; ``options()`` gives
+    the backend's options (raising ValueError for a bad one, reported as the port's failure)."""
+    try:
+        return open_byte_transport(url, **options())
+    except (OSError, ValueError) as e:
+        raise OSError(f"cannot open {what} {name!r}: {e}") from e
+
+
+def _discard_input(port: ByteTransport) -> None:
+    """Drop what the port holds (a late reply to an earlier poll), as pyserial's
+    ``reset_input_buffer`` does; bounded, so a port that streams cannot hold the poll."""
+    for _ in range(64):
+        if not port.read():
+            return
+
+
+def _read_line(port: ByteTransport, timeout: float) -> bytes:
+    """The port's input up to and including the first ``\\n``, or what came within ``timeout``
+    seconds (then without ``\\n``); input after the line is dropped."""
+    deadline = time.monotonic() + timeout
+    buf = bytearray()
+    while b"\n" not in buf:
+        remaining = deadline - time.monotonic()
+        if remaining <= 0 or not port.wait(remaining):
+            break
+        buf += port.read()
+    end = buf.find(b"\n")
+    return bytes(buf if end < 0 else buf[: end + 1])

@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import bisect
 import logging
+import os
+import sys
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -41,7 +43,9 @@ from koala_bridge.recording.mcap_file import (
     Recording,
     UnsupportedRecordingError,
 )
-from koala_bridge.runtime.buses import LockedByteLink, OpenBuses
+from koala_bridge.runtime.buses import LockedByteLink, OpenBuses, open_buses
+from koala_bridge.runtime.endpoints import Endpoints, endpoints_of
+from koala_bridge.runtime.settings import BridgeSettings
 from koala_bridge.runtime.zenoh_io import ZenohLink
 
 log = logging.getLogger(__name__)
@@ -346,10 +350,141 @@ class Replayer:
         return lines[i]
 
 
-def settings_for_replay(
-    recorded_config: Mapping[str, Any] | None, fallback: Mapping[str, Any]
-) -> Mapping[str, Any]:
-    """The configuration whose ``[buses]`` the replay serves: the recorded one if it has buses."""
-    if recorded_config and "buses" in recorded_config:
-        return recorded_config
-    return fallback
+class ReplaySource:
+    """A recording put back on the buses: a :class:`runtime.source.Source`, so ``replay`` runs
+    in the same session as ``run`` (:func:`runtime.session.run_session`).
+
+    Args:
+        rec: the recording (its ``world`` answers the ``world`` queryable).
+        plan: what to replay (:func:`plan_replay`).
+        settings: the bridge sections whose ``[buses]`` and ``[zenoh]`` are served.
+        speed: replay this many times faster than recorded.
+        linger_s: keep the buses open this long after the last frame.
+        zenoh: open a Zenoh session and publish the recorded messages.
+        wait_clients_s: before starting, wait up to this long for a client on each
+            connection-oriented bus to be replayed (0: do not wait).
+        fifo_priority: run under SCHED_FIFO at this priority (0: normal scheduling).
+        say: where a line for people goes (the session's stdout); by default the log.
+    """
+
+    def __init__(
+        self,
+        rec: Recording,
+        plan: ReplayPlan,
+        settings: BridgeSettings,
+        *,
+        speed: float = 1.0,
+        linger_s: float = 0.5,
+        zenoh: bool = True,
+        wait_clients_s: float = 0.0,
+        fifo_priority: int = 0,
+        say: Callable[[str], None] = log.info,
+    ) -> None:
+        if not speed > 0:
+            raise ValueError(f"speed must be > 0, got {speed!r}")
+        self.rec = rec
+        self.plan = plan
+        self.settings = settings
+        self.speed = speed
+        self.linger_s = max(0.0, linger_s)
+        self.wait_clients_s = wait_clients_s
+        self.fifo_priority = fifo_priority
+        self._use_zenoh = zenoh
+        self._say = say
+        self._world = rec.world or {}
+        self.buses: OpenBuses | None = None
+        self.zenoh: ZenohLink | None = None
+        self.stats: ReplayStats | None = None
+
+    def world_answer(self) -> Mapping[str, Any]:
+        return self._world
+
+    def open(self) -> Endpoints:
+        # Before the buses open: the transports' I/O threads inherit the scheduling policy.
+        if self.fifo_priority:
+            set_fifo_priority(self.fifo_priority)
+        try:
+            self.buses = open_buses(self.settings.buses)
+            if self._use_zenoh:
+                self.zenoh = ZenohLink(self.settings.zenoh, self.world_answer)
+        except BaseException:
+            self.close()
+            raise
+        return endpoints_of(self.buses, self.settings, zenoh=self.zenoh is not None)
+
+    def describe(self) -> str:
+        counts = ", ".join(f"{b} {n}" for b, n in sorted(self.plan.counts.items()))
+        span = self.plan.t_end - self.plan.t0
+        return (
+            f"Replaying {self.rec.path.name}: {counts} frames over {span:.3f} s at speed "
+            f"{self.speed:g}."
+        )
+
+    def run(self, stop: threading.Event) -> ReplayStats:
+        if self.buses is None:
+            raise RuntimeError("open() before run()")
+        if self.wait_clients_s > 0:
+            wait_clients(self.buses, self.plan.counts, self.wait_clients_s, stop)
+        # The replay thread and the transports' I/O threads hand the GIL over every 0.5 ms
+        # instead of 5 ms: a frame queued for socketcand leaves within a millisecond.
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
+        linger_s = self.linger_s
+
+        def on_sent_all(stats: ReplayStats) -> None:
+            self._say(f"Every frame sent; the buses stay open {linger_s:g} s more (Ctrl-C ends).")
+
+        replayer = Replayer(
+            self.plan, self.buses, speed=self.speed, linger_s=linger_s, zenoh=self.zenoh,
+            on_sent_all=on_sent_all,
+        )
+        self.stats = replayer.run(stop)
+        return self.stats
+
+    def summary(self) -> str:
+        stats = self.stats or ReplayStats(stopped_early=True)
+        sent = ", ".join(f"{b} {n}" for b, n in sorted(stats.sent.items()))
+        p99 = stats.lateness_quantile(0.99) * 1e3
+        return (
+            f"Replay {'stopped' if stats.stopped_early else 'done'}: sent {sent}; "
+            f"K-Team answers {stats.kteam_answered}; lateness p99 {p99:.3f} ms."
+        )
+
+    def close(self) -> None:
+        if self.zenoh is not None:
+            self.zenoh.close()
+            self.zenoh = None
+        if self.buses is not None:
+            self.buses.close()
+            self.buses = None
+
+
+def wait_clients(
+    buses: OpenBuses, counts: Mapping[str, int], timeout: float, stop: threading.Event
+) -> None:
+    """Wait until every connection-oriented bus to be replayed has a client (or timeout)."""
+    links: list[tuple[str, Any]] = []
+    if "serial/rangefinders" in counts and buses.rangefinders is not None:
+        links.append(("rangefinders", buses.rangefinders))
+    if "serial/kteam" in counts and buses.kteam is not None:
+        links.append(("kteam", buses.kteam))
+    if "mavlink" in counts and buses.mavlink is not None and not buses.mavlink.is_datagram:
+        links.append(("mavlink", buses.mavlink))
+    if "can" in counts:
+        links += [(n, t) for n, t in buses.can.items() if n in ("can.socketcand", "can.slcan")]
+    deadline = time.monotonic() + timeout
+    waiting = [n for n, link in links if link.stats.clients == 0]
+    while waiting and time.monotonic() < deadline and not stop.is_set():
+        stop.wait(0.02)
+        waiting = [n for n, link in links if link.stats.clients == 0]
+    if waiting:
+        log.warning("no client on %s after %.1f s: starting anyway", ", ".join(waiting), timeout)
+
+
+def set_fifo_priority(priority: int) -> None:
+    """SCHED_FIFO for this thread and the threads it starts later (the transports' I/O threads)."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (OSError, ValueError) as e:
+        log.warning(
+            "cannot run under SCHED_FIFO %d (%s): replaying at normal priority", priority, e
+        )

@@ -16,7 +16,7 @@ that many simulation seconds pass without any command, when the wheels are set t
   robot has one pair of counters. Zenoh ``sensors/odometry`` carries the simulator's counts since
   reset, unaffected by ``G``.
 
-Everything here is thread-safe and does no I/O: ``runtime.service`` feeds it lines and readings.
+Everything here is thread-safe and does no I/O: ``runtime.sim_source`` feeds it lines and readings.
 """
 
 from __future__ import annotations

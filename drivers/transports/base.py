@@ -1,8 +1,11 @@
 """The two transport interfaces -- byte streams and CAN -- and their shared bookkeeping.
 
 A transport moves bytes or CAN frames and nothing else; which codec reads them is the caller's
-business. Every transport binds to 127.0.0.1 by default, has :meth:`close`, is a context manager,
-and reports counters through :attr:`stats` (for the bridge's ``status``).
+business. Every transport that serves clients binds to 127.0.0.1 by default; the robot-side
+ones (``serial``, ``tcp-client``, ``udpin``) open what their URL names. Each has :meth:`close`, is a
+context manager, reports counters through :attr:`stats` (for the bridge's ``status``), and is
+opened from its URL by its own :meth:`from_url` (through the registry,
+:func:`koala_bridge.drivers.transports.open_byte_transport` / ``open_can_transport``).
 """
 
 from __future__ import annotations
@@ -11,11 +14,46 @@ import threading
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Self
+from typing import Any, Self
+from urllib.parse import unquote, urlsplit
 
 import can
 
-__all__ = ["ByteTransport", "CanTransport", "Endpoint", "StatsCounter", "TransportStats"]
+__all__ = [
+    "ByteTransport",
+    "CanTransport",
+    "Endpoint",
+    "StatsCounter",
+    "TransportStats",
+    "UrlParts",
+    "split_url",
+]
+
+
+@dataclass(frozen=True, slots=True)
+class UrlParts:
+    """A transport URL split into what backends read from it (``scheme://host:port/path``).
+
+    ``rest`` is everything after ``scheme:`` unparsed, for backends whose address is not a
+    network location (a pyserial URL behind ``serial:``, a device path).
+    """
+
+    scheme: str
+    host: str | None
+    port: int | None
+    path: str
+    rest: str
+
+
+def split_url(url: str) -> UrlParts:
+    """Split ``url``; a bad port (not a number, out of range) raises :class:`ValueError`."""
+    parts = urlsplit(url)
+    scheme, _, rest = url.partition(":")
+    try:
+        port = parts.port
+    except ValueError as e:
+        raise ValueError(f"{url!r}: {e}") from e
+    return UrlParts(parts.scheme.lower(), parts.hostname, port, unquote(parts.path), rest)
 
 
 @dataclass(frozen=True, slots=True)
@@ -64,9 +102,11 @@ class Endpoint:
     """Where a client connects to a transport.
 
     Attributes:
-        kind: backend name (``pty``, ``tcp``, ``udp``, ``loop``, ``socketcand``, ``slcan``,
-            ``virtual``, ``python-can``).
-        path: device path for pty-based backends (the stable symlink if one was asked for).
+        kind: backend name, the URL scheme that opened it (``pty``, ``tcp``, ``tcp-client``,
+            ``udp``, ``udpin``, ``serial``, ``loop``, ``socketcand``, ``slcan``, ``virtual``,
+            ``python-can``).
+        path: device path for pty-based backends (the stable symlink if one was asked for);
+            the device or pyserial URL of a ``serial`` port.
         host / port: socket address for network backends (for ``udp``, where datagrams are sent).
         channel: CAN channel name (socketcand bus name, python-can channel).
         interface: python-can interface name for the ``python-can`` and ``virtual`` backends.
@@ -81,6 +121,13 @@ class Endpoint:
 
 
 class _Closable(ABC):
+    @classmethod
+    def from_url(cls, url: str, **options: Any) -> Self:
+        """Open the backend named by ``url`` (its own URL syntax, see the module docstring of
+        :mod:`koala_bridge.drivers.transports`); ``options`` go to the constructor and win over
+        what the URL says. The default reads no URL at all."""
+        return cls(**options)
+
     @abstractmethod
     def close(self) -> None:
         """Release every resource; idempotent; joins any thread the transport started."""

@@ -15,6 +15,7 @@ import select
 import time
 import tty
 from pathlib import Path
+from typing import Any, Self
 
 from koala_bridge.drivers.messages import TransportClosedError, TransportError
 from koala_bridge.drivers.transports.base import (
@@ -22,6 +23,7 @@ from koala_bridge.drivers.transports.base import (
     Endpoint,
     StatsCounter,
     TransportStats,
+    split_url,
 )
 
 __all__ = ["PtyTransport"]
@@ -60,6 +62,14 @@ class PtyTransport(ByteTransport):
         if link is not None:
             self._link = Path(link)
             self._make_link(self._link)
+
+    @classmethod
+    def from_url(cls, url: str, **options: Any) -> Self:
+        """``pty://`` (a new pty) or ``pty:///PATH`` (plus a symlink at PATH to its slave)."""
+        path = split_url(url).path
+        if path:
+            options.setdefault("link", path)
+        return cls(**options)
 
     # ----------------------------------------------------------------- ByteTransport
 
@@ -138,6 +148,7 @@ class PtyTransport(ByteTransport):
         return len(self._pending)
 
     def wait(self, timeout: float | None) -> bool:
+        self._fd()  # closed: refused, as read and write are
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
             remaining = None if deadline is None else max(0.0, deadline - time.monotonic())

@@ -8,7 +8,8 @@ nodes on a real bus.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Self
+from urllib.parse import quote
 
 import can
 from koala_bridge.drivers.messages import TransportClosedError, TransportError
@@ -17,9 +18,15 @@ from koala_bridge.drivers.transports.base import (
     Endpoint,
     StatsCounter,
     TransportStats,
+    split_url,
 )
 
-__all__ = ["PythonCanTransport", "VirtualCanTransport"]
+__all__ = ["PythonCanTransport", "VirtualCanTransport", "python_can_url"]
+
+
+def python_can_url(interface: str, channel: str) -> str:
+    """The registry URL of python-can ``interface`` on ``channel`` (the channel URL-quoted)."""
+    return f"python-can://{interface}/{quote(str(channel), safe='')}"
 
 
 class PythonCanTransport(CanTransport):
@@ -39,6 +46,18 @@ class PythonCanTransport(CanTransport):
         self._interface = interface
         self._channel = channel
         self._stats = StatsCounter()
+
+    @classmethod
+    def from_url(cls, url: str, **options: Any) -> Self:
+        """``python-can://INTERFACE/CHANNEL`` (:func:`python_can_url`); ``options`` are further
+        :class:`can.Bus` arguments (host, port, bitrate, ...)."""
+        parts = split_url(url)
+        channel = parts.path.lstrip("/")
+        if not parts.host or not channel:
+            raise ValueError(f"{url!r}: expected python-can://INTERFACE/CHANNEL")
+        options.setdefault("interface", parts.host)
+        options.setdefault("channel", channel)
+        return cls(**options)
 
     @property
     def endpoint(self) -> Endpoint:
@@ -78,6 +97,13 @@ class VirtualCanTransport(PythonCanTransport):
 
     def __init__(self, channel: str = "koala", **kwargs: Any) -> None:
         super().__init__("virtual", channel, **kwargs)
+
+    @classmethod
+    def from_url(cls, url: str, **options: Any) -> Self:
+        """``virtual://CHANNEL`` (default ``koala``)."""
+        parts = split_url(url)
+        options.setdefault("channel", parts.host or parts.path.lstrip("/") or "koala")
+        return cls(**options)
 
     @property
     def endpoint(self) -> Endpoint:

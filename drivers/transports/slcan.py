@@ -26,6 +26,7 @@ import select
 import threading
 import time
 from pathlib import Path
+from typing import Any, Self
 
 import can
 from koala_bridge.drivers.kteam import LineSplitter
@@ -36,6 +37,7 @@ from koala_bridge.drivers.transports.base import (
     Endpoint,
     StatsCounter,
     TransportStats,
+    split_url,
 )
 from koala_bridge.drivers.transports.pty import PtyTransport
 
@@ -124,6 +126,14 @@ class SlcanAdapter(CanTransport):
         self._thread.start()
 
     # ----------------------------------------------------------------- CanTransport
+
+    @classmethod
+    def from_url(cls, url: str, **options: Any) -> Self:
+        """``slcan://`` (a new pty) or ``slcan:///PATH`` (plus a symlink at PATH)."""
+        path = split_url(url).path
+        if path:
+            options.setdefault("link", path)
+        return cls(**options)
 
     @property
     def endpoint(self) -> Endpoint:

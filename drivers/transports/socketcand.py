@@ -34,6 +34,7 @@ import socket
 import threading
 import time
 from collections import deque
+from typing import Any, Self
 
 import can
 from koala_bridge.drivers.messages import TransportClosedError, TransportError
@@ -43,6 +44,7 @@ from koala_bridge.drivers.transports.base import (
     Endpoint,
     StatsCounter,
     TransportStats,
+    split_url,
 )
 
 __all__ = ["SocketcandServer", "format_frame_element", "parse_send_element"]
@@ -160,6 +162,15 @@ class SocketcandServer(CanTransport):
         self._close_lock = threading.Lock()
         self._thread = ServiceThread(f"socketcand:{self._port}", self._step, self._waker)
         self._thread.start()
+
+    @classmethod
+    def from_url(cls, url: str, **options: Any) -> Self:
+        """``socketcand://HOST:PORT/CHANNEL`` (defaults 127.0.0.1, 0 = a free port, ``can0``)."""
+        parts = split_url(url)
+        options.setdefault("host", parts.host or "127.0.0.1")
+        options.setdefault("port", 0 if parts.port is None else parts.port)
+        options.setdefault("channel", parts.path.lstrip("/") or "can0")
+        return cls(**options)
 
     # ----------------------------------------------------------------- CanTransport
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import select
 import socket
+from typing import Any, Self
 
 from koala_bridge.drivers.messages import TransportClosedError, TransportError
 from koala_bridge.drivers.transports.base import (
@@ -16,9 +17,10 @@ from koala_bridge.drivers.transports.base import (
     Endpoint,
     StatsCounter,
     TransportStats,
+    split_url,
 )
 
-__all__ = ["TcpServerTransport"]
+__all__ = ["TcpClientTransport", "TcpServerTransport"]
 
 
 class _Client:
@@ -63,6 +65,15 @@ class TcpServerTransport(ByteTransport):
         self._max_pending = max_pending
         self._stats = StatsCounter()
         self._next = 0
+
+    @classmethod
+    def from_url(cls, url: str, **options: Any) -> Self:
+        """``tcp://HOST:PORT`` listens there (host 127.0.0.1 and port 0, a free one, if left
+        out)."""
+        parts = split_url(url)
+        options.setdefault("host", parts.host or "127.0.0.1")
+        options.setdefault("port", 0 if parts.port is None else parts.port)
+        return cls(**options)
 
     @property
     def endpoint(self) -> Endpoint:
@@ -168,3 +179,96 @@ class TcpServerTransport(ByteTransport):
         if client in self._clients:
             self._clients.remove(client)
         client.sock.close()
+
+
+class TcpClientTransport(ByteTransport):
+    """A TCP connection to a server (a robot's MAVLink TCP port, a serial-to-TCP bridge).
+
+    When the server closes the connection, :meth:`read` returns ``b""`` and :meth:`write` drops,
+    and ``stats.clients`` is 0: a dead link reads as silence, as an unplugged serial cable does.
+
+    Args:
+        host / port: the server's address.
+        connect_timeout_s: how long connecting may take.
+    """
+
+    def __init__(self, host: str, port: int, *, connect_timeout_s: float = 5.0) -> None:
+        try:
+            sock = socket.create_connection((host, port), timeout=connect_timeout_s)
+        except OSError as e:
+            raise TransportError(f"cannot connect to {host}:{port}: {e}") from e
+        sock.setblocking(False)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self._sock: socket.socket | None = sock
+        self._host, self._port = host, port
+        self._connected = True
+        self._stats = StatsCounter()
+
+    @classmethod
+    def from_url(cls, url: str, **options: Any) -> Self:
+        """``tcp-client://HOST:PORT`` connects there."""
+        parts = split_url(url)
+        if not parts.host or parts.port is None:
+            raise ValueError(f"{url!r}: expected tcp-client://HOST:PORT")
+        options.setdefault("host", parts.host)
+        options.setdefault("port", parts.port)
+        return cls(**options)
+
+    @property
+    def endpoint(self) -> Endpoint:
+        return Endpoint("tcp-client", host=self._host, port=self._port)
+
+    @property
+    def stats(self) -> TransportStats:
+        return self._stats.snapshot(clients=1 if self._connected else 0)
+
+    def read(self, max_bytes: int = 65536) -> bytes:
+        sock = self._s()
+        if not self._connected:
+            return b""
+        try:
+            data = sock.recv(max_bytes)
+        except BlockingIOError:
+            return b""
+        except OSError:
+            data = b""
+        if not data:
+            self._connected = False
+            return b""
+        self._stats.add("received")
+        return data
+
+    def write(self, data: bytes) -> int:
+        sock = self._s()
+        if not self._connected:
+            self._stats.add("dropped")
+            return 0
+        try:
+            sock.sendall(data)
+        except BlockingIOError:  # the server does not keep up: drop, the link stays
+            self._stats.add("dropped")
+            return 0
+        except OSError:
+            self._connected = False
+            self._stats.add("dropped")
+            return 0
+        self._stats.add("sent")
+        return len(data)
+
+    def wait(self, timeout: float | None) -> bool:
+        sock = self._s()
+        if not self._connected:  # nothing will ever arrive: wait out the timeout, no spin
+            select.select([], [], [], timeout)
+            return False
+        readable, _, _ = select.select([sock], [], [], timeout)
+        return bool(readable)
+
+    def close(self) -> None:
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
+
+    def _s(self) -> socket.socket:
+        if self._sock is None:
+            raise TransportClosedError("tcp client transport is closed")
+        return self._sock

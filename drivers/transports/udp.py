@@ -1,5 +1,12 @@
-"""UDP backend: datagrams go to a fixed destination (by default 127.0.0.1:14550, where MAVLink
-ground stations listen), and replies arriving on the same socket are returned by :meth:`read`.
+"""UDP backend, both ways round.
+
+``udp://HOST:PORT``: datagrams go to a fixed destination (by default 127.0.0.1:14550, where
+MAVLink ground stations listen), and replies arriving on the same socket are returned by
+:meth:`UdpTransport.read` -- the bridge serving a ground station.
+
+``udpin://HOST:PORT``: the socket is bound at HOST:PORT and reads what is sent there; writes go
+back to whoever sent the last datagram (dropped before the first) -- the bridge listening to a
+real robot's MAVLink stream, as pymavlink's ``udpin:`` does.
 
 Each :meth:`UdpTransport.write` is one datagram and each :meth:`UdpTransport.read` returns one.
 """
@@ -8,6 +15,7 @@ from __future__ import annotations
 
 import select
 import socket
+from typing import Any, Self
 
 from koala_bridge.drivers.messages import TransportClosedError, TransportError
 from koala_bridge.drivers.transports.base import (
@@ -15,6 +23,7 @@ from koala_bridge.drivers.transports.base import (
     Endpoint,
     StatsCounter,
     TransportStats,
+    split_url,
 )
 
 __all__ = ["UdpTransport"]
@@ -24,7 +33,8 @@ class UdpTransport(ByteTransport):
     """One UDP socket bound on loopback, sending to ``(host, port)``.
 
     Args:
-        host / port: destination of every datagram written.
+        host / port: destination of every datagram written; ``host=None``: the sender of the
+            last datagram read (the ``udpin`` form).
         bind_host / bind_port: local address; port 0 picks a free one.
     """
 
@@ -32,7 +42,7 @@ class UdpTransport(ByteTransport):
 
     def __init__(
         self,
-        host: str = "127.0.0.1",
+        host: str | None = "127.0.0.1",
         port: int = 14550,
         *,
         bind_host: str = "127.0.0.1",
@@ -45,12 +55,30 @@ class UdpTransport(ByteTransport):
             self._sock.close()
             raise TransportError(f"cannot bind UDP {bind_host}:{bind_port}: {e}") from e
         self._sock.setblocking(False)
-        self._dest = (host, port)
+        self._dest = None if host is None else (host, port)
         self._stats = StatsCounter()
         self.last_peer: tuple[str, int] | None = None
 
+    @classmethod
+    def from_url(cls, url: str, **options: Any) -> Self:
+        """``udp://HOST:PORT`` sends there (default 127.0.0.1:14550); ``udpin://HOST:PORT``
+        (also pymavlink's ``udpin:HOST:PORT``) listens there and answers the last sender."""
+        parts = split_url(url)
+        if parts.scheme == "udpin":
+            host, port = _host_port(parts.host, parts.port, parts.rest, url)
+            options.setdefault("host", None)
+            options.setdefault("bind_host", host)
+            options.setdefault("bind_port", port)
+        else:
+            options.setdefault("host", parts.host or "127.0.0.1")
+            options.setdefault("port", 14550 if parts.port is None else parts.port)
+        return cls(**options)
+
     @property
     def endpoint(self) -> Endpoint:
+        if self._dest is None:
+            host, port = self.local_address
+            return Endpoint("udpin", host=host, port=port)
         return Endpoint("udp", host=self._dest[0], port=self._dest[1])
 
     @property
@@ -76,13 +104,17 @@ class UdpTransport(ByteTransport):
 
     def write(self, data: bytes) -> int:
         sock = self._s()
+        dest = self._dest or self.last_peer
+        if dest is None:  # udpin before anyone has sent: nobody to answer
+            self._stats.add("dropped")
+            return 0
         try:
-            sent = sock.sendto(data, self._dest)
+            sent = sock.sendto(data, dest)
         except (BlockingIOError, ConnectionRefusedError):
             self._stats.add("dropped")
             return 0
         except OSError as e:
-            raise TransportError(f"UDP send to {self._dest} failed: {e}") from e
+            raise TransportError(f"UDP send to {dest} failed: {e}") from e
         self._stats.add("sent")
         return sent
 
@@ -99,3 +131,15 @@ class UdpTransport(ByteTransport):
         if self._sock is None:
             raise TransportClosedError("udp transport is closed")
         return self._sock
+
+
+def _host_port(
+    host: str | None, port: int | None, rest: str, url: str
+) -> tuple[str, int]:
+    """HOST:PORT of ``udpin://HOST:PORT`` or of pymavlink's ``udpin:HOST:PORT``."""
+    if host and port is not None:
+        return host, port
+    h, _, p = rest.lstrip("/").rpartition(":")
+    if not h or not p.isdigit():
+        raise ValueError(f"{url!r}: expected udpin://HOST:PORT")
+    return h, int(p)

@@ -18,6 +18,7 @@ Error model: ``sim/models/ir.py`` (its params, pure functions and
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -96,9 +97,12 @@ class IrSensor:
         n, k = self.fan.n, self.fan.k
         rr = rays[4, start:start + n * k]
         axis = rr[k // 2::k]
+        # The axis ray's incidence, from the same cast (so the same surface as ``axis``).
+        incidence = np.where(np.isfinite(axis), rays[5, start + k // 2:start + n * k:k], np.nan)
         if self.error_model is None:
             p = self.params
             counts = ir_counts(rr, p.response_range_m, p.response_counts, n, k)
-            return IrReading(counts, self._ambient, counts, axis)
-        return self.error_model.measure(
+            return IrReading(counts, self._ambient, counts, axis, incidence)
+        reading = self.error_model.measure(
             IrTruth(rr.reshape(n, k), axis, self._ambient, self.params), variates)
+        return dataclasses.replace(reading, truth_incidence=incidence)

@@ -1,4 +1,4 @@
-"""bridge.service in-process: python-can `virtual` (in-process only) commands the robot; opening
+"""runtime.sim_source in-process: python-can `virtual` (in-process only) commands the robot; opening
 fails cleanly; close() leaves no thread, pty or socket behind (the autouse leak check)."""
 
 from __future__ import annotations
@@ -12,18 +12,18 @@ import cantools
 import pytest
 from koala_bridge.runtime.buses import BusOpenError
 from koala_bridge.runtime.clock import FastClock
-from koala_bridge.runtime.service import BridgeService
 from koala_bridge.runtime.settings import (
     BridgeSettings,
     apply_override,
     load_config,
     parse_override,
 )
+from koala_bridge.runtime.sim_source import SimulatedRobotSource
 
 REPO = Path(__file__).resolve().parents[2]
 
 
-def make_service(zenoh_port: int, mavlink_port: int, *extra: str) -> BridgeService:
+def make_service(zenoh_port: int, mavlink_port: int, *extra: str) -> SimulatedRobotSource:
     config = load_config(REPO / "config" / "default.toml")
     overrides = [
         "run.clock=fast",
@@ -35,7 +35,7 @@ def make_service(zenoh_port: int, mavlink_port: int, *extra: str) -> BridgeServi
     ]
     for text in overrides:
         config = apply_override(config, *parse_override(text))
-    return BridgeService(config, BridgeSettings.from_config(config))
+    return SimulatedRobotSource(config, BridgeSettings.from_config(config))
 
 
 def test_virtual_can_motor_command_drives_the_robot(free_tcp_port: int,

@@ -1,10 +1,12 @@
-"""The bridge service: steps the simulator on a clock and serves every bus and Zenoh.
+"""The simulated robot as the source: steps the simulator on a clock and serves every bus and
+Zenoh (one of the two :class:`runtime.source.Source` implementations; the other is
+:mod:`runtime.real_source`).
 
-Threads (all owned here, all joined by :meth:`BridgeService.close`):
+Threads (all owned here, all joined by :meth:`SimulatedRobotSource.close`):
 
-- the **simulation loop** (the caller's thread, :meth:`BridgeService.run`): waits for step ``n``
-  on the clock, applies the wheel command in force (:class:`runtime.robot_io.MotorArbiter`), steps
-  the simulator, and sends each reading that became due: binary range frames on the
+- the **simulation loop** (the caller's thread, :meth:`SimulatedRobotSource.run`): waits for step
+  ``n`` on the clock, applies the wheel command in force (:class:`runtime.robot_io.MotorArbiter`),
+  steps the simulator, and sends each reading that became due: binary range frames on the
   rangefinders pty, CAN ``WheelOdometry`` / ``Gyro`` on every CAN interface, MAVLink
   ``SCALED_IMU`` (and ``HEARTBEAT`` at ``heartbeat_hz``), and the Zenoh messages. Sample times are
   simulation times; a reading is on the wire within the step that produced it.
@@ -26,8 +28,8 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable, Iterable, Mapping
-from typing import Any, Protocol
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import numpy as np
 from koala_bridge.drivers.can_codec import KoalaCanCodec
@@ -52,6 +54,7 @@ from koala_bridge.runtime.endpoints import Endpoints, endpoints_of
 from koala_bridge.runtime.localisation import LocalisationNode
 from koala_bridge.runtime.robot_io import KteamResponder, MotorArbiter, RobotPort, RobotUnits
 from koala_bridge.runtime.settings import BridgeSettings
+from koala_bridge.runtime.source import READ_TIMEOUT_S, Tap, start_reader, until_text
 from koala_bridge.runtime.zenoh_io import (
     ZENOH_BUS,
     ZenohLink,
@@ -59,31 +62,18 @@ from koala_bridge.runtime.zenoh_io import (
     sensor_messages,
     status_message,
 )
-from koala_bridge.sim.raycast import cast_fan_arrays
 from koala_bridge.sim.simulator import Simulator
 from koala_bridge.sim.types import Readings
 
 log = logging.getLogger(__name__)
 
-READ_TIMEOUT_S = 0.1        # how long a reader thread blocks before it checks for stop
 DRAIN_PERIOD_S = 0.02       # wall time between reads of the output links' input
 GYRO_LIMIT = 20.0           # rad/s: the DBC range of Gyro.yaw_rate
 
 
-class Tap(Protocol):
-    """Something that sees what the bridge publishes and every raw bus frame (a recorder)."""
-
-    def declare(self, keys: Iterable[str] = (), buses: Iterable[str] = ()) -> None: ...
-
-    def record(self, channel: str, t: float, payload: Mapping[str, Any]) -> None: ...
-
-    def record_frame(
-        self, bus: str, direction: str, t: float, data: bytes, **fields: object
-    ) -> None: ...
-
-
-class BridgeService:
-    """Simulator + buses + Zenoh for one run. ``open()``, then ``run(stop)``, then ``close()``.
+class SimulatedRobotSource:
+    """Simulator + buses + Zenoh for one run: a :class:`runtime.source.Source` (``open()``, then
+    ``run(stop)``, then ``close()``).
 
     Args:
         config: the whole configuration (parsed TOML after command-line overrides).
@@ -128,8 +118,8 @@ class BridgeService:
         self._readers: list[threading.Thread] = []
         self._range_seq = {RangeKind.IR: 0, RangeKind.SONAR: 0}
         self._last_readings: Readings | None = None
-        self._ir_axis: tuple[np.ndarray, np.ndarray] | None = None
         self._initial: Readings | None = None
+        self._last: Readings | None = None
         self._write_errors: set[str] = set()
         self._drains: list[Callable[[], None]] = []
         self._last_drain = 0.0
@@ -180,7 +170,7 @@ class BridgeService:
             self.zenoh.close()
             self.zenoh = None
 
-    def __enter__(self) -> BridgeService:
+    def __enter__(self) -> SimulatedRobotSource:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -211,7 +201,17 @@ class BridgeService:
         # The final counters, unless the last step just published them (one status per t).
         if n == 0 or n % self._status_period != 0:
             self._publish_status(r.t)
+        self._last = r
         return r
+
+    def describe(self) -> str:
+        run = self.settings.run
+        return f"Simulating ({run.clock} clock) {until_text(run.duration_s)}."
+
+    def summary(self) -> str:
+        t = 0.0 if self._last is None else self._last.t
+        rtf = self.clock.real_time_factor(t)
+        return f"Stopped at t = {t:.3f} s (real-time factor {rtf:.2f})."
 
     def _published_keys(self, r: Readings) -> list[str]:
         """Every Zenoh key this run publishes (``r``: the step-0 readings, where every sensor
@@ -262,7 +262,7 @@ class BridgeService:
 
     def _publish(self, r: Readings, n: int) -> None:
         assert self.zenoh is not None
-        messages = sensor_messages(r, None if r.ir is None else self._ir_incidence(r))
+        messages = sensor_messages(r, None if r.ir is None else r.ir.truth_incidence)
         if n % self._pose_period == 0:
             messages = {"truth/pose": pose_message(r), **messages}
         for suffix, message in messages.items():
@@ -274,25 +274,6 @@ class BridgeService:
                 self.tap.record(suffix, r.t, message)
         if n % self._status_period == 0 and n > 0:
             self._publish_status(r.t)
-
-    def _ir_incidence(self, r: Readings) -> np.ndarray:
-        """(n,) rad: incidence of each IR sensor's axis ray on the surface at its truth range
-        (nan where nothing is in range), for ``sensors/ir`` ``truth.incidence``.
-
-        :class:`sim.types.IrReading` carries the axis ranges but not their incidence, so the
-        axis rays are cast again with the simulator's own compiled cast
-        (:func:`sim.raycast.cast_fan_arrays`) from the reading's pose: 16 rays, same walls, same
-        equations, hence the same surface as ``truth_ranges``.
-        """
-        assert r.ir is not None
-        if self._ir_axis is None:
-            fan = self.sim.ir.fan
-            body = np.ascontiguousarray(fan.body[:, fan.k // 2 :: fan.k])
-            self._ir_axis = (body, np.full(fan.n, self.sim.ir.max_range_m))
-        body, max_range = self._ir_axis
-        p = r.pose
-        rays, _ = cast_fan_arrays(self.sim.walls, body, max_range, p.x, p.y, p.theta)
-        return np.where(np.isfinite(np.asarray(r.ir.truth_ranges, dtype=float)), rays[5], np.nan)
 
     def status(self, t: float) -> dict[str, Any]:
         """The ``status`` message: real-time factor and per-bus counters."""
@@ -506,41 +487,6 @@ def _sonar_mm(ranges: Any) -> tuple[int, ...]:
     for r in np.asarray(ranges, dtype=float):
         out.append(NO_ECHO if not math.isfinite(r) else int(min(max(round(r * 1000), 0), 0xFFFE)))
     return tuple(out)
-
-
-def start_reader(
-    name: str,
-    step: Callable[[], None],
-    stop: threading.Event,
-    *,
-    thread_prefix: str = "bridge",
-    transient: tuple[type[Exception], ...] = (TransportError,),
-    logger: logging.Logger = log,
-) -> threading.Thread:
-    """Start a daemon thread ``<thread_prefix>-<name>`` that calls ``step`` until ``stop`` is
-    set; return it.
-
-    A ``transient`` error (a port failing) is logged as a warning and waited out for
-    :data:`READ_TIMEOUT_S` before the next ``step``, or ends the thread if ``stop`` is set by then
-    (the port was closed under it). Any other exception is logged with its traceback and the loop
-    goes on: a reader must outlive any one bad input.
-    """
-
-    def loop() -> None:
-        while not stop.is_set():
-            try:
-                step()
-            except transient as e:
-                if stop.is_set():
-                    return
-                logger.warning("%s: %s", name, e)
-                stop.wait(READ_TIMEOUT_S)
-            except Exception:
-                logger.exception("%s reader failed on one input; going on", name)
-
-    thread = threading.Thread(target=loop, name=f"{thread_prefix}-{name}", daemon=True)
-    thread.start()
-    return thread
 
 
 def _tap_bus(bus: str) -> str:
