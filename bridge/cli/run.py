@@ -93,8 +93,7 @@ def resolve_config(args: argparse.Namespace) -> dict[str, Any]:
 
 def run(args: argparse.Namespace) -> int:
     # Imported here so that `koala-bridge --help` does not load the simulator and Zenoh.
-    from koala_bridge.runtime.session import run_session
-    from koala_bridge.runtime.source import make_source
+    from koala_bridge.runtime.session import make_source, run_session
 
     try:
         config = resolve_config(args)

@@ -23,17 +23,18 @@ import os
 import signal
 import sys
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 from types import FrameType
-from typing import TextIO
+from typing import Any, TextIO
 
 from koala_bridge.drivers.messages import DriverError
 from koala_bridge.runtime.endpoints import write_endpoints_file
-from koala_bridge.runtime.source import Source
+from koala_bridge.runtime.settings import BridgeSettings
+from koala_bridge.runtime.source import SOURCE_KINDS, RobotSource, Source
 
-__all__ = ["run_session", "stop_on_signals"]
+__all__ = ["make_source", "run_session", "stop_on_signals"]
 
 log = logging.getLogger(__name__)
 
@@ -118,3 +119,23 @@ def run_session(
                 if line:
                     say(line)
     return 0
+
+def make_source(kind: str, config: Mapping[str, Any], settings: BridgeSettings) -> RobotSource:
+    """The source ``run --source KIND`` serves: ``sim`` (the simulator) or ``real`` (the robot's
+    ports of ``[real]``). Raises :class:`ConfigError` for a configuration it cannot serve."""
+    # Imported here: a real-robot run does not load the simulation loop, nor a simulated one
+    # the real robot's readers.
+    if kind == "sim":
+        from koala_bridge.runtime.sim_source import SimulatedRobotSource
+
+        return SimulatedRobotSource(config, settings)
+    if kind == "real":
+        from koala_bridge.runtime.real_source import RealRobotSource
+        from koala_bridge.sim.simulator import Simulator
+
+        # The world and the robot's description answer the world queryable; nothing is
+        # simulated.
+        description = Simulator(config)
+        world = {**description.world.to_dict(), "robot": description.robot_description()}
+        return RealRobotSource(config, settings, lambda: world)
+    raise ValueError(f"unknown source {kind!r}; known: {', '.join(SOURCE_KINDS)}")

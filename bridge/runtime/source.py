@@ -34,7 +34,7 @@ from koala_bridge.drivers.messages import TransportError
 from koala_bridge.runtime.endpoints import Endpoints
 
 if TYPE_CHECKING:
-    from koala_bridge.runtime.settings import BridgeSettings
+    pass
 
 __all__ = [
     "READ_TIMEOUT_S",
@@ -42,7 +42,6 @@ __all__ = [
     "RobotSource",
     "Source",
     "Tap",
-    "make_source",
     "start_reader",
     "until_text",
 ]
@@ -91,26 +90,6 @@ class RobotSource(Source, Protocol):
 
     tap: Tap | None
 
-
-def make_source(kind: str, config: Mapping[str, Any], settings: BridgeSettings) -> RobotSource:
-    """The source ``run --source KIND`` serves: ``sim`` (the simulator) or ``real`` (the robot's
-    ports of ``[real]``). Raises :class:`ConfigError` for a configuration it cannot serve."""
-    # Imported here: a real-robot run does not load the simulation loop, nor a simulated one
-    # the real robot's readers.
-    if kind == "sim":
-        from koala_bridge.runtime.sim_source import SimulatedRobotSource
-
-        return SimulatedRobotSource(config, settings)
-    if kind == "real":
-        from koala_bridge.runtime.real_source import RealRobotSource
-        from koala_bridge.sim.simulator import Simulator
-
-        # The world and the robot's description answer the world queryable; nothing is
-        # simulated.
-        description = Simulator(config)
-        world = {**description.world.to_dict(), "robot": description.robot_description()}
-        return RealRobotSource(config, settings, lambda: world)
-    raise ValueError(f"unknown source {kind!r}; known: {', '.join(SOURCE_KINDS)}")
 
 
 class Tap(Protocol):

@@ -34,7 +34,7 @@ from koala_bridge.runtime.buses import bus_urls, open_buses
 from koala_bridge.runtime.endpoints import Endpoints
 from koala_bridge.runtime.real_source import RealRobotSource
 from koala_bridge.runtime.replay import ReplaySource
-from koala_bridge.runtime.session import run_session
+from koala_bridge.runtime.session import make_source, run_session
 from koala_bridge.runtime.settings import (
     BridgeSettings,
     apply_override,
@@ -42,7 +42,7 @@ from koala_bridge.runtime.settings import (
     parse_override,
 )
 from koala_bridge.runtime.sim_source import SimulatedRobotSource
-from koala_bridge.runtime.source import Source, make_source
+from koala_bridge.runtime.source import Source
 
 REPO = Path(__file__).resolve().parents[2]
 
