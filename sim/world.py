@@ -188,6 +188,17 @@ class World:
             self.in_bounds(*n) and n not in self.blocked and not self.has_wall(col, row, side)
         )
 
+    def walled_sides(self) -> list[tuple[int, int, str]]:
+        """``(col, row, side)`` of every walled cell side, row by row from the south, column
+        fastest, sides in N, E, S, W order (a wall between two cells is listed for both)."""
+        return [
+            (c, r, s)
+            for r in range(self.rows)
+            for c in range(self.cols)
+            for s in SIDES
+            if self.has_wall(c, r, s)
+        ]
+
     def free_cells(self) -> list[tuple[int, int]]:
         return [
             (c, r) for r in range(self.rows) for c in range(self.cols) if (c, r) not in self.blocked
@@ -264,28 +275,6 @@ class World:
             earth_field=earth,
             start=start,
         )
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready description (answered by the Zenoh ``<prefix>/world`` queryable)."""
-        return {
-            "name": self.name,
-            "cols": self.cols,
-            "rows": self.rows,
-            "cell_m": self.cell_m,
-            "walls": [
-                [c, r, s]
-                for r in range(self.rows)
-                for c in range(self.cols)
-                for s in SIDES
-                if self.has_wall(c, r, s)
-            ],
-            "segments": self.segments.tolist(),
-            "blocked": sorted([list(b) for b in self.blocked]),
-            "landmarks": [vars(lm) for lm in self.landmarks],
-            "magnetic_sources": [vars(m) for m in self.magnetic_sources],
-            "earth_field": vars(self.earth_field),
-            "start": None if self.start is None else vars(self.start),
-        }
 
 
 def _landmark(d: Mapping[str, Any], i: int) -> Landmark:

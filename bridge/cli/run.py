@@ -179,10 +179,11 @@ def run(args: argparse.Namespace) -> int:
 
 def _real_source(config: dict[str, Any], settings: BridgeSettings) -> Any:
     """``--source real``: the robot's ports instead of the simulator (runtime/real_source.py)."""
+    from koala_bridge.core.topics import WorldMessage
     from koala_bridge.runtime.real_source import RealRobotSource
     from koala_bridge.sim.simulator import Simulator
 
     # The world and the robot's description answer the world queryable; nothing is simulated.
     description = Simulator(config)
-    world = {**description.world.to_dict(), "robot": description.robot_description()}
+    world = WorldMessage.of(description.world, description.robot_description()).to_json()
     return RealRobotSource(config, settings, lambda: world)
