@@ -168,10 +168,11 @@ def load_bundle(directory: Path) -> Bundle:
 
 def load_input(path: Path, workdir: Path) -> Bundle:
     """Load a bundle directory, or export an MCAP recording into ``workdir`` and load that
-    (``koala-bridge export``'s :func:`koala_bridge.recording.mcap_file.export_bundle`)."""
+    (``koala-bridge export``'s :func:`koala_bridge.recording.export.export_bundle`)."""
     path = Path(path)
     if path.suffix.lower() == ".mcap":
-        from koala_bridge.recording.mcap_file import RecordingError, export_bundle
+        from koala_bridge.recording.export import export_bundle
+        from koala_bridge.recording.mcap_file import RecordingError
 
         if not path.is_file():
             raise BundleError(f"{path}: no such recording")

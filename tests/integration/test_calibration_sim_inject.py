@@ -59,7 +59,7 @@ from koala_bridge.calibration.bundle import load_bundle
 from koala_bridge.calibration.model import declared_model
 from koala_bridge.calibration.pipeline import StreamResult, calibrate
 from koala_bridge.calibration.simulated import record_simulator
-from koala_bridge.recording.mcap_file import export_bundle
+from koala_bridge.recording.export import export_bundle
 
 ROOT = Path(__file__).parents[2]
 SEED = 3
