@@ -195,8 +195,9 @@ def _decoder(tp: Any, where: str) -> Callable[[Any], Any]:
                 raise bad(v, " or ".join(json.dumps(a) for a in args))
             return v
         return const
-    if isinstance(tp, type) and dataclasses.is_dataclass(tp):
-        return lambda v: tp.from_json(v, where)
+    if isinstance(tp, type) and issubclass(tp, _Message):
+        message: Any = tp
+        return lambda v: message.from_json(v, where)
     if origin is tuple:
         if len(args) == 2 and args[1] is Ellipsis:
             item = _decoder(args[0], where)
@@ -228,23 +229,30 @@ def _optional_member(f: dataclasses.Field[Any]) -> bool:
     return f.default is None
 
 
-@functools.cache
-def _fields(cls: type) -> tuple[tuple[dataclasses.Field[Any], Any], ...]:
+_FieldTypes = tuple[tuple[dataclasses.Field[Any], Any], ...]
+_Codecs = tuple[tuple[str, bool, Callable[[Any], Any]], ...]
+
+
+def _fields_of(cls: type) -> _FieldTypes:
     hints = typing.get_type_hints(cls)
     return tuple((f, hints[f.name]) for f in dataclasses.fields(cls))
 
 
-@functools.cache
-def _encoders(cls: type) -> tuple[tuple[str, bool, Callable[[Any], Any]], ...]:
+def _encoders_of(cls: type) -> _Codecs:
     return tuple((f.name, _optional_member(f), _encoder(tp)) for f, tp in _fields(cls))
 
 
-@functools.cache
-def _decoders(cls: type) -> tuple[tuple[str, bool, Callable[[Any], Any]], ...]:
+def _decoders_of(cls: type) -> _Codecs:
     name = getattr(cls, "TOPIC", "") or cls.__name__
     return tuple(
         (f.name, _optional_member(f), _decoder(tp, f"{name}.{f.name}")) for f, tp in _fields(cls)
     )
+
+
+# Worked out once per class (the type hints are resolved and the codecs built on first use).
+_fields: Callable[[type], _FieldTypes] = functools.cache(_fields_of)
+_encoders: Callable[[type], _Codecs] = functools.cache(_encoders_of)
+_decoders: Callable[[type], _Codecs] = functools.cache(_decoders_of)
 
 
 class _Message:
