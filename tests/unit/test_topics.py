@@ -251,18 +251,50 @@ class _Port:
         return out
 
 
-def real_source_messages(frames: list[RangeFrame]) -> list[tuple[str, dict[str, Any]]]:
-    """What the real source publishes (and records) for range frames read from the robot."""
+class _KteamPort(_Port):
+    """A K-Team serial port that answers every command with one reply line."""
+
+    timeout = 0.0
+
+    def reset_input_buffer(self) -> None:
+        pass
+
+    def write(self, data: bytes) -> int:
+        return len(data)
+
+    def read_until(self, end: bytes) -> bytes:
+        return self.read(len(self.data))
+
+
+def real_source(real: dict[str, Any], tap: _Tap) -> Any:
+    """A real-robot source on ``[real]`` ports (none opened), recording into ``tap``."""
     from koala_bridge.runtime.real_source import RealRobotSource
 
     config = load_config(DEFAULT_CONFIG)
-    config["real"] = {"rangefinders": "loop://"}
+    config["real"] = real
     config["localisation"] = {**config.get("localisation", {}), "enabled": False}
+    return RealRobotSource(config, BridgeSettings.from_config(config), dict, tap=tap)
+
+
+def real_source_messages(frames: list[RangeFrame]) -> list[tuple[str, dict[str, Any]]]:
+    """What the real source publishes (and records) for range frames read from the robot."""
     tap = _Tap()
-    source = RealRobotSource(config, BridgeSettings.from_config(config), dict, tap=tap)
+    source = real_source({"rangefinders": "loop://"}, tap)
     step = source._range_reader(_Port(b"".join(encode_range_frame(f) for f in frames)))
     step()
     return [(channel, payload) for channel, _, payload in tap.records]
+
+
+def test_the_real_robot_ir_from_kteam_polls_validates_too() -> None:
+    tap = _Tap()
+    source = real_source({"kteam": "loop://", "kteam_poll": ["N"]}, tap)
+    counts = list(range(16))
+    source._kteam = _KteamPort(("n," + ",".join(map(str, counts)) + "\r\n").encode())
+    source._poll_kteam("N")
+    [(topic, _, ir)] = tap.records
+    assert topic == "sensors/ir"
+    assert errors(ir, IrMessage.json_schema()) == []
+    assert ir["counts"] == counts and ir["ambient"] == [None] * 16
 
 
 def test_the_real_robot_ir_message_validates_against_the_recording_schema() -> None:
