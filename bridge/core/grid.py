@@ -192,6 +192,17 @@ class Grid:
             self.in_bounds(*n) and n not in self.blocked and not self.has_wall(col, row, side)
         )
 
+    def walled_sides(self) -> list[tuple[int, int, str]]:
+        """``(col, row, side)`` of every walled cell side, row by row from the south, column
+        fastest, sides in N, E, S, W order (a wall between two cells is listed for both)."""
+        return [
+            (c, r, s)
+            for r in range(self.rows)
+            for c in range(self.cols)
+            for s in SIDES
+            if self.has_wall(c, r, s)
+        ]
+
     def free_cells(self) -> list[tuple[int, int]]:
         return [
             (c, r) for r in range(self.rows) for c in range(self.cols) if (c, r) not in self.blocked

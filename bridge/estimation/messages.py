@@ -1,5 +1,9 @@
 """JSON-ready payloads of the estimation keys on Zenoh (the bridge publishes them).
 
+The payloads are the typed messages of :mod:`koala_bridge.core.topics` (``EstimatePose``,
+``EstimateCell``, ``EstimateGrid``, ``OccupancyMap``: one definition for the JSON, the
+recording's schema and the parsers); this module turns the estimators' arrays into them and back.
+
 Keys are relative to the bridge's key prefix. Every payload is a plain ``dict`` of ``str``,
 ``int``, ``float``, ``list`` and ``None`` (``json.dumps`` takes it as is); ``t`` is simulation
 seconds. Arrays of cells are row-major from the south-west corner (row 0 south, column fastest),
@@ -21,17 +25,38 @@ import base64
 from typing import Any
 
 import numpy as np
+from koala_bridge.core.topics import (
+    GRID_ENCODING,
+    OCCUPANCY_ENCODING,
+    EstimateCell,
+    EstimateGrid,
+    EstimatePose,
+    OccupancyMap,
+    TopicError,
+)
 from koala_bridge.estimation.errors import EstimationError
 from koala_bridge.estimation.occupancy import decode_log_odds, encode_log_odds
 from numpy.typing import ArrayLike, NDArray
 
-KEY_POSE = "estimate/pose"
-KEY_CELL = "estimate/cell"
-KEY_GRID = "estimate/grid"
-KEY_OCCUPANCY = "map/occupancy"
+KEY_POSE = EstimatePose.TOPIC
+KEY_CELL = EstimateCell.TOPIC
+KEY_GRID = EstimateGrid.TOPIC
+KEY_OCCUPANCY = OccupancyMap.TOPIC
 
-GRID_ENCODING = "float32-le"
-OCCUPANCY_ENCODING = "int8-logodds"
+__all__ = [
+    "GRID_ENCODING",
+    "KEY_CELL",
+    "KEY_GRID",
+    "KEY_OCCUPANCY",
+    "KEY_POSE",
+    "OCCUPANCY_ENCODING",
+    "cell_message",
+    "decode_grid",
+    "decode_occupancy",
+    "grid_message",
+    "occupancy_message",
+    "pose_message",
+]
 
 
 def pose_message(t: float, x: float, y: float, theta: float, cov: ArrayLike) -> dict[str, Any]:
@@ -39,18 +64,13 @@ def pose_message(t: float, x: float, y: float, theta: float, cov: ArrayLike) -> 
     c = np.asarray(cov, dtype=float)
     if c.shape != (3, 3):
         raise EstimationError(f"pose covariance must be (3, 3), got {c.shape}")
-    return {
-        "t": float(t),
-        "x": float(x),
-        "y": float(y),
-        "theta": float(theta),
-        "cov": [[float(v) for v in row] for row in c],
-    }
+    cov_rows = tuple(tuple(float(v) for v in row) for row in c)
+    return EstimatePose(float(t), float(x), float(y), float(theta), cov_rows).to_json()
 
 
 def cell_message(t: float, cell: tuple[int, int], p: float) -> dict[str, Any]:
     """``estimate/cell``: the most probable cell ``(col, row)`` and its probability."""
-    return {"t": float(t), "cell": [int(cell[0]), int(cell[1])], "p": float(p)}
+    return EstimateCell(float(t), (int(cell[0]), int(cell[1])), float(p)).to_json()
 
 
 def grid_message(t: float, probabilities: ArrayLike, cell_m: float) -> dict[str, Any]:
@@ -62,24 +82,21 @@ def grid_message(t: float, probabilities: ArrayLike, cell_m: float) -> dict[str,
     idx = int(np.argmax(p))
     row, col = divmod(idx, cols)
     data = base64.b64encode(p.astype("<f4").tobytes(order="C")).decode("ascii")
-    return {
-        "t": float(t),
-        "cols": cols,
-        "rows": rows,
-        "cell_m": float(cell_m),
-        "encoding": GRID_ENCODING,
-        "data": data,
-        "cell": [col, row],
-        "p": float(p[row, col]),
-    }
+    return EstimateGrid(
+        float(t), cols, rows, float(cell_m), GRID_ENCODING, data, (col, row), float(p[row, col])
+    ).to_json()
 
 
 def decode_grid(msg: dict[str, Any]) -> NDArray[np.float64]:
     """The ``(rows, cols)`` probabilities of an ``estimate/grid`` payload."""
     if msg.get("encoding") != GRID_ENCODING:
         raise EstimationError(f"unknown grid encoding {msg.get('encoding')!r}")
-    a = np.frombuffer(base64.b64decode(msg["data"]), dtype="<f4")
-    rows, cols = int(msg["rows"]), int(msg["cols"])
+    try:
+        grid = EstimateGrid.from_json(msg)
+    except TopicError as e:
+        raise EstimationError(str(e)) from e
+    a = np.frombuffer(base64.b64decode(grid.data), dtype="<f4")
+    rows, cols = grid.rows, grid.cols
     if a.size != rows * cols:
         raise EstimationError(f"grid data holds {a.size} cells, expected {rows}x{cols}")
     return a.reshape(rows, cols).astype(float)
@@ -93,20 +110,24 @@ def occupancy_message(
     if lo.ndim != 2:
         raise EstimationError(f"occupancy must be (rows, cols), got {lo.shape}")
     data, scale = encode_log_odds(lo, l_max)
-    return {
-        "t": float(t),
-        "cols": int(lo.shape[1]),
-        "rows": int(lo.shape[0]),
-        "resolution_m": float(resolution_m),
-        "origin": [0.0, 0.0],
-        "encoding": OCCUPANCY_ENCODING,
-        "scale": float(scale),
-        "data": data,
-    }
+    return OccupancyMap(
+        float(t),
+        int(lo.shape[1]),
+        int(lo.shape[0]),
+        float(resolution_m),
+        (0.0, 0.0),
+        OCCUPANCY_ENCODING,
+        float(scale),
+        data,
+    ).to_json()
 
 
 def decode_occupancy(msg: dict[str, Any]) -> NDArray[np.float64]:
     """The ``(rows, cols)`` log-odds of a ``map/occupancy`` payload."""
     if msg.get("encoding") != OCCUPANCY_ENCODING:
         raise EstimationError(f"unknown occupancy encoding {msg.get('encoding')!r}")
-    return decode_log_odds(msg["data"], int(msg["rows"]), int(msg["cols"]), float(msg["scale"]))
+    try:
+        occ = OccupancyMap.from_json(msg)
+    except TopicError as e:
+        raise EstimationError(str(e)) from e
+    return decode_log_odds(occ.data, occ.rows, occ.cols, float(occ.scale))

@@ -19,7 +19,9 @@ One CSV row per recorded reading, so a bundle holds exactly what the recording h
                     sensor parameters from the world answer), ``units``
 ==================  =========================================================================
 
-A file is written only when the recording has its stream.
+A file is written only when the recording has its stream. The columns of the per-message tables
+are the scalar fields of the topic's typed message (:meth:`core.topics.TopicMessage.csv_columns`),
+and every message is read with that class's parser: a message of another shape is an error.
 """
 
 from __future__ import annotations
@@ -30,11 +32,40 @@ import math
 import os
 from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
-from koala_bridge.recording.mcap_file import META_NAME, Recording, RecordingError, open_recording
+from koala_bridge.core.topics import (
+    CameraMessage,
+    CompassMessage,
+    GyroMessage,
+    IrMessage,
+    OdometryMessage,
+    SonarMessage,
+    TopicError,
+    TopicMessage,
+    TruthPose,
+)
+from koala_bridge.recording.mcap_file import (
+    META_NAME,
+    RecordedMessage,
+    Recording,
+    RecordingError,
+    open_recording,
+)
 
-RANGE_KINDS = {"sonar": "sensors/sonar", "ir": "sensors/ir"}
+M = TypeVar("M", bound=TopicMessage)
+
+#: One row per message: file name -> the message class whose scalar fields are the columns.
+TABLES: dict[str, type[TopicMessage]] = {
+    "truth_pose.csv": TruthPose,
+    "odometry.csv": OdometryMessage,
+    "gyro.csv": GyroMessage,
+    "compass.csv": CompassMessage,
+}
+RANGE_KINDS: dict[str, type[IrMessage] | type[SonarMessage]] = {
+    "sonar": SonarMessage,
+    "ir": IrMessage,
+}
 RANGE_COLUMNS = ("t", "kind", "sensor", "measured", "true_range", "incidence_angle")
 LANDMARK_COLUMNS = ("t", "landmark_id", "range", "bearing")
 
@@ -61,27 +92,31 @@ def _write_csv(path: Path, header: Sequence[str], rows: Iterable[Sequence[Any]])
     return n
 
 
-def _at(seq: Any, i: int) -> Any:
-    if isinstance(seq, list) and i < len(seq):
-        return seq[i]
-    return None
+def _parsed(rec: Recording, cls: type[M]) -> list[tuple[RecordedMessage, M]]:
+    """The messages of ``cls``'s topic, parsed; a message of another shape is an error."""
+    out = []
+    for m in rec.topic(cls.TOPIC):
+        try:
+            out.append((m, cls.parse(m.data)))
+        except TopicError as e:
+            raise RecordingError(
+                f"{rec.path}: message {m.sequence} of {m.topic} is not a {cls.TOPIC} "
+                f"message: {e}"
+            ) from e
+    return out
 
 
 def _range_rows(rec: Recording) -> list[tuple[Any, ...]]:
     rows: list[tuple[Any, ...]] = []
     messages = [
-        (m.log_time_ns, kind, m.json())
-        for kind, topic in RANGE_KINDS.items()
-        for m in rec.topic(topic)
+        (m.log_time_ns, kind, msg)
+        for kind, cls in RANGE_KINDS.items()
+        for m, msg in _parsed(rec, cls)
     ]
     messages.sort(key=lambda x: x[0])  # stable: same-time sonar before IR
     for _, kind, msg in messages:
-        measured = msg.get("ranges") if kind == "sonar" else msg.get("counts")
-        truth = msg.get("truth") or {}
-        true_ranges = truth.get("ranges")
-        incidence = truth.get("incidence")
-        for i, value in enumerate(measured or []):
-            rows.append((msg["t"], kind, i, value, _at(true_ranges, i), _at(incidence, i)))
+        for i, value, true_range, incidence in msg.sensor_rows():
+            rows.append((msg.t, kind, i, value, true_range, incidence))
     return rows
 
 
@@ -143,27 +178,20 @@ def export_bundle(mcap_path: str | os.PathLike[str], out_dir: str | os.PathLike[
     out.mkdir(parents=True, exist_ok=True)
     counts: dict[str, int] = {}
 
-    def table(name: str, topic: str, header: Sequence[str]) -> None:
-        msgs = rec.topic(topic)
+    for name, cls in TABLES.items():
+        msgs = _parsed(rec, cls)
         if msgs:
-            rows = ([d.get(col) for col in header] for d in (m.json() for m in msgs))
-            counts[name] = _write_csv(out / name, header, rows)
-
-    table("truth_pose.csv", "truth/pose", ("t", "x", "y", "theta"))
-    table("odometry.csv", "sensors/odometry", ("t", "left_ticks", "right_ticks"))
-    table("gyro.csv", "sensors/gyro", ("t", "yaw_rate"))
-    table("compass.csv", "sensors/compass", ("t", "mx", "my", "mz"))
+            rows = (msg.csv_row() for _, msg in msgs)
+            counts[name] = _write_csv(out / name, cls.csv_columns(), rows)
 
     ranges = _range_rows(rec)
     if ranges:
         counts["range.csv"] = _write_csv(out / "range.csv", RANGE_COLUMNS, ranges)
 
-    camera = rec.topic("sensors/camera")
+    camera = _parsed(rec, CameraMessage)
     if camera:
         rows = (
-            (msg["t"], o.get("id"), o.get("range"), o.get("bearing"))
-            for msg in (m.json() for m in camera)
-            for o in msg.get("observations") or []
+            (msg.t, o.id, o.range, o.bearing) for _, msg in camera for o in msg.observations
         )
         counts["landmarks.csv"] = _write_csv(out / "landmarks.csv", LANDMARK_COLUMNS, rows)
 

@@ -8,7 +8,8 @@ File layout (docs/recording.md has the full description):
   as JSON (the answer of the ``<prefix>/world`` queryable).
 * one channel per Zenoh key, named after the key below the prefix: ``/truth/pose``,
   ``/sensors/sonar``, ``/status``, ``/estimate/pose`` …; message encoding ``json``, schema
-  encoding ``jsonschema`` (Foxglove opens both).
+  encoding ``jsonschema`` (Foxglove opens both), the schema derived from the key's typed message
+  in :mod:`koala_bridge.core.topics`.
 * one channel per bus: ``/bus/serial/kteam``, ``/bus/serial/rangefinders``, ``/bus/can``,
   ``/bus/mavlink``, carrying JSON ``{t, dir, seq, len, data_b64, …}`` for each frame in either
   direction. ``dir`` is seen from the robot: ``from_robot`` (what the robot, simulated or real,
@@ -35,11 +36,13 @@ import logging
 import os
 import threading
 import time
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from koala_bridge.core.topics import JSON_SCHEMA_DIALECT
+from koala_bridge.core.topics import json_schema as topic_json_schema
 from mcap.exceptions import EndOfFile
 from mcap.records import Channel, Footer, Header, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
@@ -68,113 +71,17 @@ class UnsupportedRecordingError(RecordingError):
 
 
 # --------------------------------------------------------------------------------------------
-# JSON schemas, one per channel (Foxglove shows them; docs/recording.md lists them).
+# JSON schemas, one per channel (Foxglove shows them; docs/recording.md lists them). A Zenoh
+# key's schema is derived from its typed message (koala_bridge.core.topics), the one definition
+# the published JSON also comes from; a key without one gets the generic schema (an object with
+# a time ``t``). Bus frames are the recording's own records, described here.
 
-_NUM = {"type": "number"}
-_NUM_OR_NULL = {"type": ["number", "null"]}
-_T = {"type": "number", "description": "simulation time, s"}
-
-
-def _obj(title: str, props: Mapping[str, Any], required: Iterable[str] | None = None) -> dict:
-    return {
-        "$schema": "https://json-schema.org/draft/2020-12/schema",
-        "title": title,
-        "type": "object",
-        "properties": {"t": _T, **props},
-        "required": ["t", *(required if required is not None else props)],
-    }
-
-
-def _array(items: Mapping[str, Any]) -> dict[str, Any]:
-    return {"type": "array", "items": dict(items)}
-
-
-_POSE = {"x": _NUM, "y": _NUM, "theta": _NUM}
-_INTS = _array({"type": "integer"})
-_OBS = _array(
-    {"type": "object", "properties": {"id": {"type": "integer"}, "range": _NUM, "bearing": _NUM}}
-)
-
-
-def _truth(props: Mapping[str, Any]) -> dict[str, Any]:
-    """The noise-free companion carried in each sensor message under ``truth``."""
-    return {"type": "object", "properties": dict(props), "description": "noise-free companion"}
-
-
-def _sensor(title: str, props: Mapping[str, Any], truth: Mapping[str, Any]) -> dict[str, Any]:
-    return _obj(title, {**props, "truth": _truth(truth)}, required=list(props))
-
-
-_MAG = {"mx": _NUM, "my": _NUM, "mz": _NUM}
-_TICKS = {"left_ticks": {"type": "integer"}, "right_ticks": {"type": "integer"}}
-
-#: Schema per topic below the prefix (payloads as runtime/zenoh_io.py documents them). A topic
-#: not listed here is recorded with :func:`generic_schema`.
-TOPIC_SCHEMAS: dict[str, dict[str, Any]] = {
-    "truth/pose": _obj("koala.truth.Pose", _POSE),
-    "sensors/ir": _sensor(
-        "koala.sensors.Ir",
-        {"counts": _INTS, "ambient": _INTS},
-        {"counts": _INTS, "ranges": _array(_NUM_OR_NULL), "incidence": _array(_NUM_OR_NULL)},
-    ),
-    "sensors/sonar": _sensor(
-        "koala.sensors.Sonar",
-        {"ranges": _array(_NUM_OR_NULL)},
-        {"ranges": _array(_NUM_OR_NULL), "incidence": _array(_NUM_OR_NULL)},
-    ),
-    "sensors/odometry": _sensor("koala.sensors.Odometry", _TICKS, _TICKS),
-    "sensors/gyro": _sensor("koala.sensors.Gyro", {"yaw_rate": _NUM}, {"yaw_rate": _NUM}),
-    "sensors/compass": _sensor("koala.sensors.Compass", _MAG, _MAG),
-    "sensors/camera": _sensor(
-        "koala.sensors.Camera", {"observations": _OBS}, {"observations": _OBS}
-    ),
-    "status": _obj(
-        "koala.Status",
-        {"real_time_factor": _NUM_OR_NULL, "buses": {"type": "object"}},
-        required=[],
-    ),
-    # The localisation node's outputs (bridge/runtime/localisation.py; encodings in
-    # bridge/estimation/messages.py and docs/localisation.md "Zenoh payloads").
-    "estimate/pose": _obj(
-        "koala.estimate.Pose",
-        {**_POSE, "cov": {**_array(_array(_NUM)), "description": "3x3 covariance of x, y, theta"}},
-    ),
-    "estimate/cell": _obj(
-        "koala.estimate.Cell",
-        {"cell": {**_INTS, "description": "[col, row], row 0 south"},
-         "p": {**_NUM, "description": "probability of that cell"}},
-    ),
-    "estimate/grid": _obj(
-        "koala.estimate.Grid",
-        {
-            "cols": {"type": "integer"},
-            "rows": {"type": "integer"},
-            "cell_m": _NUM,
-            "encoding": {"const": "float32-le"},
-            "data": {"type": "string", "contentEncoding": "base64",
-                     "description": "rows*cols float32 probabilities, row-major from SW"},
-            "cell": _INTS,
-            "p": _NUM,
-        },
-    ),
-    "map/occupancy": _obj(
-        "koala.map.Occupancy",
-        {
-            "cols": {"type": "integer"},
-            "rows": {"type": "integer"},
-            "resolution_m": _NUM,
-            "origin": _array(_NUM),
-            "encoding": {"const": "int8-logodds"},
-            "scale": {**_NUM, "description": "log-odds = q * scale; P(occ) = 1/(1+exp(-l))"},
-            "data": {"type": "string", "contentEncoding": "base64",
-                     "description": "rows*cols int8 q, row-major from the SW corner, 0 unknown"},
-        },
-    ),
-}
-
-BUS_FRAME_SCHEMA: dict[str, Any] = _obj(
-    "koala.bus.Frame",
-    {
+BUS_FRAME_SCHEMA: dict[str, Any] = {
+    "$schema": JSON_SCHEMA_DIALECT,
+    "title": "koala.bus.Frame",
+    "type": "object",
+    "properties": {
+        "t": {"type": "number", "description": "simulation time, s"},
         "dir": {"enum": list(DIRECTIONS), "description": "seen from the robot"},
         "seq": {"type": "integer", "description": "per bus and direction, from 0, no gaps"},
         "len": {"type": "integer"},
@@ -183,18 +90,13 @@ BUS_FRAME_SCHEMA: dict[str, Any] = _obj(
         "can_id": {"type": "integer"},
         "extended": {"type": "boolean"},
     },
-    required=["dir", "seq", "len", "data_b64"],
-)
-
-
-def generic_schema(topic: str) -> dict[str, Any]:
-    """The schema of a topic without a listed one: an object with a time ``t``."""
-    return _obj("koala." + topic.replace("/", "."), {}, required=[])
+    "required": ["t", "dir", "seq", "len", "data_b64"],
+}
 
 
 def _topic_schema(topic: str) -> dict[str, Any]:
-    """The schema of the MCAP topic of a Zenoh key: its listed one, else the generic one."""
-    return TOPIC_SCHEMAS.get(topic[1:]) or generic_schema(topic[1:])
+    """The schema of the MCAP topic (``/sensors/ir``) of a Zenoh key."""
+    return topic_json_schema(topic[1:])
 
 
 def topic_name(channel: str) -> str:
@@ -591,21 +493,3 @@ def _read_error(e: Exception) -> str:
     if isinstance(e, EndOfFile):
         return "the file ends inside a record"
     return str(e) or type(e).__name__
-
-
-def iter_frames(
-    recording: Recording, direction: str | None = FROM_ROBOT
-) -> Iterator[tuple[str, RecordedMessage]]:
-    """Bus frames of a recording as ``(bus, message)`` in time order (stable), one direction."""
-    frames = [m for m in recording.messages if m.topic.startswith("/bus/")]
-    frames.sort(key=lambda m: m.log_time_ns)
-    for m in frames:
-        if direction is None or m.json().get("dir") == direction:
-            yield m.topic[len("/bus/") :], m
-
-
-def export_bundle(mcap_path: str | os.PathLike[str], out_dir: str | os.PathLike[str]) -> Path:
-    """Write the measurement bundle of a recording to ``out_dir``; see :mod:`recording.export`."""
-    from koala_bridge.recording.export import export_bundle as _export
-
-    return _export(mcap_path, out_dir)

@@ -40,12 +40,22 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import can
 from koala_bridge.core.schema import ConfigError, reject_unknown
+from koala_bridge.core.topics import (
+    CompassMessage,
+    GyroMessage,
+    IrMessage,
+    OdometryMessage,
+    SonarMessage,
+    StatusMessage,
+    TopicMessage,
+    ints,
+)
 from koala_bridge.drivers.can_codec import KoalaCanCodec
 from koala_bridge.drivers.kteam import LineSplitter, format_command, parse_reply
 from koala_bridge.drivers.mavlink_codec import CompassDecoder
@@ -73,7 +83,7 @@ from koala_bridge.runtime.endpoints import Endpoints
 from koala_bridge.runtime.localisation import LocalisationNode
 from koala_bridge.runtime.settings import BridgeSettings
 from koala_bridge.runtime.source import READ_TIMEOUT_S, Tap, start_reader, until_text
-from koala_bridge.runtime.zenoh_io import ZENOH_BUS, ZenohLink, status_message
+from koala_bridge.runtime.zenoh_io import ZENOH_BUS, ZenohLink
 from koala_bridge.sim.config import load_sim_config
 
 log = logging.getLogger(__name__)
@@ -322,6 +332,10 @@ class RealRobotSource:
         if self.tap is not None:
             self.tap.record(suffix, message["t"], message)
 
+    def _publish_topic(self, message: TopicMessage) -> None:
+        """Publish (and record) one message of the robot's readings, on its own key."""
+        self._publish(message.TOPIC, message.to_json())
+
     def _frame(self, bus: str, direction: str, t: float, data: bytes, **fields: object) -> None:
         if self.tap is not None:
             self.tap.record_frame(bus, direction, t, data, **fields)
@@ -331,11 +345,13 @@ class RealRobotSource:
     def _publish_status(self) -> None:
         counts = self.counters.snapshot()
         buses = {name: {**c, "dropped": 0} for name, c in counts.items() if name != ZENOH_BUS}
-        msg = status_message(self.clock.now(), 1.0, buses)
-        msg["source"] = "real"
-        if self.localisation is not None:
-            msg["localisation"] = self.localisation.snapshot()
-        self._publish("status", msg)
+        self._publish_topic(StatusMessage(
+            self.clock.now(),
+            1.0,
+            buses,
+            source="real",
+            localisation=None if self.localisation is None else self.localisation.snapshot(),
+        ))
 
     # -- readers -----------------------------------------------------------------------------
 
@@ -354,10 +370,10 @@ class RealRobotSource:
                 self.counters.received("rangefinders")
                 self._frame("serial/rangefinders", "from_robot", t, encode_range_frame(f))
                 if f.kind == RangeKind.IR:
-                    self._publish("sensors/ir", {"t": t, "counts": list(f.readings)})
+                    self._publish_topic(_ir_message(t, f.readings))
                 else:
-                    ranges = [None if r == NO_ECHO else r / 1000.0 for r in f.readings]
-                    self._publish("sensors/sonar", {"t": t, "ranges": ranges})
+                    ranges = tuple(None if r == NO_ECHO else r / 1000.0 for r in f.readings)
+                    self._publish_topic(SonarMessage(t, ranges))
 
         return step
 
@@ -380,13 +396,10 @@ class RealRobotSource:
             frame = codec.decode(msg)
             if isinstance(frame, WheelOdometryFrame):
                 self.counters.received("can")
-                self._publish(
-                    "sensors/odometry",
-                    {"t": t, "left_ticks": frame.left_ticks, "right_ticks": frame.right_ticks},
-                )
+                self._publish_topic(OdometryMessage(t, frame.left_ticks, frame.right_ticks))
             elif isinstance(frame, GyroFrame):
                 self.counters.received("can")
-                self._publish("sensors/gyro", {"t": t, "yaw_rate": frame.yaw_rate})
+                self._publish_topic(GyroMessage(t, frame.yaw_rate))
             else:  # a Reject, or a frame the robot does not send (MotorCommand)
                 self.counters.rejected("can")
 
@@ -407,9 +420,7 @@ class RealRobotSource:
             for m in out:
                 self.counters.received("mavlink")
                 if isinstance(m, CompassSample):
-                    self._publish(
-                        "sensors/compass", {"t": t, "mx": m.x_ut, "my": m.y_ut, "mz": m.z_ut}
-                    )
+                    self._publish_topic(CompassMessage(t, m.x_ut, m.y_ut, m.z_ut))
 
         return step
 
@@ -447,11 +458,16 @@ class RealRobotSource:
         if POLLABLE[letter] in self._streamed:
             return
         if letter == "N":
-            self._publish("sensors/ir", {"t": t, "counts": values})
+            self._publish_topic(_ir_message(t, values))
         elif letter == "H" and len(values) == 2:
-            self._publish(
-                "sensors/odometry", {"t": t, "left_ticks": values[0], "right_ticks": values[1]}
-            )
+            self._publish_topic(OdometryMessage(t, values[0], values[1]))
+
+
+def _ir_message(t: float, counts: Sequence[int]) -> IrMessage:
+    """``sensors/ir`` of a real robot: proximity counts only. Neither the range frames nor the
+    K-Team ``N`` reply carry ambient light, so ``ambient`` is null for every sensor (not
+    measured) and there is no ``truth``."""
+    return IrMessage(t, ints(counts), (None,) * len(counts))
 
 
 def _open_port(

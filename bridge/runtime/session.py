@@ -130,12 +130,13 @@ def make_source(kind: str, config: Mapping[str, Any], settings: BridgeSettings) 
 
         return SimulatedRobotSource(config, settings)
     if kind == "real":
+        from koala_bridge.core.topics import WorldMessage
         from koala_bridge.runtime.real_source import RealRobotSource
         from koala_bridge.sim.simulator import Simulator
 
         # The world and the robot's description answer the world queryable; nothing is
         # simulated.
         description = Simulator(config)
-        world = {**description.world.to_dict(), "robot": description.robot_description()}
+        world = WorldMessage.of(description.world, description.robot_description()).to_json()
         return RealRobotSource(config, settings, lambda: world)
     raise ValueError(f"unknown source {kind!r}; known: {', '.join(SOURCE_KINDS)}")

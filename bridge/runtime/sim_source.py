@@ -32,6 +32,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
+from koala_bridge.core.topics import StatusMessage, TruthPose, WorldMessage
 from koala_bridge.drivers.can_codec import KoalaCanCodec
 from koala_bridge.drivers.kteam import KteamLimits, LineSplitter, format_reply, parse_command
 from koala_bridge.drivers.mavlink_codec import CompassDecoder, CompassEncoder, MavlinkIdentity
@@ -55,13 +56,7 @@ from koala_bridge.runtime.localisation import LocalisationNode
 from koala_bridge.runtime.robot_io import KteamResponder, MotorArbiter, RobotPort, RobotUnits
 from koala_bridge.runtime.settings import BridgeSettings
 from koala_bridge.runtime.source import READ_TIMEOUT_S, Tap, start_reader, until_text
-from koala_bridge.runtime.zenoh_io import (
-    ZENOH_BUS,
-    ZenohLink,
-    pose_message,
-    sensor_messages,
-    status_message,
-)
+from koala_bridge.runtime.zenoh_io import ZENOH_BUS, ZenohLink, sensor_topics, truth_pose
 from koala_bridge.sim.simulator import Simulator
 from koala_bridge.sim.types import Readings
 
@@ -137,7 +132,7 @@ class SimulatedRobotSource:
 
     def world_answer(self) -> dict[str, Any]:
         """The answer of the ``<prefix>/world`` queryable: the world plus ``robot``."""
-        return {**self.sim.world.to_dict(), "robot": self.sim.robot_description()}
+        return WorldMessage.of(self.sim.world, self.sim.robot_description()).to_json()
 
     def open(self) -> Endpoints:
         """Open every bus and the Zenoh session, start the readers; return where clients connect.
@@ -216,7 +211,7 @@ class SimulatedRobotSource:
     def _published_keys(self, r: Readings) -> list[str]:
         """Every Zenoh key this run publishes (``r``: the step-0 readings, where every sensor
         reads), in the order a recording lists them."""
-        keys = ["truth/pose", *sensor_messages(r), "status"]
+        keys = [TruthPose.TOPIC, *sensor_topics(r), StatusMessage.TOPIC]
         if self.localisation is not None:
             keys += [KEY_POSE, KEY_CELL, KEY_GRID, KEY_OCCUPANCY]
         return keys
@@ -262,10 +257,11 @@ class SimulatedRobotSource:
 
     def _publish(self, r: Readings, n: int) -> None:
         assert self.zenoh is not None
-        messages = sensor_messages(r, None if r.ir is None else r.ir.truth_incidence)
+        topics = sensor_topics(r, None if r.ir is None else r.ir.truth_incidence)
         if n % self._pose_period == 0:
-            messages = {"truth/pose": pose_message(r), **messages}
-        for suffix, message in messages.items():
+            topics = {TruthPose.TOPIC: truth_pose(r), **topics}
+        for suffix, typed in topics.items():
+            message = typed.to_json()
             try:
                 self.zenoh.publish(suffix, message)
             except TransportError as e:  # the loop and the other buses go on
@@ -289,12 +285,14 @@ class SimulatedRobotSource:
             }
         if ZENOH_BUS in counts:
             buses[ZENOH_BUS] = {**counts[ZENOH_BUS], "dropped": 0}
-        msg = status_message(t, self.clock.real_time_factor(t), buses)
-        msg["motor_command_source"] = self.arbiter.source
-        msg["leds"] = self.port.led_states()  # K-Team L: [lateral, frontal], 0 off / 1 on
-        if self.localisation is not None:
-            msg["localisation"] = self.localisation.snapshot()
-        return msg
+        return StatusMessage(
+            t,
+            self.clock.real_time_factor(t),
+            buses,
+            motor_command_source=self.arbiter.source,
+            leds=tuple(self.port.led_states()),  # K-Team L: [lateral, frontal], 0 off / 1 on
+            localisation=None if self.localisation is None else self.localisation.snapshot(),
+        ).to_json()
 
     def _publish_status(self, t: float) -> None:
         if self.zenoh is None:

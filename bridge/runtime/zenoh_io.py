@@ -19,14 +19,17 @@ simulation seconds, world frame x east / y north / theta CCW from +x, body frame
 ``estimate/cell``       ``{t, cell: [col, row], p}``
 ``estimate/grid``       ``{t, cols, rows, cell_m, encoding, data, cell, p}`` (belief, base64)
 ``map/occupancy``       ``{t, cols, rows, resolution_m, origin, encoding, scale, data}`` (int8)
-``world`` (queryable)   the world (``koala_bridge.sim.world.World.to_dict``) plus ``robot``
+``world`` (queryable)   the world and ``robot`` (:class:`koala_bridge.core.topics.WorldMessage`)
 =====================  ==========================================================================
 
-The ``estimate/*`` and ``map/occupancy`` payloads are built by :mod:`estimation.messages`
-(docs/localisation.md, "Zenoh payloads") and published by the service through the same session.
+Each payload is defined once, as a typed message in :mod:`koala_bridge.core.topics` (which
+also gives the recording's JSON Schemas and the export's CSV columns). The ``estimate/*`` and
+``map/occupancy`` messages are built by :mod:`estimation.messages` (docs/localisation.md, "Zenoh
+payloads") and published by the service through the same session.
 
-The message builders are pure functions of a :class:`sim.types.Readings`; :class:`ZenohLink`
-owns the session. Non-finite numbers (no echo, nothing in range) are sent as ``null``.
+The message builders here are pure functions of a :class:`sim.types.Readings`;
+:class:`ZenohLink` owns the session. Non-finite numbers (no echo, nothing in range) are sent as
+``null``.
 
 Range truth: ``ranges`` (m) along each sensor's axis (IR) or to the nearest surface of the beam
 (sonar), ``null`` where nothing is within the sensor's maximum range; ``incidence`` (rad) the
@@ -38,7 +41,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import re
 import threading
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -46,6 +48,28 @@ from typing import Any
 
 import numpy as np
 import zenoh
+from koala_bridge.core.topics import (
+    CameraMessage,
+    CameraTruth,
+    CompassMessage,
+    CompassTruth,
+    GyroMessage,
+    GyroTruth,
+    IrMessage,
+    IrTruth,
+    Observation,
+    OdometryMessage,
+    OdometryTruth,
+    SonarMessage,
+    SonarTruth,
+    StatusMessage,
+    TopicMessage,
+    TruthPose,
+    encode,
+    finite_or_none,
+    ints,
+    nums,
+)
 from koala_bridge.drivers.messages import TransportError
 from koala_bridge.runtime.counters import BusCounters
 from koala_bridge.runtime.settings import ZenohSettings
@@ -56,105 +80,97 @@ log = logging.getLogger(__name__)
 ZENOH_BUS = "zenoh"
 
 
-# -- message builders (pure) -------------------------------------------------------------------
+# -- message builders (pure): simulator readings -> topic messages ----------------------------
 
-def _num(v: Any) -> float | None:
-    f = float(v)
-    return f if math.isfinite(f) else None
-
-
-def _nums(values: Iterable[Any]) -> list[float | None]:
-    return [_num(v) for v in values]
+def _observations(obs: Iterable[LandmarkObservation]) -> tuple[Observation, ...]:
+    return tuple(
+        Observation(int(o.id), finite_or_none(o.range), finite_or_none(o.bearing)) for o in obs
+    )
 
 
-def _ints(values: Iterable[Any]) -> list[int]:
-    return [int(v) for v in values]
+def truth_pose(r: Readings) -> TruthPose:
+    """``truth/pose`` of ``r``."""
+    return TruthPose(r.t, r.pose.x, r.pose.y, r.pose.theta)
 
 
-def _observations(obs: Iterable[LandmarkObservation]) -> list[dict[str, Any]]:
-    return [{"id": int(o.id), "range": _num(o.range), "bearing": _num(o.bearing)} for o in obs]
-
-
-def pose_message(r: Readings) -> dict[str, Any]:
-    return {"t": r.t, "x": r.pose.x, "y": r.pose.y, "theta": r.pose.theta}
-
-
-def sensor_messages(
+def sensor_topics(
     r: Readings, ir_incidence: Sequence[float] | np.ndarray | None = None
-) -> dict[str, dict[str, Any]]:
+) -> dict[str, TopicMessage]:
     """``{key suffix: message}`` for every sensor reading due in ``r`` (see module table).
 
     ``ir_incidence`` (n,) rad: incidence of each IR sensor's axis ray (nan: none), which the
     simulator's :class:`koala_bridge.sim.types.IrReading` does not carry; None publishes ``null``s.
     """
-    out: dict[str, dict[str, Any]] = {}
+    out: dict[str, TopicMessage] = {}
     t = r.t
     if r.ir is not None:
         n = len(r.ir.counts)
-        out["sensors/ir"] = {
-            "t": t,
-            "counts": _ints(r.ir.counts),
-            "ambient": _ints(r.ir.ambient),
-            "truth": {
-                "counts": _ints(r.ir.truth_counts),
-                "ranges": _nums(r.ir.truth_ranges),
-                "incidence": [None] * n if ir_incidence is None else _nums(ir_incidence),
-            },
-        }
+        out[IrMessage.TOPIC] = IrMessage(
+            t,
+            counts=ints(r.ir.counts),
+            ambient=ints(r.ir.ambient),
+            truth=IrTruth(
+                counts=ints(r.ir.truth_counts),
+                ranges=nums(r.ir.truth_ranges),
+                incidence=(None,) * n if ir_incidence is None else nums(ir_incidence),
+            ),
+        )
     if r.sonar is not None:
-        out["sensors/sonar"] = {
-            "t": t,
-            "ranges": _nums(r.sonar.ranges),
-            "truth": {"ranges": _nums(r.sonar.truth_ranges), "incidence": _nums(r.sonar.incidence)},
-        }
+        out[SonarMessage.TOPIC] = SonarMessage(
+            t,
+            ranges=nums(r.sonar.ranges),
+            truth=SonarTruth(nums(r.sonar.truth_ranges), nums(r.sonar.incidence)),
+        )
     if r.odometry is not None:
         o = r.odometry
-        out["sensors/odometry"] = {
-            "t": t,
-            "left_ticks": int(o.left_ticks),
-            "right_ticks": int(o.right_ticks),
-            "truth": {
-                "left_ticks": int(getattr(o, "truth_left_ticks", o.left_ticks)),
-                "right_ticks": int(getattr(o, "truth_right_ticks", o.right_ticks)),
-            },
-        }
+        out[OdometryMessage.TOPIC] = OdometryMessage(
+            t,
+            left_ticks=int(o.left_ticks),
+            right_ticks=int(o.right_ticks),
+            truth=OdometryTruth(
+                int(getattr(o, "truth_left_ticks", o.left_ticks)),
+                int(getattr(o, "truth_right_ticks", o.right_ticks)),
+            ),
+        )
     if r.gyro is not None:
-        out["sensors/gyro"] = {
-            "t": t,
-            "yaw_rate": float(r.gyro.yaw_rate),
-            "truth": {"yaw_rate": float(r.gyro.truth_yaw_rate)},
-        }
+        out[GyroMessage.TOPIC] = GyroMessage(
+            t, yaw_rate=float(r.gyro.yaw_rate), truth=GyroTruth(float(r.gyro.truth_yaw_rate))
+        )
     if r.compass is not None:
         m, mt = r.compass.field_uT, r.compass.truth_field_uT
-        out["sensors/compass"] = {
-            "t": t,
-            "mx": float(m[0]),
-            "my": float(m[1]),
-            "mz": float(m[2]),
-            "truth": {"mx": float(mt[0]), "my": float(mt[1]), "mz": float(mt[2])},
-        }
+        out[CompassMessage.TOPIC] = CompassMessage(
+            t,
+            mx=float(m[0]),
+            my=float(m[1]),
+            mz=float(m[2]),
+            truth=CompassTruth(float(mt[0]), float(mt[1]), float(mt[2])),
+        )
     if r.camera is not None:
-        out["sensors/camera"] = {
-            "t": t,
-            "observations": _observations(r.camera.observations),
-            "truth": {"observations": _observations(r.camera.truth)},
-        }
+        out[CameraMessage.TOPIC] = CameraMessage(
+            t,
+            observations=_observations(r.camera.observations),
+            truth=CameraTruth(_observations(r.camera.truth)),
+        )
     return out
+
+
+def pose_message(r: Readings) -> dict[str, Any]:
+    """``truth/pose`` of ``r`` as JSON-ready ``dict``."""
+    return truth_pose(r).to_json()
+
+
+def sensor_messages(
+    r: Readings, ir_incidence: Sequence[float] | np.ndarray | None = None
+) -> dict[str, dict[str, Any]]:
+    """:func:`sensor_topics` as JSON-ready ``dict`` s."""
+    return {k: m.to_json() for k, m in sensor_topics(r, ir_incidence).items()}
 
 
 def status_message(
     t: float, real_time_factor: float, buses: Mapping[str, Mapping[str, int]]
 ) -> dict[str, Any]:
-    return {
-        "t": t,
-        "real_time_factor": _num(real_time_factor),
-        "buses": {name: dict(c) for name, c in buses.items()},
-    }
-
-
-def encode(message: Mapping[str, Any]) -> bytes:
-    """Strict JSON (no NaN/Infinity literals) as UTF-8."""
-    return json.dumps(message, allow_nan=False, separators=(",", ":")).encode()
+    """The ``status`` message's common part (:class:`core.topics.StatusMessage`) as a dict."""
+    return StatusMessage(t, real_time_factor, {n: dict(c) for n, c in buses.items()}).to_json()
 
 
 # -- session -----------------------------------------------------------------------------------
@@ -227,9 +243,10 @@ class ZenohLink:
         self._counters.received(ZENOH_BUS)
         self._counters.sent(ZENOH_BUS)
 
-    def publish(self, suffix: str, message: Mapping[str, Any]) -> None:
-        """Put ``message`` as JSON on ``<prefix>/<suffix>``."""
-        self.publish_json(suffix, encode(message))
+    def publish(self, suffix: str, message: Mapping[str, Any] | TopicMessage) -> None:
+        """Put ``message`` (a typed message or its JSON ``dict``) on ``<prefix>/<suffix>``."""
+        payload = message.to_bytes() if isinstance(message, TopicMessage) else encode(message)
+        self.publish_json(suffix, payload)
 
     def publish_json(self, suffix: str, payload: bytes) -> None:
         """Put ``payload``, already JSON, on ``<prefix>/<suffix>`` as it is (a replay puts the
@@ -250,8 +267,8 @@ class ZenohLink:
     def publish_readings(self, r: Readings, with_pose: bool) -> None:
         """Publish every sensor reading due in ``r``, and the truth pose if ``with_pose``."""
         if with_pose:
-            self.publish("truth/pose", pose_message(r))
-        for suffix, message in sensor_messages(r).items():
+            self.publish(TruthPose.TOPIC, truth_pose(r))
+        for suffix, message in sensor_topics(r).items():
             self.publish(suffix, message)
 
     def close(self) -> None:

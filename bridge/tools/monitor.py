@@ -25,6 +25,15 @@ from typing import Any
 
 import zenoh
 from koala_bridge.core.geometry import wrap_angle
+from koala_bridge.core.topics import (
+    EstimateCell,
+    EstimatePose,
+    OccupancyMap,
+    StatusMessage,
+    TopicError,
+    TruthPose,
+    pose_of,
+)
 from koala_bridge.runtime.zenoh_io import zenoh_error_text
 from rich.console import Group
 from rich.panel import Panel
@@ -239,14 +248,14 @@ def render_streams(streams: Mapping[str, StreamStats], now: float) -> Table:
 
 
 def _pose(v: Any) -> tuple[float, float, float] | None:
-    if isinstance(v, dict) and all(isinstance(v.get(k), int | float) for k in ("x", "y", "theta")):
-        return float(v["x"]), float(v["y"]), float(v["theta"])
-    return None
+    """``(x, y, theta)`` of a ``truth/pose`` or ``estimate/pose`` payload (core.topics)."""
+    p = pose_of(v)
+    return None if p is None else (float(p.x), float(p.y), float(p.theta))
 
 
 def render_poses(streams: Mapping[str, StreamStats]) -> Table:
-    truth = _pose(streams["truth/pose"].last) if "truth/pose" in streams else None
-    est = _pose(streams["estimate/pose"].last) if "estimate/pose" in streams else None
+    truth = _pose(streams[TruthPose.TOPIC].last) if TruthPose.TOPIC in streams else None
+    est = _pose(streams[EstimatePose.TOPIC].last) if EstimatePose.TOPIC in streams else None
     table = Table(title="truth vs estimate", expand=True)
     for col in ("", "x m", "y m", "theta deg"):
         table.add_column(col, justify="right")
@@ -260,10 +269,10 @@ def render_poses(streams: Mapping[str, StreamStats]) -> Table:
         dth = math.degrees(wrap_angle(est[2] - truth[2]))
         table.add_row("error", f"|d|={dist:.3f}", "", f"{dth:+.1f}")
     captions = []
-    cell = streams.get("estimate/cell")
+    cell = streams.get(EstimateCell.TOPIC)
     if cell is not None and cell.last is not None:
         captions.append(f"estimate/cell: {_fmt(cell.last, 80)}")
-    occupancy = streams.get("map/occupancy")
+    occupancy = streams.get(OccupancyMap.TOPIC)
     summary = _occupancy_summary(occupancy.last) if occupancy is not None else None
     if summary:
         captions.append(summary)
@@ -275,11 +284,9 @@ def render_poses(streams: Mapping[str, StreamStats]) -> Table:
 def _occupancy_summary(msg: Any) -> str | None:
     """``map/occupancy`` in one line: cells observed and occupied (int8 log-odds, 0 = unknown;
     docs/localisation.md "Zenoh payloads")."""
-    if not isinstance(msg, dict) or msg.get("encoding") != "int8-logodds":
-        return None
     try:
-        q = base64.b64decode(msg["data"])
-    except (KeyError, TypeError, ValueError):
+        q = base64.b64decode(OccupancyMap.from_json(msg).data)
+    except (TopicError, ValueError):
         return None
     known = sum(1 for b in q if b)
     occupied = sum(1 for b in q if 0 < b < 128)  # int8 > 0 as unsigned bytes
@@ -287,22 +294,24 @@ def _occupancy_summary(msg: Any) -> str | None:
 
 
 def render_status(streams: Mapping[str, StreamStats]) -> Table:
-    status = streams.get("status")
-    last = status.last if status is not None and isinstance(status.last, dict) else {}
-    rtf = last.get("real_time_factor")
-    t = last.get("t")
+    stream = streams.get(StatusMessage.TOPIC)
+    try:
+        status = None if stream is None else StatusMessage.from_json(stream.last)
+    except TopicError:
+        status = None
     title = "buses"
-    title += (
-        f" — real-time factor {rtf:.2f}" if isinstance(rtf, int | float) else " — no status yet"
-    )
-    if isinstance(t, int | float):
-        title += f", sim t {t:.2f} s"
+    if status is not None and status.real_time_factor is not None:
+        title += f" — real-time factor {status.real_time_factor:.2f}"
+    else:
+        title += " — no status yet"
+    if status is not None:
+        title += f", sim t {status.t:.2f} s"
     table = Table(title=title, expand=True)
     for col in ("bus", "sent", "received", "rejected", "detail"):
         table.add_column(col, justify="left" if col in ("bus", "detail") else "right")
-    buses = last.get("buses") or {}
+    buses = {} if status is None else status.buses
     for name in sorted(buses):
-        c = buses[name] if isinstance(buses[name], dict) else {}
+        c = buses[name]
         detail = {k: v for k, v in c.items() if k not in ("sent", "received", "rejected")}
         table.add_row(
             name,

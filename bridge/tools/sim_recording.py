@@ -1,7 +1,7 @@
 """Record the simulator: a short run of :class:`sim.simulator.Simulator` into an MCAP recording.
 
 The messages are the bridge's own (``runtime.zenoh_io.sensor_messages`` / ``pose_message``) and go
-through :class:`recording.mcap_file.Recorder`, so ``recording.mcap_file.export_bundle`` turns
+through :class:`recording.mcap_file.Recorder`, so ``recording.export.export_bundle`` turns
 the file into the same bundle a ``koala-bridge run --record`` would give, with the resolved config
 in its ``meta.json``. The robot is driven in-process by :func:`weave_command` (no buses, no clock):
 a slow weave of alternating turns that stays near the start pose, so both wheel base and tick size
@@ -59,6 +59,7 @@ def record_simulator(
     :func:`weave_command`); the truth pose is recorded at ``pose_rate_hz`` (default: the
     config's ``[zenoh] pose_rate_hz``, else every step).
     """
+    from koala_bridge.core.topics import WorldMessage
     from koala_bridge.recording.mcap_file import Recorder, run_metadata
     from koala_bridge.runtime.zenoh_io import pose_message, sensor_messages
 
@@ -67,7 +68,7 @@ def record_simulator(
     rate = pose_rate_hz or float((config.get("zenoh") or {}).get("pose_rate_hz", 1.0 / sim.dt))
     pose_period = max(1, round(1.0 / (rate * sim.dt)))
     half_base = 0.5 * sim.config.robot.wheel_base_m
-    world = {**sim.world.to_dict(), "robot": sim.robot_description()}
+    world = WorldMessage.of(sim.world, sim.robot_description()).to_json()
     steps = round(duration_s / sim.dt)
     with Recorder(path, metadata=run_metadata("sim", config, None), world=world) as rec:
         r = sim.reset(seed)

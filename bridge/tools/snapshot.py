@@ -25,6 +25,16 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from koala_bridge.core.topics import (
+    GRID_ENCODING,
+    OCCUPANCY_ENCODING,
+    EstimateCell,
+    EstimateGrid,
+    EstimatePose,
+    OccupancyMap,
+    TruthPose,
+    pose_of,
+)
 from koala_bridge.tools.monitor import ZenohWatch
 from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -49,10 +59,9 @@ class Scene:
 
 
 def _pose(v: Any) -> PoseT | None:
-    try:
-        return float(v.get("t", 0.0)), float(v["x"]), float(v["y"]), float(v["theta"])
-    except (AttributeError, KeyError, TypeError, ValueError):
-        return None
+    """``(t, x, y, theta)`` of a ``truth/pose`` or ``estimate/pose`` payload (core.topics)."""
+    p = pose_of(v)
+    return None if p is None else (float(p.t), float(p.x), float(p.y), float(p.theta))
 
 
 class SceneCollector:
@@ -67,17 +76,17 @@ class SceneCollector:
         msg = json.loads(payload)
         with self._lock:
             s = self.scene
-            if suffix in ("truth/pose", "estimate/pose"):
+            if suffix in (TruthPose.TOPIC, EstimatePose.TOPIC):
                 p = _pose(msg)
-                trail = s.truth if suffix == "truth/pose" else s.estimate
+                trail = s.truth if suffix == TruthPose.TOPIC else s.estimate
                 if p is not None:
                     trail.append(p)
                     del trail[: -self._max_trail]
-            elif suffix == "estimate/grid":
+            elif suffix == EstimateGrid.TOPIC:
                 s.belief = msg
-            elif suffix == "map/occupancy":
+            elif suffix == OccupancyMap.TOPIC:
                 s.occupancy = msg
-            elif suffix == "estimate/cell":
+            elif suffix == EstimateCell.TOPIC:
                 s.cell = msg
 
 
@@ -129,13 +138,13 @@ def _decode_encoded(msg: dict[str, Any]) -> np.ndarray | None:
     """The bridge's base64 grids (bridge/estimation/messages.py): belief probabilities, or the
     occupancy log-odds as P(occupied) (0.5 where unknown); None for other messages."""
     encoding = msg.get("encoding")
-    if encoding not in ("float32-le", "int8-logodds"):
+    if encoding not in (GRID_ENCODING, OCCUPANCY_ENCODING):
         return None
     # Imported here: the estimation package loads scipy, which a plain snapshot does not need.
     from koala_bridge.estimation import EstimationError, decode_grid, decode_occupancy
 
     try:
-        if encoding == "float32-le":
+        if encoding == GRID_ENCODING:
             return decode_grid(msg)
         return 1.0 / (1.0 + np.exp(-decode_occupancy(msg)))
     except (EstimationError, KeyError, TypeError, ValueError):

@@ -10,7 +10,7 @@
    calibrated against itself, adds nothing, and each stream's residual RMS matches the first
    calibration's *after* within the F interval of the two held-out parts.
 3. MCAP round trip: a recording of the simulator under ``config/default.toml`` calibrated
-   directly (``.mcap`` input, through ``recording.mcap_file.export_bundle``) against that config
+   directly (``.mcap`` input, through ``recording.export.export_bundle``) against that config
    adds no effect; with a gyro bias injected into the exported bundle, ``bias`` is found.
 
 Bounds are at a two-sided false-alarm probability of 1e-3 per check.
@@ -33,7 +33,7 @@ from koala_bridge.calibration.config_update import found_keys, noise_keys, updat
 from koala_bridge.calibration.model import declared_model
 from koala_bridge.calibration.pipeline import StreamResult, calibrate
 from koala_bridge.calibration.selection import prewhiten
-from koala_bridge.recording.mcap_file import export_bundle
+from koala_bridge.recording.export import export_bundle
 from koala_bridge.tools.sim_recording import record_simulator
 from scipy import stats
 

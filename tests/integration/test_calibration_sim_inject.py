@@ -58,7 +58,7 @@ from _sim_inject import (
 from koala_bridge.calibration.bundle import load_bundle
 from koala_bridge.calibration.model import declared_model
 from koala_bridge.calibration.pipeline import StreamResult, calibrate
-from koala_bridge.recording.mcap_file import export_bundle
+from koala_bridge.recording.export import export_bundle
 from koala_bridge.tools.sim_recording import record_simulator
 
 ROOT = Path(__file__).parents[2]

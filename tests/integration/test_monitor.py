@@ -19,6 +19,7 @@ from _mpl import fonts_loaded  # noqa: F401 - autouse fixture
 from conftest import DEFAULT_CONFIG, free_port
 from koala_bridge.cli import monitor as monitor_cli
 from koala_bridge.cli import snapshot as snapshot_cli
+from koala_bridge.core.topics import WorldMessage
 from koala_bridge.sim.world import World
 from koala_bridge.tools.monitor import MonitorState, render_status, wrap_angle
 from koala_bridge.tools.snapshot import Scene, draw_scene, grid_array, render_scene
@@ -29,9 +30,8 @@ PREFIX = "koala/standin"
 
 def default_world() -> dict:
     with DEFAULT_CONFIG.open("rb") as f:
-        d = World.from_dict(tomllib.load(f)["world"]).to_dict()
-    d["robot"] = {"ticks_per_metre": 90284.0, "wheel_base_m": 0.3}
-    return d
+        world = World.from_dict(tomllib.load(f)["world"])
+    return WorldMessage.of(world, {"ticks_per_metre": 90284.0, "wheel_base_m": 0.3}).to_json()
 
 
 @dataclass

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from koala_bridge.cli import export as export_cli
-from koala_bridge.recording.export import RANGE_COLUMNS
-from koala_bridge.recording.mcap_file import Recorder, RecordingError, export_bundle, open_recording
+from koala_bridge.recording.export import RANGE_COLUMNS, export_bundle
+from koala_bridge.recording.mcap_file import Recorder, RecordingError, open_recording
 
 WORLD = {
     "name": "test",
