@@ -15,6 +15,7 @@ import csv
 import json
 import math
 import sys
+import threading
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -33,6 +34,7 @@ from koala_bridge.core.topics import (
 )
 from koala_bridge.drivers.messages import RangeFrame, RangeKind
 from koala_bridge.drivers.rangeframes import NO_ECHO, encode_range_frame
+from koala_bridge.drivers.transports.loop import LoopbackTransport
 from koala_bridge.estimation import messages as estimation
 from koala_bridge.recording.export import LANDMARK_COLUMNS, RANGE_COLUMNS, TABLES, export_bundle
 from koala_bridge.recording.mcap_file import Recorder, open_recording
@@ -236,36 +238,6 @@ class _Tap:
         pass
 
 
-class _Port:
-    """A serial port with bytes waiting to be read."""
-
-    def __init__(self, data: bytes) -> None:
-        self.data = data
-
-    @property
-    def in_waiting(self) -> int:
-        return len(self.data)
-
-    def read(self, n: int) -> bytes:
-        out, self.data = self.data[:n], self.data[n:]
-        return out
-
-
-class _KteamPort(_Port):
-    """A K-Team serial port that answers every command with one reply line."""
-
-    timeout = 0.0
-
-    def reset_input_buffer(self) -> None:
-        pass
-
-    def write(self, data: bytes) -> int:
-        return len(data)
-
-    def read_until(self, end: bytes) -> bytes:
-        return self.read(len(self.data))
-
-
 def real_source(real: dict[str, Any], tap: _Tap) -> Any:
     """A real-robot source on ``[real]`` ports (none opened), recording into ``tap``."""
     from koala_bridge.runtime.real_source import RealRobotSource
@@ -280,8 +252,13 @@ def real_source_messages(frames: list[RangeFrame]) -> list[tuple[str, dict[str, 
     """What the real source publishes (and records) for range frames read from the robot."""
     tap = _Tap()
     source = real_source({"rangefinders": "loop://"}, tap)
-    step = source._range_reader(_Port(b"".join(encode_range_frame(f) for f in frames)))
-    step()
+    robot, port = LoopbackTransport.pair()  # the robot's end writes, the source's end reads
+    try:
+        robot.write(b"".join(encode_range_frame(f) for f in frames))
+        source._range_reader(port)()
+    finally:
+        robot.close()
+        port.close()
     return [(channel, payload) for channel, _, payload in tap.records]
 
 
@@ -289,8 +266,23 @@ def test_the_real_robot_ir_from_kteam_polls_validates_too() -> None:
     tap = _Tap()
     source = real_source({"kteam": "loop://", "kteam_poll": ["N"]}, tap)
     counts = list(range(16))
-    source._kteam = _KteamPort(("n," + ",".join(map(str, counts)) + "\r\n").encode())
-    source._poll_kteam("N")
+    robot, port = LoopbackTransport.pair()
+    source._kteam = port
+    try:
+        # The robot's reply is waiting before the poll: the poll drops what the port holds
+        # first, so the reply goes in from a thread once the command has arrived.
+        def robot_replies() -> None:
+            robot.wait(5.0)
+            robot.read()
+            robot.write(("n," + ",".join(map(str, counts)) + "\r\n").encode())
+
+        replier = threading.Thread(target=robot_replies)
+        replier.start()
+        source._poll_kteam("N")
+        replier.join()
+    finally:
+        robot.close()
+        port.close()
     [(topic, _, ir)] = tap.records
     assert topic == "sensors/ir"
     assert errors(ir, IrMessage.json_schema()) == []
