@@ -28,6 +28,7 @@ SUBCOMMANDS: dict[str, str] = {
     "replay": "koala_bridge.cli.replay",
     "monitor": "koala_bridge.cli.monitor",
     "snapshot": "koala_bridge.cli.snapshot",
+    "config": "koala_bridge.cli.config",
 }
 
 EPILOG = """\
