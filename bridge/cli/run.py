@@ -101,6 +101,7 @@ def run(args: argparse.Namespace) -> int:
     # Imported here so that `koala-bridge --help` does not load the simulator and Zenoh.
     from koala_bridge.drivers.messages import DriverError
     from koala_bridge.runtime.endpoints import write_endpoints_file
+    from koala_bridge.runtime.progress import run_progress
     from koala_bridge.runtime.service import BridgeService
 
     try:
@@ -164,7 +165,9 @@ def run(args: argparse.Namespace) -> int:
             print(f"Reading the real robot's ports {until}.", flush=True)
         else:
             print(f"Simulating ({clock} clock) {until}.", flush=True)
-        last = service.run(stop)
+        sim_time = (lambda: service.sim.t) if args.source == "sim" else None
+        with run_progress(sim_time, settings.run.duration_s):  # a live line on a terminal only
+            last = service.run(stop)
         rtf = service.clock.real_time_factor(last.t)
         print(f"Stopped at t = {last.t:.3f} s (real-time factor {rtf:.2f}).", flush=True)
     finally:
