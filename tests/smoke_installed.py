@@ -4,8 +4,9 @@ Run with the python of a virtualenv where the wheel was installed (not editable)
 runs from a fresh temporary directory outside the checkout, through the installed console script:
 every --help, `config path` and `config init`, `run --clock fast --record` (shipped config and a
 copied one), `export`, `calibrate` (bundle and recording, with and without --config), `replay`,
-and `python -m koala_bridge`. Paths the bridge prints (DBC, endpoints file, recording) must exist.
-Exits 1 at the first failure, with the command's output; not collected by pytest (file name).
+`monitor --once` and `snapshot` against a real-time run, and `python -m koala_bridge`. Paths
+the bridge prints (DBC, endpoints file, recording) must exist. Exits 1 at the first failure,
+with the command's output; not collected by pytest (file name).
 
     build/smoke-venv/bin/python tests/smoke_installed.py
 """
@@ -13,6 +14,7 @@ Exits 1 at the first failure, with the command's output; not collected by pytest
 from __future__ import annotations
 
 import json
+import signal
 import socket
 import subprocess
 import sys
@@ -100,6 +102,41 @@ def every_help(cwd: Path) -> None:
         raise SmokeFailure(f"python -m koala_bridge --help:\n{out}")
 
 
+def live_clients(cwd: Path) -> None:
+    """`monitor --once` and `snapshot` against a real-time bridge, stopped by SIGTERM (exit 0)."""
+    endpoints = cwd / "live.json"
+    log = cwd / "live.log"
+    with log.open("wb") as out:
+        bridge = subprocess.Popen(
+            [str(KOALA), "run", "--duration", "60", "--endpoints-file", str(endpoints),
+             *bus_options()],
+            cwd=cwd, stdout=out, stderr=subprocess.STDOUT,
+        )
+        try:
+            deadline = time.monotonic() + 60
+            while not endpoints.exists():
+                if bridge.poll() is not None or time.monotonic() > deadline:
+                    raise SmokeFailure(f"run (real time): no endpoints file\n{log.read_text()}")
+                time.sleep(0.1)
+            monitor = check(
+                cwd, KOALA, "monitor", "--endpoints-file", endpoints, "--once", "--duration", "1"
+            )
+            if "truth/pose" not in monitor.stdout:
+                raise SmokeFailure(f"monitor --once: no truth/pose\n{monitor.stdout}")
+            check(cwd, KOALA, "snapshot", "--endpoints-file", endpoints, "--out", "snap.png")
+            expect_file(cwd / "snap.png", "snapshot")
+        finally:
+            bridge.send_signal(signal.SIGTERM)
+            try:
+                code = bridge.wait(30)
+            except subprocess.TimeoutExpired:
+                bridge.kill()
+                code = bridge.wait()
+    if code != 0 or "Traceback" in log.read_text():
+        raise SmokeFailure(f"run (real time) stopped by SIGTERM: exit {code}\n{log.read_text()}")
+    print("smoke: koala-bridge run (real time) + monitor + snapshot, SIGTERM  -> 0", flush=True)
+
+
 def smoke(cwd: Path) -> None:
     package = installed_package(cwd)
     every_help(cwd)
@@ -151,6 +188,8 @@ def smoke(cwd: Path) -> None:
     expect_file(Path(json.loads((cwd / "replay.json").read_text())["can"]["dbc"]), "replay")
     if "Replay done" not in replay.stdout:
         raise SmokeFailure(f"replay: no 'Replay done'\n{replay.stdout}")
+
+    live_clients(cwd)
 
 
 def main() -> int:
