@@ -163,6 +163,8 @@ def smoke(cwd: Path) -> None:
         raise SmokeFailure(f"the banner does not name the DBC of the endpoints file\n{run.stdout}")
     if "Recorded" not in run.stdout:
         raise SmokeFailure(f"run --record: no 'Recorded' line\n{run.stdout}")
+    if "ETA" in run.stdout + run.stderr:  # the live progress line is for a terminal only
+        raise SmokeFailure(f"run, piped, printed the progress line\n{run.stdout}{run.stderr}")
     expect_file(cwd / "run.mcap", "run --record")
 
     # A copied config, CAN off and on: no DBC traceback either way.
