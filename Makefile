@@ -5,21 +5,41 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 CONFIG ?= config/default.toml
+# `make smoke`: the wheel, installed (not editable) into a fresh virtualenv of its own.
+WHEEL_DIR := build/wheel
+SMOKE_VENV := build/smoke-venv
 
-.PHONY: run test lint figures bench clean
+.PHONY: run test smoke lint figures bench clean
 
+# pip's own output shows what is being downloaded and installed (the first time takes a while).
 $(STAMP): pyproject.toml
+	@echo "== Setting up $(VENV): a virtualenv with koala-bridge (editable) and its dev extras"
 	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[dev]'
+	$(PY) -m pip install --upgrade pip
+	$(PY) -m pip install -e '.[dev]'
 	touch $(STAMP)
+	@echo "== $(VENV) is ready"
 
 run: $(STAMP)
 	$(VENV)/bin/koala-bridge run --config $(CONFIG) --clock realtime
 
 # pytest exits 5 when it collected no test; make treats any non-zero exit as failure.
+# Then the installed product: packaging cannot break unseen.
 test: $(STAMP)
 	$(PY) -m pytest -q
+	$(MAKE) --no-print-directory smoke
+
+# Build the wheel from a clean build folder (setuptools would ship stale files left in
+# build/lib), install it as a user does into a fresh virtualenv (dependencies from the pip
+# cache; --no-compile: Python compiles what the smoke test imports, not all of scipy), and run
+# every subcommand from a temporary directory outside the checkout.
+smoke: $(STAMP)
+	@echo "== Smoke test of the installed wheel ($(SMOKE_VENV))"
+	rm -rf build/lib build/bdist.* $(WHEEL_DIR) $(SMOKE_VENV)
+	$(PY) -m pip wheel --quiet --no-deps --wheel-dir $(WHEEL_DIR) .
+	$(PYTHON) -m venv $(SMOKE_VENV)
+	$(SMOKE_VENV)/bin/python -m pip install --quiet --no-compile $(WHEEL_DIR)/koala_bridge-*.whl
+	$(SMOKE_VENV)/bin/python tests/smoke_installed.py
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check bridge drivers sim tests

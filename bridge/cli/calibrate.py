@@ -1,15 +1,16 @@
 """Find what the sensor model lacks in measured data; report the error before/after and the fix.
 
-``koala-bridge calibrate INPUT [INPUT ...] --config MODEL.toml --out DIR [--write-config NEW.toml]``
+koala-bridge calibrate INPUT [INPUT ...] --config MODEL.toml --out DIR [--write-config NEW.toml]
 
 INPUT is a measurement bundle directory (docs/bundle-format.md) or an MCAP recording
-(converted by ``koala-bridge export`` first). Several inputs are calibrated in order, each on the
-model the ones before it produced (:mod:`koala_bridge.calibration.stages`): a still recording first
-for the gyro bias, then one with motion. For each stream the declared model predicts the
-measurements from the reference; candidate effects are added greedily while they improve the
-held-out error beyond chance (see ``docs/calibration.md``). Writes ``DIR/report.json``,
-``DIR/report.md`` with residual plots, and optionally the model with the found effects.
+(converted as `koala-bridge export` does first). Several inputs are calibrated in order, each on
+the model the ones before it produced: a still recording first for the gyro bias, then one with
+motion. For each stream the declared model predicts the measurements from the reference;
+candidate effects are added greedily while they improve the held-out error beyond chance
+(docs/calibration.md). Writes DIR/report.json, DIR/report.md with residual plots,
+and optionally the model with the found effects.
 """
+# The docstring above is this subcommand's --help (cli/main.py reads it): plain text, no reST.
 
 from __future__ import annotations
 
@@ -28,10 +29,12 @@ from koala_bridge.calibration.stages import all_keys, calibrate_stages
 log = logging.getLogger(__name__)
 
 EXAMPLE = """examples:
-  koala-bridge run --clock fast --duration 120 --record run.mcap
-  koala-bridge calibrate run.mcap --config config/default.toml --out out/run
+  koala-bridge config init my-koala       # an editable copy of the shipped configuration
+  koala-bridge run --config my-koala/default.toml --clock fast --duration 120 --record run.mcap
+  koala-bridge calibrate run.mcap --config my-koala/default.toml --out out/run
   # a recording of this bridge, against the config it ran with: no effect should be found.
 
+  # in a checkout of koala-bridge, tests/data/real holds measured data of real robots:
   koala-bridge calibrate tests/data/real/lego_brenner --config config/default.toml \\
       --out out/lego --write-config out/lego/koala-calibrated.toml
   # odometry of another robot (its meta.json declares ticks and wheel base, overriding the
@@ -70,8 +73,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=Path,
         default=None,
         metavar="MODEL.toml",
-        help="declared model: the bridge config the data were recorded with (config/default.toml "
-        "declares the Koala's own sensor models: turn-on gyro bias, IR curve, ...). Omitted: "
+        help="declared model: the bridge config the data were recorded with (the shipped "
+        "default.toml, see `koala-bridge config path`, declares the Koala's own sensor "
+        "models: turn-on gyro bias, IR curve, ...). Omitted: "
         "every sensor ideal, as for another robot's data, whose meta.json declares what it "
         "knows (meta.json values always take precedence)",
     )

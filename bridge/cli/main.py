@@ -35,14 +35,16 @@ SUBCOMMANDS: dict[str, str] = {
     "replay": "koala_bridge.cli.replay",
     "monitor": "koala_bridge.cli.monitor",
     "snapshot": "koala_bridge.cli.snapshot",
+    "config": "koala_bridge.cli.config",
 }
 
 EPILOG = """\
 examples:
-  koala-bridge run                                # real time, config/default.toml
+  koala-bridge run                                # real time, the shipped default.toml
   koala-bridge run --clock fast --duration 10 --seed 3
   koala-bridge run --endpoints-file /tmp/koala.json --set buses.mavlink.port=14551
-  koala-bridge run --config config/ideal.toml     # every error model off
+  koala-bridge config init my-koala               # an editable copy of the shipped config
+  koala-bridge run --config my-koala/ideal.toml   # every error model off
   koala-bridge monitor                            # in another terminal: the live streams
   koala-bridge run --clock fast --duration 60 --record /tmp/run.mcap
   koala-bridge export /tmp/run.mcap --bundle /tmp/run-bundle

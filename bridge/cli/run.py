@@ -130,4 +130,7 @@ def run(args: argparse.Namespace) -> int:
         prog="koala-bridge run",
         endpoints_file=settings.run.endpoints_file or None,
         after_close=after_close,
+        # A live line on a terminal only: simulated time, real-time factor, ETA.
+        sim_time=(lambda: source.sim.t) if args.source == "sim" else None,
+        duration_s=settings.run.duration_s,
     )

@@ -31,6 +31,7 @@ from typing import Any, TextIO
 
 from koala_bridge.drivers.messages import DriverError
 from koala_bridge.runtime.endpoints import write_endpoints_file
+from koala_bridge.runtime.progress import run_progress
 from koala_bridge.runtime.settings import BridgeSettings
 from koala_bridge.runtime.source import SOURCE_KINDS, RobotSource, Source
 
@@ -72,6 +73,8 @@ def run_session(
     after_close: Callable[[], str | None] | None = None,
     stop: threading.Event | None = None,
     out: TextIO | None = None,
+    sim_time: Callable[[], float] | None = None,
+    duration_s: float = 0.0,
 ) -> int:
     """Open, announce, run and close ``source``; the exit status (0 done or stopped, 1 the
     source or the endpoints file could not be opened).
@@ -84,6 +87,9 @@ def run_session(
             if any, is printed.
         stop: the event that ends the session; by default a new one, set by SIGINT/SIGTERM.
         out: where the lines for people go; stdout by default.
+        sim_time: the source's simulated time, for the live progress line shown while it runs
+            when stderr is a terminal (:func:`runtime.progress.run_progress`); None: no line.
+        duration_s: the run's length in simulated seconds (0: until stopped), for the ETA.
     """
     stop = stop or threading.Event()
 
@@ -110,7 +116,8 @@ def run_session(
                     return 1
                 say(f"  Endpoints file          {Path(path)}")
             say(source.describe())
-            source.run(stop)
+            with run_progress(sim_time, duration_s):
+                source.run(stop)
             say(source.summary())
         finally:
             source.close()
@@ -119,6 +126,7 @@ def run_session(
                 if line:
                     say(line)
     return 0
+
 
 def make_source(kind: str, config: Mapping[str, Any], settings: BridgeSettings) -> RobotSource:
     """The source ``run --source KIND`` serves: ``sim`` (the simulator) or ``real`` (the robot's

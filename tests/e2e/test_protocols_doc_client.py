@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import socket
 import struct
 import subprocess
@@ -28,15 +27,13 @@ import threading
 import time
 from pathlib import Path
 
-os.environ.setdefault("MAVLINK20", "1")  # protocols.md §4: "with MAVLINK20=1 in the environment"
-
-import can  # noqa: E402
-import cantools  # noqa: E402
-import pytest  # noqa: E402
-import serial  # noqa: E402
-import zenoh  # noqa: E402
-from crccheck.crc import Crc16CcittFalse  # noqa: E402
-from pymavlink import mavutil  # noqa: E402
+import can
+import cantools
+import pytest
+import serial
+import zenoh
+from crccheck.crc import Crc16CcittFalse
+from pymavlink import mavutil
 
 ROOT = Path(__file__).resolve().parents[2]
 BRIDGE = Path(sys.executable).with_name("koala-bridge")
@@ -320,7 +317,20 @@ def bridge(tmp_path):
         log.close()
 
 
-def test_client_from_docs(bridge):
+@pytest.fixture
+def mavlink2_environment(monkeypatch):
+    """protocols.md §4: the ground station runs "with MAVLINK20=1 in the environment".
+
+    pymavlink reads that switch when it selects its dialect (at import, long before this test),
+    so the dialect is selected again under it; the environment and the dialect are put back after
+    the test, instead of setting the switch for every test in the process at import."""
+    monkeypatch.setenv("MAVLINK20", "1")
+    monkeypatch.setattr(mavutil, "mavlink", mavutil.mavlink)  # undone after the test
+    mavutil.set_dialect(mavutil.current_dialect)
+    assert mavutil.mavlink.WIRE_PROTOCOL_VERSION == "2.0"
+
+
+def test_client_from_docs(mavlink2_environment, bridge):
     ep = bridge
     assert ep["can"]["socketcand"]["host"] == "127.0.0.1"
     closers: list = []

@@ -1,0 +1,133 @@
+"""A live line on a terminal while a run steps: simulated time, real-time factor, ETA.
+
+Shown only when the stream (stderr) is a terminal, as calibrate's progress bar is; never in a
+pipe, a log file or the endpoints file. rich redraws it a few times a second from its own thread,
+reading the simulated time through a callable, so the step loop pays nothing for it. Log lines
+written meanwhile are printed above the line instead of through it.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import TYPE_CHECKING, TextIO
+
+if TYPE_CHECKING:
+    from rich.console import ConsoleRenderable
+
+REFRESH_PER_SECOND = 4
+
+
+def progress_text(sim_t: float, wall_s: float, duration_s: float) -> str:
+    """The line for simulated time ``sim_t`` reached after ``wall_s`` wall seconds of a run of
+    ``duration_s`` simulation seconds (0: until stopped)."""
+    rtf = sim_t / wall_s if wall_s > 0 else 0.0
+    parts = [f"t = {sim_t:.1f} s" + (f" of {duration_s:g} s" if duration_s > 0 else "")]
+    parts.append(f"real-time factor {rtf:.2f}" if rtf > 0 else "real-time factor -")
+    if duration_s <= 0:
+        parts.append("until Ctrl-C")
+    elif rtf > 0:
+        parts.append(f"ETA {_clock_time(max(0.0, duration_s - sim_t) / rtf)}")
+    else:
+        parts.append("ETA -")
+    return "   ".join(parts)
+
+
+def shows_progress(stream: TextIO) -> bool:
+    """Whether a live line goes to ``stream``: only a terminal (tests and pipes read plain text)."""
+    try:
+        return stream.isatty()
+    except (AttributeError, ValueError):  # no isatty, or a closed stream
+        return False
+
+
+@contextmanager
+def run_progress(
+    sim_time: Callable[[], float] | None,
+    duration_s: float,
+    stream: TextIO | None = None,
+    monotonic: Callable[[], float] = time.monotonic,
+) -> Iterator[None]:
+    """While the ``with`` block runs, keep a live progress line on ``stream`` (default stderr)
+    if it is a terminal; ``sim_time`` returns the simulated time (None: no line). The line is
+    cleared at the end (transient), so what is printed after it reads as without it."""
+    stream = sys.stderr if stream is None else stream
+    if sim_time is None or not shows_progress(stream):
+        yield
+        return
+    from rich.console import Console
+    from rich.live import Live
+
+    line = _ProgressLine(sim_time, duration_s, monotonic)
+    live = Live(
+        line,
+        console=Console(file=stream),
+        refresh_per_second=REFRESH_PER_SECOND,
+        transient=True,
+        redirect_stdout=False,  # stdout may be a pipe while stderr is the terminal
+        redirect_stderr=True,
+    )
+    with live:
+        # Entered, rich has replaced sys.stderr by a proxy that prints above the line.
+        with _logging_through(stream, sys.stderr):
+            yield
+
+
+class _ProgressLine:
+    """rich renderable: reads the simulated time each time rich redraws."""
+
+    def __init__(
+        self, sim_time: Callable[[], float], duration_s: float, monotonic: Callable[[], float]
+    ) -> None:
+        self.sim_time = sim_time
+        self.duration_s = duration_s
+        self.monotonic = monotonic
+        self.t0 = monotonic()
+
+    def __rich__(self) -> ConsoleRenderable:
+        from rich.progress_bar import ProgressBar
+        from rich.table import Table
+        from rich.text import Text
+
+        t = self.sim_time()
+        text = Text(progress_text(t, self.monotonic() - self.t0, self.duration_s))
+        if self.duration_s <= 0:
+            return text
+        grid = Table.grid(padding=(0, 2))
+        grid.add_row(
+            ProgressBar(total=self.duration_s, completed=min(t, self.duration_s), width=30), text
+        )
+        return grid
+
+
+@contextmanager
+def _logging_through(stream: TextIO, proxy: TextIO) -> Iterator[None]:
+    """Point the root logger's handlers on ``stream`` at rich's ``proxy`` while the line is
+    shown (logging.basicConfig keeps the stream object it was given, out of rich's reach)."""
+    handlers = [
+        h
+        for h in logging.getLogger().handlers
+        if isinstance(h, logging.StreamHandler) and h.stream is stream
+    ]
+    if proxy is stream:
+        handlers = []
+    for h in handlers:
+        h.setStream(proxy)
+    try:
+        yield
+    finally:
+        for h in handlers:
+            h.setStream(stream)
+
+
+def _clock_time(seconds: float) -> str:
+    """``42 s``, ``3 min 05 s``, ``2 h 03 min``."""
+    s = int(round(seconds))
+    if s < 60:
+        return f"{s} s"
+    if s < 3600:
+        return f"{s // 60} min {s % 60:02d} s"
+    return f"{s // 3600} h {s % 3600 // 60:02d} min"

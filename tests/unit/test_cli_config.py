@@ -1,0 +1,68 @@
+"""`koala-bridge config init DIR` / `config path`: the shipped configuration, copied to edit."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from koala_bridge.cli.main import main
+from koala_bridge.core.resources import config_dir
+from koala_bridge.runtime.settings import BridgeSettings, load_config
+
+EXPECTED = {
+    "default.toml",
+    "ideal.toml",
+    "koala.dbc",
+    "README.md",
+    "worlds/lab_trilateration.toml",
+    "worlds/lab_walls_1.toml",
+    "worlds/lab_walls_2.toml",
+    "worlds/lab_walls_3.toml",
+}
+
+
+def _tree(root: Path) -> set[str]:
+    return {p.relative_to(root).as_posix() for p in root.rglob("*") if p.is_file()}
+
+
+def test_init_writes_a_byte_identical_copy_that_runs(tmp_path, capsys) -> None:
+    target = tmp_path / "my-koala"
+    assert main(["config", "init", str(target)]) == 0
+    assert _tree(target) == EXPECTED
+    for rel in EXPECTED:
+        assert (target / rel).read_bytes() == (config_dir() / rel).read_bytes(), rel
+    out = capsys.readouterr().out
+    assert f"run --config {target / 'default.toml'}" in out
+    assert str(target / "worlds" / "lab_walls_1.toml") in out
+    # the copy is a complete bridge configuration, as the shipped one
+    config = load_config(target / "default.toml")
+    assert config == load_config(config_dir() / "default.toml")
+    BridgeSettings.from_config(config)
+
+
+def test_init_refuses_to_overwrite_unless_forced(tmp_path, capsys) -> None:
+    (tmp_path / "worlds").mkdir()
+    edited = tmp_path / "worlds" / "lab_walls_2.toml"
+    edited.write_text("# mine\n")
+    assert main(["config", "init", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert "--force" in err and str(edited) in err
+    assert _tree(tmp_path) == {"worlds/lab_walls_2.toml"}  # nothing written
+    assert edited.read_text() == "# mine\n"
+
+    assert main(["config", "init", str(tmp_path), "--force"]) == 0
+    assert _tree(tmp_path) == EXPECTED
+    assert edited.read_bytes() == (config_dir() / "worlds" / "lab_walls_2.toml").read_bytes()
+
+
+def test_path_prints_the_shipped_folder(capsys) -> None:
+    assert main(["config", "path"]) == 0
+    printed = Path(capsys.readouterr().out.strip())
+    assert printed == config_dir() and (printed / "default.toml").is_file()
+
+
+def test_config_needs_an_action(capsys) -> None:
+    with pytest.raises(SystemExit) as e:
+        main(["config"])
+    assert e.value.code == 2
+    assert "ACTION" in capsys.readouterr().err

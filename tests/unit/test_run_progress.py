@@ -1,0 +1,63 @@
+"""The live progress line of `koala-bridge run`: on a terminal only, never in a pipe."""
+
+from __future__ import annotations
+
+import io
+import itertools
+import logging
+import threading
+
+from koala_bridge.runtime.progress import progress_text, run_progress, shows_progress
+
+
+class FakeTerminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_text_gives_simulated_time_real_time_factor_and_eta() -> None:
+    assert progress_text(30.0, 2.0, 60.0) == (
+        "t = 30.0 s of 60 s   real-time factor 15.00   ETA 2 s"
+    )
+    assert progress_text(100.0, 100.0, 3700.0).endswith("ETA 1 h 00 min")
+    assert progress_text(10.0, 5.0, 400.0).endswith("ETA 3 min 15 s")
+    assert progress_text(0.0, 0.0, 60.0) == "t = 0.0 s of 60 s   real-time factor -   ETA -"
+    assert progress_text(5.0, 5.0, 0.0) == "t = 5.0 s   real-time factor 1.00   until Ctrl-C"
+
+
+def test_only_a_terminal_shows_it() -> None:
+    assert shows_progress(FakeTerminal())
+    assert not shows_progress(io.StringIO())
+    closed = io.StringIO()
+    closed.close()
+    assert not shows_progress(closed)
+
+
+def test_a_pipe_gets_nothing_and_no_thread_starts() -> None:
+    pipe = io.StringIO()
+    before = threading.active_count()
+    with run_progress(lambda: 1.0, 10.0, stream=pipe):
+        assert threading.active_count() == before
+    assert pipe.getvalue() == ""
+
+
+def test_no_time_source_no_line() -> None:
+    terminal = FakeTerminal()
+    with run_progress(None, 10.0, stream=terminal):
+        pass
+    assert terminal.getvalue() == ""
+
+
+def test_a_terminal_gets_the_line_and_logging_goes_around_it() -> None:
+    terminal = FakeTerminal()
+    handler = logging.StreamHandler(terminal)
+    root = logging.getLogger()
+    root.addHandler(handler)
+    wall = itertools.chain([0.0], itertools.repeat(2.0))  # started at 0, then 2 s later
+    try:
+        with run_progress(lambda: 30.0, 60.0, stream=terminal, monotonic=lambda: next(wall)):
+            assert handler.stream is not terminal  # rich's proxy prints above the line
+    finally:
+        root.removeHandler(handler)
+    assert handler.stream is terminal
+    assert "t = 30.0 s of 60 s   real-time factor 15.00" in terminal.getvalue()
