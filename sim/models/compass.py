@@ -29,12 +29,19 @@ the load grows with speed through friction; the sign flips with the direction of
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
-from koala_bridge.core.schema import ConfigError
-from koala_bridge.sim.models._params import check_nonnegative, params_from_dict
+from koala_bridge.core.schema import (
+    Bool,
+    ConfigError,
+    Finite,
+    FloatTuple,
+    NestedFloats,
+    NonNegative,
+    section,
+)
+from koala_bridge.sim.models._params import params_from_dict
 from koala_bridge.sim.noise import Variates
 
 
@@ -42,19 +49,23 @@ def _identity() -> tuple[tuple[float, ...], ...]:
     return ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 
 
-@dataclass(frozen=True)
+@section
 class CompassErrorParams:
-    """``[sensors.compass]`` error-model keys. Field in microtesla, body frame FLU."""
+    """``[sensors.compass]`` error-model keys. Field in microtesla, body frame FLU.
+
+    Keyword defaults are the values of ``config/default.toml`` (sim/models/_params.py).
+    """
 
     # Keys of the sensor's table that the sensor's config owns and hands over (sim/config.py).
     FROM_SENSOR: ClassVar[tuple[str, ...]] = ("ideal",)
 
-    ideal: bool = False
-    hard_iron_uT: tuple[float, ...] = (0.0, 0.0, 0.0)
-    soft_iron: tuple[tuple[float, ...], ...] = field(default_factory=_identity)
-    motor_uT_per_A: tuple[tuple[float, ...], ...] = ((0.0, 0.0), (0.0, 0.0), (0.0, 0.0))
-    motor_current_A_per_mps: float = 0.0
-    noise_sigma_uT: float = 0.0
+    ideal: Bool = False
+    hard_iron_uT: FloatTuple = (4.0, -2.5, 1.0)
+    soft_iron: NestedFloats = ((1.02, 0.01, 0.0), (0.01, 0.98, 0.0), (0.0, 0.0, 1.0))
+    # rows x, y, z; columns left, right motor
+    motor_uT_per_A: NestedFloats = ((0.8, -0.8), (0.5, 0.5), (0.3, 0.3))
+    motor_current_A_per_mps: Finite = 1.0   # motor current per wheel speed
+    noise_sigma_uT: NonNegative = 0.3
 
     def __post_init__(self) -> None:
         if np.shape(self.hard_iron_uT) != (3,):
@@ -63,7 +74,6 @@ class CompassErrorParams:
             raise ConfigError("'soft_iron' must be a 3x3 matrix (3 rows of 3)")
         if np.shape(self.motor_uT_per_A) != (3, 2):
             raise ConfigError("'motor_uT_per_A' must be 3 rows [left, right] (uT per A)")
-        check_nonnegative(self.noise_sigma_uT, "noise_sigma_uT")
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], section: str = "sensors.compass") -> CompassErrorParams:
