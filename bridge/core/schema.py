@@ -30,7 +30,15 @@ import math
 from collections.abc import Callable, Iterable, Mapping
 from typing import Annotated, Any, TypeVar
 
-from pydantic import AfterValidator, BeforeValidator, ConfigDict, Field, Strict, ValidationError
+from pydantic import (
+    AfterValidator,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    Strict,
+    TypeAdapter,
+    ValidationError,
+)
 from pydantic.dataclasses import dataclass as _pydantic_dataclass
 
 __all__ = [
@@ -52,9 +60,11 @@ __all__ = [
     "section",
     "tuples",
     "validate",
+    "number",
+    "positive",
     "reject_unknown",
     "require",
-    "positive",
+    "value_of",
 ]
 
 T = TypeVar("T")
@@ -93,7 +103,7 @@ def section(cls: type[T] | None = None, *, eq: bool = True) -> Any:
 
 def _bounded(v: float) -> float:
     if math.isnan(v):
-        raise ValueError(f"must be a number, got {v}")
+        raise ValueError("must be a number, not nan")
     if math.isfinite(v) and abs(v) > MAX_MAGNITUDE:
         raise ValueError(f"must be a plausible number (|value| <= {MAX_MAGNITUDE:g}), got {v!r}")
     return v
@@ -107,7 +117,7 @@ def tuples(value: Any) -> Any:
 
 
 #: A finite float (an int is accepted and converted), |value| <= :data:`MAX_MAGNITUDE`.
-Finite = Annotated[float, Strict(), AfterValidator(_bounded)]
+Finite = Annotated[float, Strict(), Field(allow_inf_nan=False), AfterValidator(_bounded)]
 #: A float that may be ``inf`` (a field whose meaning has an "infinitely long"), never nan.
 FloatOrInf = Annotated[float, Strict(), Field(allow_inf_nan=True), AfterValidator(_bounded)]
 Positive = Annotated[Finite, Field(gt=0)]
@@ -155,10 +165,11 @@ def _field_names(cls: Any) -> list[str]:
 
 
 def _as_config_error(e: BaseException, where: str) -> ConfigError:
-    if isinstance(e, ConfigError):
-        return e
+    """``e`` as a :class:`ConfigError` whose message starts with the section."""
     text = str(e)
-    return ConfigError(text if text.startswith("[") else f"[{where}] {text}")
+    if text.startswith("["):
+        return e if isinstance(e, ConfigError) else ConfigError(text)
+    return ConfigError(f"[{where}] {text}")
 
 
 _PRIORITY = {"unexpected_keyword_argument": 0, "extra_forbidden": 0, "missing": 1,
@@ -177,7 +188,7 @@ def config_error(e: ValidationError, cls: Any, where: str) -> ConfigError:
     if kind in ("missing", "missing_argument"):
         return ConfigError(f"[{where}] missing required key '{key}'")
     if kind == "value_error" and isinstance((err.get("ctx") or {}).get("error"), ConfigError):
-        return err["ctx"]["error"]
+        return _as_config_error(err["ctx"]["error"], where)
     what = _describe(err)
     if not loc:  # a check across keys (__post_init__)
         return _as_config_error(ValueError(what), where)
@@ -243,12 +254,30 @@ def require(d: Mapping[str, Any], key: str, section: str) -> Any:
     return d[key]
 
 
+def value_of(kind: Any, value: Any, key: str, section: str) -> Any:
+    """``value`` checked as the field type ``kind`` (e.g. :data:`Finite`), for a table that is
+    not a :func:`section`; the same rules and messages as a section's field."""
+    adapter = _ADAPTERS.get(kind)
+    if adapter is None:
+        adapter = _ADAPTERS[kind] = TypeAdapter(kind)
+    try:
+        return adapter.validate_python(value)
+    except ValidationError as e:
+        err = e.errors()[0]
+        what = _describe(err)
+        if err["type"] != "value_error":
+            what += f", got {value!r}"
+        raise ConfigError(f"[{section}] '{key}' {what}") from None
+
+
+_ADAPTERS: dict[Any, TypeAdapter[Any]] = {}
+
+
+def number(value: Any, key: str, section: str) -> float:
+    """``value`` as a :data:`Finite` float (not a string, a boolean, nan or inf)."""
+    return float(value_of(Finite, value, key, section))
+
+
 def positive(value: Any, key: str, section: str) -> float:
-    """Return ``value`` as a float, raising :class:`ConfigError` unless it is a number (not a
-    string or a boolean), finite, > 0 and at most :data:`MAX_MAGNITUDE`."""
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise ConfigError(f"[{section}] '{key}' must be a number, got {value!r}")
-    v = float(value)
-    if not 0 < v <= MAX_MAGNITUDE:
-        raise ConfigError(f"[{section}] '{key}' must be > 0 and finite, got {value!r}")
-    return v
+    """``value`` as a :data:`Positive` float."""
+    return float(value_of(Positive, value, key, section))
