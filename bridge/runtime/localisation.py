@@ -324,9 +324,12 @@ class LocalisationNode:
             configuration: wheel base, ticks per metre, IR poses and response curve, sonar poses,
             the world's grid, walls, landmarks and magnetic north).
         publish: called with ``(key suffix, JSON-ready payload)`` for each output message.
+        can_codec: decodes the CAN frames (the owner's, from ``[buses.can] dbc``); default: a
+            codec of the shipped DBC.
     """
 
-    def __init__(self, settings: LocalisationSettings, robot: SimConfig, publish: Publish) -> None:
+    def __init__(self, settings: LocalisationSettings, robot: SimConfig, publish: Publish,
+                 can_codec: KoalaCanCodec | None = None) -> None:
         self.settings = settings
         self.world: World = robot.world
         self._publish = publish
@@ -379,7 +382,7 @@ class LocalisationNode:
             np.array([*hard, 0.0][:3]) if hard else None)
         self._hard_iron_fit = _HardIron() if not hard else None
         # decoders, one per bus (streams keep their partial frames)
-        self._can = KoalaCanCodec()
+        self._can = can_codec if can_codec is not None else KoalaCanCodec()
         self._mavlink = CompassDecoder()
         self._ranges = RangeFrameDecoder()
         self._kteam = LineSplitter()
@@ -419,11 +422,12 @@ class LocalisationNode:
         self._last_t = t
 
     @classmethod
-    def from_config(cls, config: Mapping[str, Any], robot: SimConfig,
-                    publish: Publish) -> LocalisationNode | None:
-        """A node for ``config``'s ``[localisation]`` section, or None when it is off."""
+    def from_config(cls, config: Mapping[str, Any], robot: SimConfig, publish: Publish,
+                    can_codec: KoalaCanCodec | None = None) -> LocalisationNode | None:
+        """A node for ``config``'s ``[localisation]`` section, or None when it is off.
+        ``can_codec``: the owner's (its ``[buses.can] dbc``); default: the shipped DBC."""
         settings = LocalisationSettings.from_config(config)
-        return None if settings is None else cls(settings, robot, publish)
+        return None if settings is None else cls(settings, robot, publish, can_codec)
 
     def _initial_pose(self) -> tuple[float, float, float]:
         p = self.settings.initial_pose

@@ -52,7 +52,6 @@ from koala_bridge.core.schema import (
     tuples,
     validate,
 )
-from koala_bridge.drivers.can_codec import KoalaCanCodec
 from koala_bridge.drivers.kteam import LineSplitter, format_command, parse_reply
 from koala_bridge.drivers.mavlink_codec import CompassDecoder
 from koala_bridge.drivers.messages import (
@@ -244,7 +243,8 @@ class RealRobotSource:
         self._mavlink: MavlinkLink | None = None
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
-        self._can_codec = KoalaCanCodec()
+        # [buses.can] dbc: the robot's CAN database (needed only with a [real] CAN port)
+        self._can_codec = settings.buses.can.codec(needed=bool(self.ports.can_interface))
         self.last = _LastReadings()
         p = self.ports
         self._streamed = ({"sensors/ir"} if p.rangefinders else set()) | (
@@ -252,7 +252,7 @@ class RealRobotSource:
         )
         # The estimator node, fed with every frame read from the robot (_frame); None when off.
         self.localisation = LocalisationNode.from_config(
-            config, load_sim_config(config), self._publish
+            config, load_sim_config(config), self._publish, can_codec=self._can_codec
         )
 
     # -- life cycle --------------------------------------------------------------------------

@@ -15,13 +15,14 @@ from __future__ import annotations
 import copy
 import dataclasses
 import difflib
+import logging
 import math
 import re
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 from koala_bridge.core.resources import default_dbc_path
 from koala_bridge.core.schema import (
@@ -38,6 +39,11 @@ from koala_bridge.core.schema import (
 )
 from koala_bridge.runtime.clock import CLOCK_NAMES
 from pydantic import AfterValidator, BeforeValidator, Field, Strict
+
+if TYPE_CHECKING:
+    from koala_bridge.drivers.can_codec import KoalaCanCodec
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "BridgeSettings",
@@ -210,6 +216,33 @@ class CanSettings:
     def dbc_path(self) -> Path:
         """The DBC file to load: ``dbc``, or the shipped one when ``dbc`` is ""."""
         return Path(self.dbc).expanduser() if self.dbc else default_dbc_path()
+
+    def codec(self, needed: bool | None = None) -> KoalaCanCodec:
+        """The CAN codec of :attr:`dbc_path`.
+
+        ``needed`` (default: :attr:`enabled`, whether a CAN bus is served) says whether frames
+        go on a CAN bus; then a DBC that cannot be loaded is a :class:`ConfigError` naming the
+        key. Otherwise the frames are only recorded and fed to the estimator, and a missing or
+        broken ``dbc`` falls back to the shipped database: with every CAN bus off, the key
+        does not matter.
+        """
+        import cantools
+        from koala_bridge.drivers.can_codec import KoalaCanCodec, load_koala_dbc
+        from koala_bridge.drivers.messages import DriverError
+
+        path = self.dbc_path
+        try:
+            return KoalaCanCodec(load_koala_dbc(path))
+        except (OSError, DriverError, ValueError,
+                cantools.database.UnsupportedDatabaseFormatError) as e:
+            if needed if needed is not None else self.enabled:
+                reason = e.strerror if isinstance(e, OSError) and e.strerror else str(e)
+                reason = reason.splitlines()[0] if reason else type(e).__name__
+                raise ConfigError(
+                    f"[buses.can] 'dbc': cannot load the CAN database {str(path)!r}: {reason}"
+                ) from None
+            log.debug("[buses.can] dbc %s not loaded (%s); no CAN bus is on", path, e)
+            return KoalaCanCodec(load_koala_dbc(default_dbc_path()))
 
 
 @section
