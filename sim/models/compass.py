@@ -28,7 +28,8 @@ the load grows with speed through friction; the sign flips with the direction of
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from types import MappingProxyType
 from typing import Any, ClassVar
 
 import numpy as np
@@ -58,6 +59,13 @@ class CompassErrorParams:
 
     # Keys of the sensor's table that the sensor's config owns and hands over (sim/config.py).
     FROM_SENSOR: ClassVar[tuple[str, ...]] = ("ideal",)
+    # The values of this model's error terms that mean "no such error" (not config defaults):
+    # what `koala-bridge calibrate --write-config` writes for the terms it did not measure when
+    # it switches the model on (bridge/calibration/config_update.py).
+    ABSENT: ClassVar[Mapping[str, Any]] = MappingProxyType({
+        "hard_iron_uT": (0.0, 0.0, 0.0), "soft_iron": _identity(),
+        "motor_uT_per_A": ((0.0, 0.0), (0.0, 0.0), (0.0, 0.0)), "motor_current_A_per_mps": 0.0,
+        "noise_sigma_uT": 0.0})
 
     ideal: Bool = False
     hard_iron_uT: FloatTuple = (4.0, -2.5, 1.0)

@@ -39,6 +39,8 @@ pose as on the real robot.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
+from types import MappingProxyType
 from typing import Any, ClassVar
 
 import numpy as np
@@ -56,6 +58,10 @@ class DriveErrorParams:
 
     # Keys of the sensor's table that the sensor's config owns and hands over (sim/config.py).
     FROM_SENSOR: ClassVar[tuple[str, ...]] = ("ideal",)
+    # The values of this model's error terms that mean "no such error" (not config defaults):
+    # what `koala-bridge calibrate --write-config` writes for the terms it did not measure when
+    # it switches the model on (bridge/calibration/config_update.py).
+    ABSENT: ClassVar[Mapping[str, Any]] = MappingProxyType({"drive_error": 0.0})
 
     ideal: Bool = False
     drive_error: NonNegative = 0.1       # seeds/000 eq. 3–4 "Drive": relative sigma per wheel step

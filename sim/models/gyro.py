@@ -30,7 +30,9 @@ process (Gazebo's IMU noise) with the same short-term walk density.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
 from typing import Annotated, Any, ClassVar
 
 import numpy as np
@@ -49,6 +51,12 @@ class GyroErrorParams:
 
     # Keys of the sensor's table that the sensor's config owns and hands over (sim/config.py).
     FROM_SENSOR: ClassVar[tuple[str, ...]] = ("ideal",)
+    # The values of this model's error terms that mean "no such error" (not config defaults):
+    # what `koala-bridge calibrate --write-config` writes for the terms it did not measure when
+    # it switches the model on (bridge/calibration/config_update.py).
+    ABSENT: ClassVar[Mapping[str, Any]] = MappingProxyType({
+        "gyroscope_noise_density": 0.0, "gyroscope_random_walk": 0.0, "bias_rad_s": 0.0,
+        "turn_on_bias_sigma": 0.0, "scale_factor_error": 0.0, "scale_noise": 0.0})
 
     ideal: Bool = False
     gyroscope_noise_density: NonNegative = 1.6968e-4  # rad/s/sqrt(Hz), white noise (ARW)

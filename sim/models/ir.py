@@ -28,7 +28,9 @@ The noise-free companion is ``c`` with ``z = n = 0`` and no ambient effect.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import field
+from types import MappingProxyType
 from typing import Any, ClassVar
 
 import numpy as np
@@ -54,6 +56,12 @@ class IrErrorParams:
 
     # Keys of the sensor's table that the sensor's config owns and hands over (sim/config.py).
     FROM_SENSOR: ClassVar[tuple[str, ...]] = ("ideal", "ambient_counts", "max_counts")
+    # The values of this model's error terms that mean "no such error" (not config defaults):
+    # what `koala-bridge calibrate --write-config` writes for the terms it did not measure when
+    # it switches the model on (bridge/calibration/config_update.py).
+    ABSENT: ClassVar[Mapping[str, Any]] = MappingProxyType({
+        "count_noise_sigma": 0.0, "ambient_noise_counts": 0.0, "ambient_saturation": 0.0,
+        "per_sensor_offset_counts": ()})
 
     ideal: Bool = False
     distance_error: Table = field(default_factory=_seed004_ir_table)

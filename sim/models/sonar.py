@@ -33,7 +33,9 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Annotated, Any, ClassVar
 
 import numpy as np
@@ -67,6 +69,12 @@ class SonarErrorParams:
 
     # Keys of the sensor's table that the sensor's config owns and hands over (sim/config.py).
     FROM_SENSOR: ClassVar[tuple[str, ...]] = ("ideal", "min_range_m")
+    # The values of this model's error terms that mean "no such error" (not config defaults):
+    # what `koala-bridge calibrate --write-config` writes for the terms it did not measure when
+    # it switches the model on (bridge/calibration/config_update.py).
+    ABSENT: ClassVar[Mapping[str, Any]] = MappingProxyType({
+        "late_echo_probability": 0.0, "crosstalk_probability": 0.0, "glitch_probability": 0.0,
+        "firing_groups": ()})
 
     ideal: Bool = False
     distance_error: Table = field(default_factory=_seed004_us_table)
