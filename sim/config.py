@@ -1,10 +1,11 @@
 """Typed, frozen simulator configuration: ``[sim]``, ``[robot]``, ``[sensors.*]``, ``[world]``.
 
 Built from plain dicts (the parsed TOML; file I/O lives in ``bridge/``) by :func:`load_sim_config`.
-Every key a run uses is written in ``config/default.toml``; nothing here hides a default that the
-file should show, so every key of these sections is *required* (error-model parameters are
-validated by their own classes). Unknown keys are :class:`koala_bridge.core.schema.ConfigError` that
-suggest the nearest valid key.
+Every section is a :func:`koala_bridge.core.schema.section`, so the schema's one policy applies
+(config/README.md "Policy"): every key these sections own is *required* and written in
+``config/default.toml``; types are strict; numbers finite and in range; unknown keys are
+:class:`koala_bridge.core.schema.ConfigError` that suggest the nearest valid key. Error-model
+parameters are validated by their own params classes, whose defaults are default.toml's values.
 Top-level sections other than ``sim``, ``robot``, ``sensors`` and ``world`` belong to ``bridge/``
 and are ignored here.
 

@@ -39,13 +39,20 @@ TOML form (``[world]`` of a config file)::
     strength_uT = 5.0              # field magnitude at 1 m; falls with 1/d^2 (seeds/000 eq. 16)
     [world.earth_field]
     horizontal_uT = 20.0
-    vertical_uT = -44.0            # z up: negative in the northern hemisphere
+    vertical_uT = -43.0            # z up: negative in the northern hemisphere
     north_deg = 90.0               # direction of magnetic north, CCW from +x (east)
 
 The ASCII map is drawn north up: lines alternate between corner lines (``+`` with ``-`` runs
 for walls) and cell lines (``|`` for walls, ``#`` inside a cell to block it); any other character
 is an error naming its map line and column. Without a map, ``cols`` and ``rows`` give an empty
 grid with its outer boundary walled.
+
+Keys that may be left out, and their one default (config/README.md "Policy"): ``name``
+("world"), ``walls`` and ``blocked`` ([]), ``start`` (none: ``[localisation] initial_pose`` must
+then be given), ``start.theta_deg`` (0), ``landmarks`` and ``magnetic_sources`` ([]), a
+landmark's ``colour`` (""), ``facing_deg`` (0) and ``a_max_deg`` (10000, omnidirectional), and
+``earth_field`` and its keys (:class:`EarthField`: the values ``config/default.toml`` shows).
+Numbers follow the schema's rules (:mod:`koala_bridge.core.schema`): finite, and no strings.
 """
 
 from __future__ import annotations
