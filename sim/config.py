@@ -248,12 +248,8 @@ class RobotConfig:
         keys = [k for k in _own_keys(cls) if k != "drive"] + ["drive_error"]
         reject_unknown(d, keys, sec)
         own = {k: v for k, v in d.items() if k != "drive_error"}
-        validate(cls, {**own, "drive": _NO_DRIVE}, sec)  # the robot's own keys first
         drive = DriveConfig.from_dict(require(d, "drive_error", sec))
         return validate(cls, {**own, "drive": drive}, sec)
-
-
-_NO_DRIVE = DriveConfig(ideal=True)
 
 
 @section(eq=False)

@@ -28,7 +28,7 @@ import dataclasses
 import difflib
 import math
 from collections.abc import Callable, Iterable, Mapping
-from typing import Annotated, Any, TypeVar
+from typing import Annotated, Any, TypeVar, overload
 
 from pydantic import (
     AfterValidator,
@@ -40,6 +40,7 @@ from pydantic import (
     ValidationError,
 )
 from pydantic.dataclasses import dataclass as _pydantic_dataclass
+from typing_extensions import dataclass_transform
 
 __all__ = [
     "MAX_MAGNITUDE",
@@ -57,6 +58,7 @@ __all__ = [
     "PositiveInt",
     "Probability",
     "Str",
+    "field_names",
     "section",
     "tuples",
     "validate",
@@ -84,7 +86,16 @@ SECTION_CONFIG = ConfigDict(
 )
 
 
-def section(cls: type[T] | None = None, *, eq: bool = True) -> Any:
+@overload
+def section(cls: type[T], /) -> type[T]: ...
+
+
+@overload
+def section(*, eq: bool = True) -> Callable[[type[T]], type[T]]: ...
+
+
+@dataclass_transform(frozen_default=True, field_specifiers=(dataclasses.field, Field))
+def section(cls: type[T] | None = None, /, *, eq: bool = True) -> Any:
     """Declare a config section: a frozen dataclass validated by :data:`SECTION_CONFIG`.
 
     Construction validates (``cls(**table)`` raises pydantic's ``ValidationError``); build one
@@ -158,7 +169,8 @@ def validate(cls: Callable[..., T], table: Any, where: str) -> T:
         raise _as_config_error(e, where) from None
 
 
-def _field_names(cls: Any) -> list[str]:
+def field_names(cls: Any) -> list[str]:
+    """The keys of the section ``cls`` (its init fields)."""
     if dataclasses.is_dataclass(cls):
         return [f.name for f in dataclasses.fields(cls) if f.init]
     return list(getattr(cls, "model_fields", {}))
@@ -184,7 +196,7 @@ def config_error(e: ValidationError, cls: Any, where: str) -> ConfigError:
     key = str(loc[0]) if loc else ""
     index = "".join(f"[{p}]" for p in loc[1:])
     if kind in ("unexpected_keyword_argument", "extra_forbidden"):
-        return unknown_key_error(key, _field_names(cls), where)
+        return unknown_key_error(key, field_names(cls), where)
     if kind in ("missing", "missing_argument"):
         return ConfigError(f"[{where}] missing required key '{key}'")
     if kind == "value_error" and isinstance((err.get("ctx") or {}).get("error"), ConfigError):

@@ -50,7 +50,6 @@ Configuration: ``[localisation]`` with ``[localisation.pose]``, ``[localisation.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import threading
@@ -69,6 +68,7 @@ from koala_bridge.core.schema import (
     Positive,
     Probability,
     Str,
+    field_names,
     reject_unknown,
     section,
     validate,
@@ -222,7 +222,9 @@ class OccupancySettings:
 
 
 #: The sub-tables of ``[localisation]``, each its own section.
-_TABLES = {"pose": PoseSettings, "grid": GridSettings, "occupancy": OccupancySettings}
+_TABLES: dict[str, Any] = {
+    "pose": PoseSettings, "grid": GridSettings, "occupancy": OccupancySettings,
+}
 
 
 @section
@@ -249,7 +251,7 @@ class LocalisationSettings:
         s = SECTION
         if not isinstance(d, Mapping):
             raise ConfigError(f"[{s}] must be a table, got {d!r}")
-        reject_unknown(d, [f.name for f in dataclasses.fields(cls)], s)
+        reject_unknown(d, field_names(cls), s)
         tables = {}
         for key, table_cls in _TABLES.items():
             if not isinstance(d.get(key), Mapping):

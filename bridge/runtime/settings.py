@@ -32,6 +32,7 @@ from koala_bridge.core.schema import (
     Positive,
     PositiveInt,
     Str,
+    field_names,
     reject_unknown,
     section,
     tuples,
@@ -312,7 +313,7 @@ class BusesSettings:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> BusesSettings:
         s = "buses"
-        reject_unknown(d, [f.name for f in dataclasses.fields(_BusesTable)] + list(_BUS_TABLES), s)
+        reject_unknown(d, field_names(_BusesTable) + list(_BUS_TABLES), s)
         top = validate(_BusesTable, {k: v for k, v in d.items() if k not in _BUS_TABLES}, s)
         kteam = validate(KteamSettings, _section(d, "kteam", s), f"{s}.kteam")
         ranges = validate(RangefindersSettings, _section(d, "rangefinders", s),
