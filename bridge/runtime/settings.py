@@ -201,8 +201,10 @@ class CanSettings:
     socketcan_channel: Str
     # The CAN database: a path (relative to the working directory), or "" for the DBC shipped
     # with koala-bridge (koala_bridge.core.resources.default_dbc_path). Read only when a CAN
-    # bus is served, so a missing file does not matter with every CAN bus off.
-    dbc: Str
+    # bus is served, so a missing file does not matter with every CAN bus off. The one key of
+    # the bridge's tables with a default (default.toml's ""): configs and recordings from
+    # before it existed still load.
+    dbc: Str = ""
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> CanSettings:

@@ -149,8 +149,10 @@ def test_every_field_is_in_default_toml_with_its_default(cls: Any, where: str) -
         if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
             continue
         code_default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
-        # a section whose other fields all have defaults, built from this one key of the file
-        given = validate(cls, {f.name: doc[f.name]}, where)
+        # the section built from this key and the required ones, the others left to defaults
+        required = {g.name: doc[g.name] for g in dataclasses.fields(cls) if g.name not in BUILT
+                    and g.default is g.default_factory is dataclasses.MISSING}
+        given = validate(cls, {**required, f.name: doc[f.name]}, where)
         assert _same(getattr(given, f.name), code_default), (
             f"[{where}] {f.name}: the code's default {code_default!r} differs from "
             f"config/default.toml's {doc[f.name]!r}"
@@ -346,6 +348,12 @@ def test_dbc_key_defaults_to_the_shipped_database(tmp_path: Path) -> None:
     can = BridgeSettings.from_config(cfg).buses.can
     assert can.dbc_path == copy_
     assert can.codec().frame_ids["WheelOdometry"] > 0
+
+
+def test_a_config_from_before_the_dbc_key_loads() -> None:
+    cfg = default()
+    del cfg["buses"]["can"]["dbc"]
+    assert BridgeSettings.from_config(cfg).buses.can.dbc_path == default_dbc_path()
 
 
 def test_a_missing_dbc_matters_only_when_a_can_bus_is_on(tmp_path: Path) -> None:
