@@ -28,7 +28,7 @@ import dataclasses
 import difflib
 import math
 from collections.abc import Callable, Iterable, Mapping
-from typing import Annotated, Any, TypeVar, overload
+from typing import Annotated, Any, TypeVar, dataclass_transform, overload
 
 from pydantic import (
     AfterValidator,
@@ -40,7 +40,6 @@ from pydantic import (
     ValidationError,
 )
 from pydantic.dataclasses import dataclass as _pydantic_dataclass
-from typing_extensions import dataclass_transform
 
 __all__ = [
     "MAX_MAGNITUDE",
