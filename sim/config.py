@@ -1,10 +1,11 @@
 """Typed, frozen simulator configuration: ``[sim]``, ``[robot]``, ``[sensors.*]``, ``[world]``.
 
 Built from plain dicts (the parsed TOML; file I/O lives in ``bridge/``) by :func:`load_sim_config`.
-Every key a run uses is written in ``config/default.toml``; nothing here hides a default that the
-file should show, so every key of these sections is *required* (error-model parameters are
-validated by their own classes). Unknown keys are :class:`koala_bridge.core.schema.ConfigError` that
-suggest the nearest valid key.
+Every section is a :func:`koala_bridge.core.schema.section`, so the schema's one policy applies
+(config/README.md "Policy"): every key these sections own is *required* and written in
+``config/default.toml``; types are strict; numbers finite and in range; unknown keys are
+:class:`koala_bridge.core.schema.ConfigError` that suggest the nearest valid key. Error-model
+parameters are validated by their own params classes, whose defaults are default.toml's values.
 Top-level sections other than ``sim``, ``robot``, ``sensors`` and ``world`` belong to ``bridge/``
 and are ignored here.
 
@@ -26,15 +27,31 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import Any
+from typing import Annotated, Any, TypeVar
 
 import numpy as np
-from koala_bridge.core.schema import ConfigError, positive, reject_unknown, require
+from koala_bridge.core.schema import (
+    MAX_MAGNITUDE,
+    Bool,
+    ConfigError,
+    Finite,
+    NonNegative,
+    NonNegativeInt,
+    Positive,
+    PositiveInt,
+    Str,
+    reject_unknown,
+    require,
+    section,
+    validate,
+)
 from koala_bridge.sim.world import World
+from pydantic import AfterValidator, BeforeValidator, Field, Strict
+
+T = TypeVar("T")
 
 # The sensors of the simulated Koala, in the FIXED order used to spawn their RNG streams
 # (sim.simulator.RNG_STREAMS appends "drive" first). Append new sensors at the end only.
@@ -44,50 +61,10 @@ def _empty() -> Mapping[str, Any]:
     return MappingProxyType({})
 
 
-def _float(d: Mapping[str, Any], key: str, section: str) -> float:
-    v = require(d, key, section)
-    try:
-        f = float(v)
-    except (TypeError, ValueError) as e:
-        raise ConfigError(f"[{section}] '{key}' must be a number, got {v!r}") from e
-    if not math.isfinite(f):
-        raise ConfigError(f"[{section}] '{key}' must be finite, got {v!r}")
-    return f
-
-
-def _nonneg(d: Mapping[str, Any], key: str, section: str) -> float:
-    f = _float(d, key, section)
-    if f < 0:
-        raise ConfigError(f"[{section}] '{key}' must be >= 0, got {f!r}")
-    return f
-
-
-def _bool(d: Mapping[str, Any], key: str, section: str) -> bool:
-    v = require(d, key, section)
-    if not isinstance(v, bool):
-        raise ConfigError(f"[{section}] '{key}' must be true or false, got {v!r}")
-    return v
-
-
-def _int(d: Mapping[str, Any], key: str, section: str, minimum: int = 1) -> int:
-    v = require(d, key, section)
-    if isinstance(v, bool) or not isinstance(v, int) or v < minimum:
-        raise ConfigError(f"[{section}] '{key}' must be an integer >= {minimum}, got {v!r}")
-    return v
-
-
-def _odd(d: Mapping[str, Any], key: str, section: str) -> int:
-    n = _int(d, key, section)
-    if n % 2 == 0:
-        raise ConfigError(
-            f"[{section}] '{key}' must be odd (one ray on the sensor's axis), got {n}"
-        )
-    return n
-
-
 # Error-model parameter classes (issue 3, owned by sim/models/), imported lazily by name so that
-# sim/config.py does not depend on them: module, class. Each has ``from_dict(d, section)`` and a
-# ``FROM_SENSOR`` tuple of the fields it reads from the sensor's own keys. The encoders have none.
+# sim/config.py does not depend on them: module, class. Each is a core.schema section with
+# ``from_dict(d, section)`` and a ``FROM_SENSOR`` tuple of the fields it reads from the sensor's
+# own keys. The encoders have none.
 ERROR_PARAMS: Mapping[str, tuple[str, str]] = MappingProxyType({
     "drive": ("koala_bridge.sim.models.drive", "DriveErrorParams"),
     "ir": ("koala_bridge.sim.models.ir", "IrErrorParams"),
@@ -109,6 +86,11 @@ def _error_params_class(model: str) -> Any | None:
     return getattr(module, spec[1], None)
 
 
+def _own_keys(cls: Any) -> list[str]:
+    """The file keys of a sensor section: its fields but ``errors`` (built, not read)."""
+    return [f.name for f in dataclasses.fields(cls) if f.name != "errors"]
+
+
 def _model_keys(own_keys: Sequence[str], model: str) -> list[str]:
     """The keys a section may hold: the sensor's own and its error model's (not FROM_SENSOR)."""
     cls = _error_params_class(model)
@@ -119,159 +101,194 @@ def _model_keys(own_keys: Sequence[str], model: str) -> list[str]:
                              if f.name not in from_sensor and f.name not in own_keys]
 
 
-def _check_keys(d: Mapping[str, Any], own_keys: Sequence[str], section: str, model: str) -> None:
-    """Unknown keys first (suggesting the nearest valid one), before any missing-key error."""
-    reject_unknown(d, _model_keys(own_keys, model), section)
-
-
-def _split_errors(
-    d: Mapping[str, Any],
-    own_keys: Sequence[str],
-    section: str,
-    model: str,
-    shared: Mapping[str, Any],
-) -> Any:
-    """Validate a section that mixes this module's keys with an error model's keys.
+def _sensor_section(cls: type[T], d: Any, section: str, model: str) -> T:
+    """Validate a table that mixes a sensor's keys with its error model's keys.
 
     A section such as ``[sensors.gyro]`` holds the simulator's keys (``rate_hz``, ``ideal``, ...)
     *and* the parameters of the sensor's error model (issue 3), side by side. Each key has one
-    owner: keys in ``own_keys`` belong to the sensor (validated here); the others go to the error
-    model's params class (:data:`ERROR_PARAMS`). A value both need (``ideal``, ``min_range_m``,
-    ...) is owned by the sensor: the params class lists it in ``FROM_SENSOR`` and receives the
-    sensor's already validated value from ``shared``. A key known to neither is an error
-    suggesting the nearest valid key. Returns the params object (an empty mapping when no error
-    model exists for this sensor).
+    owner: the sensor's fields (``cls``) are validated here; the others go to the error model's
+    params class (:data:`ERROR_PARAMS`). A value both need (``ideal``, ``min_range_m``, ...) is
+    owned by the sensor: the params class lists it in ``FROM_SENSOR`` and receives the sensor's
+    already validated value. A key known to neither is an error suggesting the nearest valid
+    key (checked first, before any missing-key error). The result's ``errors`` is the params
+    object (an empty mapping when no error model exists for this sensor).
     """
-    _check_keys(d, own_keys, section, model)
-    cls = _error_params_class(model)
-    if cls is None:
-        return _empty()
+    if not isinstance(d, Mapping):
+        raise ConfigError(f"[{section}] must be a table, got {d!r}")
+    own_keys = _own_keys(cls)
+    reject_unknown(d, _model_keys(own_keys, model), section)
+    own = {k: v for k, v in d.items() if k in own_keys}
+    core = validate(cls, own, section)
+    params_cls = _error_params_class(model)
+    if params_cls is None:
+        return core
     rest: dict[str, Any] = {k: v for k, v in d.items() if k not in own_keys}
-    rest.update({k: shared[k] for k in getattr(cls, "FROM_SENSOR", ())})
-    return cls.from_dict(rest, section)
+    rest.update({k: getattr(core, k) for k in getattr(params_cls, "FROM_SENSOR", ())})
+    errors = params_cls.from_dict(rest, section)
+    # Built again with the params: checks across both (IR offsets per sensor) run in one place.
+    return validate(cls, {**own, "errors": errors}, section)
 
 
-def _range_limits(d: Mapping[str, Any], section: str) -> tuple[float, float]:
-    """``(min_range_m, max_range_m)``: the first >= 0, the second > 0 and above the first."""
-    lo = _nonneg(d, "min_range_m", section)
-    hi = positive(require(d, "max_range_m", section), "max_range_m", section)
-    if lo >= hi:
-        raise ConfigError(f"[{section}] 'min_range_m' must be < 'max_range_m'")
-    return lo, hi
+def _numbers(value: Any) -> bool:
+    """A (nested) TOML array of numbers only (no strings, no booleans)."""
+    if isinstance(value, np.ndarray):
+        return True
+    if isinstance(value, list | tuple):
+        return all(_numbers(v) for v in value)
+    return isinstance(value, int | float) and not isinstance(value, bool)
 
 
-def _poses(value: Any, key: str, section: str) -> np.ndarray:
+def _poses(value: Any) -> np.ndarray:
     """``[[x_m, y_m, theta_deg], ...]`` -> read-only ``(n, 3)`` array ``[x, y, theta_rad]``."""
-    try:
-        arr = np.array(value, dtype=float)
-    except (TypeError, ValueError) as e:
-        raise ConfigError(f"[{section}] '{key}' must be a list of [x_m, y_m, theta_deg]") from e
+    if isinstance(value, np.ndarray) and not value.flags.writeable:
+        return value  # already converted (a section built from another's fields)
+    wrong = "must be a non-empty list of [x_m, y_m, theta_deg]"
+    if not _numbers(value):
+        raise ValueError(f"{wrong}, got {value!r}")
+    arr = np.array(value, dtype=float)
     if arr.ndim != 2 or arr.shape[1] != 3 or arr.shape[0] == 0 or not np.all(np.isfinite(arr)):
-        raise ConfigError(f"[{section}] '{key}' must be a non-empty list of [x_m, y_m, theta_deg]")
+        raise ValueError(f"{wrong}, got {value!r}")
+    if np.any(np.abs(arr) > MAX_MAGNITUDE):
+        raise ValueError(f"{wrong} with plausible numbers, got {value!r}")
     arr[:, 2] = np.radians(arr[:, 2])
     arr.flags.writeable = False
     return arr
 
 
-def _pose(value: Any, key: str, section: str) -> tuple[float, float, float]:
-    p = _poses([value], key, section)[0]
+def _pose(value: Any) -> tuple[float, float, float]:
+    p = _poses([list(value)] if isinstance(value, list | tuple) else value)[0]
     return (float(p[0]), float(p[1]), float(p[2]))
+
+
+def _curve(value: Any) -> np.ndarray:
+    """A 1-d read-only array of finite numbers (a response table column)."""
+    if isinstance(value, np.ndarray) and not value.flags.writeable:
+        return value
+    if not isinstance(value, list | tuple) or not _numbers(value):
+        raise ValueError(f"must be a list of numbers, got {value!r}")
+    arr = np.array(value, dtype=float)
+    if arr.ndim != 1 or not np.all(np.isfinite(arr)) or np.any(np.abs(arr) > MAX_MAGNITUDE):
+        raise ValueError(f"must be a flat list of finite numbers, got {value!r}")
+    arr.flags.writeable = False
+    return arr
+
+
+def _odd(n: int) -> int:
+    if n % 2 == 0:
+        raise ValueError(f"must be odd (one ray on the sensor's axis), got {n}")
+    return n
+
+
+def _key_safe(name: str) -> str:
+    if not name or any(c in name for c in "/*?$# "):
+        raise ValueError(f"must be a non-empty key-safe word, got {name!r}")
+    return name
+
+
+Poses = Annotated[np.ndarray, BeforeValidator(_poses)]
+Pose = Annotated[tuple[float, float, float], BeforeValidator(_pose)]
+Curve = Annotated[np.ndarray, BeforeValidator(_curve)]
+Rays = Annotated[PositiveInt, AfterValidator(_odd)]
+#: ``[sim] dt_s`` bounds: 0.1 ms .. 1 s. A smaller step would take hours for a second of
+#: simulated time (1e-9 would hang a run); a larger one is no longer a controller period.
+STEP_LIMITS_S = (1e-4, 1.0)
+
+
+def _range_limits(lo: float, hi: float, section: str) -> None:
+    if lo >= hi:
+        raise ConfigError(f"[{section}] 'min_range_m' must be < 'max_range_m'")
 
 
 # ------------------------------------------------------------------------------ sections
 
 
-@dataclass(frozen=True)
+@section
 class StepConfig:
     """``[sim]``: the fixed integration step and the default seed."""
 
-    dt_s: float
-    seed: int
+    dt_s: Annotated[Finite, Field(ge=STEP_LIMITS_S[0], le=STEP_LIMITS_S[1])]
+    seed: Annotated[int, Strict(), Field(ge=0)]
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> StepConfig:
-        sec = "sim"
-        reject_unknown(d, ["dt_s", "seed"], sec)
-        seed = require(d, "seed", sec)
-        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-            raise ConfigError(f"[sim] 'seed' must be a non-negative integer, got {seed!r}")
-        return cls(dt_s=positive(require(d, "dt_s", sec), "dt_s", sec), seed=seed)
+        return validate(cls, d, "sim")
 
 
-@dataclass(frozen=True)
+@section
 class DriveConfig:
-    """``[robot.drive]``: switch and parameters of the drive-error model (seeds/000 eq. 1-4)."""
+    """``[robot.drive_error]``: the drive-error model's switch and parameters (seeds/000 1-4)."""
 
-    ideal: bool
+    ideal: Bool
     errors: Any = field(default_factory=_empty)
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> DriveConfig:
-        sec = "robot.drive_error"
-        _check_keys(d, ["ideal"], sec, "drive")
-        ideal = _bool(d, "ideal", sec)
-        errors = _split_errors(d, ["ideal"], sec, "drive", {"ideal": ideal})
-        return cls(ideal=ideal, errors=errors)
+        return _sensor_section(cls, d, "robot.drive_error", "drive")
 
 
-@dataclass(frozen=True)
+@section
 class RobotConfig:
     """``[robot]``: geometry and drive limits of the Koala (sources in config/README.md)."""
 
-    name: str
-    ticks_per_metre: float          # encoder pulses per metre of wheel travel
-    wheel_diameter_m: float
-    wheel_base_m: float             # distance between the left and right wheel contact lines
-    wheel_diameter_ratio: float     # left / right wheel diameter (1: equal); see sim/robot.py
-    body_radius_m: float            # collision body: a circle around the robot's centre
-    max_wheel_speed_mps: float      # wheel surface speed limit, each wheel
-    speed_unit_s: float             # K-Team speed unit = pulses per this many seconds (10 ms)
-    drive: DriveConfig
+    name: Annotated[Str, AfterValidator(_key_safe)]
+    ticks_per_metre: Positive       # encoder pulses per metre of wheel travel
+    wheel_diameter_m: Positive
+    wheel_base_m: Positive          # distance between the left and right wheel contact lines
+    wheel_diameter_ratio: Positive  # left / right wheel diameter (1: equal); see sim/robot.py
+    body_radius_m: Positive         # collision body: a circle around the robot's centre
+    max_wheel_speed_mps: Positive   # wheel surface speed limit, each wheel
+    speed_unit_s: Positive          # K-Team speed unit = pulses per this many seconds (10 ms)
+    drive: DriveConfig              # the file's [robot.drive_error] table
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> RobotConfig:
         sec = "robot"
-        reject_unknown(
-            d,
-            ["name", "ticks_per_metre", "wheel_diameter_m", "wheel_base_m",
-             "wheel_diameter_ratio", "body_radius_m", "max_wheel_speed_mps", "speed_unit_s",
-             "drive_error"],
-            sec,
-        )
-        name = str(require(d, "name", sec))
-        if not name or any(c in name for c in "/*?$# "):
-            raise ConfigError(f"[robot] 'name' must be a non-empty key-safe word, got {name!r}")
-        return cls(
-            name=name,
-            ticks_per_metre=positive(require(d, "ticks_per_metre", sec), "ticks_per_metre", sec),
-            wheel_diameter_m=positive(require(d, "wheel_diameter_m", sec), "wheel_diameter_m", sec),
-            wheel_base_m=positive(require(d, "wheel_base_m", sec), "wheel_base_m", sec),
-            wheel_diameter_ratio=positive(
-                require(d, "wheel_diameter_ratio", sec), "wheel_diameter_ratio", sec
-            ),
-            body_radius_m=positive(require(d, "body_radius_m", sec), "body_radius_m", sec),
-            max_wheel_speed_mps=positive(
-                require(d, "max_wheel_speed_mps", sec), "max_wheel_speed_mps", sec
-            ),
-            speed_unit_s=positive(require(d, "speed_unit_s", sec), "speed_unit_s", sec),
-            drive=DriveConfig.from_dict(require(d, "drive_error", sec)),
-        )
+        if not isinstance(d, Mapping):
+            raise ConfigError(f"[{sec}] must be a table, got {d!r}")
+        keys = [k for k in _own_keys(cls) if k != "drive"] + ["drive_error"]
+        reject_unknown(d, keys, sec)
+        own = {k: v for k, v in d.items() if k != "drive_error"}
+        drive = DriveConfig.from_dict(require(d, "drive_error", sec))
+        return validate(cls, {**own, "drive": drive}, sec)
 
 
-@dataclass(frozen=True, eq=False)
+@section(eq=False)
 class IrConfig:
     """``[sensors.ir]``: proximity sensors, K-Team counts from a response table range -> counts."""
 
-    rate_hz: float
-    ideal: bool
-    poses: np.ndarray                   # (n, 3) body frame [x, y, theta_rad]
-    rays: int                           # rays per sensor, spread over the aperture
-    aperture_deg: float
-    response_range_m: np.ndarray        # (k,) increasing
-    response_counts: np.ndarray         # (k,) counts at those ranges (linear interpolation)
-    ambient_counts: int                 # ambient light reading (K-Team 'O')
-    max_counts: int                     # full scale of the counts (K-Team: 10 bits, 1023)
+    rate_hz: Positive
+    ideal: Bool
+    poses: Poses                        # (n, 3) body frame [x, y, theta_rad]
+    rays: Rays                          # rays per sensor, spread over the aperture
+    aperture_deg: NonNegative
+    response_range_m: Curve             # (k,) increasing
+    response_counts: Curve              # (k,) counts at those ranges (linear interpolation)
+    ambient_counts: NonNegativeInt      # ambient light reading (K-Team 'O')
+    max_counts: PositiveInt             # full scale of the counts (K-Team: 10 bits, 1023)
     errors: Any = field(default_factory=_empty)
+
+    def __post_init__(self) -> None:
+        sec = "sensors.ir"
+        rng_m, counts, full = self.response_range_m, self.response_counts, self.max_counts
+        if rng_m.shape != counts.shape or rng_m.size < 2:
+            raise ConfigError(
+                f"[{sec}] 'response_range_m' and 'response_counts' must be lists of equal "
+                "length >= 2"
+            )
+        if np.any(np.diff(rng_m) <= 0) or rng_m[0] < 0:
+            raise ConfigError(f"[{sec}] 'response_range_m' must be >= 0 and strictly increasing")
+        if np.any(counts < 0) or np.any(counts > full):
+            raise ConfigError(f"[{sec}] 'response_counts' must lie in 0..max_counts ({full})")
+        if self.ambient_counts > full:
+            raise ConfigError(
+                f"[{sec}] 'ambient_counts' must lie in 0..max_counts ({full}), "
+                f"got {self.ambient_counts}")
+        offsets = getattr(self.errors, "per_sensor_offset_counts", ())
+        if len(offsets) not in (0, self.poses.shape[0]):
+            raise ConfigError(
+                f"[{sec}] 'per_sensor_offset_counts' must be [] or one value per sensor "
+                f"({self.poses.shape[0]}), got {len(offsets)}"
+            )
 
     @property
     def max_range_m(self) -> float:
@@ -279,175 +296,83 @@ class IrConfig:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> IrConfig:
-        sec = "sensors.ir"
-        own = ["rate_hz", "ideal", "poses", "rays", "aperture_deg", "response_range_m",
-               "response_counts", "ambient_counts", "max_counts"]
-        _check_keys(d, own, sec, "ir")
-        rng_m = np.array(require(d, "response_range_m", sec), dtype=float)
-        counts = np.array(require(d, "response_counts", sec), dtype=float)
-        if rng_m.ndim != 1 or rng_m.shape != counts.shape or rng_m.size < 2:
-            raise ConfigError(
-                f"[{sec}] 'response_range_m' and 'response_counts' must be lists of equal "
-                "length >= 2"
-            )
-        if np.any(np.diff(rng_m) <= 0) or rng_m[0] < 0:
-            raise ConfigError(f"[{sec}] 'response_range_m' must be >= 0 and strictly increasing")
-        full = _int(d, "max_counts", sec)
-        if np.any(counts < 0) or np.any(counts > full):
-            raise ConfigError(f"[{sec}] 'response_counts' must lie in 0..max_counts ({full})")
-        ambient = _int(d, "ambient_counts", sec, minimum=0)
-        if ambient > full:
-            raise ConfigError(
-                f"[{sec}] 'ambient_counts' must lie in 0..max_counts ({full}), got {ambient}")
-        for a in (rng_m, counts):
-            a.flags.writeable = False
-        ideal = _bool(d, "ideal", sec)
-        errors = _split_errors(d, own, sec, "ir", {"ideal": ideal, "ambient_counts": ambient,
-                                                   "max_counts": full})
-        poses = _poses(require(d, "poses", sec), "poses", sec)
-        offsets = getattr(errors, "per_sensor_offset_counts", ())
-        if len(offsets) not in (0, poses.shape[0]):
-            raise ConfigError(
-                f"[{sec}] 'per_sensor_offset_counts' must be [] or one value per sensor "
-                f"({poses.shape[0]}), got {len(offsets)}"
-            )
-        return cls(
-            rate_hz=positive(require(d, "rate_hz", sec), "rate_hz", sec),
-            ideal=ideal,
-            poses=poses,
-            rays=_odd(d, "rays", sec),
-            aperture_deg=_nonneg(d, "aperture_deg", sec),
-            response_range_m=rng_m,
-            response_counts=counts,
-            ambient_counts=ambient,
-            max_counts=full,
-            errors=errors,
-        )
+        return _sensor_section(cls, d, "sensors.ir", "ir")
 
 
-@dataclass(frozen=True, eq=False)
+@section(eq=False)
 class SonarConfig:
     """``[sensors.sonar]``: ultrasonic ring, each sensor a cone of rays; first echo wins."""
 
-    rate_hz: float
-    ideal: bool
-    poses: np.ndarray                   # (n, 3) body frame [x, y, theta_rad]
-    rays: int
-    aperture_deg: float
-    min_range_m: float                  # closer: the Koala reports 0
-    max_range_m: float                  # farther: no echo
+    rate_hz: Positive
+    ideal: Bool
+    poses: Poses                        # (n, 3) body frame [x, y, theta_rad]
+    rays: Rays
+    aperture_deg: NonNegative
+    min_range_m: NonNegative            # closer: the Koala reports 0
+    max_range_m: Positive               # farther: no echo
     errors: Any = field(default_factory=_empty)
+
+    def __post_init__(self) -> None:
+        _range_limits(self.min_range_m, self.max_range_m, "sensors.sonar")
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> SonarConfig:
-        sec = "sensors.sonar"
-        own = ["rate_hz", "ideal", "poses", "rays", "aperture_deg", "min_range_m", "max_range_m"]
-        _check_keys(d, own, sec, "sonar")
-        lo, hi = _range_limits(d, sec)
-        ideal = _bool(d, "ideal", sec)
-        errors = _split_errors(
-            d, own, sec, "sonar", {"ideal": ideal, "min_range_m": lo, "max_range_m": hi}
-        )
-        return cls(
-            rate_hz=positive(require(d, "rate_hz", sec), "rate_hz", sec),
-            ideal=ideal,
-            poses=_poses(require(d, "poses", sec), "poses", sec),
-            rays=_odd(d, "rays", sec),
-            aperture_deg=_nonneg(d, "aperture_deg", sec),
-            min_range_m=lo,
-            max_range_m=hi,
-            errors=errors,
-        )
+        return _sensor_section(cls, d, "sensors.sonar", "sonar")
 
 
-@dataclass(frozen=True)
+@section
 class BasicSensorConfig:
     """``[sensors.encoders]``, ``[sensors.gyro]``: a rate and the ideal switch."""
 
-    rate_hz: float
-    ideal: bool
+    rate_hz: Positive
+    ideal: Bool
     errors: Any = field(default_factory=_empty)
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], sec: str, model: str) -> BasicSensorConfig:
-        own = ["rate_hz", "ideal"]
-        _check_keys(d, own, sec, model)
-        ideal = _bool(d, "ideal", sec)
-        errors = _split_errors(d, own, sec, model, {"ideal": ideal})
-        if not ideal and _error_params_class(model) is None:
+        out = _sensor_section(cls, d, sec, model)
+        if not out.ideal and _error_params_class(model) is None:
             raise ConfigError(
                 f"[{sec}] 'ideal' must be true: the {model} have no error model of their own "
                 "(their errors come from [robot.drive_error]: the counts are whole ticks of the "
                 "commanded wheel rotation, from which the truth pose drifts); see "
                 "config/README.md"
             )
-        return cls(
-            rate_hz=positive(require(d, "rate_hz", sec), "rate_hz", sec),
-            ideal=ideal,
-            errors=errors,
-        )
+        return out
 
 
-@dataclass(frozen=True)
+@section
 class CompassConfig:
     """``[sensors.compass]``: 3-axis magnetometer, Earth field plus local sources (1/d^2)."""
 
-    rate_hz: float
-    ideal: bool
-    min_source_distance_m: float        # 1/d^2 is clamped at this distance (no singularity)
+    rate_hz: Positive
+    ideal: Bool
+    min_source_distance_m: Positive     # 1/d^2 is clamped at this distance (no singularity)
     errors: Any = field(default_factory=_empty)
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> CompassConfig:
-        sec = "sensors.compass"
-        own = ["rate_hz", "ideal", "min_source_distance_m"]
-        _check_keys(d, own, sec, "compass")
-        ideal = _bool(d, "ideal", sec)
-        errors = _split_errors(d, own, sec, "compass", {"ideal": ideal})
-        return cls(
-            rate_hz=positive(require(d, "rate_hz", sec), "rate_hz", sec),
-            ideal=ideal,
-            min_source_distance_m=positive(
-                require(d, "min_source_distance_m", sec), "min_source_distance_m", sec
-            ),
-            errors=errors,
-        )
+        return _sensor_section(cls, d, "sensors.compass", "compass")
 
 
-@dataclass(frozen=True)
+@section
 class CameraConfig:
     """``[sensors.camera]``: landmark observations within a field of view and line of sight."""
 
-    rate_hz: float
-    ideal: bool
-    pose: tuple[float, float, float]    # body frame [x, y, theta_rad]
-    fov_deg: float                      # full horizontal field of view
-    min_range_m: float
-    max_range_m: float
+    rate_hz: Positive
+    ideal: Bool
+    pose: Pose                          # body frame [x, y, theta_rad]
+    fov_deg: Annotated[Positive, Field(le=360)]   # full horizontal field of view
+    min_range_m: NonNegative
+    max_range_m: Positive
     errors: Any = field(default_factory=_empty)
+
+    def __post_init__(self) -> None:
+        _range_limits(self.min_range_m, self.max_range_m, "sensors.camera")
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> CameraConfig:
-        sec = "sensors.camera"
-        own = ["rate_hz", "ideal", "pose", "fov_deg", "min_range_m", "max_range_m"]
-        _check_keys(d, own, sec, "camera")
-        lo, hi = _range_limits(d, sec)
-        ideal = _bool(d, "ideal", sec)
-        errors = _split_errors(
-            d, own, sec, "camera", {"ideal": ideal, "min_range_m": lo, "max_range_m": hi}
-        )
-        fov = positive(require(d, "fov_deg", sec), "fov_deg", sec)
-        if fov > 360:
-            raise ConfigError(f"[{sec}] 'fov_deg' must be <= 360, got {fov}")
-        return cls(
-            rate_hz=positive(require(d, "rate_hz", sec), "rate_hz", sec),
-            ideal=ideal,
-            pose=_pose(require(d, "pose", sec), "pose", sec),
-            fov_deg=fov,
-            min_range_m=lo,
-            max_range_m=hi,
-            errors=errors,
-        )
+        return _sensor_section(cls, d, "sensors.camera", "camera")
 
 
 @dataclass(frozen=True)

@@ -11,14 +11,13 @@ written as a comment block at the end of the file (and is in report.json). docs/
 
 When a sensor declared ``ideal = true`` gets a found effect, its error model is switched on;
 the model's other error terms, which the calibration did not measure, are set to their
-"absent" values (the params class's zero defaults: no turn-on bias, no random walk, ...) rather
+"absent" values (the params class's ``ABSENT``: no turn-on bias, no random walk, ...) rather
 than to whatever the config held under ``ideal = true``.
 """
 
 from __future__ import annotations
 
 import copy
-import dataclasses
 import difflib
 import importlib
 import math
@@ -120,7 +119,7 @@ def noise_keys(results: Sequence[StreamResult]) -> dict[str, Any]:
 
 
 def _absent_error_terms(section: str) -> dict[str, Any]:
-    """The error-model keys of ``section`` whose params-class default means 'no such error'."""
+    """The error-model keys of ``section`` and their values that mean 'no such error'."""
     model = _MODEL_OF.get(section)
     if model is None:
         return {}
@@ -128,19 +127,9 @@ def _absent_error_terms(section: str) -> dict[str, Any]:
 
     module, name = ERROR_PARAMS[model]
     cls = getattr(importlib.import_module(module), name)
-    skip = set(getattr(cls, "FROM_SENSOR", ()))
-    out: dict[str, Any] = {}
-    for f in dataclasses.fields(cls):
-        if f.name in skip or f.default is dataclasses.MISSING:
-            continue
-        d = f.default
-        if isinstance(d, float) and d == 0.0:
-            out[f.name] = 0.0
-        elif isinstance(d, tuple) and (not d or not np.any(np.asarray(d, dtype=float))):
-            out[f.name] = [list(r) if isinstance(r, tuple) else r for r in d]
-        elif f.name == "soft_iron":
-            out[f.name] = [list(r) for r in d]
-    return out
+    return {k: ([list(r) if isinstance(r, tuple) else r for r in v] if isinstance(v, tuple)
+                else v)
+            for k, v in getattr(cls, "ABSENT", {}).items()}
 
 
 def updated_config(base: Mapping[str, Any], keys: Mapping[str, Any]) -> dict[str, Any]:

@@ -1,10 +1,11 @@
 """The declared sensor model: what MODEL.toml (the bridge's config) and ``meta.json`` state.
 
 The simulator owns the config schema (``sim/config.py``, ``config/default.toml``); this module
-reads, under the simulator's own names, the keys calibration needs, tolerantly (a missing key
-means ideal/nominal, so a partial MODEL.toml or none at all is fine), and applies the precedence
-of the bundle format: for data from another robot, ``meta.json`` ``robot``/``sensor`` values
-override the config file.
+takes the values calibration needs from the simulator's typed config of MODEL.toml (laid over
+``config/default.toml``, checked as ``koala-bridge run`` checks it), and declares an effect only
+where MODEL.toml names its key (a key it leaves out is an absent effect, so a partial MODEL.toml
+or none at all is fine). It applies the precedence of the bundle format: for data from another
+robot, ``meta.json`` ``robot``/``sensor`` values override the config file.
 
 Keys read (units in the key name where not SI)::
 
@@ -26,13 +27,16 @@ from __future__ import annotations
 
 import logging
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from koala_bridge.calibration.errors import ModelConfigError
+
+if TYPE_CHECKING:
+    from koala_bridge.sim.config import SimConfig
 
 log = logging.getLogger(__name__)
 
@@ -100,10 +104,6 @@ class DeclaredModel:
     sources: Mapping[str, str] = field(default_factory=dict)
 
 
-def _number(value: Any, where: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise ModelConfigError(f"{where} must be a number, got {value!r}")
-    return float(value)
 
 
 def _section(doc: Mapping[str, Any], *path: str) -> Mapping[str, Any]:
@@ -137,42 +137,73 @@ def _laid_over(base: Mapping[str, Any], top: Mapping[str, Any]) -> dict[str, Any
     return out
 
 
+def _complete(config: Mapping[str, Any]) -> dict[str, Any]:
+    """``config`` laid over the shipped ``config/default.toml`` (a MODEL.toml may be partial)."""
+    from koala_bridge.core.resources import default_config_path
+    from koala_bridge.runtime.settings import load_config
+
+    return _laid_over(load_config(default_config_path()), config)
+
+
 def check_config(config: Mapping[str, Any], where: str) -> None:
     """The same checks as ``koala-bridge run``: an unknown section or key, or a value of the
     wrong kind, is an error naming it (and the nearest valid name), not a key silently
     ignored. MODEL.toml may be partial: it is laid over the shipped ``config/default.toml``
     first, and the bridge's and the simulator's own loaders check the result."""
-    from koala_bridge.core.resources import default_config_path
     from koala_bridge.core.schema import ConfigError
     from koala_bridge.runtime.localisation import LocalisationSettings
-    from koala_bridge.runtime.settings import BridgeSettings, load_config, reject_unknown_sections
-    from koala_bridge.sim.config import load_sim_config
+    from koala_bridge.runtime.settings import BridgeSettings, reject_unknown_sections
 
     if not config:
         return
-    merged = _laid_over(load_config(default_config_path()), config)
+    merged = _complete(config)
     try:
         reject_unknown_sections(merged)
         BridgeSettings.from_config(merged)
-        load_sim_config(merged)
+        _typed(config, where)
         LocalisationSettings.from_config(merged)
     except ConfigError as e:
         raise ModelConfigError(f"{where}: {e}") from e
 
 
+def _typed(config: Mapping[str, Any], where: str = "model config") -> SimConfig | None:
+    """The simulator's typed config of ``config`` (laid over default.toml); None for none."""
+    from koala_bridge.core.schema import ConfigError
+    from koala_bridge.sim.config import load_sim_config
+
+    if not config:
+        return None
+    try:
+        return load_sim_config(_complete(config))
+    except ConfigError as e:
+        raise ModelConfigError(f"{where}: {e}") from e
+
+
 def declared_model(config: Mapping[str, Any], meta: Mapping[str, Any]) -> DeclaredModel:
-    """Combine the config with a bundle's ``meta.json`` (meta wins) into a DeclaredModel."""
+    """Combine the config with a bundle's ``meta.json`` (meta wins) into a DeclaredModel.
+
+    Values come from the simulator's typed config (:func:`koala_bridge.sim.config.
+    load_sim_config` of ``config`` laid over ``config/default.toml``): the same types, ranges
+    and units as a run. Which effects are *declared* is what ``config`` states: an effect whose
+    key the file does not name is absent (zero bias, unit gain, no table), so a partial
+    MODEL.toml, or none, declares only what it says (the bundle format's precedence).
+    """
     sources: dict[str, str] = {}
-    robot = _section(config, "robot")
+    typed = _typed(config)
+
+    def stated(*path: str) -> bool:
+        """Whether ``config`` names the key (or table) at ``path``."""
+        return path[-1] in _section(config, *path[:-1])
+
     meta_robot = meta.get("robot", {}) if isinstance(meta.get("robot"), Mapping) else {}
 
     def pick(key: str) -> float | None:
         if isinstance(meta_robot.get(key), int | float):
             sources[key] = "meta.json robot"
             return float(meta_robot[key])
-        if key in robot:
+        if typed is not None and stated("robot", key):
             sources[key] = "config [robot]"
-            return _number(robot[key], f"[robot] {key}")
+            return float(getattr(typed.robot, key))
         return None
 
     tpm = pick("ticks_per_metre")
@@ -187,110 +218,87 @@ def declared_model(config: Mapping[str, Any], meta: Mapping[str, Any]) -> Declar
         start = StartPose(float(sp["x"]), float(sp["y"]), float(theta or 0.0))
         sources["start_pose"] = "meta.json robot"
 
-    gyro = _section(config, "sensors", "gyro")
     meta_sensor = meta.get("sensor", {}) if isinstance(meta.get("sensor"), Mapping) else {}
     meta_gyro = meta_sensor.get("gyro") if isinstance(meta_sensor.get("gyro"), Mapping) else {}
-    ideal_gyro = bool(gyro.get("ideal", False))
-
-    def gyro_value(key: str) -> float:
-        if ideal_gyro:
-            return 0.0
-        return _number(gyro.get(key, 0.0), f"[sensors.gyro] {key}")
-
-    bias = gyro_value("bias_rad_s")
-    scale = gyro_value("scale_factor_error")
-    turn_on = gyro_value("turn_on_bias_sigma")
+    bias = scale = turn_on = 0.0
+    interval = None
+    if typed is not None:
+        gyro = typed.sensors.gyro
+        if not gyro.ideal:
+            ge = gyro.errors
+            bias = ge.bias_rad_s if stated("sensors", "gyro", "bias_rad_s") else 0.0
+            scale = (ge.scale_factor_error
+                     if stated("sensors", "gyro", "scale_factor_error") else 0.0)
+            turn_on = (ge.turn_on_bias_sigma
+                       if stated("sensors", "gyro", "turn_on_bias_sigma") else 0.0)
+        if stated("sensors", "gyro", "rate_hz"):
+            interval = 1.0 / gyro.rate_hz
     if isinstance(meta_gyro, Mapping):
         if isinstance(meta_gyro.get("bias_rad_s"), int | float):
             bias, turn_on = float(meta_gyro["bias_rad_s"]), 0.0
         if isinstance(meta_gyro.get("scale_factor_error"), int | float):
             scale = float(meta_gyro["scale_factor_error"])
-    interval = None
-    if "rate_hz" in gyro:
-        interval = 1.0 / _number(gyro["rate_hz"], "[sensors.gyro] rate_hz")
 
-    compass = _section(config, "sensors", "compass")
     hard = (0.0, 0.0, 0.0)
     soft: tuple[tuple[float, ...], ...] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
-    if not compass.get("ideal", False):
-        if "hard_iron_uT" in compass:
-            h = [_number(v, "[sensors.compass] hard_iron_uT") for v in compass["hard_iron_uT"]]
-            hard = (h + [0.0, 0.0, 0.0])[:3]  # type: ignore[assignment]
-        if "soft_iron" in compass:
-            s = np.asarray(compass["soft_iron"], dtype=float)
-            if s.shape != (3, 3):
-                raise ModelConfigError("[sensors.compass] soft_iron must be a 3x3 array")
-            soft = tuple(tuple(float(v) for v in row) for row in s)
-
     motor = None
-    if not compass.get("ideal", False) and "motor_uT_per_A" in compass:
-        m = np.asarray(compass["motor_uT_per_A"], dtype=float)
-        if m.shape != (3, 2):
-            raise ModelConfigError("[sensors.compass] motor_uT_per_A must be 3 rows of 2")
-        k = _number(
-            compass.get("motor_current_A_per_mps", 0.0), "[sensors.compass] motor_current_A_per_mps"
-        )
-        if np.any(m * k != 0):
-            motor = tuple(tuple(float(v) for v in row) for row in m * k)
-    world = _world_field(config, compass)
+    world = None
+    if typed is not None and not typed.sensors.compass.ideal:
+        ce = typed.sensors.compass.errors
+        if stated("sensors", "compass", "hard_iron_uT"):
+            hard = tuple(float(v) for v in ce.hard_iron_uT)  # type: ignore[assignment]
+        if stated("sensors", "compass", "soft_iron"):
+            soft = tuple(tuple(float(v) for v in row) for row in ce.soft_iron)
+        if stated("sensors", "compass", "motor_uT_per_A"):
+            k = (ce.motor_current_A_per_mps
+                 if stated("sensors", "compass", "motor_current_A_per_mps") else 0.0)
+            m = np.asarray(ce.motor_uT_per_A, dtype=float)
+            if np.any(m * k != 0):
+                motor = tuple(tuple(float(v) for v in row) for row in m * k)
+    if typed is not None:
+        world = _world_field(typed, stated)
 
-    ir = _section(config, "sensors", "ir")
     curve = None
     gain = 1.0
     offsets: tuple[float, ...] = ()
-    if not ir.get("ideal", False):
-        if "response_range_m" in ir or "response_counts" in ir:
-            r = tuple(
-                _number(v, "[sensors.ir] response_range_m") for v in ir.get("response_range_m", [])
-            )
-            c = tuple(
-                _number(v, "[sensors.ir] response_counts") for v in ir.get("response_counts", [])
-            )
-            if len(r) != len(c) or len(r) < 2:
-                raise ModelConfigError(
-                    "[sensors.ir] response_range_m and response_counts need equal lengths >= 2"
-                )
-            curve = (r, c)
-        # sim/models/ir.py: c = rho R(d) (1 - ambient_saturation A / max_counts) + o_s + noise
-        refl = _number(ir.get("reflectivity", 1.0), "[sensors.ir] reflectivity")
-        sat = _number(ir.get("ambient_saturation", 0.0), "[sensors.ir] ambient_saturation")
-        full = _number(ir.get("max_counts", 1023), "[sensors.ir] max_counts")
-        amb = min(_number(ir.get("ambient_counts", 0.0), "[sensors.ir] ambient_counts"), full)
-        gain = refl * (1.0 - sat * amb / full)
-        offsets = tuple(
-            _number(v, "[sensors.ir] per_sensor_offset_counts")
-            for v in ir.get("per_sensor_offset_counts", [])
-        )
-    sonar = _section(config, "sensors", "sonar")
+    ir_count = None
+    if typed is not None:
+        ir = typed.sensors.ir
+        if stated("sensors", "ir", "poses"):
+            ir_count = int(ir.poses.shape[0])
+        if stated("sensors", "ir") and not ir.ideal:
+            ie = ir.errors
+            if stated("sensors", "ir", "response_range_m") or stated(
+                    "sensors", "ir", "response_counts"):
+                curve = (tuple(float(v) for v in ir.response_range_m),
+                         tuple(float(v) for v in ir.response_counts))
+            # sim/models/ir.py: c = rho R(d) (1 - ambient_saturation A / max_counts) + o_s + noise
+            refl = ie.reflectivity if stated("sensors", "ir", "reflectivity") else 1.0
+            sat = ie.ambient_saturation if stated("sensors", "ir", "ambient_saturation") else 0.0
+            amb = ir.ambient_counts if stated("sensors", "ir", "ambient_counts") else 0.0
+            gain = refl * (1.0 - sat * min(amb, ir.max_counts) / ir.max_counts)
+            offsets = tuple(float(v) for v in ie.per_sensor_offset_counts)
     critical = None
-    if not sonar.get("ideal", False) and "critical_angle_deg" in sonar:
-        critical = float(
-            np.deg2rad(_number(sonar["critical_angle_deg"], "[sensors.sonar] critical_angle_deg"))
-        )
-    camera = _section(config, "sensors", "camera")
-    wrong_ids, far, bearing_sigma = False, None, 0.0
-    if not camera.get("ideal", True if not camera else False):
-        wrong_ids = _number(camera.get("p_recog", 0.0), "[sensors.camera] p_recog") > 0
-        if all(k in camera for k in ("dist", "d_mid_m", "far_doubling_m")):
-            far = tuple(
-                _number(camera[k], f"[sensors.camera] {k}")
-                for k in ("dist", "d_mid_m", "far_doubling_m")
-            )
-        bearing_sigma = float(
-            np.deg2rad(
-                _number(camera.get("bearing_sigma_deg", 0.0), "[sensors.camera] bearing_sigma_deg")
-            )
-        )
     sonar_range = None
     sonar_table = None
-    if not sonar.get("ideal", False) and {"min_range_m", "max_range_m"} <= set(sonar):
-        sonar_range = (
-            _number(sonar["min_range_m"], "[sensors.sonar] min_range_m"),
-            _number(sonar["max_range_m"], "[sensors.sonar] max_range_m"),
-        )
-        rows = np.asarray(sonar.get("distance_error", []), dtype=float)
-        if rows.ndim == 2 and rows.shape[0] >= 1 and rows.shape[1] >= 2:
-            sonar_table = (tuple(rows[:, 0]), tuple(rows[:, 1]))
+    if typed is not None and not typed.sensors.sonar.ideal:
+        sonar = typed.sensors.sonar
+        if stated("sensors", "sonar", "critical_angle_deg"):
+            critical = float(np.deg2rad(sonar.errors.critical_angle_deg))
+        if stated("sensors", "sonar", "min_range_m") and stated("sensors", "sonar", "max_range_m"):
+            sonar_range = (sonar.min_range_m, sonar.max_range_m)
+            if stated("sensors", "sonar", "distance_error"):
+                table = sonar.errors.distance_error
+                sonar_table = (tuple(float(v) for v in table.x),
+                               tuple(float(v) for v in table.y))
+    wrong_ids, far, bearing_sigma = False, None, 0.0
+    if typed is not None and stated("sensors", "camera") and not typed.sensors.camera.ideal:
+        cam = typed.sensors.camera.errors
+        wrong_ids = stated("sensors", "camera", "p_recog") and cam.p_recog > 0
+        if all(stated("sensors", "camera", k) for k in ("dist", "d_mid_m", "far_doubling_m")):
+            far = (cam.dist, cam.d_mid_m, cam.far_doubling_m)
+        if stated("sensors", "camera", "bearing_sigma_deg"):
+            bearing_sigma = float(np.deg2rad(cam.bearing_sigma_deg))
     return DeclaredModel(
         config=config,
         ticks_per_metre=tpm,
@@ -308,38 +316,27 @@ def declared_model(config: Mapping[str, Any], meta: Mapping[str, Any]) -> Declar
         ir_curve=curve,
         ir_gain=gain,
         ir_per_sensor_offset=offsets,
-        ir_sensor_count=len(ir["poses"]) if isinstance(ir.get("poses"), list) else None,
+        ir_sensor_count=ir_count,
         sonar_critical_angle_rad=critical,
         sonar_range_m=sonar_range,
         sonar_distance_error=sonar_table,
         camera_wrong_ids=wrong_ids,
-        camera_far=far,  # type: ignore[arg-type]
+        camera_far=far,
         camera_bearing_sigma_rad=bearing_sigma,
         sources=sources,
     )
 
 
-def _world_field(config: Mapping[str, Any], compass: Mapping[str, Any]) -> WorldField | None:
+def _world_field(typed: SimConfig, stated: Callable[..., bool]) -> WorldField | None:
     """The declared world's magnetic field (``[world.earth_field]``, ``[[world.magnetic_sources]]``)
-    when it has local sources; None otherwise (a uniform field: north is a nuisance anyway)."""
-    world = _section(config, "world")
-    sources = world.get("magnetic_sources") or []
-    earth = _section(world, "earth_field")
-    if not sources or not earth:
+    when the file states both and has local sources; None otherwise (a uniform field: north is a
+    nuisance anyway)."""
+    world = typed.world
+    if not (stated("world", "magnetic_sources") and stated("world", "earth_field")
+            and world.magnetic_sources):
         return None
-    try:
-        h = _number(earth["horizontal_uT"], "[world.earth_field] horizontal_uT")
-        v = _number(earth["vertical_uT"], "[world.earth_field] vertical_uT")
-        north = np.deg2rad(_number(earth["north_deg"], "[world.earth_field] north_deg"))
-        src = tuple(
-            (
-                _number(m["x"], "[[world.magnetic_sources]] x"),
-                _number(m["y"], "[[world.magnetic_sources]] y"),
-                _number(m["strength_uT"], "[[world.magnetic_sources]] strength_uT"),
-            )
-            for m in sources
-        )
-    except (KeyError, TypeError) as e:
-        raise ModelConfigError(f"[world] magnetic field incomplete: {e}") from e
-    dmin = _number(compass.get("min_source_distance_m", 0.05), "min_source_distance_m")
-    return (float(h * np.cos(north)), float(h * np.sin(north)), v), src, dmin
+    earth = world.earth_field
+    h, north = earth.horizontal_uT, np.deg2rad(earth.north_deg)
+    src = tuple((m.x, m.y, m.strength_uT) for m in world.magnetic_sources)
+    dmin = typed.sensors.compass.min_source_distance_m
+    return (float(h * np.cos(north)), float(h * np.sin(north)), earth.vertical_uT), src, dmin

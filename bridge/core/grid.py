@@ -43,13 +43,20 @@ TOML form (``[world]`` of a config file)::
     strength_uT = 5.0              # field magnitude at 1 m; falls with 1/d^2 (seeds/000 eq. 16)
     [world.earth_field]
     horizontal_uT = 20.0
-    vertical_uT = -44.0            # z up: negative in the northern hemisphere
+    vertical_uT = -43.0            # z up: negative in the northern hemisphere
     north_deg = 90.0               # direction of magnetic north, CCW from +x (east)
 
 The ASCII map is drawn north up: lines alternate between corner lines (``+`` with ``-`` runs
 for walls) and cell lines (``|`` for walls, ``#`` inside a cell to block it); any other character
 is an error naming its map line and column. Without a map, ``cols`` and ``rows`` give an empty
 grid with its outer boundary walled.
+
+Keys that may be left out, and their one default (config/README.md "Policy"): ``name``
+("world"), ``walls`` and ``blocked`` ([]), ``start`` (none: ``[localisation] initial_pose`` must
+then be given), ``start.theta_deg`` (0), ``landmarks`` and ``magnetic_sources`` ([]), a
+landmark's ``colour`` (""), ``facing_deg`` (0) and ``a_max_deg`` (10000, omnidirectional), and
+``earth_field`` and its keys (:class:`EarthField`: the values ``config/default.toml`` shows).
+Numbers follow the schema's rules (:mod:`koala_bridge.core.schema`): finite, and no strings.
 """
 
 from __future__ import annotations
@@ -60,7 +67,16 @@ from dataclasses import dataclass, field
 from typing import Any, Self
 
 import numpy as np
-from koala_bridge.core.schema import ConfigError, positive, reject_unknown, require
+from koala_bridge.core.schema import (
+    ConfigError,
+    Int,
+    PositiveInt,
+    number,
+    positive,
+    reject_unknown,
+    require,
+    value_of,
+)
 
 SIDES = ("N", "E", "S", "W")
 # Unit step (dcol, drow) towards each side.
@@ -110,7 +126,7 @@ class EarthField:
     """The Earth field: horizontal strength, vertical component (z up) and magnetic north."""
 
     horizontal_uT: float = 20.0
-    vertical_uT: float = -44.0
+    vertical_uT: float = -43.0
     north_deg: float = 90.0
 
     def vector_world(self) -> np.ndarray:
@@ -229,10 +245,8 @@ class Grid:
             edges |= map_edges
             blocked |= map_blocked
         else:
-            cols = int(require(d, "cols", sec))
-            rows = int(require(d, "rows", sec))
-            if cols <= 0 or rows <= 0:
-                raise ConfigError("[world] 'cols' and 'rows' must be positive")
+            cols = value_of(PositiveInt, require(d, "cols", sec), "cols", sec)
+            rows = value_of(PositiveInt, require(d, "rows", sec), "rows", sec)
             for c in range(cols):
                 edges.add(("h", c, 0))
                 edges.add(("h", c, rows))
@@ -257,15 +271,15 @@ class Grid:
         sources = tuple(_source(x, i) for i, x in enumerate(d.get("magnetic_sources", [])))
         ef = d.get("earth_field", {})
         reject_unknown(ef, ["horizontal_uT", "vertical_uT", "north_deg"], "world.earth_field")
-        earth = EarthField(**{k: float(v) for k, v in ef.items()})
+        earth = EarthField(**{k: number(v, k, "world.earth_field") for k, v in ef.items()})
         start = None
         if "start" in d:
             s = d["start"]
             reject_unknown(s, ["x", "y", "theta_deg"], "world.start")
             start = StartPose(
-                float(require(s, "x", "world.start")),
-                float(require(s, "y", "world.start")),
-                math.radians(float(s.get("theta_deg", 0.0))),
+                number(require(s, "x", "world.start"), "x", "world.start"),
+                number(require(s, "y", "world.start"), "y", "world.start"),
+                math.radians(number(s.get("theta_deg", 0.0), "theta_deg", "world.start")),
             )
         return cls(
             name=str(d.get("name", "world")),
@@ -285,11 +299,11 @@ def _landmark(d: Mapping[str, Any], i: int) -> Landmark:
     sec = f"world.landmarks[{i}]"
     reject_unknown(d, ["id", "colour", "x", "y", "facing_deg", "a_max_deg"], sec)
     return Landmark(
-        id=int(require(d, "id", sec)),
+        id=value_of(Int, require(d, "id", sec), "id", sec),
         colour=str(d.get("colour", "")),
-        x=float(require(d, "x", sec)),
-        y=float(require(d, "y", sec)),
-        facing_deg=float(d.get("facing_deg", 0.0)),
+        x=number(require(d, "x", sec), "x", sec),
+        y=number(require(d, "y", sec), "y", sec),
+        facing_deg=number(d.get("facing_deg", 0.0), "facing_deg", sec),
         a_max_deg=positive(d.get("a_max_deg", 10000.0), "a_max_deg", sec),
     )
 
@@ -298,8 +312,8 @@ def _source(d: Mapping[str, Any], i: int) -> MagneticSource:
     sec = f"world.magnetic_sources[{i}]"
     reject_unknown(d, ["x", "y", "strength_uT"], sec)
     return MagneticSource(
-        float(require(d, "x", sec)), float(require(d, "y", sec)),
-        float(require(d, "strength_uT", sec)),
+        number(require(d, "x", sec), "x", sec), number(require(d, "y", sec), "y", sec),
+        number(require(d, "strength_uT", sec), "strength_uT", sec),
     )
 
 

@@ -21,8 +21,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from koala_bridge.drivers.can_codec import DEFAULT_DBC_PATH
-
 if TYPE_CHECKING:
     from koala_bridge.runtime.buses import OpenBuses
     from koala_bridge.runtime.settings import BridgeSettings
@@ -129,7 +127,8 @@ def endpoints_of(buses: OpenBuses, settings: BridgeSettings, zenoh: bool = True)
         rangefinders=buses.rangefinders.transport.endpoint.path if buses.rangefinders else None,
         socketcand=socketcand,
         slcan=buses.can["can.slcan"].endpoint.path if "can.slcan" in buses.can else None,
-        dbc=str(DEFAULT_DBC_PATH.resolve()),
+        # [buses.can] dbc, the database clients decode the CAN bus with; no CAN bus, no DBC
+        dbc=str(settings.buses.can.dbc_path.resolve()) if buses.can else None,
         mavlink_url=mav_url,
         zenoh_endpoints=settings.zenoh.listen if zenoh else (),
         zenoh_prefix=settings.zenoh.prefix if zenoh else "",

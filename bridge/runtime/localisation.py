@@ -55,12 +55,25 @@ import math
 import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Annotated, Any
 
 import can
 import numpy as np
 from koala_bridge.core.geometry import circle_centre
-from koala_bridge.core.schema import ConfigError, reject_unknown
+from koala_bridge.core.schema import (
+    Bool,
+    ConfigError,
+    Finite,
+    FloatTuple,
+    NonNegative,
+    Positive,
+    Probability,
+    Str,
+    field_names,
+    reject_unknown,
+    section,
+    validate,
+)
 from koala_bridge.drivers.can_codec import KoalaCanCodec, wrap_int32
 from koala_bridge.drivers.kteam import LineSplitter, parse_reply
 from koala_bridge.drivers.mavlink_codec import CompassDecoder
@@ -96,6 +109,7 @@ from koala_bridge.estimation.messages import (
 )
 from koala_bridge.sim.config import SimConfig
 from koala_bridge.sim.world import SIDE_STEP, SIDES, World
+from pydantic import AfterValidator, Field
 
 log = logging.getLogger(__name__)
 
@@ -114,157 +128,121 @@ Publish = Callable[[str, dict[str, Any]], None]
 # --------------------------------------------------------------------------- settings
 
 
-def _num(d: Mapping[str, Any], key: str, sec: str, *, low: float | None = 0.0,
-         strict: bool = False) -> float:
-    if key not in d:
-        raise ConfigError(f"[{sec}] missing required key '{key}'")
-    v = d[key]
-    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(float(v)):
-        raise ConfigError(f"[{sec}] '{key}' must be a finite number, got {v!r}")
-    if low is not None and (float(v) <= low if strict else float(v) < low):
-        raise ConfigError(f"[{sec}] '{key}' must be {'>' if strict else '>='} {low}, got {v!r}")
-    return float(v)
+def _sized(*sizes: int) -> Any:
+    def check(value: tuple[float, ...]) -> tuple[float, ...]:
+        if len(value) not in sizes:
+            raise ValueError(f"must be a list of {' or '.join(map(str, sizes))} numbers, "
+                             f"got {list(value)!r}")
+        return value
+
+    return AfterValidator(check)
 
 
-def _flag(d: Mapping[str, Any], key: str, sec: str) -> bool:
-    if not isinstance(d.get(key), bool):
-        raise ConfigError(f"[{sec}] '{key}' must be true or false, got {d.get(key)!r}")
-    return bool(d[key])
+def _one_of(choices: tuple[str, ...]) -> Any:
+    def check(value: str) -> str:
+        if value not in choices:
+            raise ValueError(f"must be one of {', '.join(choices)}, got {value!r}")
+        return value
+
+    return AfterValidator(check)
 
 
-def _floats(d: Mapping[str, Any], key: str, sec: str, sizes: Sequence[int]) -> tuple[float, ...]:
-    v = d.get(key)
-    if not isinstance(v, list) or len(v) not in sizes or not all(
-        isinstance(e, int | float) and not isinstance(e, bool) for e in v
-    ):
-        raise ConfigError(f"[{sec}] '{key}' must be a list of {' or '.join(map(str, sizes))} "
-                          f"numbers, got {v!r}")
-    return tuple(float(e) for e in v)
+#: A probability that is not 0 (a likelihood that may not vanish) nor above 1.
+_Likelihood = Annotated[Positive, Field(le=1)]
 
 
-def _table(d: Mapping[str, Any], key: str, sec: str) -> Mapping[str, Any]:
-    v = d.get(key)
-    if not isinstance(v, Mapping):
-        raise ConfigError(f"[{sec}.{key}] missing or not a table")
-    return v
-
-
-@dataclass(frozen=True)
+@section
 class PoseSettings:
     """``[localisation.pose]``: the EKF's noise model and its measurement options."""
 
-    odo_distance_var_per_m: float
-    odo_heading_var_per_m: float
-    odo_heading_var_per_rad: float
-    gyroscope_noise_density: float
-    gyroscope_random_walk: float
-    gyro_bias_sigma0: float
-    gyro_timeout_s: float
-    predict_rate_hz: float
-    compass_rate_hz: float
-    compass_sigma_deg: float
-    compass_hard_iron_uT: tuple[float, ...]   # () = estimate online
-    gate_probability: float
-    landmark_range_sigma_m: float
-    landmark_range_sigma_rel: float
-    landmark_far_from_m: float
-    landmark_far_doubling_m: float
-    landmark_bearing_sigma_deg: float
-    ir_wall_fixes: bool
+    odo_distance_var_per_m: NonNegative
+    odo_heading_var_per_m: NonNegative
+    odo_heading_var_per_rad: NonNegative
+    gyroscope_noise_density: NonNegative
+    gyroscope_random_walk: NonNegative
+    gyro_bias_sigma0: NonNegative
+    gyro_timeout_s: Positive
+    predict_rate_hz: Positive
+    compass_rate_hz: Positive
+    compass_sigma_deg: Positive
+    compass_hard_iron_uT: Annotated[FloatTuple, _sized(0, 2, 3)]   # () = estimate online
+    gate_probability: Annotated[Positive, Field(lt=1)]
+    landmark_range_sigma_m: Positive
+    landmark_range_sigma_rel: NonNegative
+    landmark_far_from_m: NonNegative
+    landmark_far_doubling_m: Positive
+    landmark_bearing_sigma_deg: Positive
+    ir_wall_fixes: Bool
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> PoseSettings:
-        s = f"{SECTION}.pose"
-        reject_unknown(d, list(cls.__dataclass_fields__), s)
-        gate = _num(d, "gate_probability", s, strict=True)
-        if gate >= 1.0:
-            raise ConfigError(f"[{s}] 'gate_probability' must be < 1, got {gate}")
-        numbers = {
-            k: _num(d, k, s, strict=k in ("compass_sigma_deg", "landmark_range_sigma_m",
-                                           "landmark_bearing_sigma_deg", "landmark_far_doubling_m",
-                                           "gyro_timeout_s", "predict_rate_hz",
-                                           "compass_rate_hz"))
-            for k in cls.__dataclass_fields__
-            if k not in ("compass_hard_iron_uT", "gate_probability", "ir_wall_fixes")
-        }
-        return cls(
-            **numbers,
-            compass_hard_iron_uT=_floats(d, "compass_hard_iron_uT", s, (0, 2, 3)),
-            gate_probability=gate,
-            ir_wall_fixes=_flag(d, "ir_wall_fixes", s),
-        )
+        return validate(cls, d, f"{SECTION}.pose")
 
 
-@dataclass(frozen=True)
+@section
 class GridSettings:
     """``[localisation.grid]``: the histogram filter and when it moves and observes."""
 
-    p_move: float
-    p_hit: float
-    p_clear: float
-    ir_wall_threshold_counts: float
-    observe_radius_m: float
-    move_hysteresis_m: float
+    p_move: Probability
+    p_hit: Probability
+    p_clear: Probability
+    ir_wall_threshold_counts: NonNegative
+    observe_radius_m: NonNegative
+    move_hysteresis_m: NonNegative
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> GridSettings:
-        s = f"{SECTION}.grid"
-        reject_unknown(d, list(cls.__dataclass_fields__), s)
-        out = cls(**{k: _num(d, k, s) for k in cls.__dataclass_fields__})
-        for k in ("p_move", "p_hit", "p_clear"):
-            if getattr(out, k) > 1.0:
-                raise ConfigError(f"[{s}] '{k}' is a probability (0..1), got {getattr(out, k)}")
-        return out
+        return validate(cls, d, f"{SECTION}.grid")
 
 
-@dataclass(frozen=True)
+@section
 class OccupancySettings:
     """``[localisation.occupancy]``: the log-odds grid and which readings go into it."""
 
-    resolution_m: float
-    update_hz: float
-    l_occ: float
-    l_free: float
-    occ_share_cells: float
-    l_min: float
-    l_max: float
-    mark_free_on_no_echo: bool
-    ir: bool
-    ir_no_echo_counts: float
-    ir_range_error: float
-    sonar: bool
-    sonar_range_error: float
+    resolution_m: Positive
+    update_hz: Positive
+    l_occ: NonNegative
+    l_free: Finite
+    occ_share_cells: Positive
+    l_min: Finite
+    l_max: Positive
+    mark_free_on_no_echo: Bool
+    ir: Bool
+    ir_no_echo_counts: NonNegative
+    ir_range_error: NonNegative
+    sonar: Bool
+    sonar_range_error: NonNegative
+
+    def __post_init__(self) -> None:
+        if not self.l_min < 0 < self.l_max:
+            raise ConfigError(f"[{SECTION}.occupancy] needs l_min < 0 < l_max")
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> OccupancySettings:
-        s = f"{SECTION}.occupancy"
-        reject_unknown(d, list(cls.__dataclass_fields__), s)
-        flags = ("mark_free_on_no_echo", "ir", "sonar")
-        signed = ("l_free", "l_min")
-        nums = {
-            k: _num(d, k, s, low=None if k in signed else 0.0,
-                    strict=k in ("resolution_m", "update_hz", "l_max", "occ_share_cells"))
-            for k in cls.__dataclass_fields__ if k not in flags
-        }
-        if not nums["l_min"] < 0 < nums["l_max"]:
-            raise ConfigError(f"[{s}] needs l_min < 0 < l_max")
-        return cls(**nums, **{k: _flag(d, k, s) for k in flags})  # type: ignore[arg-type]
+        return validate(cls, d, f"{SECTION}.occupancy")
 
 
-@dataclass(frozen=True)
+#: The sub-tables of ``[localisation]``, each its own section.
+_TABLES: dict[str, Any] = {
+    "pose": PoseSettings, "grid": GridSettings, "occupancy": OccupancySettings,
+}
+
+
+@section
 class LocalisationSettings:
     """``[localisation]``: on/off, publication rates (simulation time), the prior."""
 
-    enabled: bool
-    pose_rate_hz: float
-    cell_rate_hz: float
-    grid_rate_hz: float
-    occupancy_rate_hz: float
-    initial_pose: tuple[float, ...]     # () = the world's start; else (x_m, y_m, theta_deg)
-    initial_sigma_xy_m: float
-    initial_sigma_theta_deg: float
-    grid_prior: str                     # "start" | "uniform"
-    use_landmarks: bool
+    enabled: Bool
+    pose_rate_hz: Positive
+    cell_rate_hz: Positive
+    grid_rate_hz: Positive
+    occupancy_rate_hz: Positive
+    # () = the world's start; else (x_m, y_m, theta_deg)
+    initial_pose: Annotated[FloatTuple, _sized(0, 3)]
+    initial_sigma_xy_m: Positive
+    initial_sigma_theta_deg: Positive
+    grid_prior: Annotated[Str, _one_of(GRID_PRIORS)]     # "start" | "uniform"
+    use_landmarks: Bool
     pose: PoseSettings
     grid: GridSettings
     occupancy: OccupancySettings
@@ -272,25 +250,15 @@ class LocalisationSettings:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> LocalisationSettings:
         s = SECTION
-        reject_unknown(d, list(cls.__dataclass_fields__), s)
-        prior = d.get("grid_prior")
-        if prior not in GRID_PRIORS:
-            raise ConfigError(f"[{s}] 'grid_prior' must be one of {', '.join(GRID_PRIORS)}, "
-                              f"got {prior!r}")
-        rates = {k: _num(d, k, s, strict=True)
-                 for k in ("pose_rate_hz", "cell_rate_hz", "grid_rate_hz", "occupancy_rate_hz")}
-        return cls(
-            enabled=_flag(d, "enabled", s),
-            **rates,
-            initial_pose=_floats(d, "initial_pose", s, (0, 3)),
-            initial_sigma_xy_m=_num(d, "initial_sigma_xy_m", s, strict=True),
-            initial_sigma_theta_deg=_num(d, "initial_sigma_theta_deg", s, strict=True),
-            grid_prior=str(prior),
-            use_landmarks=_flag(d, "use_landmarks", s),
-            pose=PoseSettings.from_dict(_table(d, "pose", s)),
-            grid=GridSettings.from_dict(_table(d, "grid", s)),
-            occupancy=OccupancySettings.from_dict(_table(d, "occupancy", s)),
-        )
+        if not isinstance(d, Mapping):
+            raise ConfigError(f"[{s}] must be a table, got {d!r}")
+        reject_unknown(d, field_names(cls), s)
+        tables = {}
+        for key, table_cls in _TABLES.items():
+            if not isinstance(d.get(key), Mapping):
+                raise ConfigError(f"[{s}.{key}] missing or not a table")
+            tables[key] = table_cls.from_dict(d[key])
+        return validate(cls, {**d, **tables}, s)
 
     @classmethod
     def from_config(cls, config: Mapping[str, Any]) -> LocalisationSettings | None:
@@ -357,9 +325,12 @@ class LocalisationNode:
             configuration: wheel base, ticks per metre, IR poses and response curve, sonar poses,
             the world's grid, walls, landmarks and magnetic north).
         publish: called with ``(key suffix, JSON-ready payload)`` for each output message.
+        can_codec: decodes the CAN frames (the owner's, from ``[buses.can] dbc``); default: a
+            codec of the shipped DBC.
     """
 
-    def __init__(self, settings: LocalisationSettings, robot: SimConfig, publish: Publish) -> None:
+    def __init__(self, settings: LocalisationSettings, robot: SimConfig, publish: Publish,
+                 can_codec: KoalaCanCodec | None = None) -> None:
         self.settings = settings
         self.world: World = robot.world
         self._publish = publish
@@ -412,7 +383,7 @@ class LocalisationNode:
             np.array([*hard, 0.0][:3]) if hard else None)
         self._hard_iron_fit = _HardIron() if not hard else None
         # decoders, one per bus (streams keep their partial frames)
-        self._can = KoalaCanCodec()
+        self._can = can_codec if can_codec is not None else KoalaCanCodec()
         self._mavlink = CompassDecoder()
         self._ranges = RangeFrameDecoder()
         self._kteam = LineSplitter()
@@ -452,11 +423,12 @@ class LocalisationNode:
         self._last_t = t
 
     @classmethod
-    def from_config(cls, config: Mapping[str, Any], robot: SimConfig,
-                    publish: Publish) -> LocalisationNode | None:
-        """A node for ``config``'s ``[localisation]`` section, or None when it is off."""
+    def from_config(cls, config: Mapping[str, Any], robot: SimConfig, publish: Publish,
+                    can_codec: KoalaCanCodec | None = None) -> LocalisationNode | None:
+        """A node for ``config``'s ``[localisation]`` section, or None when it is off.
+        ``can_codec``: the owner's (its ``[buses.can] dbc``); default: the shipped DBC."""
         settings = LocalisationSettings.from_config(config)
-        return None if settings is None else cls(settings, robot, publish)
+        return None if settings is None else cls(settings, robot, publish, can_codec)
 
     def _initial_pose(self) -> tuple[float, float, float]:
         p = self.settings.initial_pose

@@ -42,10 +42,18 @@ import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Annotated, Any
 
 import can
-from koala_bridge.core.schema import ConfigError, reject_unknown
+from koala_bridge.core.schema import (
+    ConfigError,
+    Positive,
+    PositiveInt,
+    Str,
+    section,
+    tuples,
+    validate,
+)
 from koala_bridge.core.topics import (
     CompassMessage,
     GyroMessage,
@@ -56,7 +64,6 @@ from koala_bridge.core.topics import (
     TopicMessage,
     ints,
 )
-from koala_bridge.drivers.can_codec import KoalaCanCodec
 from koala_bridge.drivers.kteam import LineSplitter, format_command, parse_reply
 from koala_bridge.drivers.mavlink_codec import CompassDecoder
 from koala_bridge.drivers.messages import (
@@ -85,6 +92,7 @@ from koala_bridge.runtime.settings import BridgeSettings
 from koala_bridge.runtime.source import READ_TIMEOUT_S, Tap, start_reader, until_text
 from koala_bridge.runtime.zenoh_io import ZENOH_BUS, ZenohLink
 from koala_bridge.sim.config import load_sim_config
+from pydantic import AfterValidator, BeforeValidator, Strict
 
 log = logging.getLogger(__name__)
 
@@ -92,58 +100,68 @@ KTEAM_REPLY_TIMEOUT_S = 0.5
 POLLABLE = {"N": "sensors/ir", "H": "sensors/odometry"}
 
 
-@dataclass(frozen=True)
-class RealPorts:
-    """``[real]``: where the robot's ports are (every key optional)."""
+def _port_name(value: Any) -> Any:
+    """A port key: "" (the file's way to say "not opened") is None."""
+    return None if value == "" else value
 
-    kteam: str | None = None
-    kteam_baud: int = 115200
-    kteam_poll: tuple[str, ...] = ()
-    kteam_poll_hz: float = 10.0
-    rangefinders: str | None = None
-    rangefinders_baud: int = 115200
-    can_interface: str | None = None
-    can_channel: str | None = None
-    can_options: Mapping[str, Any] = field(default_factory=dict)
-    mavlink: str | None = None
+
+def _pollable(value: tuple[str, ...]) -> tuple[str, ...]:
+    for c in value:
+        if c not in POLLABLE:
+            raise ValueError(f"has {c!r}, not one of {sorted(POLLABLE)}")
+    return value
+
+
+#: A port: a device, pyserial URL or connection string; "" or absent = not opened.
+_Port = Annotated[Str | None, BeforeValidator(_port_name)]
+
+
+@section
+class RealPorts:
+    """``[real]``: where the robot's ports are.
+
+    Every key may be left out; its default is the value ``config/default.toml`` shows (ports
+    "" = not opened; the schema's policy, :mod:`koala_bridge.core.schema`).
+    """
+
+    kteam: _Port = None
+    kteam_baud: PositiveInt = 115200
+    kteam_poll: Annotated[tuple[Str, ...], BeforeValidator(tuples),
+                          AfterValidator(_pollable)] = ()
+    kteam_poll_hz: Positive = 10.0
+    rangefinders: _Port = None
+    rangefinders_baud: PositiveInt = 115200
+    can_interface: _Port = None
+    can_channel: _Port = None
+    can_options: Annotated[dict[str, Any], Strict(False)] = field(default_factory=dict)
+    mavlink: _Port = None
+
+    def __post_init__(self) -> None:
+        s = "real"
+        if bool(self.can_interface) != bool(self.can_channel):
+            raise ConfigError(f"[{s}] 'can_interface' and 'can_channel' go together")
+        if self.kteam_poll and not self.kteam:
+            raise ConfigError(f"[{s}] 'kteam_poll' needs 'kteam' (the K-Team serial port)")
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> RealPorts:
-        s = "real"
-        reject_unknown(d, list(cls.__dataclass_fields__), s)
-        poll = tuple(str(c) for c in d.get("kteam_poll", ()))
-        for c in poll:
-            if c not in POLLABLE:
-                raise ConfigError(f"[{s}] 'kteam_poll': {c!r} is not one of {sorted(POLLABLE)}")
-        hz = float(d.get("kteam_poll_hz", 10.0))
-        if poll and not hz > 0:
-            raise ConfigError(f"[{s}] 'kteam_poll_hz' must be > 0, got {hz!r}")
-        if bool(d.get("can_interface")) != bool(d.get("can_channel")):
-            raise ConfigError(f"[{s}] 'can_interface' and 'can_channel' go together")
-        if poll and not d.get("kteam"):
-            raise ConfigError(f"[{s}] 'kteam_poll' needs 'kteam' (the K-Team serial port)")
-        return cls(
-            kteam=d.get("kteam"),
-            kteam_baud=int(d.get("kteam_baud", 115200)),
-            kteam_poll=poll,
-            kteam_poll_hz=hz,
-            rangefinders=d.get("rangefinders"),
-            rangefinders_baud=int(d.get("rangefinders_baud", 115200)),
-            can_interface=d.get("can_interface"),
-            can_channel=d.get("can_channel"),
-            can_options=dict(d.get("can_options", {})),
-            mavlink=d.get("mavlink"),
-        )
+        return validate(cls, d, "real")
+
+    @property
+    def any_port(self) -> bool:
+        """Whether any port is named."""
+        return any((self.kteam, self.rangefinders, self.can_interface, self.mavlink))
 
     @classmethod
     def from_config(cls, config: Mapping[str, Any]) -> RealPorts:
         real = config.get("real")
-        if not isinstance(real, Mapping) or not real:
+        ports = cls.from_dict(real) if isinstance(real, Mapping) else None
+        if ports is None or not ports.any_port:
             raise ConfigError(
                 "--source real needs a [real] section naming the robot's ports "
                 "(kteam, rangefinders, can_interface/can_channel, mavlink; docs/recording.md)"
             )
-        return cls.from_dict(real)
+        return ports
 
 
 class _RealClock:
@@ -198,7 +216,8 @@ class RealRobotSource:
         self._mavlink: ByteTransport | None = None
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
-        self._can_codec = KoalaCanCodec()
+        # [buses.can] dbc: the robot's CAN database (needed only with a [real] CAN port)
+        self._can_codec = settings.buses.can.codec(needed=bool(self.ports.can_interface))
         self.last = _LastReadings()
         p = self.ports
         self._streamed = ({"sensors/ir"} if p.rangefinders else set()) | (
@@ -206,7 +225,7 @@ class RealRobotSource:
         )
         # The estimator node, fed with every frame read from the robot (_frame); None when off.
         self.localisation = LocalisationNode.from_config(
-            config, load_sim_config(config), self._publish
+            config, load_sim_config(config), self._publish, can_codec=self._can_codec
         )
 
     # -- life cycle --------------------------------------------------------------------------

@@ -13,20 +13,42 @@ Command-line overrides use dotted keys and TOML values, e.g.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import difflib
+import logging
 import math
 import re
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Annotated, Any
 
-from koala_bridge.core.schema import ConfigError, reject_unknown
+from koala_bridge.core.resources import default_dbc_path
+from koala_bridge.core.schema import (
+    Bool,
+    ConfigError,
+    NonNegative,
+    Positive,
+    PositiveInt,
+    Str,
+    field_names,
+    reject_unknown,
+    section,
+    tuples,
+    validate,
+)
 from koala_bridge.runtime.clock import CLOCK_NAMES
+from pydantic import AfterValidator, BeforeValidator, Field, Strict
+
+if TYPE_CHECKING:
+    from koala_bridge.drivers.can_codec import KoalaCanCodec
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "BridgeSettings",
+    "BusesSettings",
     "CanSettings",
     "ConfigError",
     "MavlinkSettings",
@@ -67,7 +89,10 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     """Split ``"a.b.c=VALUE"`` into ``(["a", "b", "c"], value)``; VALUE is a TOML value.
 
     A VALUE that is not valid TOML is taken as a plain string, so ``robot.name=k2`` works
-    without quotes.
+    without quotes, unless it starts like a TOML array, table or quoted string (``[``, ``{``,
+    ``"``, ``'``): then it was meant as one, and the error says why it is not (one line). A
+    bare word still meets the key's type: ``robot.wheel_base_m=abc`` is refused by the schema
+    as "must be a number".
     """
     key, sep, raw = text.partition("=")
     key = key.strip()
@@ -76,11 +101,21 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     parts = key.split(".")
     if any(not part for part in parts):
         raise ConfigError(f"override key {key!r} has an empty part")
+    raw = raw.strip()
     try:
-        value = tomllib.loads(f"v = {raw.strip()}")["v"]
-    except tomllib.TOMLDecodeError:
-        value = raw.strip()
-    return parts, value
+        parsed = tomllib.loads(f"v = {raw}")
+    except tomllib.TOMLDecodeError as e:
+        if raw[:1] in ("[", "{", '"', "'"):
+            reason = str(e).splitlines()[0] if str(e) else "invalid value"
+            raise ConfigError(
+                f"override {key}: {raw!r} is not a TOML value ({reason}); arrays look like "
+                "[1, 2], tables like {a = 1}, strings like \"text\" (quote the whole --set "
+                "argument for the shell)"
+            ) from None
+        return parts, raw
+    if set(parsed) != {"v"}:  # "1\nx = 2": a second line is not part of one value
+        raise ConfigError(f"override {key}: {raw!r} is more than one TOML value")
+    return parts, parsed["v"]
 
 
 def apply_override(config: Mapping[str, Any], parts: list[str], value: Any) -> dict[str, Any]:
@@ -110,133 +145,135 @@ def _section(config: Mapping[str, Any], name: str, parent: str = "") -> Mapping[
     return node
 
 
-def _get(d: Mapping[str, Any], key: str, section: str, kind: type | tuple[type, ...]) -> Any:
-    if key not in d:
-        raise ConfigError(f"[{section}] missing required key '{key}'")
-    value = d[key]
-    # bool is an int in Python; a number key must not silently accept true/false.
-    if isinstance(value, bool) and bool not in (kind if isinstance(kind, tuple) else (kind,)):
-        raise ConfigError(f"[{section}] '{key}' must be a number, got {value!r}")
-    if not isinstance(value, kind):
-        names = " or ".join(k.__name__ for k in (kind if isinstance(kind, tuple) else (kind,)))
-        raise ConfigError(f"[{section}] '{key}' must be {names}, got {value!r}")
+def _one_of(choices: tuple[str, ...]) -> Any:
+    def check(value: str) -> str:
+        if value not in choices:
+            raise ValueError(f"must be one of {', '.join(choices)}, got {value!r}")
+        return value
+
+    return AfterValidator(check)
+
+
+def _duration(value: float) -> float:
+    if not (math.isfinite(value) and value >= 0):
+        raise ValueError(
+            f"must be a finite number >= 0 (0 = run until stopped), got {value}"
+        )
     return value
 
 
-def _port(d: Mapping[str, Any], key: str, section: str) -> int:
-    port = _get(d, key, section, int)
-    if not 0 <= port <= 65535:
-        raise ConfigError(f"[{section}] '{key}' must be a TCP/UDP port 0..65535, got {port}")
-    return int(port)
+def _port(value: int) -> int:
+    if not 0 <= value <= 65535:
+        raise ValueError(f"must be a TCP/UDP port 0..65535, got {value}")
+    return value
 
 
-def _rate(d: Mapping[str, Any], key: str, section: str) -> float:
-    rate = float(_get(d, key, section, (int, float)))
-    if not rate > 0:
-        raise ConfigError(f"[{section}] '{key}' must be > 0, got {rate}")
-    return rate
+#: Any int, checked as a port with the message tests and users know.
+_PortKey = Annotated[int, Strict(), AfterValidator(_port)]
 
 
-@dataclass(frozen=True)
+@section
 class RunSettings:
     """``[run]``: how the loop is paced and for how long."""
 
-    clock: str                  # "realtime" | "fast"
-    duration_s: float           # simulation seconds; 0 = until SIGINT/SIGTERM
-    endpoints_file: str         # "" = do not write one
+    clock: Annotated[Str, _one_of(CLOCK_NAMES)]          # "realtime" | "fast"
+    # simulation seconds; 0 = until SIGINT/SIGTERM (inf is refused with the same message)
+    duration_s: Annotated[float, Strict(), Field(allow_inf_nan=True), AfterValidator(_duration)]
+    endpoints_file: Str         # "" = do not write one
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> RunSettings:
-        s = "run"
-        reject_unknown(d, ("clock", "duration_s", "endpoints_file"), s)
-        clock = _get(d, "clock", s, str)
-        if clock not in CLOCK_NAMES:
-            choices = ", ".join(CLOCK_NAMES)
-            raise ConfigError(f"[{s}] 'clock' must be one of {choices}, got {clock!r}")
-        duration = float(_get(d, "duration_s", s, (int, float)))
-        if not (math.isfinite(duration) and duration >= 0):
-            raise ConfigError(
-                f"[{s}] 'duration_s' must be a finite number >= 0 (0 = run until stopped), "
-                f"got {duration}"
-            )
-        return cls(clock, duration, _get(d, "endpoints_file", s, str))
+        return validate(cls, d, "run")
 
 
-@dataclass(frozen=True)
+@section
 class CanSettings:
     """``[buses.can]``: the same CAN bus served on several interfaces at once."""
 
-    channel: str
-    socketcand: bool
-    socketcand_host: str
-    socketcand_port: int
-    slcan: bool
-    virtual: bool
-    virtual_channel: str
-    socketcan: bool
-    socketcan_channel: str
+    channel: Str
+    socketcand: Bool
+    socketcand_host: Str
+    socketcand_port: _PortKey
+    slcan: Bool
+    virtual: Bool
+    virtual_channel: Str
+    socketcan: Bool
+    socketcan_channel: Str
+    # The CAN database: a path (relative to the working directory), or "" for the DBC shipped
+    # with koala-bridge (koala_bridge.core.resources.default_dbc_path). Read only when a CAN
+    # bus is served, so a missing file does not matter with every CAN bus off. The one key of
+    # the bridge's tables with a default (default.toml's ""): configs and recordings from
+    # before it existed still load.
+    dbc: Str = ""
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> CanSettings:
-        s = "buses.can"
-        reject_unknown(d, [f for f in cls.__dataclass_fields__], s)
-        return cls(
-            channel=_get(d, "channel", s, str),
-            socketcand=_get(d, "socketcand", s, bool),
-            socketcand_host=_get(d, "socketcand_host", s, str),
-            socketcand_port=_port(d, "socketcand_port", s),
-            slcan=_get(d, "slcan", s, bool),
-            virtual=_get(d, "virtual", s, bool),
-            virtual_channel=_get(d, "virtual_channel", s, str),
-            socketcan=_get(d, "socketcan", s, bool),
-            socketcan_channel=_get(d, "socketcan_channel", s, str),
-        )
+        return validate(cls, d, "buses.can")
+
+    @property
+    def enabled(self) -> bool:
+        """Whether any CAN interface is served (only then is the DBC read)."""
+        return self.socketcand or self.slcan or self.virtual or self.socketcan
+
+    @property
+    def dbc_path(self) -> Path:
+        """The DBC file to load: ``dbc``, or the shipped one when ``dbc`` is ""."""
+        return Path(self.dbc).expanduser() if self.dbc else default_dbc_path()
+
+    def codec(self, needed: bool | None = None) -> KoalaCanCodec:
+        """The CAN codec of :attr:`dbc_path`.
+
+        ``needed`` (default: :attr:`enabled`, whether a CAN bus is served) says whether frames
+        go on a CAN bus; then a DBC that cannot be loaded is a :class:`ConfigError` naming the
+        key. Otherwise the frames are only recorded and fed to the estimator, and a missing or
+        broken ``dbc`` falls back to the shipped database: with every CAN bus off, the key
+        does not matter.
+        """
+        import cantools
+        from koala_bridge.drivers.can_codec import KoalaCanCodec, load_koala_dbc
+        from koala_bridge.drivers.messages import DriverError
+
+        path = self.dbc_path
+        try:
+            return KoalaCanCodec(load_koala_dbc(path))
+        except (OSError, DriverError, ValueError,
+                cantools.database.UnsupportedDatabaseFormatError) as e:
+            if needed if needed is not None else self.enabled:
+                reason = e.strerror if isinstance(e, OSError) and e.strerror else str(e)
+                reason = reason.splitlines()[0] if reason else type(e).__name__
+                raise ConfigError(
+                    f"[buses.can] 'dbc': cannot load the CAN database {str(path)!r}: {reason}"
+                ) from None
+            log.debug("[buses.can] dbc %s not loaded (%s); no CAN bus is on", path, e)
+            return KoalaCanCodec(load_koala_dbc(default_dbc_path()))
 
 
-@dataclass(frozen=True)
+@section
 class MavlinkSettings:
     """``[buses.mavlink]``: the compass as a MAVLink 2 component."""
 
-    enabled: bool
-    transport: str              # "udp" (send to host:port) | "tcp" (listen) | "pty"
-    host: str
-    port: int
-    system_id: int
-    component_id: int
-    heartbeat_hz: float
+    enabled: Bool
+    transport: Annotated[Str, _one_of(MAVLINK_TRANSPORTS)]  # udp (send) | tcp (listen) | pty
+    host: Str
+    port: _PortKey
+    system_id: Annotated[int, Strict(), Field(ge=1, le=255)]
+    component_id: Annotated[int, Strict(), Field(ge=1, le=255)]
+    heartbeat_hz: Positive
 
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> MavlinkSettings:
-        s = "buses.mavlink"
-        reject_unknown(d, [f for f in cls.__dataclass_fields__], s)
-        transport = _get(d, "transport", s, str)
-        if transport not in MAVLINK_TRANSPORTS:
-            choices = ", ".join(MAVLINK_TRANSPORTS)
-            raise ConfigError(f"[{s}] 'transport' must be one of {choices}, got {transport!r}")
-        ids = {}
-        for key in ("system_id", "component_id"):
-            v = _get(d, key, s, int)
-            if not 1 <= v <= 255:
-                raise ConfigError(f"[{s}] '{key}' must be 1..255, got {v}")
-            ids[key] = v
-        port = _port(d, "port", s)
-        if transport == "udp" and port == 0:
+    def __post_init__(self) -> None:
+        if self.transport == "udp" and self.port == 0:
             # UDP: host:port is where the CLIENT listens (the bridge sends datagrams there), so
             # the bridge cannot pick it; tcp listens itself and 0 picks a free port.
             raise ConfigError(
-                f"[{s}] 'port' 0 is not allowed with transport 'udp': host:port is the address "
-                "the client (ground station) listens on and the bridge sends to, so choose it, "
-                "e.g. --set buses.mavlink.port=14551 and connect with udpin:127.0.0.1:14551"
+                "[buses.mavlink] 'port' 0 is not allowed with transport 'udp': host:port is the "
+                "address the client (ground station) listens on and the bridge sends to, so "
+                "choose it, e.g. --set buses.mavlink.port=14551 and connect with "
+                "udpin:127.0.0.1:14551"
             )
-        return cls(
-            enabled=_get(d, "enabled", s, bool),
-            transport=transport,
-            host=_get(d, "host", s, str),
-            port=port,
-            system_id=ids["system_id"],
-            component_id=ids["component_id"],
-            heartbeat_hz=_rate(d, "heartbeat_hz", s),
-        )
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> MavlinkSettings:
+        return validate(cls, d, "buses.mavlink")
 
     def client_url(self, pty_path: str | None = None, bound_port: int | None = None) -> str:
         """The pymavlink connection string a client uses to receive this stream."""
@@ -247,6 +284,21 @@ class MavlinkSettings:
         if pty_path is None:
             raise ValueError("a pty MAVLink link needs its path")
         return pty_path
+
+
+@section
+class KteamSettings:
+    """``[buses.kteam]``: the K-Team ASCII protocol server on a pty."""
+
+    enabled: Bool
+    max_speed: PositiveInt      # largest |speed| K-Team D accepts, pulses per speed unit
+
+
+@section
+class RangefindersSettings:
+    """``[buses.rangefinders]``: binary IR / sonar frames on a pty."""
+
+    enabled: Bool
 
 
 @dataclass(frozen=True)
@@ -263,77 +315,79 @@ class BusesSettings:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> BusesSettings:
         s = "buses"
-        reject_unknown(d, ("motor_watchdog_s", "kteam", "rangefinders", "can", "mavlink"), s)
-        watchdog = float(_get(d, "motor_watchdog_s", s, (int, float)))
-        if watchdog < 0:
-            raise ConfigError(f"[{s}] 'motor_watchdog_s' must be >= 0 (0 = off)")
-        flags = {}
-        for name, keys in (("kteam", ("enabled", "max_speed")), ("rangefinders", ("enabled",))):
-            sub = _section(d, name, s)
-            reject_unknown(sub, keys, f"{s}.{name}")
-            flags[name] = _get(sub, "enabled", f"{s}.{name}", bool)
-        max_speed = _get(_section(d, "kteam", s), "max_speed", f"{s}.kteam", int)
-        if max_speed < 1:
-            raise ConfigError(f"[{s}.kteam] 'max_speed' must be >= 1, got {max_speed}")
+        reject_unknown(d, field_names(_BusesTable) + list(_BUS_TABLES), s)
+        top = validate(_BusesTable, {k: v for k, v in d.items() if k not in _BUS_TABLES}, s)
+        kteam = validate(KteamSettings, _section(d, "kteam", s), f"{s}.kteam")
+        ranges = validate(RangefindersSettings, _section(d, "rangefinders", s),
+                          f"{s}.rangefinders")
         return cls(
-            motor_watchdog_s=watchdog,
-            kteam=flags["kteam"],
-            kteam_max_speed=max_speed,
-            rangefinders=flags["rangefinders"],
+            motor_watchdog_s=top.motor_watchdog_s,
+            kteam=kteam.enabled,
+            kteam_max_speed=kteam.max_speed,
+            rangefinders=ranges.enabled,
             can=CanSettings.from_dict(_section(d, "can", s)),
             mavlink=MavlinkSettings.from_dict(_section(d, "mavlink", s)),
         )
 
 
-@dataclass(frozen=True)
+#: The sub-tables of ``[buses]``, each its own section.
+_BUS_TABLES = ("kteam", "rangefinders", "can", "mavlink")
+
+
+@section
+class _BusesTable:
+    """``[buses]``'s own keys (its sub-tables are :data:`_BUS_TABLES`)."""
+
+    motor_watchdog_s: NonNegative   # 0 = off
+
+
+def _locators(value: tuple[str, ...]) -> tuple[str, ...]:
+    if not all("/" in e for e in value):
+        raise ValueError(
+            f"must be a list of locators like \"tcp/127.0.0.1:7447\", got {list(value)!r}"
+        )
+    return value
+
+
+_Locators = Annotated[tuple[Str, ...], BeforeValidator(tuples), AfterValidator(_locators)]
+
+
+def _no_zero_port(value: tuple[str, ...]) -> tuple[str, ...]:
+    for locator in value:
+        if _ZERO_PORT.search(locator):
+            # Zenoh does not report the port it picked, so neither the banner nor the
+            # endpoints file could tell clients where to connect.
+            raise ValueError(
+                f"locator {locator!r}: port 0 is not supported (the bridge could not tell "
+                "clients which port Zenoh picked); give a free port, e.g. "
+                "--set 'zenoh.listen=[\"tcp/127.0.0.1:7448\"]'"
+            )
+    return value
+
+
+def _plain_prefix(value: str) -> str:
+    if any(c in value for c in "*$?#"):
+        raise ValueError(f"must be a plain key expression, got {value!r}")
+    return value
+
+
+@section
 class ZenohSettings:
     """``[zenoh]``: the session and what it publishes."""
 
-    mode: str
-    listen: tuple[str, ...]
-    connect: tuple[str, ...]
-    multicast_scouting: bool
-    prefix: str                 # resolved: "" in the file means koala/<robot name>
-    pose_rate_hz: float         # truth/pose, in simulation time
-    status_rate_hz: float       # status, in simulation time
+    mode: Annotated[Str, _one_of(("peer", "client"))]
+    listen: Annotated[_Locators, AfterValidator(_no_zero_port)]
+    connect: _Locators
+    multicast_scouting: Bool
+    prefix: Annotated[Str, AfterValidator(_plain_prefix)]   # "" in the file: koala/<robot name>
+    pose_rate_hz: Positive      # truth/pose, in simulation time
+    status_rate_hz: Positive    # status, in simulation time
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], robot_name: str) -> ZenohSettings:
-        s = "zenoh"
-        reject_unknown(d, [f for f in cls.__dataclass_fields__], s)
-        mode = _get(d, "mode", s, str)
-        if mode not in ("peer", "client"):
-            raise ConfigError(f"[{s}] 'mode' must be 'peer' or 'client', got {mode!r}")
-        endpoints = {}
-        for key in ("listen", "connect"):
-            v = _get(d, key, s, list)
-            if not all(isinstance(e, str) and "/" in e for e in v):
-                raise ConfigError(
-                    f"[{s}] '{key}' must be a list of locators like "
-                    f"\"tcp/127.0.0.1:7447\", got {v!r}"
-                )
-            endpoints[key] = tuple(v)
-        for locator in endpoints["listen"]:
-            if _ZERO_PORT.search(locator):
-                # Zenoh does not report the port it picked, so neither the banner nor the
-                # endpoints file could tell clients where to connect.
-                raise ConfigError(
-                    f"[{s}] 'listen' locator {locator!r}: port 0 is not supported (the bridge "
-                    "could not tell clients which port Zenoh picked); give a free port, e.g. "
-                    "--set 'zenoh.listen=[\"tcp/127.0.0.1:7448\"]'"
-                )
-        prefix = _get(d, "prefix", s, str).strip("/") or f"koala/{robot_name}"
-        if any(c in prefix for c in "*$?#"):
-            raise ConfigError(f"[{s}] 'prefix' must be a plain key expression, got {prefix!r}")
-        return cls(
-            mode=mode,
-            listen=endpoints["listen"],
-            connect=endpoints["connect"],
-            multicast_scouting=_get(d, "multicast_scouting", s, bool),
-            prefix=prefix,
-            pose_rate_hz=_rate(d, "pose_rate_hz", s),
-            status_rate_hz=_rate(d, "status_rate_hz", s),
-        )
+        z = validate(cls, d, "zenoh")
+        # resolved: "" in the file means koala/<robot name>
+        return dataclasses.replace(z, prefix=z.prefix.strip("/") or f"koala/{robot_name}")
 
 
 @dataclass(frozen=True)

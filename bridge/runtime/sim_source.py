@@ -33,7 +33,6 @@ from typing import Any
 
 import numpy as np
 from koala_bridge.core.topics import StatusMessage, TruthPose, WorldMessage
-from koala_bridge.drivers.can_codec import KoalaCanCodec
 from koala_bridge.drivers.kteam import KteamLimits, LineSplitter, format_reply, parse_command
 from koala_bridge.drivers.mavlink_codec import CompassDecoder, CompassEncoder, MavlinkIdentity
 from koala_bridge.drivers.messages import (
@@ -103,7 +102,7 @@ class SimulatedRobotSource:
             self.units,
             KteamLimits(max_speed=settings.buses.kteam_max_speed, sensors=self.port.n_ir),
         )
-        self.can_codec = KoalaCanCodec()
+        self.can_codec = settings.buses.can.codec()   # [buses.can] dbc
         mav = settings.buses.mavlink
         self.mav_encoder = CompassEncoder(MavlinkIdentity(mav.system_id, mav.component_id))
         self.buses = OpenBuses()
@@ -125,7 +124,7 @@ class SimulatedRobotSource:
         # The estimator node ([localisation]): fed with the frames this service puts on the
         # buses (_send_bytes, _send_can) and the camera's observations (no bus); None when off.
         self.localisation = LocalisationNode.from_config(
-            config, self.sim.config, self._publish_estimate
+            config, self.sim.config, self._publish_estimate, can_codec=self.can_codec
         )
 
     # -- lifecycle ---------------------------------------------------------------------------

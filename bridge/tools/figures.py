@@ -145,7 +145,8 @@ def range_error_tables(out: Path) -> None:
 def gyro_heading_error(out: Path) -> None:
     """Integrated gyro heading error at rest: ARW (sqrt t) and bias random walk (t^1.5)."""
     plt = _plt()
-    p = gyro.GyroErrorParams(gyroscope_noise_density=1.6968e-4, gyroscope_random_walk=1.9393e-5)
+    p = gyro.GyroErrorParams(gyroscope_noise_density=1.6968e-4, gyroscope_random_walk=1.9393e-5,
+                             turn_on_bias_sigma=0.0, scale_noise=0.0)  # the two densities only
     dt, n, runs = 0.01, 6000, 400
     rng = np.random.default_rng(1)
     rates, _ = gyro.measure_batch(np.zeros((runs, n)), dt, np.zeros(runs), p, rng)

@@ -55,17 +55,23 @@ perturbs comes from ``sim/sensors/camera.py``, its factory :func:`error_model` i
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
 from typing import Any, ClassVar
 
 import numpy as np
 from koala_bridge.core.geometry import wrap_angle
-from koala_bridge.core.schema import ConfigError
+from koala_bridge.core.schema import (
+    Bool,
+    ConfigError,
+    NonNegative,
+    Positive,
+    Probability,
+    section,
+)
 from koala_bridge.sim.models import _kernels
 from koala_bridge.sim.models._params import (
-    check_nonnegative,
-    check_positive,
-    check_probability,
     params_from_dict,
 )
 from koala_bridge.sim.noise import Variates
@@ -73,36 +79,35 @@ from koala_bridge.sim.sensors.camera import CameraTruth
 from koala_bridge.sim.types import CameraReading, LandmarkObservation
 
 
-@dataclass(frozen=True)
+@section
 class CameraErrorParams:
-    """``[sensors.camera]`` error-model keys. Distances in m, angles in degrees."""
+    """``[sensors.camera]`` error-model keys. Distances in m, angles in degrees.
+
+    Keyword defaults are the values of ``config/default.toml`` (sim/models/_params.py).
+    """
 
     # Keys of the sensor's table that the sensor's config owns and hands over (sim/config.py).
     FROM_SENSOR: ClassVar[tuple[str, ...]] = ("ideal", "min_range_m", "max_range_m")
+    # The values of this model's error terms that mean "no such error" (not config defaults):
+    # what `koala-bridge calibrate --write-config` writes for the terms it did not measure when
+    # it switches the model on (bridge/calibration/config_update.py).
+    ABSENT: ClassVar[Mapping[str, Any]] = MappingProxyType({})
 
-    ideal: bool = False
-    p_perc: float = 0.01              # eq. 5: miss probability at 0°, near range (Figure 2)
-    p_recog: float = 0.01             # eq. 9: wrong-id probability at 0°, near range
+    ideal: Bool = False
+    p_perc: Probability = 0.01        # eq. 5: miss probability at 0°, near range (Figure 2)
+    p_recog: Probability = 0.01       # eq. 9: wrong-id probability at 0°, near range
     # eq. 6 d_min / d_max (shared with the camera's field of view in [sensors.camera]):
-    min_range_m: float = 0.1          # minimum sight distance; nearer is not perceived
-    max_range_m: float = 3.0          # maximum sight distance; P_miss = 1 there
-    distance_base: float = 2.0        # eq. 6: "exponential at base 2"
-    dist: float = 0.05                # eq. 10–12: relative distance error (+-dist at d_mid)
-    d_mid_m: float = 1.0              # eq. 11: medium sight distance
-    far_doubling_m: float = 1.0       # eq. 11: distance over which the far error doubles
-    bearing_sigma_deg: float = 2.0    # eq. 14: alpha_ang
+    min_range_m: NonNegative = 0.1    # minimum sight distance; nearer is not perceived
+    max_range_m: Positive = 4.0       # maximum sight distance; P_miss = 1 there
+    distance_base: Positive = 2.0     # eq. 6: "exponential at base 2"
+    dist: NonNegative = 0.05          # eq. 10–12: relative distance error (+-dist at d_mid)
+    d_mid_m: Positive = 1.0           # eq. 11: medium sight distance
+    far_doubling_m: Positive = 1.0    # eq. 11: distance over which the far error doubles
+    bearing_sigma_deg: NonNegative = 2.0  # eq. 14: alpha_ang
 
     def __post_init__(self) -> None:
-        check_probability(self.p_perc, "p_perc")
-        check_probability(self.p_recog, "p_recog")
-        check_nonnegative(self.min_range_m, "min_range_m")
         if not self.max_range_m > self.min_range_m:
             raise ConfigError("'max_range_m' must be > 'min_range_m'")
-        check_positive(self.distance_base, "distance_base")
-        check_nonnegative(self.dist, "dist")
-        check_positive(self.d_mid_m, "d_mid_m")
-        check_positive(self.far_doubling_m, "far_doubling_m")
-        check_nonnegative(self.bearing_sigma_deg, "bearing_sigma_deg")
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], section: str = "sensors.camera") -> CameraErrorParams:

@@ -32,13 +32,21 @@ perturbs comes from ``sim/sensors/compass.py``, its factory :func:`error_model` 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+from collections.abc import Mapping, Sequence
+from types import MappingProxyType
 from typing import Any, ClassVar
 
 import numpy as np
-from koala_bridge.core.schema import ConfigError
-from koala_bridge.sim.models._params import check_nonnegative, params_from_dict
+from koala_bridge.core.schema import (
+    Bool,
+    ConfigError,
+    Finite,
+    FloatTuple,
+    NestedFloats,
+    NonNegative,
+    section,
+)
+from koala_bridge.sim.models._params import params_from_dict
 from koala_bridge.sim.noise import BlockStream, Variates
 from koala_bridge.sim.sensors.compass import CompassTruth
 from koala_bridge.sim.types import CompassReading
@@ -48,19 +56,30 @@ def _identity() -> tuple[tuple[float, ...], ...]:
     return ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 
 
-@dataclass(frozen=True)
+@section
 class CompassErrorParams:
-    """``[sensors.compass]`` error-model keys. Field in microtesla, body frame FLU."""
+    """``[sensors.compass]`` error-model keys. Field in microtesla, body frame FLU.
+
+    Keyword defaults are the values of ``config/default.toml`` (sim/models/_params.py).
+    """
 
     # Keys of the sensor's table that the sensor's config owns and hands over (sim/config.py).
     FROM_SENSOR: ClassVar[tuple[str, ...]] = ("ideal",)
+    # The values of this model's error terms that mean "no such error" (not config defaults):
+    # what `koala-bridge calibrate --write-config` writes for the terms it did not measure when
+    # it switches the model on (bridge/calibration/config_update.py).
+    ABSENT: ClassVar[Mapping[str, Any]] = MappingProxyType({
+        "hard_iron_uT": (0.0, 0.0, 0.0), "soft_iron": _identity(),
+        "motor_uT_per_A": ((0.0, 0.0), (0.0, 0.0), (0.0, 0.0)), "motor_current_A_per_mps": 0.0,
+        "noise_sigma_uT": 0.0})
 
-    ideal: bool = False
-    hard_iron_uT: tuple[float, ...] = (0.0, 0.0, 0.0)
-    soft_iron: tuple[tuple[float, ...], ...] = field(default_factory=_identity)
-    motor_uT_per_A: tuple[tuple[float, ...], ...] = ((0.0, 0.0), (0.0, 0.0), (0.0, 0.0))
-    motor_current_A_per_mps: float = 0.0
-    noise_sigma_uT: float = 0.0
+    ideal: Bool = False
+    hard_iron_uT: FloatTuple = (4.0, -2.5, 1.0)
+    soft_iron: NestedFloats = ((1.02, 0.01, 0.0), (0.01, 0.98, 0.0), (0.0, 0.0, 1.0))
+    # rows x, y, z; columns left, right motor
+    motor_uT_per_A: NestedFloats = ((0.8, -0.8), (0.5, 0.5), (0.3, 0.3))
+    motor_current_A_per_mps: Finite = 1.0   # motor current per wheel speed
+    noise_sigma_uT: NonNegative = 0.3
 
     def __post_init__(self) -> None:
         if np.shape(self.hard_iron_uT) != (3,):
@@ -69,7 +88,6 @@ class CompassErrorParams:
             raise ConfigError("'soft_iron' must be a 3x3 matrix (3 rows of 3)")
         if np.shape(self.motor_uT_per_A) != (3, 2):
             raise ConfigError("'motor_uT_per_A' must be 3 rows [left, right] (uT per A)")
-        check_nonnegative(self.noise_sigma_uT, "noise_sigma_uT")
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], section: str = "sensors.compass") -> CompassErrorParams:

@@ -43,33 +43,39 @@ perturbs comes from ``sim/robot.py``, its factory :func:`error_model` is registe
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Mapping
+from types import MappingProxyType
 from typing import Any, ClassVar
 
 import numpy as np
 from koala_bridge.core.geometry import wrap_angle
-from koala_bridge.core.schema import ConfigError
-from koala_bridge.sim.models._params import check_nonnegative, check_positive, params_from_dict
+from koala_bridge.core.schema import Bool, ConfigError, NonNegative, Positive, Probability, section
+from koala_bridge.sim.models._params import params_from_dict
 from koala_bridge.sim.noise import BlockStream, Variates, rate_scaled_sigma
 from koala_bridge.sim.robot import Motion, RobotState, arc_displacement
 
 
-@dataclass(frozen=True)
+@section
 class DriveErrorParams:
-    """``[robot.drive_error]``. Units: fractions (relative sigma), Hz."""
+    """``[robot.drive_error]``. Units: fractions (relative sigma), Hz.
+
+    Keyword defaults are the values of ``config/default.toml`` (sim/models/_params.py).
+    """
 
     # Keys of the sensor's table that the sensor's config owns and hands over (sim/config.py).
     FROM_SENSOR: ClassVar[tuple[str, ...]] = ("ideal",)
+    # The values of this model's error terms that mean "no such error" (not config defaults):
+    # what `koala-bridge calibrate --write-config` writes for the terms it did not measure when
+    # it switches the model on (bridge/calibration/config_update.py).
+    ABSENT: ClassVar[Mapping[str, Any]] = MappingProxyType({"drive_error": 0.0})
 
-    ideal: bool = False
-    drive_error: float = 0.0          # seeds/000 eq. 3–4 "Drive": relative sigma per wheel step
-    reference_rate_hz: float = 200.0  # step rate at which drive_error is the per-step sigma
-    wall_traction_min: float = 1.0    # fraction of each wheel's step realised in wall contact
-    wall_traction_max: float = 1.0
+    ideal: Bool = False
+    drive_error: NonNegative = 0.1       # seeds/000 eq. 3–4 "Drive": relative sigma per wheel step
+    reference_rate_hz: Positive = 100.0  # step rate at which drive_error is the per-step sigma
+    wall_traction_min: Probability = 0.3  # fraction of each wheel's step realised in wall contact
+    wall_traction_max: Probability = 0.9
 
     def __post_init__(self) -> None:
-        check_nonnegative(self.drive_error, "drive_error")
-        check_positive(self.reference_rate_hz, "reference_rate_hz")
         if not 0.0 <= self.wall_traction_min <= self.wall_traction_max <= 1.0:
             raise ConfigError("need 0 <= wall_traction_min <= wall_traction_max <= 1")
 

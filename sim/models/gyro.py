@@ -34,39 +34,46 @@ perturbs comes from ``sim/sensors/gyro.py``, its factory :func:`error_model` is 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from types import MappingProxyType
+from typing import Annotated, Any, ClassVar
 
 import numpy as np
-from koala_bridge.sim.models._params import check_nonnegative, check_positive, params_from_dict
+from koala_bridge.core.schema import Bool, Finite, FloatOrInf, NonNegative, Positive, section
+from koala_bridge.sim.models._params import params_from_dict
 from koala_bridge.sim.noise import BlockStream, Variates, gauss_markov_step, rate_scaled_sigma
 from koala_bridge.sim.sensors.gyro import GyroTruth
 from koala_bridge.sim.types import GyroReading
+from pydantic import Field
 
 
-@dataclass(frozen=True)
+@section
 class GyroErrorParams:
-    """``[sensors.gyro]`` error-model keys (SI units; Kalibr names for the two densities)."""
+    """``[sensors.gyro]`` error-model keys (SI units; Kalibr names for the two densities).
+
+    Keyword defaults are the values of ``config/default.toml`` (sim/models/_params.py).
+    """
 
     # Keys of the sensor's table that the sensor's config owns and hands over (sim/config.py).
     FROM_SENSOR: ClassVar[tuple[str, ...]] = ("ideal",)
+    # The values of this model's error terms that mean "no such error" (not config defaults):
+    # what `koala-bridge calibrate --write-config` writes for the terms it did not measure when
+    # it switches the model on (bridge/calibration/config_update.py).
+    ABSENT: ClassVar[Mapping[str, Any]] = MappingProxyType({
+        "gyroscope_noise_density": 0.0, "gyroscope_random_walk": 0.0, "bias_rad_s": 0.0,
+        "turn_on_bias_sigma": 0.0, "scale_factor_error": 0.0, "scale_noise": 0.0})
 
-    ideal: bool = False
-    gyroscope_noise_density: float = 0.0     # rad/s/sqrt(Hz), white noise (ARW)
-    gyroscope_random_walk: float = 0.0       # rad/s^2/sqrt(Hz), bias random walk
-    bias_correlation_time_s: float = math.inf  # inf: pure random walk (Kalibr)
-    bias_rad_s: float = 0.0                  # rad/s, fixed bias (mean of b(0))
-    turn_on_bias_sigma: float = 0.0          # rad/s, drawn once at reset
-    scale_factor_error: float = 0.0          # fixed relative scale error s
-    scale_noise: float = 0.0                 # seeds/000 eq. 15 sigma_Gyroscope, per sample
-    reference_rate_hz: float = 100.0         # sample rate at which scale_noise is per-sample
-
-    def __post_init__(self) -> None:
-        for name in ("gyroscope_noise_density", "gyroscope_random_walk", "turn_on_bias_sigma",
-                     "scale_noise"):
-            check_nonnegative(getattr(self, name), name)
-        check_positive(self.bias_correlation_time_s, "bias_correlation_time_s")
-        check_positive(self.reference_rate_hz, "reference_rate_hz")
+    ideal: Bool = False
+    gyroscope_noise_density: NonNegative = 1.6968e-4  # rad/s/sqrt(Hz), white noise (ARW)
+    gyroscope_random_walk: NonNegative = 1.9393e-5    # rad/s^2/sqrt(Hz), bias random walk
+    # s; inf: pure random walk (Kalibr); finite: Gauss-Markov
+    bias_correlation_time_s: Annotated[FloatOrInf, Field(gt=0)] = math.inf
+    bias_rad_s: Finite = 0.0                 # rad/s, fixed bias (mean of b(0))
+    turn_on_bias_sigma: NonNegative = 0.002  # rad/s, drawn once at reset
+    scale_factor_error: Finite = 0.0         # fixed relative scale error s
+    scale_noise: NonNegative = 0.01          # seeds/000 eq. 15 sigma_Gyroscope, per sample
+    reference_rate_hz: Positive = 100.0      # sample rate at which scale_noise is per-sample
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], section: str = "sensors.gyro") -> GyroErrorParams:

@@ -34,12 +34,15 @@ comes from ``sim/sensors/ir.py``, its factory :func:`error_model` is registered 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import field
+from types import MappingProxyType
 from typing import Any, ClassVar
 
 import numpy as np
+from koala_bridge.core.schema import Bool, FloatTuple, NonNegative, Positive, PositiveInt, section
 from koala_bridge.sim.models import _kernels
-from koala_bridge.sim.models._params import check_nonnegative, check_positive, params_from_dict
+from koala_bridge.sim.models._params import Table, params_from_dict
 from koala_bridge.sim.noise import LookupTable, Variates
 from koala_bridge.sim.sensors.base import fan_offsets
 from koala_bridge.sim.sensors.ir import IrTruth
@@ -53,33 +56,35 @@ def _seed004_ir_table() -> LookupTable:
     )
 
 
-@dataclass(frozen=True)
+@section
 class IrErrorParams:
-    """``[sensors.ir]`` error-model keys. Distances in m, counts 0..max_counts."""
+    """``[sensors.ir]`` error-model keys. Distances in m, counts 0..max_counts.
+
+    Keyword defaults are the values of ``config/default.toml`` (sim/models/_params.py).
+    """
 
     # Keys of the sensor's table that the sensor's config owns and hands over (sim/config.py).
     FROM_SENSOR: ClassVar[tuple[str, ...]] = ("ideal", "ambient_counts", "max_counts")
+    # The values of this model's error terms that mean "no such error" (not config defaults):
+    # what `koala-bridge calibrate --write-config` writes for the terms it did not measure when
+    # it switches the model on (bridge/calibration/config_update.py).
+    ABSENT: ClassVar[Mapping[str, Any]] = MappingProxyType({
+        "count_noise_sigma": 0.0, "ambient_noise_counts": 0.0, "ambient_saturation": 0.0,
+        "per_sensor_offset_counts": ()})
 
-    ideal: bool = False
-    distance_error: LookupTable = field(default_factory=_seed004_ir_table)
-    gaussian_width: float = 1.0        # Webots DistanceSensor.gaussianWidth
-    reflectivity: float = 1.0          # walls' IR reflectivity relative to the response's white
-    count_noise_sigma: float = 0.0     # electrical noise, counts
-    ambient_counts: float = 0.0        # ambient light level A, counts
-    ambient_noise_counts: float = 0.0
-    ambient_saturation: float = 0.0    # proximity loss at full-scale ambient light, fraction
-    max_counts: int = 1023
+    ideal: Bool = False
+    distance_error: Table = field(default_factory=_seed004_ir_table)
+    gaussian_width: Positive = 1.0         # Webots DistanceSensor.gaussianWidth
+    reflectivity: NonNegative = 1.0        # walls' IR reflectivity relative to the response's white
+    count_noise_sigma: NonNegative = 2.0   # electrical noise, counts
+    ambient_counts: NonNegative = 450.0    # ambient light level A, counts
+    ambient_noise_counts: NonNegative = 3.0
+    ambient_saturation: NonNegative = 0.05  # proximity loss at full-scale ambient light, fraction
+    max_counts: PositiveInt = 1023
     # Per-sensor offset of the counts (a sensor's own emitter/receiver gain and ambient leak, as
     # `koala-bridge calibrate` measures it: effect offset_per:sensor); () = none, else one value
     # per sensor (sim/config.py checks the length).
-    per_sensor_offset_counts: tuple[float, ...] = ()
-
-    def __post_init__(self) -> None:
-        check_positive(self.gaussian_width, "gaussian_width")
-        for name in ("reflectivity", "count_noise_sigma", "ambient_counts", "ambient_noise_counts",
-                     "ambient_saturation"):
-            check_nonnegative(getattr(self, name), name)
-        check_positive(self.max_counts, "max_counts")
+    per_sensor_offset_counts: FloatTuple = ()
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], section: str = "sensors.ir") -> IrErrorParams:

@@ -39,16 +39,26 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from types import MappingProxyType
+from typing import Annotated, Any, ClassVar
 
 import numpy as np
-from koala_bridge.core.schema import ConfigError
+from koala_bridge.core.schema import (
+    Bool,
+    ConfigError,
+    NestedFloats,
+    NonNegative,
+    Probability,
+    section,
+)
 from koala_bridge.sim.models import _kernels
-from koala_bridge.sim.models._params import check_nonnegative, check_probability, params_from_dict
+from koala_bridge.sim.models._params import Table, params_from_dict
 from koala_bridge.sim.noise import LookupTable, Variates
 from koala_bridge.sim.sensors.sonar import SonarTruth
 from koala_bridge.sim.types import SonarReading
+from pydantic import Field
 
 
 def _seed004_us_table() -> LookupTable:
@@ -58,28 +68,33 @@ def _seed004_us_table() -> LookupTable:
     )
 
 
-@dataclass(frozen=True)
+@section
 class SonarErrorParams:
-    """``[sensors.sonar]`` error-model keys."""
+    """``[sensors.sonar]`` error-model keys.
+
+    Keyword defaults are the values of ``config/default.toml`` (sim/models/_params.py).
+    """
 
     # Keys of the sensor's table that the sensor's config owns and hands over (sim/config.py).
     FROM_SENSOR: ClassVar[tuple[str, ...]] = ("ideal", "min_range_m")
+    # The values of this model's error terms that mean "no such error" (not config defaults):
+    # what `koala-bridge calibrate --write-config` writes for the terms it did not measure when
+    # it switches the model on (bridge/calibration/config_update.py).
+    ABSENT: ClassVar[Mapping[str, Any]] = MappingProxyType({
+        "late_echo_probability": 0.0, "crosstalk_probability": 0.0, "glitch_probability": 0.0,
+        "firing_groups": ()})
 
-    ideal: bool = False
-    distance_error: LookupTable = field(default_factory=_seed004_us_table)
-    critical_angle_deg: float = 22.5     # Webots sonar: rays beyond pi/8 incidence are lost
-    late_echo_probability: float = 0.0   # lost echo returns via a second surface
-    crosstalk_probability: float = 0.0   # per pair of sensors fired together, per cycle
-    glitch_probability: float = 0.0      # per reading
-    min_range_m: float = 0.0             # lower end of a glitch's uniform value
-    firing_groups: tuple[tuple[float, ...], ...] = ()   # () = all sonars fired together
+    ideal: Bool = False
+    distance_error: Table = field(default_factory=_seed004_us_table)
+    critical_angle_deg: Annotated[NonNegative, Field(le=90)] = 22.5  # beyond pi/8: lost (Webots)
+    late_echo_probability: Probability = 0.3   # lost echo returns via a second surface
+    crosstalk_probability: Probability = 0.05  # per pair of sensors fired together, per cycle
+    glitch_probability: Probability = 0.002    # per reading
+    min_range_m: NonNegative = 0.25            # lower end of a glitch's uniform value
+    # () = all sonars fired together; the default: one after the other (Koala 2.5 manual 4.1)
+    firing_groups: NestedFloats = tuple((float(i),) for i in range(9))
 
     def __post_init__(self) -> None:
-        if not 0.0 <= self.critical_angle_deg <= 90.0:
-            raise ConfigError("'critical_angle_deg' must be in [0, 90]")
-        for name in ("late_echo_probability", "crosstalk_probability", "glitch_probability"):
-            check_probability(getattr(self, name), name)
-        check_nonnegative(self.min_range_m, "min_range_m")
         for g in self.firing_groups:
             if any(int(i) != i or i < 0 for i in g):
                 raise ConfigError("'firing_groups' must be lists of sensor indices")

@@ -61,6 +61,17 @@ def held_tcp_port() -> Iterator[int]:
     (["--clock", "bogus"], ["--clock", "invalid choice: 'bogus'", "--help"]),
     (["--seed", "x"], ["--seed", "invalid int value"]),
     (["--set", "novalue"], ["override must look like section.key=value"]),
+    # the schema's policy (config/README.md "Policy"): strict types, finite ranges, full names
+    (["--set", "robot.wheel_base_m=true"], ["[robot] 'wheel_base_m' must be a number"]),
+    (["--set", 'robot.wheel_base_m="0.285"'], ["'wheel_base_m' must be a number, got '0.285'"]),
+    (["--set", "sim.dt_s=1e-9"], ["[sim] 'dt_s' must be >= 0.0001"]),
+    (["--set", "world.earth_field.horizontal_uT=nan"], ["'horizontal_uT' must be a finite"]),
+    (["--set", "sensors.sonar.late_echo_probabilty=0.3"],
+     ["did you mean 'late_echo_probability' (sensors.sonar.late_echo_probability)"]),
+    (["--set", 'zenoh.listen=["tcp/127.0.0.1:7447"'], ["override zenoh.listen:",
+                                                       "is not a TOML value"]),
+    (["--set", 'buses.can.dbc="nonexistent.dbc"'], ["[buses.can] 'dbc': cannot load",
+                                                    "nonexistent.dbc"]),
     (["--bogus"], ["unrecognized arguments: --bogus", "koala-bridge run --help"]),
 ])
 def test_run_mistakes_are_one_line_exit_2(tmp_path: Path, args: list[str],
@@ -123,6 +134,14 @@ def test_a_ground_station_on_the_mavlink_udp_port_is_not_an_error(tmp_path: Path
         assert gcs.recv(4096)[0] == 0xFD  # a MAVLink 2 packet
     # Run from outside the repository: the default config is the installation's.
     assert "Stopped at t = 1.000 s" in p.stdout
+
+
+def test_a_missing_dbc_does_not_matter_with_every_can_bus_off(tmp_path: Path) -> None:
+    p = koala(tmp_path, "run", "--clock", "fast", "--duration", "0.1", *free_ports(),
+              "--set", 'buses.can.dbc="nonexistent.dbc"', "--set", "buses.can.socketcand=false",
+              "--set", "buses.can.slcan=false", "--set", "buses.can.virtual=false")
+    assert p.returncode == 0, p.stderr
+    assert "CAN database (DBC)" in p.stdout and "nonexistent.dbc" not in p.stdout
 
 
 def test_unwritable_endpoints_file(tmp_path: Path) -> None:

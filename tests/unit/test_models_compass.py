@@ -12,12 +12,24 @@ from koala_bridge.core.schema import ConfigError
 from koala_bridge.sim.models.compass import CompassErrorParams, measure
 from koala_bridge.sim.sensors.compass import field_body as world_to_body
 
+# The error terms these tests do not study, off (config/default.toml switches them on; the
+# params' keyword defaults are its values, tests/unit/test_config_schema.py).
+QUIET = {"hard_iron_uT": (0.0, 0.0, 0.0),
+         "soft_iron": ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)),
+         "motor_uT_per_A": ((0.0, 0.0), (0.0, 0.0), (0.0, 0.0)), "motor_current_A_per_mps": 0.0,
+         "noise_sigma_uT": 0.0}
+
+
+def make_params(**kw: object) -> CompassErrorParams:
+    """CompassErrorParams with :data:`QUIET` under ``kw``."""
+    return CompassErrorParams(**{**QUIET, **kw})  # type: ignore[arg-type]
+
 EARTH = np.array([0.0, 20.0, -43.0])   # north along +y
 
 
 def test_hard_soft_iron_motor_and_noise_statistics() -> None:
     s = ((1.05, 0.02, 0.0), (0.02, 0.97, 0.0), (0.0, 0.0, 1.0))
-    p = CompassErrorParams(hard_iron_uT=(3.0, -2.0, 1.0), soft_iron=s,
+    p = make_params(hard_iron_uT=(3.0, -2.0, 1.0), soft_iron=s,
                            motor_uT_per_A=((0.5, -0.5), (1.0, 1.0), (0.0, 0.0)),
                            motor_current_A_per_mps=2.0, noise_sigma_uT=0.4)
     rng = np.random.default_rng(30)
@@ -35,7 +47,7 @@ def test_hard_soft_iron_motor_and_noise_statistics() -> None:
 
 def test_ideal_and_shape_checks() -> None:
     b = world_to_body(EARTH, 1.0)
-    out = measure(b, (0.5, 0.5), CompassErrorParams(ideal=True, noise_sigma_uT=5.0),
+    out = measure(b, (0.5, 0.5), make_params(ideal=True, noise_sigma_uT=5.0),
                   np.random.default_rng(1))
     assert np.array_equal(out, b)
     with pytest.raises(ConfigError):

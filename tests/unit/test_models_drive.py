@@ -15,11 +15,21 @@ from koala_bridge.sim.models.drive import (
     perturb_wheel_steps,
 )
 
+# The error terms these tests do not study, off (config/default.toml switches them on; the
+# params' keyword defaults are its values, tests/unit/test_config_schema.py).
+QUIET = {"drive_error": 0.0, "reference_rate_hz": 200.0, "wall_traction_min": 1.0,
+         "wall_traction_max": 1.0}
+
+
+def make_params(**kw: object) -> DriveErrorParams:
+    """DriveErrorParams with :data:`QUIET` under ``kw``."""
+    return DriveErrorParams(**{**QUIET, **kw})  # type: ignore[arg-type]
+
 B = 0.30  # wheel base used by these tests, m
 
 
 def test_ideal_returns_commanded_steps_and_draws_nothing() -> None:
-    p = DriveErrorParams(ideal=True, drive_error=0.5)
+    p = make_params(ideal=True, drive_error=0.5)
     rng = np.random.default_rng(1)
     state = rng.bit_generator.state
     assert perturb_wheel_steps(0.001, -0.002, 200.0, p, rng) == (0.001, -0.002)
@@ -27,7 +37,7 @@ def test_ideal_returns_commanded_steps_and_draws_nothing() -> None:
 
 
 def test_single_step_relative_error_is_gaussian_with_drive_sigma() -> None:
-    p = DriveErrorParams(drive_error=0.1, reference_rate_hz=200.0)
+    p = make_params(drive_error=0.1, reference_rate_hz=200.0)
     rng = np.random.default_rng(2)
     steps = np.array([perturb_wheel_steps(0.001, 0.002, 200.0, p, rng) for _ in range(20000)])
     assert_normal_variance(steps[:, 0] / 0.001 - 1.0, 0.01, mean=0.0, wrong=0.0125)
@@ -38,7 +48,7 @@ def test_single_step_relative_error_is_gaussian_with_drive_sigma() -> None:
 def test_heading_error_of_a_straight_run_matches_eq2_and_is_rate_invariant(step_hz: float) -> None:
     """Drive 0.3 m straight at 0.2 m/s; heading error variance = sigma^2 sum(l^2+r^2)/b^2 with the
     per-step sigma rescaled to the step rate, i.e. the same at 200 and 400 Hz."""
-    p = DriveErrorParams(drive_error=0.2, reference_rate_hz=200.0)
+    p = make_params(drive_error=0.2, reference_rate_hz=200.0)
     rng = np.random.default_rng(3)
     n_steps = int(1.5 * step_hz)
     step = 0.2 / step_hz
@@ -60,7 +70,7 @@ def test_heading_error_of_a_straight_run_matches_eq2_and_is_rate_invariant(step_
 
 
 def test_wall_contact_realises_a_uniform_fraction_of_each_step() -> None:
-    p = DriveErrorParams(drive_error=0.0, wall_traction_min=0.2, wall_traction_max=0.6)
+    p = make_params(drive_error=0.0, wall_traction_min=0.2, wall_traction_max=0.6)
     rng = np.random.default_rng(4)
     f = np.array([perturb_wheel_steps(1.0, 1.0, 200.0, p, rng, in_contact=True)
                   for _ in range(20000)])
@@ -82,7 +92,7 @@ def test_integrate_wheel_steps_arc_and_turn() -> None:
 
 
 def test_same_seed_same_stream() -> None:
-    p = DriveErrorParams(drive_error=0.1, wall_traction_min=0.5)
+    p = make_params(drive_error=0.1, wall_traction_min=0.5)
     a = [perturb_wheel_steps(0.001, 0.001, 200.0, p, np.random.default_rng(7), True)
          for _ in range(3)]
     b = [perturb_wheel_steps(0.001, 0.001, 200.0, p, np.random.default_rng(7), True)

@@ -10,6 +10,16 @@ from _stats import assert_mean, assert_normal_variance
 from koala_bridge.sim.models.ir import IrErrorParams, counts_from_distances, measure, ray_weights
 from koala_bridge.sim.noise import LookupTable
 
+# The error terms these tests do not study, off (config/default.toml switches them on; the
+# params' keyword defaults are its values, tests/unit/test_config_schema.py).
+QUIET = {"count_noise_sigma": 0.0, "ambient_counts": 0.0, "ambient_noise_counts": 0.0,
+         "ambient_saturation": 0.0}
+
+
+def make_params(**kw: object) -> IrErrorParams:
+    """IrErrorParams with :data:`QUIET` under ``kw``."""
+    return IrErrorParams(**{**QUIET, **kw})  # type: ignore[arg-type]
+
 OFFSETS = np.array([-0.015, 0.0, 0.015])    # seeds/004: aperture 0.03 rad, 3 rays
 # Linear response 10000 counts/m over [0, 1.1] m, so a distance error maps onto counts by a known
 # slope and the rounding to integer counts (variance 1/12) is small against the spread.
@@ -40,7 +50,7 @@ def test_response_table_and_reflectivity() -> None:
                                           (1.00, 0.03), (0.80, 0.02125)])
 def test_distance_error_spread_follows_the_seed004_table(d: float, sigma: float) -> None:
     """Counts variance = (slope * sigma(d))^2 + 1/12 (rounding to integer counts)."""
-    p = IrErrorParams(max_counts=20000)
+    p = make_params(max_counts=20000)
     rng = np.random.default_rng(int(d * 100))
     n = 20000
     counts, _, truth = measure(np.full((n, 3), d), OFFSETS, LINEAR, p, rng)
@@ -51,7 +61,7 @@ def test_distance_error_spread_follows_the_seed004_table(d: float, sigma: float)
 
 
 def test_ambient_light_reading_and_saturation() -> None:
-    p = IrErrorParams(max_counts=40000, ambient_counts=4000.0,
+    p = make_params(max_counts=40000, ambient_counts=4000.0,
                       ambient_noise_counts=10.0, ambient_saturation=0.5,
                       distance_error=LookupTable.from_rows([[0, 0], [1, 0]]))
     rng = np.random.default_rng(40)
@@ -63,15 +73,15 @@ def test_ambient_light_reading_and_saturation() -> None:
 
 
 def test_count_noise_and_ideal() -> None:
-    p = IrErrorParams(max_counts=20000, count_noise_sigma=5.0,
+    p = make_params(max_counts=20000, count_noise_sigma=5.0,
                       distance_error=LookupTable.from_rows([[0, 0], [1, 0]]))
     counts, _, truth = measure(np.full((20000, 3), 0.5), OFFSETS, LINEAR, p,
                                np.random.default_rng(41))
     assert_normal_variance(counts - truth.astype(float), 25.0 + 1 / 12, mean=0.0, wrong=30.0)
-    ideal = IrErrorParams(ideal=True, count_noise_sigma=50.0)
+    ideal = make_params(ideal=True, count_noise_sigma=50.0)
     c, _, t = measure(np.full((4, 3), 0.05), OFFSETS, KOALA, ideal, np.random.default_rng(1))
     assert np.array_equal(c, t)
     # out of range rays give the table's last value (0 counts), counts stay in [0, max]
-    c, _, _ = measure(np.full((2, 3), np.inf), OFFSETS, KOALA, IrErrorParams(count_noise_sigma=3.0),
+    c, _, _ = measure(np.full((2, 3), np.inf), OFFSETS, KOALA, make_params(count_noise_sigma=3.0),
                       np.random.default_rng(2))
     assert np.all((c >= 0) & (c <= 1023))

@@ -13,6 +13,16 @@ from _stats import assert_mean, assert_normal_variance, assert_rate, assert_unif
 from koala_bridge.sim.models.sonar import SonarErrorParams, measure, reflect, same_cycle
 from koala_bridge.sim.noise import LookupTable
 
+# The error terms these tests do not study, off (config/default.toml switches them on; the
+# params' keyword defaults are its values, tests/unit/test_config_schema.py).
+QUIET = {"late_echo_probability": 0.0, "crosstalk_probability": 0.0,
+         "glitch_probability": 0.0, "min_range_m": 0.0, "firing_groups": ()}
+
+
+def make_params(**kw: object) -> SonarErrorParams:
+    """SonarErrorParams with :data:`QUIET` under ``kw``."""
+    return SonarErrorParams(**{**QUIET, **kw})  # type: ignore[arg-type]
+
 N = 20000
 MAXR = 3.0
 
@@ -21,7 +31,7 @@ MAXR = 3.0
                                           (1.00, 0.066), (0.45, 0.016)])
 def test_error_spread_at_the_seed004_table_ranges(d: float, sigma: float) -> None:
     rng = np.random.default_rng(int(d * 1000))
-    r = measure(np.full((N, 1), d), np.zeros((N, 1)), MAXR, SonarErrorParams(), rng)
+    r = measure(np.full((N, 1), d), np.zeros((N, 1)), MAXR, make_params(), rng)
     # power: IR's +-3% table instead of the ultrasonic +-6.6% one
     assert_normal_variance(r.ranges - d, sigma**2, mean=0.0, wrong=(sigma * 0.03 / 0.066) ** 2
                            if d >= 0.3 else (sigma * 1.5) ** 2)
@@ -29,7 +39,7 @@ def test_error_spread_at_the_seed004_table_ranges(d: float, sigma: float) -> Non
 
 
 def test_no_echo_beyond_the_critical_angle() -> None:
-    p = SonarErrorParams(critical_angle_deg=22.5)
+    p = make_params(critical_angle_deg=22.5)
     rays = np.full((N, 5), 1.0)
     inc = np.full((N, 5), math.radians(22.6))
     r = measure(rays, inc, MAXR, p, np.random.default_rng(50))
@@ -43,16 +53,16 @@ def test_no_echo_beyond_the_critical_angle() -> None:
 def test_nearest_direct_ray_wins_and_truth_keeps_incidence() -> None:
     rays = np.array([[1.2, 0.9, 1.0, np.inf, 2.0]])
     inc = np.radians([[5.0, 40.0, 10.0, np.nan, 0.0]])
-    exact = SonarErrorParams(distance_error=LookupTable.from_rows([[0.0, 0.0], [1.0, 0.0]]))
+    exact = make_params(distance_error=LookupTable.from_rows([[0.0, 0.0], [1.0, 0.0]]))
     r = measure(rays, inc, MAXR, exact, np.random.default_rng(1))
     assert r.truth_ranges[0] == 0.9 and r.incidence[0] == pytest.approx(math.radians(40))
     assert r.ranges[0] == 1.0                                  # 0.9 lost (specular), 1.0 direct
-    ideal = measure(rays, inc, MAXR, SonarErrorParams(ideal=True), np.random.default_rng(1))
+    ideal = measure(rays, inc, MAXR, make_params(ideal=True), np.random.default_rng(1))
     assert ideal.ranges[0] == 0.9
 
 
 def test_late_echo_rate_and_round_trip_length() -> None:
-    p = SonarErrorParams(late_echo_probability=0.3)
+    p = make_params(late_echo_probability=0.3)
     rays = np.full((N, 1), 0.8)
     inc = np.full((N, 1), math.radians(60))
     leg = np.full((N, 1), 1.6)                                 # p1 -> p2 -> sensor
@@ -75,7 +85,7 @@ def _pair(n: int) -> dict[str, np.ndarray]:
 
 
 def test_crosstalk_rate_path_and_firing_groups() -> None:
-    p = SonarErrorParams(crosstalk_probability=0.2)
+    p = make_params(crosstalk_probability=0.2)
     geo = _pair(1)
     d1 = math.hypot(0.5, 0.05)
     rays = np.array([[np.inf], [d1]])
@@ -90,7 +100,7 @@ def test_crosstalk_rate_path_and_firing_groups() -> None:
     assert_rate(int(heard.sum()), 5000, 0.2, wrong=0.25)
     expect = 0.5 * (d1 + math.hypot(0.5, 0.05))
     assert_mean(hits_a[heard], expect, 0.02, wrong=expect + 0.02)   # table sigma at 0.5 m
-    separate = SonarErrorParams(crosstalk_probability=1.0, firing_groups=((0,), (1,)))
+    separate = make_params(crosstalk_probability=1.0, firing_groups=((0,), (1,)))
     r = measure(rays, inc, MAXR, separate, rng, **geo)
     assert np.isnan(r.ranges[0])
     assert same_cycle(3, ((0, 2), (1,))).tolist() == [[False, False, True], [False, False, False],
@@ -98,7 +108,7 @@ def test_crosstalk_rate_path_and_firing_groups() -> None:
 
 
 def test_glitch_rate_and_uniform_values() -> None:
-    p = SonarErrorParams(glitch_probability=0.05, min_range_m=0.2)
+    p = make_params(glitch_probability=0.05, min_range_m=0.2)
     r = measure(np.full((N, 1), 1.0), np.zeros((N, 1)), MAXR, p, np.random.default_rng(53))
     g = r.kind == 4
     assert_rate(int(g.sum()), N, 0.05, wrong=0.07)
@@ -108,7 +118,7 @@ def test_glitch_rate_and_uniform_values() -> None:
 
 
 def test_beyond_max_range_is_no_echo_and_reflect() -> None:
-    r = measure(np.full((3, 2), 5.0), np.zeros((3, 2)), MAXR, SonarErrorParams(),
+    r = measure(np.full((3, 2), 5.0), np.zeros((3, 2)), MAXR, make_params(),
                 np.random.default_rng(1))
     assert np.all(np.isnan(r.ranges)) and np.all(np.isnan(r.truth_ranges))
     d = reflect(np.array([[1.0, 0.0]]), np.array([[-1.0, 0.0]]))
@@ -116,7 +126,7 @@ def test_beyond_max_range_is_no_echo_and_reflect() -> None:
 
 
 def test_same_seed_bit_identical() -> None:
-    p = SonarErrorParams(glitch_probability=0.1, late_echo_probability=0.5)
+    p = make_params(glitch_probability=0.1, late_echo_probability=0.5)
     args = (np.full((8, 5), 1.0), np.full((8, 5), 0.1), MAXR, p)
     a = measure(*args, np.random.default_rng(9)).ranges
     b = measure(*args, np.random.default_rng(9)).ranges
