@@ -1,7 +1,8 @@
 """The socketcand server under hostile or careless clients, checked with python-can's own
 ``socketcand`` interface: a rejected frame or a garbage element does not wedge the client; a client
 that floods and never reads is disconnected and counted while the others keep receiving; idle
-connections do not lock everyone out; 50 connect/disconnect rounds leak nothing."""
+connections do not lock everyone out; 50 connect/disconnect rounds leak nothing. And the slcan
+adapter counts the replies a client that never reads cannot get."""
 
 from __future__ import annotations
 
@@ -14,7 +15,9 @@ from pathlib import Path
 import can
 import cantools
 import pytest
+import serial
 from koala_bridge.drivers.transports import python_can_config
+from koala_bridge.drivers.transports.slcan import SlcanAdapter
 from koala_bridge.drivers.transports.socketcand import SocketcandServer
 
 CHANNEL = "koala0"
@@ -296,3 +299,23 @@ def test_fifty_reconnect_rounds_against_the_bridge(bridge, zenoh_watch) -> None:
     status = watch.wait_for("status", lambda m: m["buses"]["can.socketcand"]["received"] >= 50)
     assert status["buses"]["can.socketcand"]["rejected"] == 0
     assert b.proc.poll() is None
+
+
+# ------------------------------------------------------------------ slcan: the same rule
+
+
+def test_an_slcan_client_that_never_reads_its_replies_is_counted() -> None:
+    with SlcanAdapter() as slcan, serial.Serial(slcan.endpoint.path, timeout=0.5) as port:
+        sent, limit = 0, 16 << 20
+        while slcan.stats.dropped == 0:  # replies past the pty's 64 KiB cap are dropped
+            assert sent < limit, f"no reply dropped after {sent} bytes of commands"
+            port.write(b"V\r" * 1024)
+            sent += 2048
+        assert slcan.stats.rejected == 0
+        # What it does get is whole replies, and the port still answers.
+        stream = b""
+        while chunk := port.read(65536):
+            stream += chunk
+        assert stream and stream == b"V1013\r" * (len(stream) // 6)
+        port.write(b"V\r")
+        assert port.read_until(b"\r") == b"V1013\r"
