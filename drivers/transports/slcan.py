@@ -17,6 +17,8 @@ BELL (0x07)::
 Frames on the bus reach the client as ``tIIILDD..`` / ``TIIIIIIIILDD..`` (+ 4 hex digits of
 milliseconds when time stamps are on) and CR, only while the channel is open. CAN FD commands
 (``d``, ``D``, ``b``, ``B``) and anything else are refused with BELL and counted as rejected.
+Output a client does not read (frames and replies alike) is dropped whole past the pty's 64 KiB
+and counted as dropped.
 """
 
 from __future__ import annotations
@@ -195,7 +197,9 @@ class SlcanAdapter(CanTransport):
             self._pty.flush()
             if fd in readable:
                 for item in self._lines.feed(self._pty.read()):
-                    self._pty.write(self._on_command(item))
+                    if not self._pty.write(self._on_command(item)):
+                        # Past the pty's cap: the client sends commands and does not read.
+                        self._stats.add("dropped")
 
     def _client_gone(self) -> None:
         # The port was closed (with or without "C"): forget the session, as a re-plugged

@@ -18,7 +18,27 @@ element ``< ... >``::
 
 ``ID`` is hex, 3 digits for a standard id and 8 for an extended one; ``DATA`` in ``frame`` is hex
 without spaces; ``DLC`` and the bytes of ``send`` are hex. Malformed or unsupported elements are
-answered ``< error TEXT >``, counted as rejected, and the connection stays open.
+counted as rejected and the connection stays open. Before ``rawmode`` they are answered
+``< error TEXT >``, as the daemon does; in raw mode they get **no reply**: there ``< error ... >``
+is an error *frame* (``< error CLASS SECS.USECS >``, socketcand's doc/protocol.md), and python-can
+(4.6) parses every such element as one -- ``< error syntax ... >`` raised in its ``recv`` and,
+left in its buffer, in every later ``recv``. The real daemon is silent about a malformed ``send``
+too (state_raw.c logs it on its side only); it answers an unknown command ``< error unknown
+command >``, which wedges python-can, so here that is silent as well.
+
+Limits, so that no client can hold memory or slots the others need:
+
+- everything queued for one client (frames and replies) is capped at ``max_pending`` bytes. A bus
+  frame that does not fit is dropped for that client (counted ``dropped``; the client keeps its
+  connection, as a CAN node that falls behind loses frames -- a python-can script that only
+  sends never reads). A *reply* that does not fit means the client sends commands and does not
+  read the answers: it is disconnected, counted ``dropped``, and logged.
+- a connection that has not opened the bus within ``handshake_timeout_s`` is closed, counted
+  ``rejected``.
+- with ``max_clients`` connected, a new connection takes the place of the client idle longest (no
+  byte received from it, none of its output taken by its socket) if that one has been idle for
+  ``idle_timeout_s``; the evicted client is counted ``rejected``. Else the newcomer is refused
+  (closed at once, counted ``rejected``). Working clients never lose their connection to a newcomer.
 
 python-can reads the handshake replies with one ``recv`` each, so after ``< ok >`` to
 ``rawmode`` frames for that client are held back for ``handshake_grace_s`` lest they arrive in
@@ -94,9 +114,10 @@ def parse_send_element(words: list[str]) -> can.Message | str:
 
 
 class _Client:
-    __slots__ = ("sock", "mode", "inbuf", "outbuf", "held", "hold_until", "in_garbage", "events")
+    __slots__ = ("sock", "mode", "inbuf", "outbuf", "held", "hold_until", "in_garbage", "events",
+                 "open_deadline", "last_active", "closed")  # fmt: skip
 
-    def __init__(self, sock: socket.socket) -> None:
+    def __init__(self, sock: socket.socket, now: float, handshake_timeout_s: float) -> None:
         self.sock = sock
         self.mode = "new"  # new -> bcm (after open) -> raw (after rawmode)
         self.inbuf = bytearray()
@@ -105,6 +126,14 @@ class _Client:
         self.hold_until: float | None = None
         self.in_garbage = False
         self.events = selectors.EVENT_READ
+        self.open_deadline: float | None = now + handshake_timeout_s  # None once the bus is open
+        self.last_active = now  # last byte received from it or taken by its socket
+        self.closed = False
+
+    @property
+    def queued(self) -> int:
+        """Bytes waiting to be sent to this client."""
+        return len(self.outbuf) + len(self.held)
 
 
 class SocketcandServer(CanTransport):
@@ -115,9 +144,13 @@ class SocketcandServer(CanTransport):
         channel: the bus name clients must ``open`` (python-can's ``channel=``).
         max_clients: further connections are closed at once and counted as rejected.
         rx_queue: frames from clients waiting for :meth:`recv`; beyond it they are dropped.
-        max_pending: per-client output bytes kept for a slow client; beyond it frames are dropped.
+        max_pending: per-client output bytes (frames and replies) kept for a slow client; beyond
+            it frames are dropped, and a client whose reply does not fit is disconnected.
         max_element: longest ``< ... >`` element accepted, in bytes.
         handshake_grace_s: delay between ``< ok >`` to ``rawmode`` and the first frame.
+        handshake_timeout_s: a connection that has not opened the bus by then is closed.
+        idle_timeout_s: with ``max_clients`` connected, a newcomer evicts the client idle longest
+            if it has been idle this long (see the module's docstring).
     """
 
     def __init__(
@@ -131,6 +164,8 @@ class SocketcandServer(CanTransport):
         max_pending: int = 1 << 20,
         max_element: int = 256,
         handshake_grace_s: float = 0.05,
+        handshake_timeout_s: float = 10.0,
+        idle_timeout_s: float = 60.0,
     ) -> None:
         if not channel or any(c.isspace() or c in "<>" for c in channel):
             raise ValueError(f"invalid channel name {channel!r}")
@@ -150,6 +185,9 @@ class SocketcandServer(CanTransport):
         self._max_pending = max_pending
         self._max_element = max_element
         self._grace = handshake_grace_s
+        self._handshake_timeout = handshake_timeout_s
+        self._idle_timeout = idle_timeout_s
+        self._peak_pending = 0
         self._stats = StatsCounter()
         self._rx = FrameQueue(rx_queue, self._stats)
         self._outbox: deque[tuple[bytes, _Client | None]] = deque()
@@ -185,6 +223,11 @@ class SocketcandServer(CanTransport):
         every frame sent meanwhile (``replay --wait-clients`` waits on this)."""
         clients = list(self._clients.values())  # a copy: the service thread adds and drops
         return self._stats.snapshot(clients=sum(1 for c in clients if c.mode == "raw"))
+
+    @property
+    def peak_pending(self) -> int:
+        """The most bytes ever queued for one client at once; never above ``max_pending``."""
+        return self._peak_pending
 
     def send(self, msg: can.Message) -> None:
         if self._closed:
@@ -226,19 +269,27 @@ class SocketcandServer(CanTransport):
                 self._waker.drain()
             else:
                 client: _Client = key.data
+                if client.closed:  # evicted by an accept earlier in this batch
+                    continue
                 if mask & selectors.EVENT_READ:
                     self._on_readable(client)
                 if mask & selectors.EVENT_WRITE and client.sock in self._clients:
                     self._flush(client)
         self._distribute()
         self._release_held()
+        self._expire_handshakes()
         for client in list(self._clients.values()):
             self._flush(client)
             self._update_interest(client)
 
     def _timeout(self) -> float | None:
-        holds = [c.hold_until for c in self._clients.values() if c.hold_until is not None]
-        return max(0.0, min(holds) - time.monotonic()) if holds else None
+        deadlines = [
+            t
+            for c in self._clients.values()
+            for t in (c.hold_until, c.open_deadline)
+            if t is not None
+        ]
+        return max(0.0, min(deadlines) - time.monotonic()) if deadlines else None
 
     def _accept(self) -> None:
         while True:
@@ -246,13 +297,15 @@ class SocketcandServer(CanTransport):
                 sock, _ = self._listener.accept()
             except (BlockingIOError, OSError):
                 return
-            if len(self._clients) >= self._max_clients:
+            if len(self._clients) >= self._max_clients and not self._evict_idle():
                 sock.close()
                 self._stats.add("rejected")
+                log.warning("socketcand: %d clients connected, refused one more",
+                            len(self._clients))
                 continue
             sock.setblocking(False)
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            client = _Client(sock)
+            client = _Client(sock, time.monotonic(), self._handshake_timeout)
             self._clients[sock] = client
             self._sel.register(sock, selectors.EVENT_READ, client)
             self._reply(client, b"< hi >")
@@ -267,12 +320,13 @@ class SocketcandServer(CanTransport):
         if not data:
             self._drop(client)
             return
+        client.last_active = time.monotonic()
         client.inbuf += data
         self._parse(client)
 
     def _parse(self, client: _Client) -> None:
         buf = client.inbuf
-        while buf:
+        while buf and not client.closed:
             start = buf.find(b"<")
             junk = buf if start < 0 else buf[:start]
             if junk.strip():
@@ -284,9 +338,8 @@ class SocketcandServer(CanTransport):
             end = buf.find(b">")
             if end < 0:
                 if len(buf) > self._max_element:
-                    self._reject(client, "element too long")
-                    self._reply(client, b"< error element too long >")
                     buf.clear()
+                    self._error(client, "element too long")
                 return
             element = bytes(buf[1:end])
             del buf[: end + 1]
@@ -309,6 +362,7 @@ class SocketcandServer(CanTransport):
         if client.mode == "new":
             if command == "open" and len(words) == 2 and words[1] == self.channel:
                 client.mode = "bcm"
+                client.open_deadline = None
                 self._reply(client, b"< ok >")
             elif command == "open":
                 self._error(client, "could not open bus")
@@ -347,10 +401,11 @@ class SocketcandServer(CanTransport):
                 if client is origin or client.mode != "raw":
                     continue
                 target = client.held if client.hold_until is not None else client.outbuf
-                if len(client.outbuf) + len(client.held) + len(line) > self._max_pending:
+                if client.queued + len(line) > self._max_pending:
                     self._stats.add("dropped")
                     continue
                 target += line
+                self._peak_pending = max(self._peak_pending, client.queued)
 
     def _release_held(self) -> None:
         now = time.monotonic()
@@ -360,13 +415,47 @@ class SocketcandServer(CanTransport):
                 client.held.clear()
                 client.hold_until = None
 
+    def _expire_handshakes(self) -> None:
+        now = time.monotonic()
+        for client in list(self._clients.values()):
+            if client.open_deadline is not None and now >= client.open_deadline:
+                log.warning("socketcand client %s: bus not opened within %.3g s; disconnected",
+                            client.sock.fileno(), self._handshake_timeout)
+                self._stats.add("rejected")
+                self._drop(client)
+
+    def _evict_idle(self) -> bool:
+        """Disconnect the client idle longest if idle for ``idle_timeout_s``; True if one was."""
+        if not self._clients:
+            return False
+        idlest = min(self._clients.values(), key=lambda c: c.last_active)
+        idle_s = time.monotonic() - idlest.last_active
+        if idle_s < self._idle_timeout:
+            return False
+        log.warning("socketcand: %d clients connected; client %s, idle for %.3g s, disconnected "
+                    "for a new one", len(self._clients), idlest.sock.fileno(), idle_s)
+        self._stats.add("rejected")
+        self._drop(idlest)
+        return True
+
     def _reply(self, client: _Client, element: bytes) -> None:
+        if client.closed:
+            return
+        if client.queued + len(element) > self._max_pending:
+            # It sends commands and does not read the answers: its queue would grow forever.
+            log.warning("socketcand client %s: %d bytes of output not read; disconnected",
+                        client.sock.fileno(), client.queued)
+            self._stats.add("dropped")
+            self._drop(client)
+            return
         client.outbuf += element
+        self._peak_pending = max(self._peak_pending, client.queued)
         self._flush(client)
 
     def _error(self, client: _Client, text: str) -> None:
         self._reject(client, text)
-        self._reply(client, f"< error {text} >".encode("ascii", "replace"))
+        if client.mode != "raw":  # in raw mode "< error ... >" is an error frame: see the top
+            self._reply(client, f"< error {text} >".encode("ascii", "replace"))
 
     def _reject(self, client: _Client, why: str) -> None:
         if client.in_garbage and why == "data outside < >":
@@ -385,6 +474,8 @@ class SocketcandServer(CanTransport):
         except OSError:
             self._drop(client)
             return
+        if sent:
+            client.last_active = time.monotonic()
         del client.outbuf[:sent]
 
     def _update_interest(self, client: _Client) -> None:
@@ -396,6 +487,10 @@ class SocketcandServer(CanTransport):
             client.events = want
 
     def _drop(self, client: _Client) -> None:
+        client.closed = True
         if self._clients.pop(client.sock, None) is not None:
             self._sel.unregister(client.sock)
         client.sock.close()
+        client.inbuf.clear()
+        client.outbuf.clear()
+        client.held.clear()
