@@ -63,6 +63,7 @@ from koala_bridge.drivers.rangeframes import (
     encode_range_frame,
     frame_size,
 )
+from koala_bridge.drivers.transports.slcan import format_slcan_frame, parse_slcan_frame
 
 FUZZ = settings(
     max_examples=200,
@@ -491,3 +492,65 @@ def test_mavlink_recovers_after_garbage(garbage: bytes, datagram: bytes) -> None
     stream.feed(garbage)
     stream.feed(datagram * (300 // len(datagram) + 1))
     assert stream.feed(datagram) == CompassDecoder().feed(datagram)
+
+
+# --------------------------------------------------------------------------- slcan
+
+
+slcan_messages = st.builds(
+    lambda ext, ident, data, remote, dlc: can.Message(
+        arbitration_id=ident if ext else ident & 0x7FF,
+        is_extended_id=ext,
+        is_remote_frame=remote,
+        dlc=dlc if remote else len(data),
+        data=None if remote else data,
+    ),
+    st.booleans(),
+    st.integers(0, 0x1FFFFFFF),
+    st.binary(max_size=8),
+    st.booleans(),
+    st.integers(0, 8),
+)
+
+
+def _key(msg: can.Message) -> tuple[int, bool, bool, int, bytes]:
+    return (msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame, msg.dlc, bytes(msg.data))
+
+
+def _assert_slcan_result(line: str, result: can.Message | str) -> None:
+    assert isinstance(result, can.Message | str)
+    if isinstance(result, can.Message):
+        # Only the four transmit commands make a frame, each of its own kind.
+        assert line[:1] in ("t", "T", "r", "R")
+        assert result.is_extended_id == (line[0] in "TR")
+        assert result.is_remote_frame == (line[0] in "rR")
+        limit = 0x1FFFFFFF if result.is_extended_id else 0x7FF
+        assert 0 <= result.arbitration_id <= limit and 0 <= result.dlc <= 8
+        assert len(result.data) == (0 if result.is_remote_frame else result.dlc)
+
+
+slcan_lines = st.builds(lambda m: format_slcan_frame(m)[:-1].decode("ascii"), slcan_messages)
+
+
+@FUZZ
+@given(
+    st.text(max_size=40)
+    | mutated(slcan_lines.map(str.encode)).map(lambda b: b.decode("latin-1"))
+    | st.builds(lambda c, line: c + line[1:], st.characters(), slcan_lines)  # another command
+)
+@example("00000")  # was parsed as a standard data frame: the command letter was never checked
+@example("x1230")
+def test_slcan_parser_accepts_any_line(line: str) -> None:
+    _assert_slcan_result(line, parse_slcan_frame(line))
+
+
+@FUZZ
+@given(slcan_messages)
+def test_slcan_round_trip(msg: can.Message) -> None:
+    wire = format_slcan_frame(msg)
+    (line,) = _split_lines([wire])
+    assert isinstance(line, bytes)
+    parsed = parse_slcan_frame(line.decode("ascii"))
+    assert isinstance(parsed, can.Message)
+    assert _key(parsed) == _key(msg)
+
