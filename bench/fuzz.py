@@ -117,15 +117,25 @@ class Bridge:
         self.sample_rss()
         return (self._rss_peak_kib or None), self._rss_source
 
-    def _read_rss_kib(self) -> int | None:
-        try:  # the kernel's high-water mark: exact, whenever the peak happened
+    def rss_now(self) -> int | None:
+        """The bridge's resident set now, KiB (Linux)."""
+        return self._proc_status_kib("VmRSS:")
+
+    def _proc_status_kib(self, key: str) -> int | None:
+        try:
             with open(f"/proc/{self.proc.pid}/status", encoding="ascii") as f:
                 for line in f:
-                    if line.startswith("VmHWM:"):
-                        self._rss_source = "VmHWM"
+                    if line.startswith(key):
                         return int(line.split()[1])
         except OSError:
             pass
+        return None
+
+    def _read_rss_kib(self) -> int | None:
+        hwm = self._proc_status_kib("VmHWM:")  # the kernel's high-water mark: exact, whenever
+        if hwm is not None:
+            self._rss_source = "VmHWM"
+            return hwm
         try:
             import psutil  # type: ignore[import-untyped]
         except ImportError:
@@ -306,6 +316,7 @@ class Attack:
         cand = ep["can"]["socketcand"]
         self.cand_addr = (cand["host"], int(cand["port"]))
         self.cand_channel = cand["channel"]
+        self.rss_at_start: int | None = None
 
     def running(self) -> bool:
         if time.monotonic() > self.deadline:
@@ -398,10 +409,9 @@ class Attack:
                 sent += 1
                 if sent % 20 == 0:
                     _drain(sock)
-                    for s in silent:  # the issue's attack: `<x>`, never read a byte
+                    for s in silent:  # `<x>` by the hundred, never reading a byte
                         with contextlib.suppress(OSError):
-                            s.send(b"< x >")
-                            silent_sent += 1
+                            silent_sent += s.send(b"< x >" * 100) // 5
         finally:
             self.tally.set("inputs", "socketcand", sent)
             self.tally.set("inputs", "socketcand (never read)", silent_sent)
@@ -519,6 +529,7 @@ class Attack:
             "zenoh": self.zenoh,
             "reconnects": self.reconnect_rounds,
         }
+        self.rss_at_start = self.bridge.rss_now()
         silent = self.silent_ptys()
         threads = [
             threading.Thread(target=self._guard(name, fn), name=f"fuzz-{name}", daemon=True)
@@ -644,6 +655,7 @@ def build_report(attack: Attack, bridge: Bridge, status: dict[str, Any] | None,
         "status_seen": status is not None,
         "peak_rss_kib": rss_kib,
         "peak_rss_source": rss_source,
+        "rss_at_start_kib": attack.rss_at_start,
         "client_errors": list(tally.client_errors),
         "notes": list(tally.notes),
         "log": str(bridge.log_path),
@@ -657,6 +669,8 @@ def print_report(r: dict[str, Any]) -> None:
 
     rss = f"{r['peak_rss_kib'] / 1024:.1f} MiB ({r['peak_rss_source']})" if r["peak_rss_kib"] \
         else "unknown"
+    if r["rss_at_start_kib"]:
+        rss += f"; {r['rss_at_start_kib'] / 1024:.1f} MiB resident when the attack began"
     print(f"fuzz run: {r['seconds']} s")
     print(f"  inputs tried   {counts(r['inputs'])}")
     print(f"  reconnects     {counts(r['reconnects'])}")

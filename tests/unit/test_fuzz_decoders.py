@@ -65,6 +65,9 @@ from koala_bridge.drivers.rangeframes import (
 )
 from koala_bridge.drivers.transports.slcan import format_slcan_frame, parse_slcan_frame
 
+# "Never hang": a decoder caught in a loop fails its test here rather than at the suite's 300 s.
+pytestmark = pytest.mark.timeout(120)
+
 FUZZ = settings(
     max_examples=200,
     deadline=None,
