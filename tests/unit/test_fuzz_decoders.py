@@ -12,7 +12,8 @@ with mutations (bits flipped, truncated, concatenated, split at any point), and 
 Each bug the fuzzing found is kept as an ``@example`` on the property that found it. The
 examples are bounded (``max_examples``, no deadline: the machine may be loaded) so the file runs
 in seconds; ``make fuzz`` (bench/fuzz.py) is the long run against a live bridge.
-``database=None``: no ``.hypothesis/`` folder is written into the checkout.
+``database=None``: no example database, so a run does not depend on the runs before it
+(hypothesis still caches data in ``.hypothesis/``, which it git-ignores itself).
 """
 
 from __future__ import annotations
