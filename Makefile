@@ -9,7 +9,7 @@ CONFIG ?= config/default.toml
 WHEEL_DIR := build/wheel
 SMOKE_VENV := build/smoke-venv
 
-.PHONY: run test smoke lint figures bench clean
+.PHONY: run test smoke lint figures bench fuzz clean
 
 # pip's own output shows what is being downloaded and installed (the first time takes a while).
 $(STAMP): pyproject.toml
@@ -50,6 +50,13 @@ figures: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) -m bench
+
+# The soak/fuzz run against a live bridge (bench/fuzz.py; not part of `make test`): tens of
+# thousands of bad inputs on every bus; prints crashes, hangs, rejects and peak RSS, and fails
+# on a crash or a hang. Larger runs: make fuzz FUZZ_ARGS="--kteam 100000 --seconds 1800".
+FUZZ_ARGS ?=
+fuzz: $(STAMP)
+	$(PY) bench/fuzz.py $(FUZZ_ARGS)
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache

@@ -12,6 +12,7 @@ milligauss. 1 uT = 10 mGauss; FLU -> FRD negates y and z. A level compass then r
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 
 from koala_bridge.drivers.messages import CompassSample, MavlinkHeartbeat, Reject, RejectReason
@@ -100,8 +101,15 @@ class CompassDecoder:
     """Parses a MAVLink byte stream (or datagrams) into compass samples and heartbeats.
 
     Reads the bridge's output or a real MAVLink compass alike. Bytes that are not a valid MAVLink
-    packet (bad CRC, bad magic, truncated) are counted in :attr:`rejected`, never raised. Other
-    valid messages are counted in :attr:`ignored`.
+    packet (bad CRC, bad magic, truncated, a message id whose CRC cannot be checked) are counted
+    in :attr:`rejected` -- once per bad stretch -- never raised. Other valid messages are counted
+    in :attr:`ignored`.
+
+    Packets are framed here and only decoded by pymavlink: its own parser drops the whole length a
+    false start marker claims when the CRC fails, so one stray byte could swallow the good packets
+    behind it, and on a steady stream lock every later packet out. After a bad packet this decoder
+    skips only the false marker and searches again (as :class:`RangeFrameDecoder` does); memory
+    stays below one maximum-size packet.
 
     Args:
         system_id / component_id: if set, only samples from this source are returned.
@@ -109,6 +117,8 @@ class CompassDecoder:
 
     def __init__(self, system_id: int | None = None, component_id: int | None = None) -> None:
         self._mav = _new_parser()
+        self._buf = bytearray()
+        self._in_bad_run = False
         self.system_id = system_id
         self.component_id = component_id
         self.decoded = 0
@@ -118,31 +128,62 @@ class CompassDecoder:
 
     def feed(self, data: bytes) -> list[CompassSample | MavlinkHeartbeat]:
         """Consume a chunk of a byte stream (pty, TCP); a packet may span chunks."""
-        return self._parse(self._mav, data)
+        self._buf += data
+        return self._convert(self._packets(self._buf, final=False))
 
     def feed_datagram(self, data: bytes) -> list[CompassSample | MavlinkHeartbeat]:
         """Consume one UDP datagram: packets never span datagrams, so a truncated or garbage
-        datagram cannot swallow the next one; an incomplete trailing packet is a reject."""
-        parser = _new_parser()
-        out = self._parse(parser, data)
-        if parser.buf_len() > 0:
-            self._reject("datagram ends inside a packet", bytes(data[-32:]))
+        datagram cannot swallow the next one; an incomplete packet is a reject."""
+        self._in_bad_run = False
+        return self._convert(self._packets(bytearray(data), final=True))
+
+    def _packets(self, buf: bytearray, *, final: bool) -> list[mavlink2.MAVLink_message]:
+        """Take the valid packets off the front of ``buf``, skipping what is not one; leave an
+        incomplete packet in ``buf`` unless ``final`` (no more bytes will come)."""
+        out: list[mavlink2.MAVLink_message] = []
+        while buf:
+            marker = _MARKERS.search(buf)
+            if marker is None:
+                self._bad("no MAVLink start marker", buf)
+                buf.clear()
+                break
+            if marker.start():
+                self._bad("bytes before a start marker", buf[: marker.start()])
+                del buf[: marker.start()]
+            size = _packet_size(buf)
+            if size is None or len(buf) < size:
+                if not final:
+                    break
+                self._bad("datagram ends inside a packet", buf)
+                del buf[:1]
+                continue
+            try:
+                msg = self._decode(buf[:size])
+            except mavlink2.MAVError as e:
+                self._bad(str(e), buf[:size])
+                del buf[:1]
+                continue
+            del buf[:size]
+            self._in_bad_run = False
+            out.append(msg)
         return out
 
-    def _parse(
-        self, parser: mavlink2.MAVLink, data: bytes
+    def _decode(self, packet: bytearray) -> mavlink2.MAVLink_message:
+        if packet[0] == _MARKER_V2 and packet[2] & ~mavlink2.MAVLINK_IFLAG_SIGNED:
+            raise mavlink2.MAVError(f"unknown incompat_flags {packet[2]:#x}")
+        msg = self._mav.decode(packet)
+        if isinstance(msg, mavlink2.MAVLink_unknown):
+            # pymavlink cannot check the CRC of an id it does not know (no CRC_EXTRA), so such
+            # a "packet" is as likely a false marker in garbage as a real message.
+            raise mavlink2.MAVError(f"unknown message id {msg.get_msgId()}")
+        return msg
+
+    def _convert(
+        self, messages: list[mavlink2.MAVLink_message]
     ) -> list[CompassSample | MavlinkHeartbeat]:
         out: list[CompassSample | MavlinkHeartbeat] = []
-        try:
-            messages = parser.parse_buffer(bytes(data)) or []
-        except mavlink2.MAVError as e:  # robust_parsing makes this rare; keep the loop alive anyway
-            self._reject(str(e), b"")
-            return out
         for msg in messages:
             kind = msg.get_type()
-            if kind == "BAD_DATA":
-                self._reject(str(getattr(msg, "reason", "bad data")), bytes(msg.get_msgbuf()[:32]))
-                continue
             if not self._wanted(msg):
                 self.ignored += 1
                 continue
@@ -166,9 +207,28 @@ class CompassDecoder:
             return False
         return self.component_id is None or msg.get_srcComponent() == self.component_id
 
-    def _reject(self, detail: str, raw: bytes) -> None:
-        self.rejected += 1
-        self.last_reject = Reject(RejectReason.GARBAGE, detail, raw)
+    def _bad(self, detail: str, raw: bytes | bytearray) -> None:
+        self.last_reject = Reject(RejectReason.GARBAGE, detail, bytes(raw[:32]))
+        if not self._in_bad_run:
+            self.rejected += 1
+        self._in_bad_run = True
+
+
+_MARKER_V1 = mavlink2.PROTOCOL_MARKER_V1
+_MARKER_V2 = mavlink2.PROTOCOL_MARKER_V2
+_MARKERS = re.compile(rb"[\xfd\xfe]")  # PROTOCOL_MARKER_V2, PROTOCOL_MARKER_V1
+
+
+def _packet_size(buf: bytearray) -> int | None:
+    """Size of the packet whose start marker is ``buf[0]`` (header, payload, CRC, signature),
+    or None while its header is incomplete."""
+    if buf[0] == _MARKER_V1:
+        return mavlink2.HEADER_LEN_V1 + buf[1] + 2 if len(buf) >= 2 else None
+    if len(buf) < 3:
+        return None
+    signed = buf[2] & mavlink2.MAVLINK_IFLAG_SIGNED
+    signature = mavlink2.MAVLINK_SIGNATURE_BLOCK_LEN if signed else 0
+    return mavlink2.HEADER_LEN_V2 + buf[1] + 2 + signature
 
 
 def _new_parser() -> mavlink2.MAVLink:

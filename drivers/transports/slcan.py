@@ -68,6 +68,8 @@ def format_slcan_frame(msg: can.Message, timestamp_ms: int | None = None) -> byt
 def parse_slcan_frame(line: str) -> can.Message | str:
     """Parse a client's ``t``/``T``/``r``/``R`` transmit; returns the reason if malformed."""
     kind = line[:1]
+    if kind not in ("t", "T", "r", "R"):  # not `in "tTrR"`: "" is in every string
+        return "not a frame command"
     id_len = 8 if kind in "TR" else 3
     if len(line) < 1 + id_len + 1 or not _HEXDIGITS.fullmatch(line[1:]):
         return "malformed frame command"
