@@ -37,6 +37,18 @@ IDEAL_SECTIONS = ("robot.drive_error", "sensors.ir", "sensors.sonar", "sensors.e
                   "sensors.gyro", "sensors.compass", "sensors.camera")
 
 
+# -- property-based tests ------------------------------------------------------------------------
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Hypothesis draws the same examples on every run of the suite (``derandomize``: a failure in
+    CI reproduces on a laptop) and keeps no example database in the checkout. ``make fuzz`` is the
+    place for fresh random inputs."""
+    from hypothesis import settings
+
+    settings.register_profile("suite", derandomize=True, database=None)
+    settings.load_profile("suite")
+
+
 # -- kinds ---------------------------------------------------------------------------------------
 
 KINDS = ("unit", "integration", "e2e")
