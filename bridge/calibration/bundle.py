@@ -145,7 +145,7 @@ def read_csv_table(path: Path) -> Table:
         if len(row) != len(header):
             raise BundleError(
                 f"{path} line {line}: {len(row)} cell(s), but the header has {len(header)} "
-                f"({','.join(header)})"
+                f"({','.join(header)!r})"
             )
     lines = np.array([line for line, _ in body], dtype=np.int64)
     cols: dict[str, FloatArray] = {}

@@ -246,6 +246,6 @@ def _write_bundle(rec: Recording, mcap_path: str | os.PathLike[str], out: Path) 
             out / "landmark_map.csv", ("id", "x", "y", "colour"), rows
         )
 
-    if not counts:
+    if not set(counts) - {"landmark_map.csv"}:  # the world's map alone is no reading
         raise RecordingError(f"{mcap_path} holds no reading to export")
     (out / "meta.json").write_text(json.dumps(_meta(rec, counts), indent=2) + "\n", "utf-8")

@@ -541,14 +541,9 @@ class _Walk:
         self.raw = raw
         self.salvage = salvage
         n = len(raw)
-        # A file that ends in magic bytes preceded by a footer record was closed by its
-        # writer: anything wrong inside it is damage, never a cut.
-        self.closed = (
-            n >= 2 * len(MCAP_MAGIC) + _FOOTER_SIZE
-            and raw.endswith(MCAP_MAGIC)
-            and _RECORD_HEADER.unpack_from(raw, n - len(MCAP_MAGIC) - _FOOTER_SIZE)
-            == (Opcode.FOOTER, 20)
-        )
+        # A file that ends in the magic bytes was closed by its writer (a cut file ends there
+        # by a 1 in 2**64 chance): anything wrong inside it is damage, never a cut.
+        self.closed = n >= 2 * len(MCAP_MAGIC) + _FOOTER_SIZE and raw.endswith(MCAP_MAGIC)
         self.rec = Recording(path, "", {}, [], False)
         self.last_t_ns: int | None = None
         self.in_summary = False  # past the DataEnd record: every message has been read
@@ -595,7 +590,10 @@ class _Walk:
                     break
                 self.in_summary = True
             if isinstance(record, Footer):
-                if self._summary_intact(pos, record):
+                closing = raw[end : end + len(MCAP_MAGIC)]
+                if len(closing) == len(MCAP_MAGIC) and closing != MCAP_MAGIC:
+                    self._damage(end, "the closing magic bytes are damaged")
+                elif self._summary_intact(pos, record):
                     self.rec.complete = True
                 break
             pos = end
@@ -668,6 +666,9 @@ class _Walk:
         self, pos: int, what: str, opcode: int | None = None, body_start: int = 0,
         damaged: bool = False,
     ) -> None:
+        if self.closed and not damaged:  # a closed file is never cut short: it is damaged
+            self._damage(pos, what)
+            return
         if self._nothing_read():
             raise RecordingError(
                 f"{self.path} is not a readable MCAP file: nothing readable after its magic "
