@@ -71,7 +71,7 @@ from mcap.writer import CompressionType, Writer
 try:  # the mcap library's zstd chunks need it; without it they fail to decode, as damage would
     import zstandard
 except ImportError:  # pragma: no cover
-    zstandard = None
+    zstandard = None  # type: ignore[assignment]
 
 log = logging.getLogger(__name__)
 
