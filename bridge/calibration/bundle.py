@@ -183,8 +183,9 @@ def load_bundle(directory: Path) -> Bundle:
     is one), when the directory does not exist or holds no known file, a file is not a table
     (:func:`read_csv_table`), lacks a column its stream requires or holds text in one, a time
     ``t`` is missing or goes backwards, a file of :data:`SAMPLED_STREAMS` has fewer than two
-    rows or a time twice, or ``meta.json`` is not a JSON object with meaningful known numbers
-    (:func:`read_meta`). Unknown files and extra columns are ignored / kept.
+    rows with every required column filled or a time twice, or ``meta.json`` is not a JSON
+    object with meaningful known numbers (:func:`read_meta`). Unknown files and extra columns
+    are ignored / kept.
     """
     directory = Path(directory)
     if not directory.is_dir():
@@ -246,6 +247,13 @@ def _check_rows(path: Path, table: Table) -> None:
             f"{t[k - 1]:.9g}: rows must be in time order"
         )
     if table.name in SAMPLED_STREAMS:
+        required = REQUIRED_COLUMNS[table.name]
+        whole = np.logical_and.reduce([np.isfinite(table[c]) for c in required])
+        if int(whole.sum()) < 2:
+            raise BundleError(
+                f"{path}: {int(whole.sum())} row(s) with a number in every one of "
+                f"{', '.join(required)}: a stream needs at least two samples"
+            )
         same = np.flatnonzero(np.diff(t) == 0)
         if same.size:
             k = int(same[0]) + 1

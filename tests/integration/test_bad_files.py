@@ -79,6 +79,8 @@ BUNDLES: dict[str, tuple[dict[str, str | bytes], tuple[str, ...]]] = {
     "blank_lines_only": ({"gyro.csv": "\n\n\n"}, ("gyro.csv", "no header row")),
     "nan_time": ({"gyro.csv": gyro().replace("0.10,", "nan,")},
                  ("gyro.csv line 12", "column 't'", "every row needs its time")),
+    "no_compass_value": ({"compass.csv": "t,mx,my\n0,nan,nan\n0.1,,\n0.2,1,2\n"},
+                         ("compass.csv", "1 row(s) with a number in every one of t, mx, my")),
     "empty_time": ({"gyro.csv": gyro().replace("0.10,", ",")}, ("gyro.csv line 12", "'t'")),
     "1e308_value": ({"gyro.csv": gyro().replace(",0.01\n", ",1e308\n")},
                     ("gyro.csv line 12", "column 'yaw_rate'", "1e308")),
