@@ -7,8 +7,11 @@ exporter, so every later stage sees one format.
 
 from __future__ import annotations
 
+import csv
+import io
 import json
 import logging
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,6 +36,23 @@ REQUIRED_COLUMNS: Mapping[str, tuple[str, ...]] = {
     "landmark_map": ("id", "x", "y"),
 }
 
+#: Files with one sample per time: at least two rows, no time twice. (``range`` and
+#: ``landmarks`` hold several sensors / observations per time.)
+SAMPLED_STREAMS = ("truth_pose", "odometry", "gyro", "compass")
+
+#: The largest magnitude a numeric cell may hold. Nothing a bundle holds in SI units (seconds,
+#: metres, counts) comes near; ``inf`` or ``1e308`` is a corrupt cell, and squaring it overflows.
+MAX_ABS_VALUE = 1e12
+
+#: ``meta.json`` ``robot`` numbers: each, when given, a finite number > 0.
+META_ROBOT_POSITIVE = (
+    "ticks_per_metre",
+    "tick_size_m",
+    "wheel_base_m",
+    "wheel_diameter_m",
+    "wheel_diameter_ratio",
+)
+
 
 @dataclass(frozen=True)
 class Table:
@@ -44,6 +64,9 @@ class Table:
     name: str
     columns: Mapping[str, FloatArray]
     text: Mapping[str, NDArray[np.str_]] = field(default_factory=dict)
+    #: the file line of each row (1 = the header), for messages; None for a table not read
+    #: from a file
+    lines: NDArray[np.int64] | None = None
 
     def __len__(self) -> int:
         return len(next(iter(self.columns.values()))) if self.columns else 0
@@ -60,6 +83,7 @@ class Table:
             self.name,
             {k: v[mask] for k, v in self.columns.items()},
             {k: v[mask] for k, v in self.text.items()},
+            None if self.lines is None else self.lines[mask],
         )
 
 
@@ -78,38 +102,70 @@ class Bundle:
 def read_csv_table(path: Path) -> Table:
     """Read one bundle CSV: a header row, comma separated; numeric columns as float64.
 
-    A column whose cells do not all parse as numbers (and are not empty) is kept as text.
+    A column whose cells do not all parse as numbers (and are not empty) is kept as text; an
+    empty numeric cell is NaN. Blank lines and lines starting with ``#`` are skipped. Raises
+    :class:`BundleError`, naming the file and the line (1 = the header), for what is not a
+    table: bytes that are not UTF-8 text, a NUL byte, no header, a header naming a column twice,
+    a row with another number of cells than the header, and a number beyond
+    ±:data:`MAX_ABS_VALUE` (``inf``, ``1e308``).
     """
     try:
-        with path.open(encoding="utf-8") as fh:
-            header = [h.strip() for h in fh.readline().strip().split(",")]
-            body = fh.read()
+        raw = path.read_bytes()
     except OSError as e:
-        raise BundleError(f"cannot read {path}: {e}") from e
-    if not header or header == [""]:
-        raise BundleError(f"{path} has no header row")
-    if not body.strip():
-        return Table(path.stem, {h: np.empty(0) for h in header})
+        raise BundleError(f"cannot read {path}: {e.strerror or e}") from e
     try:
-        # The fast path: every cell numeric (the C parser of numpy >= 1.23).
-        data = np.loadtxt(
-            path, delimiter=",", skiprows=1, ndmin=2, dtype=np.float64, encoding="utf-8"
-        )
-        return Table(path.stem, {h: np.ascontiguousarray(data[:, i]) for i, h in enumerate(header)})
-    except ValueError:
-        pass
-    raw = np.genfromtxt(
-        path, delimiter=",", skip_header=1, dtype=str, encoding="utf-8", ndmin=2, autostrip=True
-    )
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        line = raw.count(b"\n", 0, e.start) + 1
+        raise BundleError(
+            f"{path} line {line}: not UTF-8 text (byte 0x{raw[e.start]:02x} at offset "
+            f"{e.start}): a bundle CSV is UTF-8 text"
+        ) from e
+    if "\x00" in text:
+        line = text.count("\n", 0, text.index("\x00")) + 1
+        raise BundleError(f"{path} line {line}: a NUL byte: binary data, not CSV text")
+    try:
+        rows = [
+            (n, [c.strip() for c in row])
+            for n, row in enumerate(csv.reader(io.StringIO(text, newline="")), start=1)
+            if row and any(c.strip() for c in row) and not row[0].lstrip().startswith("#")
+        ]
+    except csv.Error as e:
+        raise BundleError(f"{path}: not readable as CSV: {e}") from e
+    if not rows:
+        raise BundleError(f"{path} has no header row")
+    header_line, header = rows[0]
+    seen: set[str] = set()
+    for h in header:
+        if h in seen:
+            raise BundleError(f"{path} line {header_line}: the header names column {h!r} twice")
+        seen.add(h)
+    body = rows[1:]
+    for line, row in body:
+        if len(row) != len(header):
+            raise BundleError(
+                f"{path} line {line}: {len(row)} cell(s), but the header has {len(header)} "
+                f"({','.join(header)!r})"
+            )
+    lines = np.array([line for line, _ in body], dtype=np.int64)
     cols: dict[str, FloatArray] = {}
-    text: dict[str, NDArray[np.str_]] = {}
+    text_cols: dict[str, NDArray[np.str_]] = {}
     for i, h in enumerate(header):
-        cells = raw[:, i]
+        cells = [row[i] for _, row in body]
         try:
-            cols[h] = np.array([float(c) if c != "" else np.nan for c in cells], dtype=np.float64)
+            values = np.array([float(c) if c != "" else np.nan for c in cells], dtype=np.float64)
         except ValueError:
-            text[h] = cells.astype(np.str_)
-    return Table(path.stem, cols, text)
+            text_cols[h] = np.array(cells, dtype=np.str_)
+            continue
+        bad = np.flatnonzero(np.abs(values) > MAX_ABS_VALUE)
+        if bad.size:
+            k = int(bad[0])
+            raise BundleError(
+                f"{path} line {lines[k]}, column {h!r}: {cells[k]} is beyond ±1e12 "
+                "(no measurement in SI units is; a corrupt cell?)"
+            )
+        cols[h] = values
+    return Table(path.stem, cols, text_cols, lines)
 
 
 def _is_number(cell: str) -> bool:
@@ -123,47 +179,181 @@ def _is_number(cell: str) -> bool:
 def load_bundle(directory: Path) -> Bundle:
     """Load every known CSV of a bundle directory and its ``meta.json``.
 
-    Raises :class:`BundleError` when the directory does not exist, holds no known file, or a file
-    lacks a column its stream requires. Unknown files and extra columns are ignored / kept.
+    Raises :class:`BundleError`, one line naming the file (and the line and column where there
+    is one), when the directory does not exist or holds no known file, a file is not a table
+    (:func:`read_csv_table`), lacks a column its stream requires or holds text in one, a time
+    ``t`` is missing or goes backwards, a file of :data:`SAMPLED_STREAMS` has fewer than two
+    rows with every required column filled or a time twice, or ``meta.json`` is not a JSON
+    object with meaningful known numbers (:func:`read_meta`). Unknown files and extra columns
+    are ignored / kept.
     """
     directory = Path(directory)
     if not directory.is_dir():
         raise BundleError(f"{directory} is not a bundle directory")
     tables: dict[str, Table] = {}
     for name, required in REQUIRED_COLUMNS.items():
-        csv = directory / f"{name}.csv"
-        if not csv.exists():
+        csv_path = directory / f"{name}.csv"
+        if not csv_path.exists():
             continue
-        table = read_csv_table(csv)
+        table = read_csv_table(csv_path)
         missing = [c for c in required if c not in table]
         if missing:
-            raise BundleError(f"{csv} lacks required column(s) {', '.join(missing)}")
+            raise BundleError(f"{csv_path} lacks required column(s) {', '.join(missing)}")
         for c in required:
             if c in table.text:
                 cells = table.text[c]
                 row = next(i for i, v in enumerate(cells) if not _is_number(v))
                 raise BundleError(
-                    f"{csv}: column {c!r} must be numeric (ids too), but data row {row + 1} "
-                    f"holds {str(cells[row])!r}"
+                    f"{csv_path}{_line(table, row)}, column {c!r}: must be numeric (ids too), "
+                    f"but holds {str(cells[row])!r}"
                 )
-        if "t" in table.columns:
-            order = np.argsort(table["t"], kind="stable")
-            if np.any(order != np.arange(len(order))):
-                table = table.select(order)  # type: ignore[arg-type]
+        _check_rows(csv_path, table)
         tables[name] = table
-    meta: dict[str, Any] = {}
-    meta_path = directory / "meta.json"
-    if meta_path.exists():
-        try:
-            meta = json.loads(meta_path.read_text(encoding="utf-8"))
-        except (OSError, json.JSONDecodeError) as e:
-            raise BundleError(f"cannot parse {meta_path}: {e}") from e
+    meta = read_meta(directory / "meta.json")
     if not tables:
         raise BundleError(f"{directory} holds no bundle CSV file ({', '.join(REQUIRED_COLUMNS)})")
     log.info(
         "loaded bundle %s: %s", directory, ", ".join(f"{k}[{len(v)}]" for k, v in tables.items())
     )
     return Bundle(directory, tables, meta)
+
+
+def _line(table: Table, row: int) -> str:
+    """`` line N`` of a data row, for a message."""
+    return "" if table.lines is None else f" line {int(table.lines[row])}"
+
+
+def _check_rows(path: Path, table: Table) -> None:
+    """Row count and time of one stream file (see :func:`load_bundle`)."""
+    n = len(table)
+    if n == 0:
+        raise BundleError(f"{path} has a header but no data row")
+    if table.name in SAMPLED_STREAMS and n < 2:
+        raise BundleError(f"{path} has 1 data row: a stream needs at least two samples")
+    if "t" not in table.columns:
+        return
+    t = table["t"]
+    missing = np.flatnonzero(~np.isfinite(t))
+    if missing.size:
+        raise BundleError(
+            f"{path}{_line(table, int(missing[0]))}, column 't': empty or not a number: every "
+            "row needs its time"
+        )
+    back = np.flatnonzero(np.diff(t) < 0)
+    if back.size:
+        k = int(back[0]) + 1
+        raise BundleError(
+            f"{path}{_line(table, k)}, column 't': {t[k]:.9g} is before the previous row's "
+            f"{t[k - 1]:.9g}: rows must be in time order"
+        )
+    if table.name in SAMPLED_STREAMS:
+        required = REQUIRED_COLUMNS[table.name]
+        whole = np.logical_and.reduce([np.isfinite(table[c]) for c in required])
+        if int(whole.sum()) < 2:
+            raise BundleError(
+                f"{path}: {int(whole.sum())} row(s) with a number in every one of "
+                f"{', '.join(required)}: a stream needs at least two samples"
+            )
+        same = np.flatnonzero(np.diff(t) == 0)
+        if same.size:
+            k = int(same[0]) + 1
+            raise BundleError(
+                f"{path}{_line(table, k)}, column 't': {t[k]:.9g} repeats the previous row's "
+                "time: one sample per time in this file"
+            )
+
+
+def read_meta(path: Path) -> dict[str, Any]:
+    """``meta.json`` parsed (``{}`` when there is none); the known numbers checked.
+
+    Raises :class:`BundleError` naming the file and the key when the file is not UTF-8 JSON
+    (``NaN``, ``Infinity`` and numbers that overflow a float are not), is not an object, a
+    known section (``robot``, ``sensor``, ``units``, ``reference``, ``robot.start_pose``)
+    is not an object, or a known number is not a finite number (a ``robot``
+    length or scale of :data:`META_ROBOT_POSITIVE` also > 0: ``ticks_per_metre: 0`` has no
+    meaning).
+    """
+    if not path.exists():
+        return {}
+    try:
+        text = path.read_bytes().decode("utf-8-sig")
+        meta = json.loads(text, parse_constant=_no_constant, parse_float=_finite_float)
+    except OSError as e:
+        raise BundleError(f"cannot read {path}: {e.strerror or e}") from e
+    except UnicodeDecodeError as e:
+        raise BundleError(f"{path}: not UTF-8 text (byte offset {e.start})") from e
+    except json.JSONDecodeError as e:
+        raise BundleError(f"{path} line {e.lineno}, column {e.colno}: not JSON: {e.msg}") from e
+    except ValueError as e:  # _no_constant, _finite_float
+        raise BundleError(f"{path}: {e}") from e
+    except RecursionError as e:
+        raise BundleError(f"{path}: nested too deeply to read") from e
+    if not isinstance(meta, dict):
+        raise BundleError(
+            f"{path} must hold a JSON object ({{...}}), not {_json_kind(meta)}"
+        )
+    for key in ("robot", "sensor", "units", "reference"):
+        _object_or_absent(path, meta, key)
+    robot = meta.get("robot") or {}
+    for key in META_ROBOT_POSITIVE:
+        if key in robot:
+            value = _number(path, f"robot.{key}", robot[key])
+            if not value > 0:
+                raise BundleError(f"{path}: robot.{key} must be > 0, got {robot[key]!r}")
+    start = _object_or_absent(path, robot, "start_pose", "robot.")
+    if start is not None:
+        for key in ("x", "y", "theta", "theta_deg"):
+            if key in start and (start[key] is not None or key in ("x", "y")):
+                _number(path, f"robot.start_pose.{key}", start[key])
+    gyro = (meta.get("sensor") or {}).get("gyro")
+    for key in ("bias_rad_s", "scale_factor_error"):  # sensor.gyro may be a description
+        if isinstance(gyro, dict) and key in gyro:
+            _number(path, f"sensor.gyro.{key}", gyro[key])
+    reference = meta.get("reference") or {}
+    for key in ("from_t", "to_t", "total_rotation_rad"):
+        if key in reference:
+            _number(path, f"reference.{key}", reference[key])
+    return meta
+
+
+def _no_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not a JSON number (write a finite number, or leave the key out)")
+
+
+def _finite_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise ValueError(f"the number {text} is out of range")
+    return value
+
+
+def _json_kind(value: object) -> str:
+    if value is None:
+        return "null"
+    if isinstance(value, list):
+        return "an array"
+    if isinstance(value, str):
+        return "a string"
+    return "a number" if isinstance(value, int | float) else f"a {type(value).__name__}"
+
+
+def _object_or_absent(
+    path: Path, parent: Mapping[str, Any], key: str, where: str = ""
+) -> Mapping[str, Any] | None:
+    value = parent.get(key)
+    if value is None and key not in parent:
+        return None
+    if not isinstance(value, dict):
+        raise BundleError(f"{path}: {where}{key} must be a JSON object, not {_json_kind(value)}")
+    return value
+
+
+def _number(path: Path, key: str, value: object) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise BundleError(f"{path}: {key} must be a number, got {json.dumps(value)[:40]}")
+    if not math.isfinite(value) or abs(value) > MAX_ABS_VALUE:
+        raise BundleError(f"{path}: {key} must be a finite number, got {value!r}")
+    return float(value)
 
 
 def load_input(path: Path, workdir: Path) -> Bundle:

@@ -32,6 +32,7 @@ SUBCOMMANDS: dict[str, str] = {
     "run": "koala_bridge.cli.run",
     "calibrate": "koala_bridge.cli.calibrate",
     "export": "koala_bridge.cli.export",
+    "recover": "koala_bridge.cli.recover",
     "replay": "koala_bridge.cli.replay",
     "monitor": "koala_bridge.cli.monitor",
     "snapshot": "koala_bridge.cli.snapshot",

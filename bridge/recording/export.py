@@ -30,6 +30,8 @@ import csv
 import json
 import math
 import os
+import shutil
+import tempfile
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
@@ -143,6 +145,7 @@ def _meta(rec: Recording, counts: dict[str, int]) -> dict[str, Any]:
         "source": f"koala-bridge recording ({run.get('source', 'sim')})",
         "recording": str(rec.path.resolve()),
         "recording_complete": rec.complete,
+        "recording_lost": rec.lost,
         "format_version": rec.format_version,
         "seed": seed,
         "config_path": run.get("config_path"),
@@ -166,16 +169,57 @@ def _meta(rec: Recording, counts: dict[str, int]) -> dict[str, Any]:
     }
 
 
+#: What a bundle directory written by :func:`export_bundle` may hold: the only directory
+#: contents an export replaces.
+BUNDLE_FILES = frozenset(
+    [*TABLES, "range.csv", "landmarks.csv", "landmark_map.csv", "meta.json"]
+)
+
+
 def export_bundle(mcap_path: str | os.PathLike[str], out_dir: str | os.PathLike[str]) -> Path:
     """Write the measurement bundle of the recording ``mcap_path`` into ``out_dir``.
 
-    Creates ``out_dir`` if needed and returns it. A recording cut short (SIGKILL) exports what it
-    holds. Raises :class:`recording.mcap_file.RecordingError` if the file is not a recording or
-    holds no reading at all.
+    The bundle is written into a temporary sibling directory and renamed to ``out_dir`` when
+    complete, so an export that fails or is killed never leaves a partial bundle that
+    ``calibrate`` would accept. An existing ``out_dir`` is replaced if it is empty or holds
+    only bundle files (:data:`BUNDLE_FILES`: a previous export), and refused otherwise. A
+    recording cut short (SIGKILL) exports what it holds, with a warning (its ``meta.json``
+    says ``recording_complete: false`` and what was lost). Raises
+    :class:`recording.mcap_file.RecordingError` if the file is not a recording, is damaged, or
+    holds no reading at all; OSError if the directory cannot be written.
     """
     rec = open_recording(mcap_path)
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists():
+        if not out.is_dir():
+            raise RecordingError(f"{out} exists and is not a directory")
+        foreign = sorted(p.name for p in out.iterdir() if p.name not in BUNDLE_FILES)
+        if foreign:
+            raise RecordingError(
+                f"{out} holds files that are not a bundle's ({', '.join(foreign[:3])}): "
+                "choose a new or empty directory"
+            )
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    try:
+        _write_bundle(rec, mcap_path, tmp)
+        if out.exists():
+            # The old bundle moves aside first; between the two renames there is no bundle
+            # at ``out`` at all, never a mixed or partial one.
+            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
+            os.rename(out, old / "bundle")
+            os.rename(tmp, out)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.rename(tmp, out)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return out
+
+
+def _write_bundle(rec: Recording, mcap_path: str | os.PathLike[str], out: Path) -> None:
+    """The bundle's files, written into the (new, empty) directory ``out``."""
     counts: dict[str, int] = {}
 
     for name, cls in TABLES.items():
@@ -202,7 +246,6 @@ def export_bundle(mcap_path: str | os.PathLike[str], out_dir: str | os.PathLike[
             out / "landmark_map.csv", ("id", "x", "y", "colour"), rows
         )
 
-    if not counts:
+    if not set(counts) - {"landmark_map.csv"}:  # the world's map alone is no reading
         raise RecordingError(f"{mcap_path} holds no reading to export")
     (out / "meta.json").write_text(json.dumps(_meta(rec, counts), indent=2) + "\n", "utf-8")
-    return out

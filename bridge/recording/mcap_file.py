@@ -34,8 +34,10 @@ import io
 import json
 import logging
 import os
+import struct
 import threading
 import time
+import zlib
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,10 +45,33 @@ from typing import Any
 
 from koala_bridge.core.topics import JSON_SCHEMA_DIALECT
 from koala_bridge.core.topics import json_schema as topic_json_schema
+from mcap.data_stream import ReadDataStream
 from mcap.exceptions import EndOfFile
-from mcap.records import Channel, Footer, Header, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
+from mcap.opcode import Opcode
+from mcap.records import (
+    Attachment,
+    AttachmentIndex,
+    Channel,
+    Chunk,
+    ChunkIndex,
+    DataEnd,
+    Footer,
+    Header,
+    Message,
+    MessageIndex,
+    Metadata,
+    MetadataIndex,
+    Schema,
+    Statistics,
+    SummaryOffset,
+)
+from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, Writer
+
+try:  # the mcap library's zstd chunks need it; without it they fail to decode, as damage would
+    import zstandard
+except ImportError:  # pragma: no cover
+    zstandard = None  # type: ignore[assignment]
 
 log = logging.getLogger(__name__)
 
@@ -192,6 +217,7 @@ class Recorder:
             self._file,  # type: ignore[arg-type]  # duck-typed stream: write/tell/flush
             chunk_size=chunk_size,
             compression=CompressionType.ZSTD,
+            enable_data_crcs=True,  # DataEnd's CRC: a flipped bit outside a chunk is found too
         )
         self._writer.start(profile=PROFILE, library=f"koala-bridge recording/{FORMAT_VERSION}")
         meta = {"format_version": str(FORMAT_VERSION), "created_unix_s": f"{time.time():.3f}"}
@@ -365,6 +391,8 @@ class RecordedMessage:
     log_time_ns: int
     sequence: int
     data: bytes
+    channel_id: int = 0
+    publish_time_ns: int | None = None  # None: the same as log_time_ns
 
     @property
     def t(self) -> float:
@@ -384,7 +412,8 @@ class Recording:
     """A recording read in full: metadata, messages in file order, and whether it was complete.
 
     ``complete`` is False for a file cut short (a writer killed with SIGKILL, a full disk):
-    ``messages`` then holds everything up to the last complete chunk.
+    ``messages`` then holds everything up to the last complete chunk, and ``lost`` says what
+    was lost (the same text as the warning :func:`open_recording` logs).
     """
 
     path: Path
@@ -393,6 +422,12 @@ class Recording:
     messages: list[RecordedMessage]
     complete: bool
     schemas: dict[str, str] = field(default_factory=dict)  # topic -> JSON schema text
+    lost: str = ""
+    #: the MCAP records of the channels and their schemas, by id (``koala-bridge recover``
+    #: writes them back)
+    channel_records: dict[int, Channel] = field(default_factory=dict)
+    schema_records: dict[int, Schema] = field(default_factory=dict)
+    chunks: int = 0  # complete chunks read
 
     @property
     def format_version(self) -> int | None:
@@ -420,76 +455,258 @@ class Recording:
         return out
 
 
-def open_recording(path: str | os.PathLike[str]) -> Recording:
-    """Read a recording, complete or cut short, with the MCAP library's streaming reader.
+class CorruptRecordingError(RecordingError):
+    """A recording's bytes are damaged: a CRC does not match, or a complete record cannot be
+    decoded. The message names the record and its byte offset."""
 
-    Raises :class:`RecordingError` if the file is not MCAP at all.
+
+#: MCAP record readers by opcode (the record's body as a stream; a message also needs its
+#: length). Opcodes 0x80-0xFF are private records, skipped as the MCAP specification says.
+_RECORD_READERS: dict[int, Callable[[ReadDataStream, int], object]] = {
+    Opcode.HEADER: lambda s, n: Header.read(s),
+    Opcode.FOOTER: lambda s, n: Footer.read(s),
+    Opcode.SCHEMA: lambda s, n: Schema.read(s),
+    Opcode.CHANNEL: lambda s, n: Channel.read(s),
+    Opcode.MESSAGE: lambda s, n: Message.read(s, n),
+    Opcode.CHUNK: lambda s, n: Chunk.read(s),
+    Opcode.MESSAGE_INDEX: lambda s, n: MessageIndex.read(s),
+    Opcode.CHUNK_INDEX: lambda s, n: ChunkIndex.read(s),
+    Opcode.ATTACHMENT: lambda s, n: Attachment.read(s),
+    Opcode.ATTACHMENT_INDEX: lambda s, n: AttachmentIndex.read(s),
+    Opcode.STATISTICS: lambda s, n: Statistics.read(s),
+    Opcode.METADATA: lambda s, n: Metadata.read(s),
+    Opcode.METADATA_INDEX: lambda s, n: MetadataIndex.read(s),
+    Opcode.SUMMARY_OFFSET: lambda s, n: SummaryOffset.read(s),
+    Opcode.DATA_END: lambda s, n: DataEnd.read(s),
+}
+_RECORD_HEADER = struct.Struct("<BQ")  # opcode, length of the body
+_FOOTER_SIZE = _RECORD_HEADER.size + 20  # summary_start, summary_offset_start (u64), crc (u32)
+#: The largest chunk this reader decompresses (the recorder writes 32 KiB chunks; the mcap
+#: library's default is 1 MiB): a larger declared size is a damaged length, not a chunk.
+MAX_CHUNK_BYTES = 256 * 1024 * 1024
+
+
+def _record_name(opcode: int) -> str:
+    try:
+        return Opcode(opcode).name.lower().replace("_", " ")
+    except ValueError:
+        return f"unknown (opcode 0x{opcode:02x})"
+
+
+def _chunk_records(chunk: Chunk) -> list[object]:
+    """The records inside a chunk, its CRC checked; raises on any damage."""
+    if chunk.uncompressed_size > MAX_CHUNK_BYTES:
+        raise ValueError(f"declares {chunk.uncompressed_size} uncompressed bytes")
+    if chunk.compression == "zstd" and zstandard is not None:
+        declared = zstandard.frame_content_size(chunk.data)
+        if declared not in (-1, chunk.uncompressed_size):  # -1: the frame does not say
+            raise ValueError(
+                f"its zstd frame holds {declared} bytes, the chunk says {chunk.uncompressed_size}"
+            )
+    if chunk.uncompressed_crc == 0:
+        log.debug("a chunk without CRC: its content is not checked")
+    return list(breakup_chunk(chunk, validate_crc=True))
+
+
+def open_recording(path: str | os.PathLike[str], *, salvage: bool = False) -> Recording:
+    """Read a recording, complete or cut short, checking every CRC it carries.
+
+    A complete file (it ends in a footer) must be whole: each chunk's CRC, the data section's
+    and the summary's are checked, and any damage raises :class:`CorruptRecordingError` naming
+    the record and its byte offset. A file cut short (a writer killed with SIGKILL, a full
+    disk) is read up to its last complete record, each chunk's CRC checked, and a WARNING says
+    what was lost (:attr:`Recording.lost`). With ``salvage`` (``koala-bridge recover``), damage
+    is treated as a cut: everything before the damaged record is kept, with a warning.
+
+    Raises :class:`RecordingError` if the file cannot be read or is not MCAP at all.
     """
     p = Path(path)
     try:
         raw = p.read_bytes()
     except OSError as e:
-        raise RecordingError(f"cannot read {p}: {e}") from e
+        raise RecordingError(f"cannot read {p}: {e.strerror or e}") from e
     if not raw.startswith(MCAP_MAGIC):
         # Checked here: the reader's own complaint about a short or foreign file is a struct
         # error ("unpack requires a buffer of 8 bytes") that says nothing to a user.
         what = "it is empty" if not raw else "it does not begin with the MCAP magic bytes"
         raise RecordingError(f"{p} is not an MCAP file: {what}")
-    reader = StreamReader(io.BytesIO(raw))
-    profile = ""
-    metadata: dict[str, dict[str, str]] = {}
-    schemas: dict[int, Schema] = {}
-    channels: dict[int, Channel] = {}
-    messages: list[RecordedMessage] = []
-    complete = False
-    records = reader.records
-    while True:
-        try:
-            record = next(records)
-        except StopIteration:
-            break
-        except Exception as e:  # noqa: BLE001 - any decode error of the tail means "cut short"
-            # The tail of a file cut short: a partial record (EndOfFile, a short struct, a zstd
-            # frame cut in two). Everything before it is good.
-            if not messages and not metadata and not profile:
-                raise RecordingError(
-                    f"{p} is not a readable MCAP file: nothing readable after its magic bytes "
-                    f"({_read_error(e)})"
-                ) from e
-            log.info(
-                "%s ends in a partial record (%s): read up to the last complete chunk",
-                p,
-                _read_error(e),
-            )
-            break
-        if isinstance(record, Metadata):
-            metadata[record.name] = dict(record.metadata)
-        elif isinstance(record, Schema):
-            schemas[record.id] = record
-        elif isinstance(record, Channel):
-            channels[record.id] = record
-        elif isinstance(record, Message):
-            ch = channels.get(record.channel_id)
-            if ch is None:
+    return _Walk(p, raw, salvage).run()
+
+
+class _Walk:
+    """One pass over the records of an MCAP file (see :func:`open_recording`)."""
+
+    def __init__(self, path: Path, raw: bytes, salvage: bool) -> None:
+        self.path = path
+        self.raw = raw
+        self.salvage = salvage
+        n = len(raw)
+        # A file that ends in the magic bytes was closed by its writer (a cut file ends there
+        # by a 1 in 2**64 chance): anything wrong inside it is damage, never a cut.
+        self.closed = n >= 2 * len(MCAP_MAGIC) + _FOOTER_SIZE and raw.endswith(MCAP_MAGIC)
+        self.rec = Recording(path, "", {}, [], False)
+        self.last_t_ns: int | None = None
+        self.in_summary = False  # past the DataEnd record: every message has been read
+
+    def run(self) -> Recording:
+        raw, n, pos = self.raw, len(self.raw), len(MCAP_MAGIC)
+        while pos < n:
+            if n - pos < _RECORD_HEADER.size:
+                self._cut(pos, "the file ends inside a record header")
+                break
+            opcode, length = _RECORD_HEADER.unpack_from(raw, pos)
+            body_start = pos + _RECORD_HEADER.size
+            if length > n - body_start:
+                if self.closed:
+                    self._damage(
+                        pos, f"a {_record_name(opcode)} record claims {length} bytes, more than "
+                        "the file holds after it"
+                    )
+                    break
+                self._cut(pos, f"a partial record, a {_record_name(opcode)}", opcode, body_start)
+                break
+            end = body_start + length
+            reader = _RECORD_READERS.get(opcode)
+            if reader is None:
+                if opcode >= 0x80:  # a private record (MCAP specification): skipped
+                    pos = end
+                    continue
+                self._damage(pos, f"a record of unknown type 0x{opcode:02x}")
+                break
+            if self.in_summary and opcode != Opcode.FOOTER:
+                pos = end  # the summary repeats the data section; its CRC is checked below
                 continue
-            messages.append(
-                RecordedMessage(ch.topic, record.log_time, record.sequence, record.data)
-            )
-        elif isinstance(record, Footer):
-            complete = True
+            try:
+                record = reader(ReadDataStream(io.BytesIO(raw[body_start:end])), length)
+            except Exception as e:  # noqa: BLE001 - any decode error of a whole record: damage
+                self._damage(pos, f"a {_record_name(opcode)} record cannot be decoded "
+                             f"({_read_error(e)})")
+                break
+            if not self._take(pos, record):
+                break
+            if isinstance(record, DataEnd):
+                if record.data_section_crc and record.data_section_crc != zlib.crc32(raw[:pos]):
+                    self._damage(pos, "the data section fails its CRC check")
+                    break
+                self.in_summary = True
+            if isinstance(record, Footer):
+                closing = raw[end : end + len(MCAP_MAGIC)]
+                if len(closing) == len(MCAP_MAGIC) and closing != MCAP_MAGIC:
+                    self._damage(end, "the closing magic bytes are damaged")
+                elif self._summary_intact(pos, record):
+                    self.rec.complete = True
+                break
+            pos = end
+        else:
+            if not self.rec.complete:
+                self._cut(pos, "the writer never closed it: no summary or footer")
+        rec = self.rec
+        rec.schemas = {
+            ch.topic: rec.schema_records[ch.schema_id].data.decode("utf-8", "replace")
+            for ch in rec.channel_records.values()
+            if ch.schema_id in rec.schema_records
+        }
+        return rec
+
+    def _take(self, pos: int, record: object) -> bool:
+        """Add one record's content to the recording; False when it is damaged."""
+        rec = self.rec
+        if isinstance(record, Chunk):
+            try:
+                inner = _chunk_records(record)
+            except Exception as e:  # noqa: BLE001 - zstd, CRC, struct, UTF-8: all damage
+                self._damage(
+                    pos, f"chunk {rec.chunks + 1} (messages from t = "
+                    f"{record.message_start_time * 1e-9:.3f} s) is damaged: {_read_error(e)}"
+                )
+                return False
+            rec.chunks += 1
+            for r in inner:
+                self._take(pos, r)
         elif isinstance(record, Header):
-            profile = record.profile
-    topic_schemas = {
-        ch.topic: schemas[ch.schema_id].data.decode()
-        for ch in channels.values()
-        if ch.schema_id in schemas
-    }
-    return Recording(p, profile, metadata, messages, complete, topic_schemas)
+            rec.profile = record.profile
+        elif isinstance(record, Metadata):
+            rec.metadata[record.name] = dict(record.metadata)
+        elif isinstance(record, Schema):
+            rec.schema_records[record.id] = record
+        elif isinstance(record, Channel):
+            rec.channel_records[record.id] = record
+        elif isinstance(record, Message):
+            ch = rec.channel_records.get(record.channel_id)
+            if ch is not None:
+                rec.messages.append(
+                    RecordedMessage(
+                        ch.topic, record.log_time, record.sequence, record.data,
+                        record.channel_id,
+                        None if record.publish_time == record.log_time else record.publish_time,
+                    )
+                )
+                self.last_t_ns = max(self.last_t_ns or 0, record.log_time)
+        return True
+
+    def _summary_intact(self, pos: int, footer: Footer) -> bool:
+        if footer.summary_crc:
+            start = footer.summary_start or pos
+            computed = zlib.crc32(self.raw[start : pos + _RECORD_HEADER.size + 16])
+            if start > pos or computed != footer.summary_crc:
+                self._damage(pos, "the summary section fails its CRC check")
+                return False
+        return True
+
+    def _nothing_read(self) -> bool:
+        return not self.rec.messages and not self.rec.metadata and not self.rec.profile
+
+    def _damage(self, pos: int, what: str) -> None:
+        where = f"{self.path} is damaged at byte {pos} of {len(self.raw)}: {what}"
+        if not self.salvage:
+            raise CorruptRecordingError(where)
+        self._cut(pos, what, damaged=True)
+
+    def _cut(
+        self, pos: int, what: str, opcode: int | None = None, body_start: int = 0,
+        damaged: bool = False,
+    ) -> None:
+        if self.closed and not damaged:  # a closed file is never cut short: it is damaged
+            self._damage(pos, what)
+            return
+        if self._nothing_read():
+            raise RecordingError(
+                f"{self.path} is not a readable MCAP file: nothing readable after its magic "
+                f"bytes ({'the file ends inside a record' if not damaged else what})"
+            )
+        rec = self.rec
+        kept = (
+            f"{len(rec.messages)} messages in {rec.chunks} complete chunk(s)"
+            + ("" if self.last_t_ns is None else f", up to t = {self.last_t_ns * 1e-9:.3f} s")
+        )
+        lost = f"{len(self.raw) - pos} bytes from byte {pos} on"
+        if opcode == Opcode.CHUNK and len(self.raw) - body_start >= 16:
+            t0, t1 = struct.unpack_from("<QQ", self.raw, body_start)
+            lost += f": a chunk of messages from t = {t0 * 1e-9:.3f} to {t1 * 1e-9:.3f} s"
+        elif opcode == Opcode.MESSAGE_INDEX:
+            lost += ": a message index (no message)"
+        else:
+            lost += ", with any message they held"
+        if self.in_summary:
+            rec.lost = (
+                f"the summary section ends at byte {pos} ({what}): kept all {kept}; only the "
+                "summary and index are lost"
+            )
+        elif damaged:
+            rec.lost = f"damaged at byte {pos} ({what}): kept {kept}; lost {lost}"
+        elif pos >= len(self.raw):
+            rec.lost = (
+                f"cut short at byte {pos} ({what}): kept {kept}; lost the summary and index, "
+                "and whatever the writer had not written yet (at most one chunk)"
+            )
+        else:
+            rec.lost = f"cut short at byte {pos} ({what}): kept {kept}; lost {lost}"
+        log.warning("%s %s", self.path, rec.lost)
 
 
 def _read_error(e: Exception) -> str:
     """What went wrong reading a record, never empty (the MCAP library's ``EndOfFile`` has no
     message)."""
     if isinstance(e, EndOfFile):
-        return "the file ends inside a record"
+        return "the record ends before its fields do"
     return str(e) or type(e).__name__
