@@ -383,11 +383,18 @@ class SimulatedRobotSource:
     def _kteam_reader(self, link: LockedByteLink) -> Callable[[], None]:
         splitter = LineSplitter()
         responder = self.kteam
+        session = link.client_session
 
         def step() -> None:
-            if not link.wait(READ_TIMEOUT_S):
-                return
+            nonlocal session
+            # Read even when nothing became readable: a client that has just gone may have left
+            # input the transport took from the kernel when it saw the hang-up.
+            link.wait(READ_TIMEOUT_S)
             data = link.read()
+            if link.client_session != session:
+                # Another client: the last one's half-sent command must not prefix its first.
+                session = link.client_session
+                splitter.reset()
             if not data:
                 return
             t = self.port.t
