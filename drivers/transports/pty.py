@@ -304,4 +304,3 @@ class PtyTransport(ByteTransport):
         except OSError as e:
             self.close()
             raise TransportError(f"cannot create symlink {link}: {e}") from e
-
