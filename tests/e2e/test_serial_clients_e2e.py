@@ -10,6 +10,7 @@ import sys
 from collections.abc import Callable
 
 from conftest import BridgeProcess
+from koala_bridge.drivers.rangeframes import SYNC, RangeFrameDecoder
 
 LEAVE_HALF_SENT = """
 import serial, sys
@@ -23,6 +24,23 @@ import serial, sys
 with serial.Serial(sys.argv[1], 115200, timeout=10, write_timeout=60) as s:
     s.write(b"N\\r" * 5000)
     s.flush()
+"""
+
+HOLD_UNREAD = """
+import serial, sys, time
+with serial.Serial(sys.argv[1], 115200, timeout=10):
+    time.sleep(float(sys.argv[2]))  # reads nothing: the bridge's queue for it fills
+"""
+
+# A plain open(), as a C program or `cat` does: unlike pyserial it flushes nothing at open.
+FIRST_BYTES = """
+import os, sys
+fd = os.open(sys.argv[1], os.O_RDONLY | os.O_NOCTTY)
+data = b""
+while len(data) < int(sys.argv[2]):
+    data += os.read(fd, int(sys.argv[2]) - len(data))
+os.close(fd)
+sys.stdout.write(data.hex())
 """
 
 ASK = """
@@ -49,4 +67,23 @@ def test_each_program_gets_its_own_replies(bridge: Callable[..., BridgeProcess])
         assert _client(ASK, path, "H").startswith("h,")
         _client(NEVER_READ, path)
         assert _client(ASK, path, "B").startswith("b,koala-bridge")
+    assert proc.stop() == 0
+
+
+def test_range_frames_start_whole_after_a_client_that_never_read(
+    bridge: Callable[..., BridgeProcess],
+) -> None:
+    proc = bridge(clock="fast", sets=["buses.kteam.enabled=false"])
+    path = proc.endpoints["serial"]["rangefinders"]
+    for _ in range(3):
+        _client(HOLD_UNREAD, path, "1.0")
+        head = bytes.fromhex(_client(FIRST_BYTES, path, "40000"))
+        assert head[:2] == SYNC  # a whole frame from the first byte...
+        decoder = RangeFrameDecoder()
+        frames = decoder.feed(head)
+        assert frames and decoder.rejected == 0
+        # ...and all fresh: no stale frames the last client left unread, then a gap in seq.
+        for kind in {f.kind for f in frames}:
+            seqs = [f.seq for f in frames if f.kind == kind]
+            assert all((b - a) % 65536 == 1 for a, b in zip(seqs, seqs[1:], strict=False))
     assert proc.stop() == 0
