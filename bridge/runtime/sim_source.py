@@ -438,10 +438,15 @@ class SimulatedRobotSource:
 
     def _mavlink_reader(self, link: LockedByteLink) -> Callable[[], None]:
         decoder = CompassDecoder()
+        session = link.client_session
 
         def step() -> None:
+            nonlocal decoder, session
             for _ in range(64):  # bounded: the loop must not stall on a flood
                 data = link.read()
+                if link.client_session != session:  # a new client on the pty: no half packet
+                    session = link.client_session
+                    decoder = CompassDecoder()
                 if not data:
                     return
                 one(data)

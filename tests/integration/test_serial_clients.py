@@ -267,6 +267,33 @@ def _mavlink_rounds(url: str) -> None:
             link.close()
 
 
+def test_mavlink_pty_a_half_sent_packet_is_not_glued_to_the_next_clients(
+    free_tcp_port: int,
+) -> None:
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    gcs = mavlink2.MAVLink(None, 255, 190)
+    heartbeat = bytes(gcs.heartbeat_encode(6, 8, 0, 0, 4).pack(gcs))
+    with running_bridge(
+        free_tcp_port,
+        'buses.mavlink.transport="pty"',
+        "buses.kteam.enabled=false",
+        "buses.rangefinders.enabled=false",
+    ) as (service, endpoints):
+        assert endpoints.mavlink_url is not None and service.buses.mavlink is not None
+        link = service.buses.mavlink
+        read_before = link.stats.received
+        with serial.Serial(endpoints.mavlink_url, 115200, timeout=10) as first:
+            first.write(heartbeat[:7])  # the client gives up half-way through a packet
+            first.flush()
+        _wait_gone(link, read_before)
+        with serial.Serial(endpoints.mavlink_url, 115200, timeout=10) as second:
+            second.write(heartbeat)
+            second.flush()
+            assert _wait_until(lambda: _bus(service, "mavlink")["received"] == 1, 30)
+        assert _bus(service, "mavlink")["rejected"] == 0
+
+
 def test_mavlink_udp_fifty_listeners_in_turn(free_tcp_port: int, free_udp_port: int) -> None:
     with running_bridge(
         free_tcp_port,
