@@ -21,6 +21,7 @@ from koala_bridge.drivers.kteam import parse_reply
 from koala_bridge.drivers.messages import KteamReply, RangeFrame
 from koala_bridge.drivers.rangeframes import SYNC, RangeFrameDecoder
 from koala_bridge.drivers.transports.pty import PtyTransport
+from koala_bridge.drivers.transports.slcan import SlcanAdapter
 from koala_bridge.drivers.transports.tcp import TcpServerTransport
 from koala_bridge.runtime.buses import LockedByteLink
 from koala_bridge.runtime.endpoints import Endpoints
@@ -208,6 +209,20 @@ def test_pty_flushes_what_a_gone_client_left_unread() -> None:
             assert os.read(fd, 10000) == b"fresh"
         finally:
             os.close(fd)
+
+
+def test_slcan_a_half_sent_line_is_not_glued_to_the_next_clients() -> None:
+    with SlcanAdapter() as adapter:
+        with serial.Serial(adapter.endpoint.path, timeout=10) as first:
+            first.write(b"O\r")
+            assert first.read_until(b"\r") == b"\r"
+            first.write(b"t100")  # half a frame line, then the client goes
+            first.flush()
+        assert _wait_until(lambda: not adapter.is_open, 10)
+        with serial.Serial(adapter.endpoint.path, timeout=10) as second:
+            second.write(b"V\r")
+            assert second.read_until(b"\r") == b"V1013\r"
+        assert adapter.stats.rejected == 0
 
 
 # ----------------------------------------------------------------------------- range-frame pty
