@@ -14,7 +14,8 @@ Threads (all owned here, all joined by :meth:`SimulatedRobotSource.close`):
   and CAN frames from each interface (``MotorCommand``). What clients send on the rangefinders
   pty and the MAVLink link is read by the simulation loop itself, every ``DRAIN_PERIOD_S`` of
   wall time, as it is the only thread using those transports. Input that does not decode is
-  rejected and counted and changes nothing else.
+  rejected and counted and changes nothing else. When the client of a pty changes
+  (``client_session``), its reader starts afresh: no half line or half packet carries over.
 
 ``status`` counters per bus: ``sent`` (writes/frames handed to clients, from the transport),
 ``received`` (well-formed frames the bridge acted on or accepted), ``rejected`` (input discarded:
