@@ -58,6 +58,11 @@ class LockedByteLink:
     def is_datagram(self) -> bool:
         return self.transport.is_datagram
 
+    @property
+    def client_session(self) -> int:
+        """The transport's :attr:`ByteTransport.client_session` (an int: read without the lock)."""
+        return self.transport.client_session
+
     def read(self, max_bytes: int = 65536) -> bytes:
         with self._lock:
             return self.transport.read(max_bytes)
@@ -74,7 +79,11 @@ class LockedByteLink:
         events = self._poll.poll(int(timeout * 1000))
         if any(ev & select.POLLIN for _, ev in events):
             return True
-        if events:  # a pty with no client reports hang-up at once: do not spin on it
+        if events:  # a pty with no client reports hang-up at once: do not spin on it,
+            has_client = getattr(self.transport, "has_client", None)
+            if has_client is not None:  # but let it see the hang-up now (the session ends)
+                with self._lock:
+                    has_client()
             time.sleep(min(timeout, HANGUP_RETRY_S))
         return False
 

@@ -14,7 +14,8 @@ Threads (all owned here, all joined by :meth:`SimulatedRobotSource.close`):
   and CAN frames from each interface (``MotorCommand``). What clients send on the rangefinders
   pty and the MAVLink link is read by the simulation loop itself, every ``DRAIN_PERIOD_S`` of
   wall time, as it is the only thread using those transports. Input that does not decode is
-  rejected and counted and changes nothing else.
+  rejected and counted and changes nothing else. When the client of a pty changes
+  (``client_session``), its reader starts afresh: no half line or half packet carries over.
 
 ``status`` counters per bus: ``sent`` (writes/frames handed to clients, from the transport),
 ``received`` (well-formed frames the bridge acted on or accepted), ``rejected`` (input discarded:
@@ -382,11 +383,18 @@ class SimulatedRobotSource:
     def _kteam_reader(self, link: LockedByteLink) -> Callable[[], None]:
         splitter = LineSplitter()
         responder = self.kteam
+        session = link.client_session
 
         def step() -> None:
-            if not link.wait(READ_TIMEOUT_S):
-                return
+            nonlocal session
+            # Read even when nothing became readable: a client that has just gone may have left
+            # input the transport took from the kernel when it saw the hang-up.
+            link.wait(READ_TIMEOUT_S)
             data = link.read()
+            if link.client_session != session:
+                # Another client: the last one's half-sent command must not prefix its first.
+                session = link.client_session
+                splitter.reset()
             if not data:
                 return
             t = self.port.t
@@ -430,10 +438,15 @@ class SimulatedRobotSource:
 
     def _mavlink_reader(self, link: LockedByteLink) -> Callable[[], None]:
         decoder = CompassDecoder()
+        session = link.client_session
 
         def step() -> None:
+            nonlocal decoder, session
             for _ in range(64):  # bounded: the loop must not stall on a flood
                 data = link.read()
+                if link.client_session != session:  # a new client on the pty: no half packet
+                    session = link.client_session
+                    decoder = CompassDecoder()
                 if not data:
                     return
                 one(data)

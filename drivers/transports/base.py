@@ -179,6 +179,13 @@ class ByteTransport(_Closable):
     def wait(self, timeout: float | None) -> bool:
         """Block until :meth:`read` may return data or ``timeout`` s pass; True if readable."""
 
+    @property
+    def client_session(self) -> int:
+        """On a link that serves one client at a time (a pty), which client's bytes :meth:`read`
+        returns: grows by one when the next client's begin, so a reader keeping per-client state
+        (a half-received line) resets it. 0 where the transport cannot tell clients apart."""
+        return 0
+
 
 class CanTransport(_Closable):
     """A CAN bus endpoint: frames from the bridge go to every client, frames from clients queue up

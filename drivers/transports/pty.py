@@ -5,13 +5,27 @@ The slave is set to raw mode (no echo, no line editing, 8 bits) before any clien
 bridge does not keep the slave open itself, so it can tell whether a client is connected: while
 none is, written data is dropped and counted -- as on a real UART with nobody listening -- instead
 of piling up and reaching the next client stale.
+
+One client at a time: when the transport sees the slave closed (the master reports hang-up), the
+client's session ends. Output held back for it (:attr:`PtyTransport.pending`) and what it left
+unread in the kernel are thrown away. What it wrote that the bridge has not read yet is still
+returned by :meth:`PtyTransport.read` (a last ``D,0,0`` still stops the robot) up to what the
+kernel had handed over (4 KiB; a flood beyond that is discarded), and replies to it are dropped;
+then :attr:`PtyTransport.client_session` grows by one, so a reader that keeps per-client state
+(a half-received line) can start afresh for the next client.
+The hang-up is seen by :meth:`~PtyTransport.read`, :meth:`~PtyTransport.write`,
+:meth:`~PtyTransport.wait`, :meth:`~PtyTransport.has_client` and :attr:`~PtyTransport.stats`;
+a client that reopens the port before any of them runs (a reader waiting on the port runs
+within milliseconds) is taken for the same client: the kernel keeps no trace of the gap.
 """
 
 from __future__ import annotations
 
 import errno
+import logging
 import os
 import select
+import termios
 import time
 import tty
 from pathlib import Path
@@ -28,7 +42,10 @@ from koala_bridge.drivers.transports.base import (
 
 __all__ = ["PtyTransport"]
 
+log = logging.getLogger(__name__)
+
 _HUP_POLL_S = 0.02
+_MAX_STALE = 65536  # bytes of a gone client's input still returned by read (the kernel holds 4 KiB)
 
 
 class PtyTransport(ByteTransport):
@@ -57,6 +74,16 @@ class PtyTransport(ByteTransport):
         self._poll.register(master, select.POLLIN)
         self._pending = bytearray()
         self._max_pending = max_pending
+        # Client sessions (module docstring): _in_session while a client is known to be there;
+        # when it goes, _stale holds its last input, and the session number grows at
+        # the first read after them (_boundary). _answering_gone: what read() returned last
+        # came from a client that has gone, so replies to it are dropped.
+        self._in_session = False
+        self._stale = bytearray()
+        self._answering_gone = False
+        self._last_read_data = False
+        self._boundary = False
+        self._sessions = 0
         self._stats = StatsCounter()
         self._link: Path | None = None
         if link is not None:
@@ -92,36 +119,49 @@ class PtyTransport(ByteTransport):
         """The master fd, readable when the client has written something."""
         return self._fd()
 
-    def has_client(self) -> bool:
-        """True while some process has the slave open (the master reports no hang-up).
+    @property
+    def client_session(self) -> int:
+        """Grows by one at the first :meth:`read` after a client has gone (and its last input
+        has been read): from then on, bytes read are the next client's."""
+        return self._sessions
 
-        Uses its own poll object: ``wait`` may be blocked in ``self._poll`` on another thread,
-        and a poll object refuses concurrent use.
-        """
-        poller = select.poll()
-        poller.register(self._fd(), select.POLLIN)
-        events = poller.poll(0)
-        return not any(ev & select.POLLHUP for _, ev in events)
+    def has_client(self) -> bool:
+        """True while some process has the slave open (the master reports no hang-up). Seeing
+        the hang-up ends the client's session; seeing a client begins one, unless what the
+        bridge is answering is still the last client's input."""
+        present = self._slave_open()
+        if not present and self._in_session:
+            self._end_session()
+        elif present and not self._in_session and not self._stale and not self._answering_gone:
+            self._in_session = True
+        return present
 
     def read(self, max_bytes: int = 65536) -> bytes:
-        fd = self._fd()
+        self._fd()
+        self._answering_gone = self._last_read_data = False
+        self.has_client()
+        if self._stale:  # the last input of a client that has gone
+            data = bytes(self._stale[:max_bytes])
+            del self._stale[:max_bytes]
+            self._answering_gone = True
+            self._stats.add("received")
+            return data
+        if self._boundary:
+            self._boundary = False
+            self._sessions += 1
         self._flush()
-        try:
-            data = os.read(fd, max_bytes)
-        except BlockingIOError:
-            return b""
-        except OSError as e:
-            if e.errno == errno.EIO:  # no client has the slave open
-                return b""
-            raise TransportError(f"pty read failed: {e}") from e
+        data = self._os_read(max_bytes)
         if data:
             self._stats.add("received")
+            self._in_session = self._last_read_data = True  # a client wrote: its session...
+            if not self._slave_open():  # ...which may be over already
+                self._end_session()
         return data
 
     def write(self, data: bytes) -> int:
         self._fd()
-        if not self.has_client():
-            self._pending.clear()
+        self.has_client()
+        if not self._in_session:
             self._stats.add("dropped")
             return 0
         self._flush()
@@ -151,6 +191,8 @@ class PtyTransport(ByteTransport):
         self._fd()  # closed: refused, as read and write are
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
+            if self._stale:  # a gone client's last input, taken from the kernel
+                return True
             remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
             events = self._poll.poll(None if remaining is None else int(remaining * 1000))
             if any(ev & select.POLLIN for _, ev in events):
@@ -158,6 +200,8 @@ class PtyTransport(ByteTransport):
             if remaining is not None and remaining <= 0:
                 return False
             if events:  # hang-up (no client) is reported at once: re-check every _HUP_POLL_S
+                if not self.has_client() and self._stale:  # (ends the gone client's session)
+                    return True
                 time.sleep(_HUP_POLL_S if remaining is None else min(_HUP_POLL_S, remaining))
 
     def close(self) -> None:
@@ -178,6 +222,63 @@ class PtyTransport(ByteTransport):
         if self._master is None:
             raise TransportClosedError("pty transport is closed")
         return self._master
+
+    def _slave_open(self) -> bool:
+        # Its own poll object: ``wait`` may be blocked in ``self._poll`` on another thread, and
+        # a poll object refuses concurrent use.
+        poller = select.poll()
+        poller.register(self._fd(), select.POLLIN)
+        events = poller.poll(0)
+        return not any(ev & select.POLLHUP for _, ev in events)
+
+    def _end_session(self) -> None:
+        """The client has closed the slave: nothing meant for it may reach the next one."""
+        self._in_session = False
+        self._boundary = True
+        self._answering_gone = self._last_read_data  # replies to it must not reach the next
+        if self._pending:
+            self._pending.clear()
+            self._stats.add("dropped")
+        self._stale = self._take_unread_input()
+        self._discard_unread_output()
+
+    def _take_unread_input(self) -> bytearray:
+        """What the gone client wrote and the bridge has not read: what the kernel holds for
+        reading now (<= 4 KiB), returned; the rest of a flood, discarded (from here on, whatever
+        arrives is the next client's)."""
+        taken = bytearray()
+        while len(taken) < _MAX_STALE and (chunk := self._os_read(_MAX_STALE - len(taken))):
+            taken += chunk
+        try:
+            termios.tcflush(self._fd(), termios.TCIFLUSH)
+        except termios.error as e:
+            log.debug("cannot flush the pty master: %s", e)
+        return taken
+
+    def _discard_unread_output(self) -> None:
+        """Flush what the gone client left unread in the slave's input queue (pyserial flushes
+        it when it opens a port; other clients may not)."""
+        try:
+            fd = os.open(self._slave_name, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        except OSError as e:  # a client that opens the port later sees at most 4 KiB stale
+            log.debug("cannot open %s to flush it: %s", self._slave_name, e)
+            return
+        try:
+            termios.tcflush(fd, termios.TCIFLUSH)
+        except termios.error as e:
+            log.debug("cannot flush %s: %s", self._slave_name, e)
+        finally:
+            os.close(fd)
+
+    def _os_read(self, max_bytes: int) -> bytes:
+        try:
+            return os.read(self._fd(), max_bytes)
+        except BlockingIOError:
+            return b""
+        except OSError as e:
+            if e.errno == errno.EIO:  # no client has the slave open
+                return b""
+            raise TransportError(f"pty read failed: {e}") from e
 
     def _flush(self) -> None:
         if self._pending:

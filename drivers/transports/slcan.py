@@ -119,6 +119,7 @@ class SlcanAdapter(CanTransport):
         self._stats = StatsCounter()
         self._rx = FrameQueue(rx_queue, self._stats)
         self._lines = LineSplitter(max_line=64)
+        self._session = self._pty.client_session
         self._lock = threading.Lock()  # guards channel state and pty writes across threads
         self._open = False
         self._listen_only = False
@@ -198,7 +199,11 @@ class SlcanAdapter(CanTransport):
         with self._lock:
             self._pty.flush()
             if fd in readable:
-                for item in self._lines.feed(self._pty.read()):
+                data = self._pty.read()
+                if self._pty.client_session != self._session:  # the last client's input is read
+                    self._session = self._pty.client_session
+                    self._client_gone()
+                for item in self._lines.feed(data):
                     if not self._pty.write(self._on_command(item)):
                         # Past the pty's cap: the client sends commands and does not read.
                         self._stats.add("dropped")

@@ -3,6 +3,12 @@ connected client, what any client sends is returned by :meth:`TcpServerTransport
 
 No thread: connections are accepted and data moved whenever :meth:`read`, :meth:`write` or
 :meth:`wait` is called (the kernel completes the TCP handshake from the listen backlog meanwhile).
+
+Limits (docs/security.md): at most ``max_clients`` connections; each client has its own queue of
+``max_pending`` bytes for what it has not read yet, past which writes to that client are dropped
+whole and counted (``dropped``) -- the others are not slowed. A client whose queue overflowed is
+*stalled* until it has read its queue empty; when all places are taken, a new connection replaces
+the longest-stalled client (closed), or is closed at once (``rejected``) if none is stalled.
 """
 
 from __future__ import annotations
@@ -24,11 +30,12 @@ __all__ = ["TcpClientTransport", "TcpServerTransport"]
 
 
 class _Client:
-    __slots__ = ("sock", "pending")
+    __slots__ = ("sock", "pending", "stalled_since")
 
     def __init__(self, sock: socket.socket) -> None:
         self.sock = sock
         self.pending = bytearray()
+        self.stalled_since: int | None = None  # write count when its queue first overflowed
 
 
 class TcpServerTransport(ByteTransport):
@@ -37,7 +44,8 @@ class TcpServerTransport(ByteTransport):
     Args:
         host: address to bind; loopback by default.
         port: port to bind; 0 picks a free one (see :attr:`endpoint`).
-        max_clients: further connections are accepted and closed at once.
+        max_clients: further connections replace a stalled client, or are accepted and closed at
+            once (module docstring).
         max_pending: per-client bytes kept while that client is slow; beyond it writes to that
             client are dropped whole.
     """
@@ -65,6 +73,7 @@ class TcpServerTransport(ByteTransport):
         self._max_pending = max_pending
         self._stats = StatsCounter()
         self._next = 0
+        self._writes = 0
 
     @classmethod
     def from_url(cls, url: str, **options: Any) -> Self:
@@ -82,6 +91,12 @@ class TcpServerTransport(ByteTransport):
     @property
     def stats(self) -> TransportStats:
         return self._stats.snapshot(clients=len(self._clients))
+
+    @property
+    def pending(self) -> int:
+        """Bytes accepted but not yet taken by the kernel, all clients together (at most
+        ``max_clients * max_pending``)."""
+        return sum(len(c.pending) for c in self._clients)
 
     def read(self, max_bytes: int = 65536) -> bytes:
         self._service()
@@ -107,10 +122,13 @@ class TcpServerTransport(ByteTransport):
         if not self._clients:
             self._stats.add("dropped")
             return 0
+        self._writes += 1
         for client in list(self._clients):
             if client.pending:
                 if len(client.pending) + len(data) > self._max_pending:
                     self._stats.add("dropped")
+                    if client.stalled_since is None:
+                        client.stalled_since = self._writes
                     continue
                 client.pending += data
                 continue
@@ -154,7 +172,7 @@ class TcpServerTransport(ByteTransport):
                 sock, _ = listener.accept()
             except (BlockingIOError, OSError):
                 break
-            if len(self._clients) >= self._max_clients:
+            if len(self._clients) >= self._max_clients and not self._evict_stalled():
                 sock.close()
                 self._stats.add("rejected")
                 continue
@@ -165,6 +183,8 @@ class TcpServerTransport(ByteTransport):
             if client.pending:
                 sent = self._send(client, bytes(client.pending))
                 del client.pending[:sent]
+                if not client.pending:
+                    client.stalled_since = None  # it caught up
 
     def _send(self, client: _Client, data: bytes) -> int:
         try:
@@ -174,6 +194,14 @@ class TcpServerTransport(ByteTransport):
         except OSError:
             self._drop_client(client)
             return len(data)
+
+    def _evict_stalled(self) -> bool:
+        """Close the client stalled longest, if any, to make room for a new one."""
+        stalled = [c for c in self._clients if c.stalled_since is not None]
+        if not stalled:
+            return False
+        self._drop_client(min(stalled, key=lambda c: c.stalled_since or 0))
+        return True
 
     def _drop_client(self, client: _Client) -> None:
         if client in self._clients:

@@ -1,0 +1,89 @@
+"""Firmware test programs run one after another against the K-Team pty of a running bridge
+(a subprocess, fast clock): what one program leaves behind -- a half-sent command, replies it never
+read -- does not reach the next (issue 12). Each client is its own process, as in a firmware
+team's test suite; nothing waits in between but the next program's start-up."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from collections.abc import Callable
+
+from conftest import BridgeProcess
+from koala_bridge.drivers.rangeframes import SYNC, RangeFrameDecoder
+
+LEAVE_HALF_SENT = """
+import serial, sys
+with serial.Serial(sys.argv[1], 115200, timeout=10) as s:
+    s.write(b"D,1")
+    s.flush()
+"""
+
+NEVER_READ = """
+import serial, sys
+with serial.Serial(sys.argv[1], 115200, timeout=10, write_timeout=60) as s:
+    s.write(b"N\\r" * 5000)
+    s.flush()
+"""
+
+HOLD_UNREAD = """
+import serial, sys, time
+with serial.Serial(sys.argv[1], 115200, timeout=10):
+    time.sleep(float(sys.argv[2]))  # reads nothing: the bridge's queue for it fills
+"""
+
+# A plain open(), as a C program or `cat` does: unlike pyserial it flushes nothing at open.
+FIRST_BYTES = """
+import os, sys
+fd = os.open(sys.argv[1], os.O_RDONLY | os.O_NOCTTY)
+data = b""
+while len(data) < int(sys.argv[2]):
+    data += os.read(fd, int(sys.argv[2]) - len(data))
+os.close(fd)
+sys.stdout.write(data.hex())
+"""
+
+ASK = """
+import serial, sys
+with serial.Serial(sys.argv[1], 115200, timeout=10) as s:
+    s.write(sys.argv[2].encode() + b"\\r")
+    sys.stdout.write(s.read_until(b"\\r\\n").decode("ascii", "replace"))
+"""
+
+
+def _client(script: str, *args: str) -> str:
+    done = subprocess.run(
+        [sys.executable, "-c", script, *args], capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0, done.stderr
+    return done.stdout
+
+
+def test_each_program_gets_its_own_replies(bridge: Callable[..., BridgeProcess]) -> None:
+    proc = bridge(clock="fast", sets=["buses.rangefinders.enabled=false"])
+    path = proc.endpoints["serial"]["kteam"]
+    for _ in range(3):
+        _client(LEAVE_HALF_SENT, path)
+        assert _client(ASK, path, "H").startswith("h,")
+        _client(NEVER_READ, path)
+        assert _client(ASK, path, "B").startswith("b,koala-bridge")
+    assert proc.stop() == 0
+
+
+def test_range_frames_start_whole_after_a_client_that_never_read(
+    bridge: Callable[..., BridgeProcess],
+) -> None:
+    proc = bridge(clock="fast", sets=["buses.kteam.enabled=false"])
+    path = proc.endpoints["serial"]["rangefinders"]
+    for _ in range(3):
+        _client(HOLD_UNREAD, path, "1.0")
+        head = bytes.fromhex(_client(FIRST_BYTES, path, "40000"))
+        assert head[:2] == SYNC  # a whole frame from the first byte...
+        decoder = RangeFrameDecoder()
+        frames = decoder.feed(head)
+        assert frames and decoder.rejected == 0
+        # ...and all fresh: no stale frames the last client left unread, then a gap in seq.
+        for kind in {f.kind for f in frames}:
+            seqs = [f.seq for f in frames if f.kind == kind]
+            assert all((b - a) % 65536 == 1 for a, b in zip(seqs, seqs[1:], strict=False))
+    assert proc.stop() == 0
