@@ -168,10 +168,6 @@ def leak_check(request: pytest.FixtureRequest) -> Iterator[None]:
         pytest.fail("leak check: " + "; ".join(problems), pytrace=False)
 
 
-def pytest_configure(config: pytest.Config) -> None:
-    config.addinivalue_line("markers", "no_leak_check: skip the autouse leak check")
-
-
 # -- bridge subprocess -------------------------------------------------------------------------
 
 @dataclass
