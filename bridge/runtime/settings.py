@@ -44,6 +44,7 @@ from pydantic import AfterValidator, BeforeValidator, Field, Strict
 
 if TYPE_CHECKING:
     from koala_bridge.drivers.can_codec import KoalaCanCodec
+    from koala_bridge.drivers.mavlink_codec import MavlinkSigning
 
 log = logging.getLogger(__name__)
 
@@ -428,6 +429,17 @@ class MavlinkSettings:
                 "`openssl rand -hex 32`, or the sha256 hex digest of a MAVProxy/QGC passphrase)"
             )
         return bytes.fromhex(text)
+
+    def signing(self, unix_time_s: float) -> MavlinkSigning | None:
+        """The link's :class:`~koala_bridge.drivers.mavlink_codec.MavlinkSigning` (None: off),
+        its timestamps starting at the wall-clock time ``unix_time_s``."""
+        key = self.signing_key()
+        if key is None:
+            return None
+        from koala_bridge.drivers.mavlink_codec import MavlinkSigning, signing_timestamp
+
+        return MavlinkSigning(key, self.signing_link_id, signing_timestamp(unix_time_s),
+                              accept_unsigned=self.signing_accept_unsigned)
 
     def client_url(self, pty_path: str | None = None, bound_port: int | None = None) -> str:
         """The pymavlink connection string a client uses to receive this stream."""

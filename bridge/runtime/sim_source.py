@@ -104,7 +104,11 @@ class SimulatedRobotSource:
         )
         self.can_codec = settings.buses.can.codec()   # [buses.can] dbc
         mav = settings.buses.mavlink
-        self.mav_encoder = CompassEncoder(MavlinkIdentity(mav.system_id, mav.component_id))
+        # [buses.mavlink] signing_key_file: None = unsigned (a bad key file: ConfigError here)
+        self.mav_signing = mav.signing(time.time())
+        self.mav_encoder = CompassEncoder(
+            MavlinkIdentity(mav.system_id, mav.component_id), self.mav_signing
+        )
         self.buses = OpenBuses()
         self.zenoh: ZenohLink | None = None
         self.endpoints: Endpoints | None = None
@@ -429,7 +433,7 @@ class SimulatedRobotSource:
         return step
 
     def _mavlink_reader(self, link: LockedByteLink) -> Callable[[], None]:
-        decoder = CompassDecoder()
+        decoder = CompassDecoder(signing=self.mav_signing)
 
         def step() -> None:
             for _ in range(64):  # bounded: the loop must not stall on a flood
