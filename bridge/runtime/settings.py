@@ -280,6 +280,13 @@ def _channel_name(kind: str, max_len: int) -> Any:
     return AfterValidator(check)
 
 
+def _virtual_channel(value: str) -> str:
+    """A python-can ``virtual`` channel: any name within the process, but printable."""
+    if not value or len(value) > 64 or not value.isprintable():
+        raise ValueError(f"must be a name of 1..64 printable characters, got {value!r}")
+    return value
+
+
 @section
 class RunSettings:
     """``[run]``: how the loop is paced and for how long."""
@@ -307,7 +314,7 @@ class CanSettings:
     socketcand_port: _PortKey
     slcan: Bool
     virtual: Bool
-    virtual_channel: Annotated[Str, _channel_name("python-can virtual channel", 64)]
+    virtual_channel: Annotated[Str, AfterValidator(_virtual_channel)]
     socketcan: Bool
     socketcan_channel: Annotated[Str, _channel_name("network interface", 15)]
     # The CAN database: a path (relative to the working directory), or "" for the DBC shipped
