@@ -21,6 +21,9 @@ authenticates the packets for peers that hold the key; it does not hide them.
 
 from __future__ import annotations
 
+import functools
+import hashlib
+import hmac
 import math
 from dataclasses import dataclass, field
 
@@ -107,7 +110,12 @@ class MavlinkSigning:
 
 
 def _accept_unsigned(mav: mavlink2.MAVLink, msg_id: int) -> bool:
-    return True
+    """pymavlink asks this for an unsigned packet AND for one whose signature failed; only the
+    first is accepted (:func:`_check_signature` marks the second)."""
+    return not mav.__dict__.pop(_BAD_SIGNATURE, False)
+
+
+_BAD_SIGNATURE = "_koala_bad_signature"
 
 
 def flu_ut_to_frd_mgauss(x_ut: float, y_ut: float, z_ut: float) -> tuple[int, int, int]:
@@ -251,7 +259,42 @@ class CompassDecoder:
         parser.robust_parsing = True
         if self._signing is not None:
             parser.signing = self._signing
+            parser.check_signature = functools.partial(_check_signature, parser)
         return parser
+
+
+def _check_signature(
+    mav: mavlink2.MAVLink, msgbuf: bytearray, src_system: int, src_component: int
+) -> bool:
+    """pymavlink's ``MAVLink.check_signature`` with the signature checked FIRST.
+
+    pymavlink 2.4 records a stream's timestamp before it compares the signature, so one
+    unauthenticated packet with a timestamp in the future makes every later genuine packet of
+    that (link, system, component) stream "old" and rejected. Here only a packet whose
+    signature is valid moves the stream's timestamp; the rules are otherwise the spec's: newer
+    than the stream's last timestamp, and a new stream at most one minute behind ours.
+    """
+    signing = mav.signing
+    assert signing.secret_key is not None
+    mav.__dict__[_BAD_SIGNATURE] = True  # until proven good (read by _accept_unsigned)
+    digest = hashlib.sha256(signing.secret_key + bytes(msgbuf[:-6])).digest()[:6]
+    if not hmac.compare_digest(digest, bytes(msgbuf[-6:])):
+        return False
+    timestamp = int.from_bytes(msgbuf[-12:-6], "little")
+    stream = (msgbuf[-13], src_system, src_component)
+    last = signing.stream_timestamps.get(stream)
+    if last is not None and timestamp <= last:
+        return False  # a replay, or an older packet
+    if last is None and timestamp + _ONE_MINUTE < signing.timestamp:
+        return False
+    del mav.__dict__[_BAD_SIGNATURE]
+    signing.stream_timestamps[stream] = timestamp
+    signing.timestamp = max(signing.timestamp, timestamp)
+    return True
+
+
+#: One minute in signing-timestamp units (10 us): how far a new stream may lag (the spec's rule).
+_ONE_MINUTE = 6_000_000
 
 
 def _int16(value: float) -> int:
