@@ -520,16 +520,31 @@ class _BusesTable:
 
 #: ``proto/address[?metadata][#config]``: a protocol name, then anything but spaces.
 _LOCATOR = re.compile(r"[a-z][a-z0-9-]*/[^\s/?#][^\s]*")
+#: The link protocols Zenoh knows (zenoh.io "Configuration": endpoints).
+ZENOH_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", *_LOCAL_ZENOH_PROTOCOLS)
 
 
 def _locators(value: tuple[str, ...]) -> tuple[str, ...]:
     for locator in value:
-        host = locator_host(locator) if _LOCATOR.fullmatch(locator) else ""
-        if host == "" or (host is not None and ":" not in locator.split("/", 1)[1]):
-            raise ValueError(
-                f"must be a list of locators like \"tcp/127.0.0.1:7447\" (protocol/host:port), "
-                f"got {locator!r}"
-            )
+        proto, _, rest = locator.partition("/")
+        if proto in _LOCAL_ZENOH_PROTOCOLS and rest.strip():  # a path or a device
+            continue
+        if not _LOCATOR.fullmatch(locator):
+            problem = "not protocol/host:port"
+        elif proto not in ZENOH_PROTOCOLS:
+            problem = f"unknown protocol {proto!r} (Zenoh's: {', '.join(ZENOH_PROTOCOLS)})"
+        else:
+            address = re.split(r"[?#]", locator.split("/", 1)[1], maxsplit=1)[0]
+            host, _, port = address.rpartition(":")
+            bracketed = host.startswith("[") == host.endswith("]")
+            if not host or not bracketed or not port.isdigit() or int(port) > 65535:
+                problem = "not host:port with a port 0..65535"
+            else:
+                continue
+        raise ValueError(
+            f"must be a list of locators like \"tcp/127.0.0.1:7447\" (protocol/host:port): "
+            f"{locator!r} is {problem}"
+        )
     return value
 
 
