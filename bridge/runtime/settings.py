@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 from koala_bridge.core.resources import default_dbc_path
 from koala_bridge.core.schema import (
+    MAX_MAGNITUDE,
     Bool,
     ConfigError,
     NonNegative,
@@ -186,7 +187,10 @@ def apply_override(config: Mapping[str, Any], parts: list[str], value: Any) -> d
         child = node.setdefault(part, {})
         if not isinstance(child, dict):
             where = ".".join(parts[: i + 1])
-            raise ConfigError(f"override {'.'.join(parts)}: {where} is a value, not a section")
+            raise ConfigError(
+                f"override {'.'.join(parts)}: {where} is a value, not a section ([{where}] "
+                f"must be a table, got {child!r:.60})"
+            )
         node = child
     node[parts[-1]] = value
     return out
@@ -215,9 +219,9 @@ def _one_of(choices: tuple[str, ...]) -> Any:
 
 
 def _duration(value: float) -> float:
-    if not (math.isfinite(value) and value >= 0):
+    if not (math.isfinite(value) and 0 <= value <= MAX_MAGNITUDE):
         raise ValueError(
-            f"must be a finite number >= 0 (0 = run until stopped), got {value}"
+            f"must be a finite number 0..{MAX_MAGNITUDE:g} (0 = run until stopped), got {value}"
         )
     return value
 
