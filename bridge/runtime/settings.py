@@ -221,7 +221,8 @@ def _one_of(choices: tuple[str, ...]) -> Any:
 def _duration(value: float) -> float:
     if not (math.isfinite(value) and 0 <= value <= MAX_MAGNITUDE):
         raise ValueError(
-            f"must be a finite number 0..{MAX_MAGNITUDE:g} (0 = run until stopped), got {value}"
+            f"must be a finite number >= 0 (0 = run until stopped) and <= {MAX_MAGNITUDE:g}, "
+            f"got {value}"
         )
     return value
 
