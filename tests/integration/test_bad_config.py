@@ -14,6 +14,7 @@ from __future__ import annotations
 import copy
 import logging
 import math
+import subprocess
 import tomllib
 from collections.abc import Iterator
 from pathlib import Path
@@ -21,7 +22,7 @@ from typing import Any
 
 import pytest
 import tomli_w
-from conftest import DEFAULT_CONFIG, free_port
+from conftest import DEFAULT_CONFIG, bridge_command, free_port
 from koala_bridge.cli.main import main
 
 BASE: dict[str, Any] = tomllib.loads(DEFAULT_CONFIG.read_text(encoding="utf-8"))
@@ -265,3 +266,24 @@ def test_invalid_can_channel_names(run, default_on_free_ports: Path, key: str,
 def test_invalid_robot_name(run, default_on_free_ports: Path, name: str) -> None:
     assert_refused(run(default_on_free_ports, "--set", f"robot.name={tomli_w_str(name)}"),
                    "[robot] 'name' must be a plain word")
+
+
+# --------------------------------------------------------------------------- the real entry point
+
+@pytest.mark.parametrize("content", [
+    bytes(range(256)),
+    b"a = " + b"[" * DEEP + b"]" * DEEP,
+    ("[" + ".".join(["run"] * DEEP) + "]\n").encode(),
+], ids=["binary", "deep-arrays", "deep-headers"])
+def test_in_a_subprocess(tmp_path: Path, content: bytes) -> None:
+    """The installed entry point (its own interpreter, stack and logging) says the same."""
+    path = tmp_path / "hostile.toml"
+    path.write_bytes(content)
+    p = subprocess.run(bridge_command("run", "--config", str(path), "--duration", "0.1",
+                                      "--clock", "fast"),
+                       cwd=tmp_path, capture_output=True, text=True, timeout=120,
+                       stdin=subprocess.DEVNULL)
+    assert "Traceback" not in p.stderr + p.stdout
+    lines = p.stderr.strip().splitlines()
+    assert p.returncode == 2 and len(lines) == 1, (p.returncode, p.stderr)
+    assert str(path) in lines[0]
