@@ -7,13 +7,26 @@ Frames: the bridge and :mod:`sim` use FLU body axes (x forward, y left, z up) an
 MAVLink ``SCALED_IMU.xmag/ymag/zmag`` are FRD body axes (x forward, y right, z down) in
 milligauss. 1 uT = 10 mGauss; FLU -> FRD negates y and z. A level compass then reads
 ``heading = atan2(-ymag, xmag)``, clockwise from magnetic north (:func:`heading_from_frd`).
+
+Signing (MAVLink 2 "Message Signing", https://mavlink.io/en/guide/message_signing.html), off
+unless a :class:`MavlinkSigning` is given: the encoder signs every packet (SHA-256 of the secret
+key and the packet, 48 bits, with a link id and a 48-bit timestamp in 10 us since 2015-01-01
+that grows with every packet); the decoder then accepts a client's packet only with a valid
+signature whose timestamp is newer than the last one of that (link, system, component) stream,
+or, with ``accept_unsigned``, an unsigned one. Anything else is a reject (counted, never
+raised). These are pymavlink's own semantics (``MAVLink.check_signature``): a pymavlink peer
+WITHOUT the key does not check signatures at all and reads signed packets as usual, so signing
+authenticates the packets for peers that hold the key; it does not hide them.
 """
 
 from __future__ import annotations
 
+import functools
+import hashlib
+import hmac
 import math
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from koala_bridge.drivers.messages import CompassSample, MavlinkHeartbeat, Reject, RejectReason
 from pymavlink.dialects.v20 import common as mavlink2
@@ -23,6 +36,8 @@ __all__ = [
     "CompassDecoder",
     "CompassEncoder",
     "MavlinkIdentity",
+    "MavlinkSigning",
+    "signing_timestamp",
     "flu_ut_to_frd_mgauss",
     "frd_mgauss_to_flu_ut",
     "heading_from_frd",
@@ -49,6 +64,61 @@ class MavlinkIdentity:
     system_status: int = mavlink2.MAV_STATE_ACTIVE
 
 
+#: 2015-01-01T00:00:00Z as a Unix time: the epoch of MAVLink signing timestamps.
+SIGNING_EPOCH_UNIX_S = 1_420_070_400
+
+
+def signing_timestamp(unix_time_s: float) -> int:
+    """A MAVLink signing timestamp (10 us units since 2015-01-01 UTC) for a Unix time."""
+    return max(0, int((unix_time_s - SIGNING_EPOCH_UNIX_S) * 100_000))
+
+
+@dataclass(frozen=True, slots=True)
+class MavlinkSigning:
+    """MAVLink 2 signing of one link.
+
+    Attributes:
+        secret_key: the 32-byte shared secret.
+        link_id: the link id written into this side's signatures (0..255).
+        initial_timestamp: the first timestamp this side signs with, and the reference a new
+            incoming stream may lag by at most one minute (:func:`signing_timestamp` of the wall
+            clock at start: the spec asks for a timestamp that never goes back).
+        accept_unsigned: accept unsigned incoming packets (counted as unsigned) instead of
+            rejecting them; a packet with a bad signature is always rejected.
+    """
+
+    secret_key: bytes = field(repr=False)
+    link_id: int = 0
+    initial_timestamp: int = 0
+    accept_unsigned: bool = False
+
+    def __post_init__(self) -> None:
+        if len(self.secret_key) != 32:
+            raise ValueError(f"a MAVLink signing key has 32 bytes, got {len(self.secret_key)}")
+        if not 0 <= self.link_id <= 255:
+            raise ValueError(f"link_id must be 0..255, got {self.link_id}")
+
+    def state(self, sign_outgoing: bool) -> mavlink2.MAVLinkSigning:
+        """pymavlink's signing state for a ``MAVLink`` object of this link."""
+        st = mavlink2.MAVLinkSigning()
+        st.secret_key = self.secret_key
+        st.link_id = self.link_id
+        st.timestamp = self.initial_timestamp
+        st.sign_outgoing = sign_outgoing
+        if self.accept_unsigned:
+            st.allow_unsigned_callback = _accept_unsigned
+        return st
+
+
+def _accept_unsigned(mav: mavlink2.MAVLink, msg_id: int) -> bool:
+    """pymavlink asks this for an unsigned packet AND for one whose signature failed; only the
+    first is accepted (:func:`_check_signature` marks the second)."""
+    return not mav.__dict__.pop(_BAD_SIGNATURE, False)
+
+
+_BAD_SIGNATURE = "_koala_bad_signature"
+
+
 def flu_ut_to_frd_mgauss(x_ut: float, y_ut: float, z_ut: float) -> tuple[int, int, int]:
     """FLU microtesla -> FRD milligauss, rounded and saturated to int16 (the SCALED_IMU type)."""
     return (_int16(x_ut * MG_PER_UT), _int16(-y_ut * MG_PER_UT), _int16(-z_ut * MG_PER_UT))
@@ -72,9 +142,14 @@ class CompassEncoder:
     allow.
     """
 
-    def __init__(self, identity: MavlinkIdentity | None = None) -> None:
+    def __init__(
+        self, identity: MavlinkIdentity | None = None, signing: MavlinkSigning | None = None
+    ) -> None:
         self.identity = identity or MavlinkIdentity()
         self._mav = mavlink2.MAVLink(None, self.identity.system_id, self.identity.component_id)
+        if signing is not None:
+            self._mav.signing = signing.state(sign_outgoing=True)
+        self.signed = signing is not None
         self.messages_encoded = 0
 
     def heartbeat(self) -> bytes:
@@ -113,10 +188,19 @@ class CompassDecoder:
 
     Args:
         system_id / component_id: if set, only samples from this source are returned.
+        signing: if set, only packets signed with its key are accepted (or also unsigned ones,
+            with ``accept_unsigned``); the others are rejects ("Invalid signature"). One
+            signing state serves every datagram, so a replayed (old) timestamp is rejected too.
     """
 
-    def __init__(self, system_id: int | None = None, component_id: int | None = None) -> None:
-        self._mav = _new_parser()
+    def __init__(
+        self,
+        system_id: int | None = None,
+        component_id: int | None = None,
+        signing: MavlinkSigning | None = None,
+    ) -> None:
+        self._signing = None if signing is None else signing.state(sign_outgoing=False)
+        self._mav = self._new_parser()
         self._buf = bytearray()
         self._in_bad_run = False
         self.system_id = system_id
@@ -213,6 +297,14 @@ class CompassDecoder:
             self.rejected += 1
         self._in_bad_run = True
 
+    def _new_parser(self) -> mavlink2.MAVLink:
+        parser = mavlink2.MAVLink(None)
+        parser.robust_parsing = True
+        if self._signing is not None:
+            parser.signing = self._signing
+            parser.check_signature = functools.partial(_check_signature, parser)
+        return parser
+
 
 _MARKER_V1 = mavlink2.PROTOCOL_MARKER_V1
 _MARKER_V2 = mavlink2.PROTOCOL_MARKER_V2
@@ -231,10 +323,38 @@ def _packet_size(buf: bytearray) -> int | None:
     return mavlink2.HEADER_LEN_V2 + buf[1] + 2 + signature
 
 
-def _new_parser() -> mavlink2.MAVLink:
-    parser = mavlink2.MAVLink(None)
-    parser.robust_parsing = True
-    return parser
+def _check_signature(
+    mav: mavlink2.MAVLink, msgbuf: bytearray, src_system: int, src_component: int
+) -> bool:
+    """pymavlink's ``MAVLink.check_signature`` with the signature checked FIRST.
+
+    pymavlink 2.4 records a stream's timestamp before it compares the signature, so one
+    unauthenticated packet with a timestamp in the future makes every later genuine packet of
+    that (link, system, component) stream "old" and rejected. Here only a packet whose
+    signature is valid moves the stream's timestamp; the rules are otherwise the spec's: newer
+    than the stream's last timestamp, and a new stream at most one minute behind ours.
+    """
+    signing = mav.signing
+    assert signing.secret_key is not None
+    mav.__dict__[_BAD_SIGNATURE] = True  # until proven good (read by _accept_unsigned)
+    digest = hashlib.sha256(signing.secret_key + bytes(msgbuf[:-6])).digest()[:6]
+    if not hmac.compare_digest(digest, bytes(msgbuf[-6:])):
+        return False
+    timestamp = int.from_bytes(msgbuf[-12:-6], "little")
+    stream = (msgbuf[-13], src_system, src_component)
+    last = signing.stream_timestamps.get(stream)
+    if last is not None and timestamp <= last:
+        return False  # a replay, or an older packet
+    if last is None and timestamp + _ONE_MINUTE < signing.timestamp:
+        return False
+    del mav.__dict__[_BAD_SIGNATURE]
+    signing.stream_timestamps[stream] = timestamp
+    signing.timestamp = max(signing.timestamp, timestamp)
+    return True
+
+
+#: One minute in signing-timestamp units (10 us): how far a new stream may lag (the spec's rule).
+_ONE_MINUTE = 6_000_000
 
 
 def _int16(value: float) -> int:

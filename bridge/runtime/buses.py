@@ -159,6 +159,8 @@ def bus_urls(settings: BusesSettings) -> dict[str, str]:
         urls["mavlink"] = (
             "pty://" if mav.transport == "pty" else f"{mav.transport}://{mav.host}:{mav.port}"
         )
+        if mav.transport == "udp":  # one bridge per ground-station port (docs/security.md)
+            urls["mavlink"] += "?exclusive=1"
     can = settings.can
     if can.socketcand:
         urls["can.socketcand"] = (
@@ -193,6 +195,8 @@ def open_bus(name: str, url: str) -> ByteTransport | CanTransport:
 def open_buses(settings: BusesSettings) -> OpenBuses:
     """Open every enabled bus of ``settings``; on failure close what was opened and raise."""
     buses = OpenBuses()
+    for what in settings.exposure():  # refused unless [run] allow_non_loopback (settings.py)
+        log.warning("%s, reachable from the network ([run] allow_non_loopback)", what)
     try:
         for name, url in bus_urls(settings).items():
             transport = open_bus(name, url)

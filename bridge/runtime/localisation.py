@@ -147,6 +147,12 @@ def _one_of(choices: tuple[str, ...]) -> Any:
     return AfterValidator(check)
 
 
+#: More occupancy cells than this is a configuration mistake (the default world has 3 600).
+MAX_OCCUPANCY_CELLS = 4_000_000
+#: The camera range sigma's doublings are capped here: 2**60 already makes an observation
+#: carry no information, and 2**far overflows past 1023 (a tiny landmark_far_doubling_m).
+MAX_DOUBLINGS = 60.0
+
 #: A probability that is not 0 (a likelihood that may not vanish) nor above 1.
 _Likelihood = Annotated[Positive, Field(le=1)]
 
@@ -365,6 +371,14 @@ class LocalisationNode:
         self._cell = start            # the pose's cell the grid filter last moved to
         self._observed_visit = False  # a wall observation made since entering self._cell
         o = settings.occupancy
+        cells = math.ceil(self.world.width_m / o.resolution_m) * math.ceil(
+            self.world.height_m / o.resolution_m)
+        if cells > MAX_OCCUPANCY_CELLS:  # a typo (1e-9) must not allocate the machine away
+            raise ConfigError(
+                f"[{SECTION}.occupancy] 'resolution_m' {o.resolution_m:g} makes {cells:.3g} cells "
+                f"for this {self.world.width_m:g} x {self.world.height_m:g} m world; at most "
+                f"{MAX_OCCUPANCY_CELLS} (use a coarser resolution)"
+            )
         self.occupancy = OccupancyGrid.for_world(self.world, o.resolution_m, OccupancyParams(
             l_occ=o.l_occ, l_free=o.l_free, occ_share_cells=o.occ_share_cells, l_min=o.l_min,
             l_max=o.l_max, mark_free_on_no_echo=o.mark_free_on_no_echo,
@@ -476,6 +490,7 @@ class LocalisationNode:
                     continue
                 # Camera range error grows with distance (seeds/000 eq. 10-12).
                 far = max(0.0, ob.range - ps.landmark_far_from_m) / ps.landmark_far_doubling_m
+                far = min(far, MAX_DOUBLINGS)  # 2**far overflows a float past 1023
                 sr = ps.landmark_range_sigma_m + ps.landmark_range_sigma_rel * ob.range * 2.0**far
                 self.tracker.on_landmark(t, xy, ob.range, ob.bearing, sr,
                                          math.radians(ps.landmark_bearing_sigma_deg))

@@ -15,6 +15,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import difflib
+import ipaddress
 import logging
 import math
 import re
@@ -26,6 +27,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 from koala_bridge.core.resources import default_dbc_path
 from koala_bridge.core.schema import (
+    MAX_MAGNITUDE,
     Bool,
     ConfigError,
     NonNegative,
@@ -43,6 +45,7 @@ from pydantic import AfterValidator, BeforeValidator, Field, Strict
 
 if TYPE_CHECKING:
     from koala_bridge.drivers.can_codec import KoalaCanCodec
+    from koala_bridge.drivers.mavlink_codec import MavlinkSigning
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +58,8 @@ __all__ = [
     "RunSettings",
     "ZenohSettings",
     "apply_override",
+    "is_loopback_host",
+    "locator_host",
     "load_config",
     "parse_override",
 ]
@@ -74,15 +79,65 @@ def load_config(path: str | Path) -> dict[str, Any]:
     """Read the TOML file ``path``; errors name the file and, for syntax errors, the line."""
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        raw = p.read_bytes()
     except FileNotFoundError as e:
         raise ConfigError(f"config file not found: {p}") from e
     except OSError as e:
         raise ConfigError(f"cannot read config file {p}: {e.strerror}") from e
+    if len(raw) > MAX_CONFIG_BYTES:
+        raise ConfigError(
+            f"{p}: {len(raw)} bytes is not a configuration (at most {MAX_CONFIG_BYTES} bytes)"
+        )
     try:
-        return tomllib.loads(text)
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        # TOML is UTF-8 (toml.io); a UTF-16 file (a BOM FF FE / FE FF) is a common editor slip
+        hint = " (it looks like UTF-16: save it as UTF-8)" if raw[:2] in (
+            b"\xff\xfe", b"\xfe\xff") else ""
+        raise ConfigError(
+            f"{p}: not a UTF-8 text file (byte {e.start}: {raw[e.start]:#04x}){hint}"
+        ) from None
+    return _parse_toml(text, str(p))
+
+
+#: Larger than any configuration (default.toml is ~20 kB); a bigger file is the wrong file.
+MAX_CONFIG_BYTES = 4 << 20
+
+
+def _parse_toml(text: str, where: str) -> dict[str, Any]:
+    """``tomllib.loads(text)``; every failure is one :class:`ConfigError` naming ``where``."""
+    try:
+        parsed = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
-        raise ConfigError(f"{p}: invalid TOML: {e}") from e
+        raise ConfigError(f"{where}: invalid TOML: {e}") from None
+    except RecursionError:
+        # tomllib recurses once per nested array / inline table: thousands of levels exhaust
+        # the interpreter's stack
+        parsed = None
+    if parsed is None or _too_deep(parsed):
+        raise ConfigError(
+            f"{where}: arrays or tables nested more than {MAX_CONFIG_DEPTH} levels deep "
+            "(a configuration nests at most 4)"
+        )
+    return parsed
+
+
+#: Deeper nesting is refused before anything walks the tree recursively (``[a.b.c...]``
+#: headers nest without recursion in tomllib, but copying or validating them would not).
+MAX_CONFIG_DEPTH = 32
+
+
+def _too_deep(tree: Any) -> bool:
+    """Whether ``tree`` (dicts and lists) nests deeper than :data:`MAX_CONFIG_DEPTH`; iterative."""
+    stack = [(tree, 0)]
+    while stack:
+        node, depth = stack.pop()
+        if depth > MAX_CONFIG_DEPTH:
+            return True
+        children = node.values() if isinstance(node, dict) else node if isinstance(
+            node, list) else ()
+        stack.extend((c, depth + 1) for c in children if isinstance(c, dict | list))
+    return False
 
 
 def parse_override(text: str) -> tuple[list[str], Any]:
@@ -104,6 +159,10 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     raw = raw.strip()
     try:
         parsed = tomllib.loads(f"v = {raw}")
+    except RecursionError:
+        raise ConfigError(
+            f"override {key}: {raw[:20]!r}... is not a TOML value (nested too deeply)"
+        ) from None
     except tomllib.TOMLDecodeError as e:
         if raw[:1] in ("[", "{", '"', "'"):
             reason = str(e).splitlines()[0] if str(e) else "invalid value"
@@ -113,6 +172,8 @@ def parse_override(text: str) -> tuple[list[str], Any]:
                 "argument for the shell)"
             ) from None
         return parts, raw
+    if _too_deep(parsed):
+        raise ConfigError(f"override {key}: nested more than {MAX_CONFIG_DEPTH} levels deep")
     if set(parsed) != {"v"}:  # "1\nx = 2": a second line is not part of one value
         raise ConfigError(f"override {key}: {raw!r} is more than one TOML value")
     return parts, parsed["v"]
@@ -126,7 +187,10 @@ def apply_override(config: Mapping[str, Any], parts: list[str], value: Any) -> d
         child = node.setdefault(part, {})
         if not isinstance(child, dict):
             where = ".".join(parts[: i + 1])
-            raise ConfigError(f"override {'.'.join(parts)}: {where} is a value, not a section")
+            raise ConfigError(
+                f"override {'.'.join(parts)}: {where} is a value, not a section ([{where}] "
+                f"must be a table, got {child!r:.60})"
+            )
         node = child
     node[parts[-1]] = value
     return out
@@ -155,9 +219,10 @@ def _one_of(choices: tuple[str, ...]) -> Any:
 
 
 def _duration(value: float) -> float:
-    if not (math.isfinite(value) and value >= 0):
+    if not (math.isfinite(value) and 0 <= value <= MAX_MAGNITUDE):
         raise ValueError(
-            f"must be a finite number >= 0 (0 = run until stopped), got {value}"
+            f"must be a finite number >= 0 (0 = run until stopped) and <= {MAX_MAGNITUDE:g}, "
+            f"got {value}"
         )
     return value
 
@@ -172,6 +237,61 @@ def _port(value: int) -> int:
 _PortKey = Annotated[int, Strict(), AfterValidator(_port)]
 
 
+# -- exposure: what listens where ---------------------------------------------------------------
+
+def is_loopback_host(host: str) -> bool:
+    """Whether ``host`` names this machine's loopback only (``127.0.0.0/8``, ``::1``,
+    ``localhost``). Names are not resolved: any other name, ``""`` and ``0.0.0.0`` / ``::``
+    (every interface) count as reachable from the network."""
+    host = host.strip().strip("[]").lower()
+    if host == "localhost" or host.endswith(".localhost"):
+        return True
+    try:
+        return ipaddress.ip_address(host.partition("%")[0]).is_loopback
+    except ValueError:
+        return False
+
+
+#: Zenoh link protocols whose locator is not a network address (a path, a device).
+_LOCAL_ZENOH_PROTOCOLS = ("unixsock-stream", "unixpipe", "serial", "vsock")
+
+
+def locator_host(locator: str) -> str | None:
+    """The host of a Zenoh locator (``tcp/192.168.1.5:7447`` -> ``192.168.1.5``), or None for
+    one that is not a network address (``unixsock-stream/path``)."""
+    proto, _, address = locator.partition("/")
+    if proto in _LOCAL_ZENOH_PROTOCOLS:
+        return None
+    address = re.split(r"[?#]", address, maxsplit=1)[0]
+    host = address.rpartition(":")[0]
+    return host.strip("[]")
+
+
+def _channel_name(kind: str, max_len: int) -> Any:
+    """A CAN channel / interface name: printable ASCII without spaces, ``<``, ``>`` or ``/``
+    (a socketcand channel travels inside ``< open NAME >``; a Linux interface name has at most
+    15 characters and no ``/``)."""
+
+    def check(value: str) -> str:
+        if not value or len(value) > max_len or not re.fullmatch(r"[!-~]+", value) or any(
+            c in value for c in "<>/\\"
+        ):
+            raise ValueError(
+                f"must be a {kind} name of 1..{max_len} printable characters without spaces, "
+                f"'<', '>', '/' or '\\', got {value!r}"
+            )
+        return value
+
+    return AfterValidator(check)
+
+
+def _virtual_channel(value: str) -> str:
+    """A python-can ``virtual`` channel: any name within the process, but printable."""
+    if not value or len(value) > 64 or not value.isprintable():
+        raise ValueError(f"must be a name of 1..64 printable characters, got {value!r}")
+    return value
+
+
 @section
 class RunSettings:
     """``[run]``: how the loop is paced and for how long."""
@@ -180,6 +300,9 @@ class RunSettings:
     # simulation seconds; 0 = until SIGINT/SIGTERM (inf is refused with the same message)
     duration_s: Annotated[float, Strict(), Field(allow_inf_nan=True), AfterValidator(_duration)]
     endpoints_file: Str         # "" = do not write one
+    # Serve a bus or Zenoh on an address other than loopback (docs/security.md). Defaults to
+    # default.toml's false so that configs from before the key existed still load.
+    allow_non_loopback: Bool = False
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> RunSettings:
@@ -190,15 +313,15 @@ class RunSettings:
 class CanSettings:
     """``[buses.can]``: the same CAN bus served on several interfaces at once."""
 
-    channel: Str
+    channel: Annotated[Str, _channel_name("socketcand channel", 64)]
     socketcand: Bool
     socketcand_host: Str
     socketcand_port: _PortKey
     slcan: Bool
     virtual: Bool
-    virtual_channel: Str
+    virtual_channel: Annotated[Str, AfterValidator(_virtual_channel)]
     socketcan: Bool
-    socketcan_channel: Str
+    socketcan_channel: Annotated[Str, _channel_name("network interface", 15)]
     # The CAN database: a path (relative to the working directory), or "" for the DBC shipped
     # with koala-bridge (koala_bridge.core.resources.default_dbc_path). Read only when a CAN
     # bus is served, so a missing file does not matter with every CAN bus off. The one key of
@@ -209,6 +332,13 @@ class CanSettings:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> CanSettings:
         return validate(cls, d, "buses.can")
+
+    def exposure(self) -> list[str]:
+        """What this section serves on a non-loopback address, one description each."""
+        if self.socketcand and not is_loopback_host(self.socketcand_host):
+            return [f"socketcand listens on {self.socketcand_host or '*'}:{self.socketcand_port} "
+                    "([buses.can] socketcand_host): CAN frames, including MotorCommand"]
+        return []
 
     @property
     def enabled(self) -> bool:
@@ -259,6 +389,13 @@ class MavlinkSettings:
     system_id: Annotated[int, Strict(), Field(ge=1, le=255)]
     component_id: Annotated[int, Strict(), Field(ge=1, le=255)]
     heartbeat_hz: Positive
+    # MAVLink 2 message signing (docs/security.md "MAVLink signing"); off with "". A file, not
+    # the key itself: the resolved configuration is stored in every recording's metadata.
+    signing_key_file: Str = ""
+    signing_link_id: Annotated[int, Strict(), Field(ge=0, le=255)] = 0
+    # with signing on, accept unsigned messages from clients (counted as received) instead of
+    # rejecting them; signed messages with a bad signature are always rejected
+    signing_accept_unsigned: Bool = False
 
     def __post_init__(self) -> None:
         if self.transport == "udp" and self.port == 0:
@@ -274,6 +411,47 @@ class MavlinkSettings:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> MavlinkSettings:
         return validate(cls, d, "buses.mavlink")
+
+    def exposure(self) -> list[str]:
+        """What this section serves on (or sends to) a non-loopback address."""
+        if not self.enabled or self.transport == "pty" or is_loopback_host(self.host):
+            return []
+        if self.transport == "tcp":
+            return [f"MAVLink listens on tcp {self.host or '*'}:{self.port} ([buses.mavlink] host)"]
+        return [f"MAVLink sends to udp {self.host}:{self.port} and reads the replies "
+                "([buses.mavlink] host)"]
+
+    def signing_key(self) -> bytes | None:
+        """The 32-byte MAVLink signing key read from :attr:`signing_key_file` (64 hex digits),
+        or None when signing is off. A file that cannot be read or does not hold a key is a
+        :class:`ConfigError` naming the key (never the file's content)."""
+        if not self.signing_key_file:
+            return None
+        path = Path(self.signing_key_file).expanduser()
+        where = f"[buses.mavlink] 'signing_key_file' {str(path)!r}"
+        try:
+            text = path.read_bytes()[:4096].decode("ascii").strip()
+        except OSError as e:
+            raise ConfigError(f"{where}: cannot read it: {e.strerror}") from None
+        except UnicodeDecodeError:
+            text = ""
+        if not re.fullmatch(r"[0-9a-fA-F]{64}", text):
+            raise ConfigError(
+                f"{where} must hold the 32-byte secret key as 64 hex digits (e.g. the output of "
+                "`openssl rand -hex 32`, or the sha256 hex digest of a MAVProxy/QGC passphrase)"
+            )
+        return bytes.fromhex(text)
+
+    def signing(self, unix_time_s: float) -> MavlinkSigning | None:
+        """The link's :class:`~koala_bridge.drivers.mavlink_codec.MavlinkSigning` (None: off),
+        its timestamps starting at the wall-clock time ``unix_time_s``."""
+        key = self.signing_key()
+        if key is None:
+            return None
+        from koala_bridge.drivers.mavlink_codec import MavlinkSigning, signing_timestamp
+
+        return MavlinkSigning(key, self.signing_link_id, signing_timestamp(unix_time_s),
+                              accept_unsigned=self.signing_accept_unsigned)
 
     def client_url(self, pty_path: str | None = None, bound_port: int | None = None) -> str:
         """The pymavlink connection string a client uses to receive this stream."""
@@ -329,6 +507,10 @@ class BusesSettings:
             mavlink=MavlinkSettings.from_dict(_section(d, "mavlink", s)),
         )
 
+    def exposure(self) -> list[str]:
+        """What the enabled buses serve on (or send to) a non-loopback address."""
+        return [*self.can.exposure(), *self.mavlink.exposure()]
+
 
 #: The sub-tables of ``[buses]``, each its own section.
 _BUS_TABLES = ("kteam", "rangefinders", "can", "mavlink")
@@ -341,10 +523,32 @@ class _BusesTable:
     motor_watchdog_s: NonNegative   # 0 = off
 
 
+#: ``proto/address[?metadata][#config]``: a protocol name, then anything but spaces.
+_LOCATOR = re.compile(r"[a-z][a-z0-9-]*/[^\s/?#][^\s]*")
+#: The link protocols Zenoh knows (zenoh.io "Configuration": endpoints).
+ZENOH_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", *_LOCAL_ZENOH_PROTOCOLS)
+
+
 def _locators(value: tuple[str, ...]) -> tuple[str, ...]:
-    if not all("/" in e for e in value):
+    for locator in value:
+        proto, _, rest = locator.partition("/")
+        if proto in _LOCAL_ZENOH_PROTOCOLS and rest.strip():  # a path or a device
+            continue
+        if not _LOCATOR.fullmatch(locator):
+            problem = "not protocol/host:port"
+        elif proto not in ZENOH_PROTOCOLS:
+            problem = f"unknown protocol {proto!r} (Zenoh's: {', '.join(ZENOH_PROTOCOLS)})"
+        else:
+            address = re.split(r"[?#]", locator.split("/", 1)[1], maxsplit=1)[0]
+            host, _, port = address.rpartition(":")
+            bracketed = host.startswith("[") == host.endswith("]")
+            if not host or not bracketed or not port.isdigit() or int(port) > 65535:
+                problem = "not host:port with a port 0..65535"
+            else:
+                continue
         raise ValueError(
-            f"must be a list of locators like \"tcp/127.0.0.1:7447\", got {list(value)!r}"
+            f"must be a list of locators like \"tcp/127.0.0.1:7447\" (protocol/host:port): "
+            f"{locator!r} is {problem}"
         )
     return value
 
@@ -366,8 +570,21 @@ def _no_zero_port(value: tuple[str, ...]) -> tuple[str, ...]:
 
 
 def _plain_prefix(value: str) -> str:
-    if any(c in value for c in "*$?#"):
-        raise ValueError(f"must be a plain key expression, got {value!r}")
+    """``""`` (``koala/<robot name>``) or a plain Zenoh key expression: chunks separated by
+    single ``/``, none empty, without wildcards (``*``, ``$*``) or Zenoh's reserved ``?#``."""
+    if value == "":
+        return value
+    if (
+        any(c in value for c in "*$?#")
+        or any(not chunk for chunk in value.split("/"))
+        or not value.isprintable()
+        or any(c.isspace() for c in value)
+    ):
+        raise ValueError(
+            "must be \"\" (koala/<robot name>) or a plain key expression like \"lab/koala1\": "
+            "no '*', '$', '?', '#', spaces, empty chunks ('//') or leading/trailing '/'; "
+            f"got {value!r}"
+        )
     return value
 
 
@@ -382,12 +599,23 @@ class ZenohSettings:
     prefix: Annotated[Str, AfterValidator(_plain_prefix)]   # "" in the file: koala/<robot name>
     pose_rate_hz: Positive      # truth/pose, in simulation time
     status_rate_hz: Positive    # status, in simulation time
+    # Zenoh's own configuration file (JSON5), for TLS, authentication and access control;
+    # "" = none. The keys above are applied on top of it (they win). docs/security.md.
+    config_file: Str = ""
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], robot_name: str) -> ZenohSettings:
         z = validate(cls, d, "zenoh")
         # resolved: "" in the file means koala/<robot name>
-        return dataclasses.replace(z, prefix=z.prefix.strip("/") or f"koala/{robot_name}")
+        return dataclasses.replace(z, prefix=z.prefix or f"koala/{robot_name}")
+
+    def exposure(self) -> list[str]:
+        """The listen endpoints on a non-loopback address (connecting out is not listening)."""
+        return [
+            f"Zenoh listens on {locator} ([zenoh] listen): every topic and the world queryable"
+            for locator in self.listen
+            if (host := locator_host(locator)) is not None and not is_loopback_host(host)
+        ]
 
 
 @dataclass(frozen=True)
@@ -401,17 +629,35 @@ class BridgeSettings:
 
     @classmethod
     def from_config(cls, config: Mapping[str, Any]) -> BridgeSettings:
+        """The typed sections; a non-loopback listener without ``[run] allow_non_loopback``
+        is a :class:`ConfigError` (:meth:`exposure`)."""
         reject_unknown_sections(config)
         robot = _section(config, "robot")
         name = robot.get("name", "koala")
-        if not isinstance(name, str) or not name or any(c in name for c in "/*$?# "):
+        if (not isinstance(name, str) or not name or not name.isprintable()
+                or any(c.isspace() or c in "/*$?#\\" for c in name)):
             raise ConfigError(f"[robot] 'name' must be a plain word, got {name!r}")
-        return cls(
+        settings = cls(
             run=RunSettings.from_dict(_section(config, "run")),
             buses=BusesSettings.from_dict(_section(config, "buses")),
             zenoh=ZenohSettings.from_dict(_section(config, "zenoh"), name),
             robot_name=name,
         )
+        exposed = settings.exposure()
+        if exposed and not settings.run.allow_non_loopback:
+            more = f" (and {len(exposed) - 1} more)" if len(exposed) > 1 else ""
+            raise ConfigError(
+                f"{exposed[0]}{more}: not loopback, so reachable from the network; set "
+                "[run] allow_non_loopback = true to mean it (docs/security.md), or use "
+                "127.0.0.1"
+            )
+        return settings
+
+    def exposure(self) -> list[str]:
+        """Everything this configuration serves on an address other than loopback, one line
+        each (empty for the shipped configuration). The service logs each as a WARNING when
+        it opens it; :meth:`from_config` refuses them unless ``[run] allow_non_loopback``."""
+        return [*self.buses.exposure(), *self.zenoh.exposure()]
 
 
 def reject_unknown_sections(config: Mapping[str, Any]) -> None:

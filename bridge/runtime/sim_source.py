@@ -105,7 +105,11 @@ class SimulatedRobotSource:
         )
         self.can_codec = settings.buses.can.codec()   # [buses.can] dbc
         mav = settings.buses.mavlink
-        self.mav_encoder = CompassEncoder(MavlinkIdentity(mav.system_id, mav.component_id))
+        # [buses.mavlink] signing_key_file: None = unsigned (a bad key file: ConfigError here)
+        self.mav_signing = mav.signing(time.time())
+        self.mav_encoder = CompassEncoder(
+            MavlinkIdentity(mav.system_id, mav.component_id), self.mav_signing
+        )
         self.buses = OpenBuses()
         self.zenoh: ZenohLink | None = None
         self.endpoints: Endpoints | None = None
@@ -437,7 +441,7 @@ class SimulatedRobotSource:
         return step
 
     def _mavlink_reader(self, link: LockedByteLink) -> Callable[[], None]:
-        decoder = CompassDecoder()
+        decoder = CompassDecoder(signing=self.mav_signing)
         session = link.client_session
 
         def step() -> None:
@@ -446,7 +450,7 @@ class SimulatedRobotSource:
                 data = link.read()
                 if link.client_session != session:  # a new client on the pty: no half packet
                     session = link.client_session
-                    decoder = CompassDecoder()
+                    decoder = CompassDecoder(signing=self.mav_signing)
                 if not data:
                     return
                 one(data)

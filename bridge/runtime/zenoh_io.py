@@ -44,10 +44,12 @@ import logging
 import re
 import threading
 from collections.abc import Callable, Iterable, Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import zenoh
+from koala_bridge.core.errors import ConfigError
 from koala_bridge.core.topics import (
     CameraMessage,
     CameraTruth,
@@ -176,8 +178,25 @@ def status_message(
 # -- session -----------------------------------------------------------------------------------
 
 def session_config(settings: ZenohSettings) -> zenoh.Config:
-    """A :class:`zenoh.Config` for ``settings``: mode, listen/connect endpoints, scouting."""
-    config = zenoh.Config()
+    """A :class:`zenoh.Config` for ``settings``: mode, listen/connect endpoints, scouting.
+
+    With ``[zenoh] config_file``, Zenoh's own JSON5 configuration is the base (TLS
+    certificates under ``transport/link/tls``, ``transport/auth/usrpwd``, ``access_control``,
+    ...: Zenoh's format, documented by Zenoh), and our four keys are written on top of it: the
+    mode, the listen and connect endpoints and multicast scouting are always koala-bridge's, so
+    the banner and the endpoints file stay true. A file that Zenoh cannot read is a
+    :class:`ConfigError`.
+    """
+    if settings.config_file:
+        path = Path(settings.config_file).expanduser()
+        try:
+            config = zenoh.Config.from_file(str(path))
+        except (zenoh.ZError, OSError, ValueError) as e:
+            raise ConfigError(
+                f"[zenoh] 'config_file' {str(path)!r}: {_first_line(zenoh_error_text(e))}"
+            ) from None
+    else:
+        config = zenoh.Config()
     config.insert_json5("mode", json.dumps(settings.mode))
     config.insert_json5("listen/endpoints", json.dumps(list(settings.listen)))
     config.insert_json5("connect/endpoints", json.dumps(list(settings.connect)))
@@ -190,6 +209,10 @@ def session_config(settings: ZenohSettings) -> zenoh.Config:
 def zenoh_error_text(e: Exception) -> str:
     """A Zenoh error's message without the Rust source locations it carries."""
     return re.sub(r"\s+at \S+\.rs:\d+\.?", "", str(e)).strip()
+
+
+def _first_line(text: str) -> str:
+    return text.splitlines()[0] if text else "cannot be read"
 
 
 def _session_error(settings: ZenohSettings, e: Exception) -> str:
@@ -223,8 +246,11 @@ class ZenohLink:
         self._counters = counters or BusCounters()
         self._lock = threading.Lock()
         self._publishers: dict[str, zenoh.Publisher] = {}
+        config = session_config(settings)
+        for what in settings.exposure():
+            log.warning("%s, reachable from the network ([run] allow_non_loopback)", what)
         try:
-            self._session = zenoh.open(session_config(settings))
+            self._session = zenoh.open(config)
         except zenoh.ZError as e:
             raise OSError(_session_error(settings, e)) from e
         self._queryable = self._session.declare_queryable(

@@ -9,13 +9,26 @@ back to whoever sent the last datagram (dropped before the first) -- the bridge 
 real robot's MAVLink stream, as pymavlink's ``udpin:`` does.
 
 Each :meth:`UdpTransport.write` is one datagram and each :meth:`UdpTransport.read` returns one.
+
+``udp://HOST:PORT?exclusive=1`` also claims the destination for this transport on this machine:
+a second exclusive transport sending to the same address fails to open. UDP itself never
+reports it (each sender has its own source port), so two bridges sending MAVLink to one
+ground-station port would otherwise interleave their streams silently. The claim is a name
+bound in Linux's abstract socket namespace (a lock file's ``flock`` elsewhere): the kernel
+releases it when the process ends, even by ``kill -9``.
 """
 
 from __future__ import annotations
 
+import contextlib
+import ipaddress
+import os
 import select
 import socket
+import sys
+import tempfile
 from typing import Any, Self
+from urllib.parse import parse_qs, urlsplit
 
 from koala_bridge.drivers.messages import TransportClosedError, TransportError
 from koala_bridge.drivers.transports.base import (
@@ -36,6 +49,8 @@ class UdpTransport(ByteTransport):
         host / port: destination of every datagram written; ``host=None``: the sender of the
             last datagram read (the ``udpin`` form).
         bind_host / bind_port: local address; port 0 picks a free one.
+        exclusive: claim ``(host, port)`` on this machine: a second exclusive transport
+            sending there raises :class:`TransportError` (module docstring).
     """
 
     is_datagram = True
@@ -47,12 +62,15 @@ class UdpTransport(ByteTransport):
         *,
         bind_host: str = "127.0.0.1",
         bind_port: int = 0,
+        exclusive: bool = False,
     ) -> None:
+        self._claim = _claim_destination(host, port) if exclusive and host is not None else None
         self._sock: socket.socket | None = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             self._sock.bind((bind_host, bind_port))
         except OSError as e:
             self._sock.close()
+            self._release()
             raise TransportError(f"cannot bind UDP {bind_host}:{bind_port}: {e}") from e
         self._sock.setblocking(False)
         self._dest = None if host is None else (host, port)
@@ -72,6 +90,12 @@ class UdpTransport(ByteTransport):
         else:
             options.setdefault("host", parts.host or "127.0.0.1")
             options.setdefault("port", 14550 if parts.port is None else parts.port)
+            # a socket bound to loopback cannot send anywhere else (EINVAL)
+            if not _is_loopback(options["host"]):
+                options.setdefault("bind_host", "0.0.0.0")
+            query = parse_qs(urlsplit(url).query)
+            if query.get("exclusive", ["0"])[-1] not in ("0", "false", ""):
+                options.setdefault("exclusive", True)
         return cls(**options)
 
     @property
@@ -126,11 +150,59 @@ class UdpTransport(ByteTransport):
         if self._sock is not None:
             self._sock.close()
             self._sock = None
+        self._release()
+
+    def _release(self) -> None:
+        if self._claim is not None:
+            self._claim.close()
+            self._claim = None
 
     def _s(self) -> socket.socket:
         if self._sock is None:
             raise TransportClosedError("udp transport is closed")
         return self._sock
+
+
+def _is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def _claim_destination(host: str, port: int) -> Any:
+    """Hold a machine-wide claim on sending to ``host:port`` (an open socket or file; closing
+    it releases the claim); :class:`TransportError` if another process holds it."""
+    try:
+        ip = socket.getaddrinfo(host, port, socket.AF_INET, socket.SOCK_DGRAM)[0][4][0]
+    except OSError:
+        ip = host
+    name = f"koala-bridge/udp-destination/{ip}:{port}"
+    taken = TransportError(
+        f"another koala-bridge (or exclusive UDP transport) on this machine already sends to "
+        f"{ip}:{port}; two senders would interleave their streams there"
+    )
+    if sys.platform.startswith("linux"):
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        try:
+            sock.bind("\0" + name)
+        except OSError as e:
+            sock.close()
+            raise taken from e
+        return sock
+    import fcntl  # POSIX without an abstract namespace (macOS)
+
+    path = os.path.join(tempfile.gettempdir(), name.replace("/", "-") + ".lock")
+    lock = open(path, "a+b")  # noqa: SIM115 - held open until close()
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as e:
+        with contextlib.suppress(OSError):
+            lock.close()
+        raise taken from e
+    return lock
 
 
 def _host_port(

@@ -13,7 +13,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Annotated, Any, TypeVar
 
-from koala_bridge.core.schema import ConfigError, validate
+from koala_bridge.core.schema import MAX_MAGNITUDE, ConfigError, validate
 from koala_bridge.sim.noise import LookupTable
 from pydantic import BeforeValidator
 
@@ -43,6 +43,10 @@ def _table(value: Any) -> Any:
     if not all(map(lambda a: bool((abs(a) < float("inf")).all()), (table.x, table.y,
                                                                    table.noise_col))):
         raise ValueError(f"must hold finite numbers, got {value!r}")
+    if not all(map(lambda a: bool((abs(a) <= MAX_MAGNITUDE).all()), (table.x, table.y,
+                                                                     table.noise_col))):
+        raise ValueError(f"must hold plausible numbers (|value| <= {MAX_MAGNITUDE:g}), "
+                         f"got {value!r}")
     return table
 
 
