@@ -292,9 +292,11 @@ class CompassDecoder:
         return self.component_id is None or msg.get_srcComponent() == self.component_id
 
     def _bad(self, detail: str, raw: bytes | bytearray) -> None:
-        self.last_reject = Reject(RejectReason.GARBAGE, detail, bytes(raw[:32]))
+        """Count a bad stretch once, and keep what started it (an "Invalid signature" packet
+        is then skipped byte by byte; the bytes after its marker are not the cause)."""
         if not self._in_bad_run:
             self.rejected += 1
+            self.last_reject = Reject(RejectReason.GARBAGE, detail, bytes(raw[:32]))
         self._in_bad_run = True
 
     def _new_parser(self) -> mavlink2.MAVLink:
