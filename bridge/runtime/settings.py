@@ -75,8 +75,16 @@ _ZERO_PORT = re.compile(r":0+(?:[?#].*)?$")
 SECTIONS = ("sim", "robot", "sensors", "world", "run", "buses", "zenoh", "real", "localisation")
 
 
+#: The keys that name an input file. A relative path in a config file is relative to that file's
+#: folder (so a copy made by ``koala-bridge config init`` finds the DBC beside it wherever it is
+#: run from); given with ``--set``, relative to the working directory.
+PATH_KEYS = (("buses", "can", "dbc"), ("buses", "mavlink", "signing_key_file"),
+             ("zenoh", "config_file"))
+
+
 def load_config(path: str | Path) -> dict[str, Any]:
-    """Read the TOML file ``path``; errors name the file and, for syntax errors, the line."""
+    """Read the TOML file ``path``; errors name the file and, for syntax errors, the line.
+    Relative file paths of :data:`PATH_KEYS` are made relative to the file's folder."""
     p = Path(path)
     try:
         raw = p.read_bytes()
@@ -97,7 +105,19 @@ def load_config(path: str | Path) -> dict[str, Any]:
         raise ConfigError(
             f"{p}: not a UTF-8 text file (byte {e.start}: {raw[e.start]:#04x}){hint}"
         ) from None
-    return _parse_toml(text, str(p))
+    return _paths_beside(_parse_toml(text, str(p)), p.parent)
+
+
+def _paths_beside(config: dict[str, Any], folder: Path) -> dict[str, Any]:
+    """``config`` with each relative path of :data:`PATH_KEYS` joined to ``folder``."""
+    for keys in PATH_KEYS:
+        table: Any = config
+        for k in keys[:-1]:
+            table = table.get(k) if isinstance(table, dict) else None
+        value = table.get(keys[-1]) if isinstance(table, dict) else None
+        if isinstance(value, str) and value and not Path(value).expanduser().is_absolute():
+            table[keys[-1]] = str(folder / value)
+    return config
 
 
 #: Larger than any configuration (default.toml is ~20 kB); a bigger file is the wrong file.

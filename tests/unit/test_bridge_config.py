@@ -132,3 +132,20 @@ def test_port_zero_where_the_bridge_reports_the_port() -> None:
     assert s.buses.can.socketcand_port == 0
     assert (s.buses.mavlink.transport, s.buses.mavlink.port) == ("tcp", 0)
     assert s.zenoh.listen == ("tcp/127.0.0.1:7000", "tcp/[::1]:10")
+
+
+def test_relative_file_paths_are_relative_to_the_config_file(tmp_path: Path) -> None:
+    """A config copied with its DBC (``config init``) finds the DBC beside it from any working
+    directory; an absolute path and "" (the shipped file) are kept; --set paths stay as given."""
+    folder = tmp_path / "mycfg"
+    folder.mkdir()
+    text = (REPO / "config" / "default.toml").read_text()
+    text = text.replace('dbc = ""', 'dbc = "koala.dbc"', 1)
+    text = text.replace('config_file = ""', f'config_file = "{tmp_path / "z.json5"}"', 1)
+    (folder / "default.toml").write_text(text)
+    config = load_config(folder / "default.toml")
+    assert config["buses"]["can"]["dbc"] == str(folder / "koala.dbc")
+    assert config["zenoh"]["config_file"] == str(tmp_path / "z.json5")
+    assert config["buses"]["mavlink"]["signing_key_file"] == ""
+    overridden = apply_override(config, *parse_override("buses.can.dbc='other.dbc'"))
+    assert overridden["buses"]["can"]["dbc"] == "other.dbc"
