@@ -241,7 +241,9 @@ class Grid:
         if "map" in d:
             if "cols" in d or "rows" in d:
                 raise ConfigError("[world] give either 'map' or 'cols'/'rows', not both")
-            cols, rows, map_edges, map_blocked = parse_ascii_map(str(d["map"]))
+            if not isinstance(d["map"], str):
+                raise ConfigError("[world] 'map' is a multi-line string (the ASCII map)")
+            cols, rows, map_edges, map_blocked = parse_ascii_map(d["map"])
             edges |= map_edges
             blocked |= map_blocked
         else:
@@ -253,28 +255,36 @@ class Grid:
             for r in range(rows):
                 edges.add(("v", 0, r))
                 edges.add(("v", cols, r))
-        for w in d.get("walls", []):
-            if not (isinstance(w, list | tuple) and len(w) == 3):
+        for w in _array(d, "walls", sec):
+            if not (isinstance(w, list | tuple) and len(w) == 3 and isinstance(w[2], str)):
                 raise ConfigError(f"[world] each wall is [col, row, side], got {w!r}")
-            edges.add(side_edge(int(w[0]), int(w[1]), str(w[2]).upper()))
-        for b in d.get("blocked", []):
-            blocked.add((int(b[0]), int(b[1])))
+            side = w[2].upper()
+            if side not in SIDES:
+                raise ConfigError(f"[world] a wall's side is one of {', '.join(SIDES)}, got {w!r}")
+            col, row = (value_of(Int, v, "walls", sec) for v in w[:2])
+            edges.add(side_edge(col, row, side))
+        for b in _array(d, "blocked", sec):
+            if not (isinstance(b, list | tuple) and len(b) == 2):
+                raise ConfigError(f"[world] each blocked cell is [col, row], got {b!r}")
+            blocked.add((value_of(Int, b[0], "blocked", sec), value_of(Int, b[1], "blocked", sec)))
         for c, r in blocked:
             if not (0 <= c < cols and 0 <= r < rows):
                 raise ConfigError(
                     f"[world] blocked cell {(c, r)} is outside the {cols}x{rows} grid")
             edges.update(side_edge(c, r, s) for s in SIDES)
-        landmarks = tuple(_landmark(x, i) for i, x in enumerate(d.get("landmarks", [])))
+        landmarks = tuple(_landmark(_table(x, f"world.landmarks[{i}]"), i)
+                          for i, x in enumerate(_array(d, "landmarks", sec)))
         ids = [lm.id for lm in landmarks]
         if len(set(ids)) != len(ids):
             raise ConfigError(f"[world.landmarks] landmark ids must be unique, got {ids}")
-        sources = tuple(_source(x, i) for i, x in enumerate(d.get("magnetic_sources", [])))
-        ef = d.get("earth_field", {})
+        sources = tuple(_source(_table(x, f"world.magnetic_sources[{i}]"), i)
+                        for i, x in enumerate(_array(d, "magnetic_sources", sec)))
+        ef = _table(d.get("earth_field", {}), "world.earth_field")
         reject_unknown(ef, ["horizontal_uT", "vertical_uT", "north_deg"], "world.earth_field")
         earth = EarthField(**{k: number(v, k, "world.earth_field") for k, v in ef.items()})
         start = None
         if "start" in d:
-            s = d["start"]
+            s = _table(d["start"], "world.start")
             reject_unknown(s, ["x", "y", "theta_deg"], "world.start")
             start = StartPose(
                 number(require(s, "x", "world.start"), "x", "world.start"),
@@ -282,7 +292,7 @@ class Grid:
                 math.radians(number(s.get("theta_deg", 0.0), "theta_deg", "world.start")),
             )
         return cls(
-            name=str(d.get("name", "world")),
+            name=_name(d.get("name", "world")),
             cols=cols,
             rows=rows,
             cell_m=cell_m,
@@ -293,6 +303,27 @@ class Grid:
             earth_field=earth,
             start=start,
         )
+
+
+def _name(value: Any) -> str:
+    if not isinstance(value, str):
+        raise ConfigError(f"[world] 'name' is a string, got {type(value).__name__} {value!r}")
+    return value
+
+
+def _array(d: Mapping[str, Any], key: str, sec: str) -> list[Any]:
+    """``d[key]`` (default []), which must be an array."""
+    value = d.get(key, [])
+    if not isinstance(value, list):
+        raise ConfigError(f"[{sec}] '{key}' is an array, got {type(value).__name__} {value!r}")
+    return value
+
+
+def _table(value: Any, sec: str) -> Mapping[str, Any]:
+    """``value``, which must be a table (``[{sec}]`` or an inline ``{...}``)."""
+    if not isinstance(value, Mapping):
+        raise ConfigError(f"[{sec}] is a table, got {type(value).__name__} {value!r}")
+    return value
 
 
 def _landmark(d: Mapping[str, Any], i: int) -> Landmark:
