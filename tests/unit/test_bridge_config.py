@@ -1,4 +1,4 @@
-"""runtime/settings.py (was bridge/config.py): TOML loading, --set overrides (CLI > file), helpful errors."""
+"""runtime/settings.py: TOML loading, --set overrides (CLI > file), helpful errors."""
 
 from __future__ import annotations
 
