@@ -34,16 +34,14 @@ from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal, Protocol, TypeVar
 
+from koala_bridge.core.errors import TopicError  # re-exported: its old home
+
 JSON_SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
 
 GRID_ENCODING = "float32-le"
 OCCUPANCY_ENCODING = "int8-logodds"
 
 M = TypeVar("M", bound="TopicMessage")
-
-
-class TopicError(ValueError):
-    """A payload does not have the shape of its topic's message."""
 
 
 def _doc(description: str = "", **schema: Any) -> Any:

@@ -226,7 +226,7 @@ class ZenohLink:
         try:
             self._session = zenoh.open(session_config(settings))
         except zenoh.ZError as e:
-            raise OSError(_session_error(settings, e)) from e
+            raise TransportError(_session_error(settings, e)) from e
         self._queryable = self._session.declare_queryable(
             f"{self.prefix}/world", self._on_world_query
         )
