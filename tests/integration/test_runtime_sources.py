@@ -20,6 +20,7 @@ from koala_bridge.drivers.messages import (
     GyroFrame,
     RangeFrame,
     RangeKind,
+    TransportError,
     WheelOdometryFrame,
 )
 from koala_bridge.drivers.rangeframes import encode_range_frame
