@@ -32,6 +32,9 @@ Seam for the drive-error model (issue 3, seeds/000 eq. 1-4, wheel slip): :func:`
 optional ``drive_error`` object (see :class:`DriveErrorSeam`). It receives the ideal body-frame
 displacement of the step and returns the displacement that really happens (and may change the
 wheel travel the encoders see); collision handling applies to the displacement it returns.
+
+Parameters: ``[robot]`` (:class:`RobotConfig`) and its ``[robot.drive_error]`` table
+(:class:`DriveConfig`; the model's own keys go to ``sim/models/drive.py``) are typed here.
 """
 
 from __future__ import annotations
@@ -65,7 +68,6 @@ def _key_safe(name: str) -> str:
     return name
 
 
-
 @section
 class DriveConfig:
     """``[robot.drive_error]``: the drive-error model's switch and parameters (seeds/000 1-4)."""
@@ -86,7 +88,7 @@ class RobotConfig:
     ticks_per_metre: Positive       # encoder pulses per metre of wheel travel
     wheel_diameter_m: Positive
     wheel_base_m: Positive          # distance between the left and right wheel contact lines
-    wheel_diameter_ratio: Positive  # left / right wheel diameter (1: equal); see sim/robot.py
+    wheel_diameter_ratio: Positive  # left / right wheel diameter (1: equal); see above
     body_radius_m: Positive         # collision body: a circle around the robot's centre
     max_wheel_speed_mps: Positive   # wheel surface speed limit, each wheel
     speed_unit_s: Positive          # K-Team speed unit = pulses per this many seconds (10 ms)
