@@ -32,19 +32,78 @@ Seam for the drive-error model (issue 3, seeds/000 eq. 1-4, wheel slip): :func:`
 optional ``drive_error`` object (see :class:`DriveErrorSeam`). It receives the ideal body-frame
 displacement of the step and returns the displacement that really happens (and may change the
 wheel travel the encoders see); collision handling applies to the displacement it returns.
+
+Parameters: ``[robot]`` (:class:`RobotConfig`) and its ``[robot.drive_error]`` table
+(:class:`DriveConfig`; the model's own keys go to ``sim/models/drive.py``) are typed here.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Protocol
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Annotated, Any, Protocol
 
 import numpy as np
 from koala_bridge.core.geometry import wrap_angle
-from koala_bridge.sim.config import RobotConfig
+from koala_bridge.core.schema import (
+    Bool,
+    ConfigError,
+    Positive,
+    Str,
+    reject_unknown,
+    require,
+    section,
+    validate,
+)
 from koala_bridge.sim.noise import Variates
 from koala_bridge.sim.raycast import SegmentSet, point_segment_distances, sweep_circle
+from koala_bridge.sim.sections import empty_errors, own_keys, sensor_section
+from pydantic import AfterValidator
+
+
+def _key_safe(name: str) -> str:
+    if not name or any(c in name for c in "/*?$# "):
+        raise ValueError(f"must be a non-empty key-safe word, got {name!r}")
+    return name
+
+
+@section
+class DriveConfig:
+    """``[robot.drive_error]``: the drive-error model's switch and parameters (seeds/000 1-4)."""
+
+    ideal: Bool
+    errors: Any = field(default_factory=empty_errors)
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> DriveConfig:
+        return sensor_section(cls, d, "robot.drive_error", "drive")
+
+
+@section
+class RobotConfig:
+    """``[robot]``: geometry and drive limits of the Koala (sources in config/README.md)."""
+
+    name: Annotated[Str, AfterValidator(_key_safe)]
+    ticks_per_metre: Positive       # encoder pulses per metre of wheel travel
+    wheel_diameter_m: Positive
+    wheel_base_m: Positive          # distance between the left and right wheel contact lines
+    wheel_diameter_ratio: Positive  # left / right wheel diameter (1: equal); see above
+    body_radius_m: Positive         # collision body: a circle around the robot's centre
+    max_wheel_speed_mps: Positive   # wheel surface speed limit, each wheel
+    speed_unit_s: Positive          # K-Team speed unit = pulses per this many seconds (10 ms)
+    drive: DriveConfig              # the file's [robot.drive_error] table
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> RobotConfig:
+        sec = "robot"
+        if not isinstance(d, Mapping):
+            raise ConfigError(f"[{sec}] must be a table, got {d!r}")
+        keys = [k for k in own_keys(cls) if k != "drive"] + ["drive_error"]
+        reject_unknown(d, keys, sec)
+        own = {k: v for k, v in d.items() if k != "drive_error"}
+        drive = DriveConfig.from_dict(require(d, "drive_error", sec))
+        return validate(cls, {**own, "drive": drive}, sec)
 
 
 @dataclass(frozen=True, slots=True)

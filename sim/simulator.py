@@ -31,10 +31,11 @@ from typing import Any
 import numpy as np
 from koala_bridge.core.schema import ConfigError
 from koala_bridge.sim import robot as kin
-from koala_bridge.sim.config import SENSOR_NAMES, SimConfig, load_sim_config, poses_to_list
+from koala_bridge.sim.config import SENSOR_NAMES, SimConfig, load_sim_config
 from koala_bridge.sim.noise import BlockStream
 from koala_bridge.sim.raycast import SegmentSet, cast_fan_arrays
 from koala_bridge.sim.robot import RobotState
+from koala_bridge.sim.sections import poses_to_list
 from koala_bridge.sim.sensors.base import ErrorModelFactory
 from koala_bridge.sim.sensors.camera import CameraSensor
 from koala_bridge.sim.sensors.compass import CompassSensor

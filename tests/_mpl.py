@@ -8,7 +8,12 @@ import pytest
 
 @pytest.fixture(scope="module", autouse=True)
 def fonts_loaded(tmp_path_factory: pytest.TempPathFactory) -> None:
+    from koala_bridge.core.topics import EarthFieldInfo, WorldMessage
     from koala_bridge.tools.snapshot import Scene, render_scene
 
-    world = {"cols": 1, "rows": 1, "cell_m": 1.0, "segments": [[0, 0, 1, 0]], "name": "warm-up"}
+    world = WorldMessage(
+        "warm-up", 1, 1, 1.0, walls=((0, 0, "S"),), segments=((0.0, 0.0, 1.0, 0.0),), blocked=(),
+        landmarks=(), magnetic_sources=(), earth_field=EarthFieldInfo(20.0, 40.0, 90.0),
+        start=None, robot={},
+    ).to_json()
     render_scene(Scene(world=world), tmp_path_factory.mktemp("fonts") / "warm.png")

@@ -42,7 +42,8 @@ IDEAL_SECTIONS = ("robot.drive_error", "sensors.ir", "sensors.sonar", "sensors.e
 def pytest_configure(config: pytest.Config) -> None:
     """Hypothesis draws the same examples on every run of the suite (``derandomize``: a failure in
     CI reproduces on a laptop) and keeps no example database in the checkout. ``make fuzz`` is the
-    place for fresh random inputs."""
+    place for fresh random inputs. Also registers the leak check's opt-out marker."""
+    config.addinivalue_line("markers", "no_leak_check: skip the autouse leak check")
     from hypothesis import settings
 
     settings.register_profile("suite", derandomize=True, database=None)

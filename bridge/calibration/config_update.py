@@ -40,7 +40,7 @@ SIMULATED_KEYS: Mapping[str, frozenset[str]] = {
     ),
 }
 
-#: Config section -> the simulator's error-model name (sim.config.ERROR_PARAMS).
+#: Config section -> the simulator's error-model name (sim.sections.ERROR_PARAMS).
 _MODEL_OF = {"sensors.gyro": "gyro", "sensors.compass": "compass", "sensors.ir": "ir"}
 
 
@@ -123,7 +123,7 @@ def _absent_error_terms(section: str) -> dict[str, Any]:
     model = _MODEL_OF.get(section)
     if model is None:
         return {}
-    from koala_bridge.sim.config import ERROR_PARAMS
+    from koala_bridge.sim.sections import ERROR_PARAMS
 
     module, name = ERROR_PARAMS[model]
     cls = getattr(importlib.import_module(module), name)

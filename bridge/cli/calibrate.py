@@ -1,6 +1,6 @@
 """Find what the sensor model lacks in measured data; report the error before/after and the fix.
 
-koala-bridge calibrate INPUT [INPUT ...] --config MODEL.toml --out DIR [--write-config NEW.toml]
+koala-bridge calibrate INPUT [INPUT ...] --out DIR [--config MODEL.toml] [--write-config NEW.toml]
 
 INPUT is a measurement bundle directory (docs/bundle-format.md) or an MCAP recording
 (converted as `koala-bridge export` does first). Several inputs are calibrated in order, each on

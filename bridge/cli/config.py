@@ -86,10 +86,24 @@ def write_copy(directory: Path, *, force: bool = False) -> list[Path]:
     return written
 
 
+def file_in_the_way(directory: Path) -> Path | None:
+    """``directory`` or the first of its parents that exists as something other than a folder
+    (a file there means the folder cannot be made), else None."""
+    for path in (directory, *directory.parents):
+        if path.exists():
+            return None if path.is_dir() else path
+    return None
+
+
 def run(args: argparse.Namespace) -> int:
     if args.action == "path":
         print(config_dir())
         return 0
+    blocking = file_in_the_way(args.directory)
+    if blocking is not None:
+        print(f"koala-bridge config init: {blocking} is a file, not a folder: "
+              "DIR must be a folder (new or existing)", file=sys.stderr)
+        return 2
     try:
         written = write_copy(args.directory, force=args.force)
     except FileExistsError as e:

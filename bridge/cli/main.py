@@ -53,6 +53,12 @@ examples:
   koala-bridge <subcommand> --help                # what each subcommand does
 """
 
+#: Below a subcommand's --help that names a docs/*.md file: a wheel does not install them.
+DOCS_NOTE = (
+    "docs/*.md: the documents named above are in the koala-bridge source (its docs/\n"
+    "folder); they are not installed with the package."
+)
+
 
 def seconds(text: str) -> float:
     """Argument type: a finite number of seconds >= 0."""
@@ -148,6 +154,8 @@ def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
                 continue
             module.add_arguments(p)
             p.set_defaults(_module=module, _parser=p)
+        if "docs/" in p.format_help():
+            p.epilog = f"{p.epilog.rstrip()}\n\n{DOCS_NOTE}" if p.epilog else DOCS_NOTE
     return parser
 
 

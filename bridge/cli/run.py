@@ -33,7 +33,7 @@ from koala_bridge.runtime.settings import (
     parse_override,
 )
 
-# The repository's config, wherever the command is run from (as drivers.can_codec finds the DBC).
+# The shipped default config (a package resource, core/resources.py), wherever the command runs.
 DEFAULT_CONFIG = default_config_path()
 
 

@@ -13,6 +13,7 @@ exceptions are for a configuration, a file or a request that has no answer.
 
     KoalaBridgeError
     ├── ConfigError (ValueError)        a config key or value is invalid (core.schema)
+    ├── TopicError (ValueError)         a payload does not have its topic's shape (core.topics)
     ├── DriverError                     codecs and transports (drivers.messages)
     │   ├── FrameError (ValueError)     a value cannot be encoded in / decoded from a wire format
     │   └── TransportError (OSError)    a transport cannot be opened or fails moving bytes
@@ -42,6 +43,7 @@ __all__ = [
     "FrameError",
     "KoalaBridgeError",
     "RecordingError",
+    "TopicError",
     "TransportClosedError",
     "TransportError",
 ]
@@ -53,6 +55,10 @@ class KoalaBridgeError(Exception):
 
 class ConfigError(KoalaBridgeError, ValueError):
     """A configuration value or key is invalid. The message names the section and the key."""
+
+
+class TopicError(KoalaBridgeError, ValueError):
+    """A payload does not have the shape of its topic's message (:mod:`.topics`)."""
 
 
 class DriverError(KoalaBridgeError):

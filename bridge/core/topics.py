@@ -24,6 +24,7 @@ runtime (``runtime/zenoh_io.py``, ``runtime/real_source.py``, ``estimation/messa
 
 from __future__ import annotations
 
+import base64
 import dataclasses
 import functools
 import json
@@ -34,16 +35,15 @@ from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal, Protocol, TypeVar
 
+import numpy as np
+from koala_bridge.core.errors import TopicError  # re-exported: its old home
+
 JSON_SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
 
 GRID_ENCODING = "float32-le"
 OCCUPANCY_ENCODING = "int8-logodds"
 
 M = TypeVar("M", bound="TopicMessage")
-
-
-class TopicError(ValueError):
-    """A payload does not have the shape of its topic's message."""
 
 
 def _doc(description: str = "", **schema: Any) -> Any:
@@ -569,6 +569,11 @@ class EstimateGrid(TopicMessage):
     cell: tuple[int, ...] = _doc("[col, row], row 0 south")
     p: float = _doc()
 
+    def probabilities(self) -> np.ndarray:
+        """The ``(rows, cols)`` belief as floats, row 0 south. Raises :class:`TopicError` when
+        ``data`` does not hold ``rows * cols`` float32 values."""
+        return _cells(self.TOPIC, self.data, "<f4", self.rows, self.cols)
+
 
 @dataclass(frozen=True)
 class OccupancyMap(TopicMessage):
@@ -587,6 +592,26 @@ class OccupancyMap(TopicMessage):
     data: str = _doc(
         "rows*cols int8 q, row-major from the SW corner, 0 unknown", contentEncoding="base64"
     )
+
+    def log_odds(self) -> np.ndarray:
+        """The ``(rows, cols)`` log-odds ``q * scale``, row 0 south (0: unknown). Raises
+        :class:`TopicError` when ``data`` does not hold ``rows * cols`` int8 values."""
+        return _cells(self.TOPIC, self.data, "i1", self.rows, self.cols) * self.scale
+
+    def p_occupied(self) -> np.ndarray:
+        """``P(occupied) = 1 / (1 + exp(-l))`` per cell (0.5 where unknown)."""
+        return 1.0 / (1.0 + np.exp(-self.log_odds()))
+
+
+def _cells(topic: str, data: str, dtype: str, rows: int, cols: int) -> np.ndarray:
+    """A base64 row-major grid of ``dtype`` as a ``(rows, cols)`` float array."""
+    try:
+        a = np.frombuffer(base64.b64decode(data, validate=True), dtype=dtype)
+    except ValueError as e:  # binascii.Error, or a length that is not a whole number of cells
+        raise TopicError(f"{topic}: data is not base64 {dtype} cells ({e})") from e
+    if a.size != rows * cols:
+        raise TopicError(f"{topic}: data holds {a.size} cells, expected {rows}x{cols}")
+    return a.reshape(rows, cols).astype(float)
 
 
 # -- the world queryable -------------------------------------------------------------------------

@@ -35,7 +35,7 @@ from koala_bridge.core.topics import (
     TopicError,
 )
 from koala_bridge.estimation.errors import EstimationError
-from koala_bridge.estimation.occupancy import decode_log_odds, encode_log_odds
+from koala_bridge.estimation.occupancy import encode_log_odds
 from numpy.typing import ArrayLike, NDArray
 
 KEY_POSE = EstimatePose.TOPIC
@@ -92,14 +92,9 @@ def decode_grid(msg: dict[str, Any]) -> NDArray[np.float64]:
     if msg.get("encoding") != GRID_ENCODING:
         raise EstimationError(f"unknown grid encoding {msg.get('encoding')!r}")
     try:
-        grid = EstimateGrid.from_json(msg)
+        return EstimateGrid.from_json(msg).probabilities()
     except TopicError as e:
         raise EstimationError(str(e)) from e
-    a = np.frombuffer(base64.b64decode(grid.data), dtype="<f4")
-    rows, cols = grid.rows, grid.cols
-    if a.size != rows * cols:
-        raise EstimationError(f"grid data holds {a.size} cells, expected {rows}x{cols}")
-    return a.reshape(rows, cols).astype(float)
 
 
 def occupancy_message(
@@ -127,7 +122,6 @@ def decode_occupancy(msg: dict[str, Any]) -> NDArray[np.float64]:
     if msg.get("encoding") != OCCUPANCY_ENCODING:
         raise EstimationError(f"unknown occupancy encoding {msg.get('encoding')!r}")
     try:
-        occ = OccupancyMap.from_json(msg)
+        return OccupancyMap.from_json(msg).log_odds()
     except TopicError as e:
         raise EstimationError(str(e)) from e
-    return decode_log_odds(occ.data, occ.rows, occ.cols, float(occ.scale))

@@ -16,24 +16,30 @@ from contextlib import contextmanager
 from typing import TYPE_CHECKING, TextIO
 
 if TYPE_CHECKING:
-    from rich.console import ConsoleRenderable
+    from rich.console import Console, ConsoleOptions, RenderResult
 
 REFRESH_PER_SECOND = 4
+BAR_WIDTH, MIN_BAR_WIDTH, BAR_GAP = 30, 10, 2  # columns
 
 
-def progress_text(sim_t: float, wall_s: float, duration_s: float) -> str:
+def progress_text(sim_t: float, wall_s: float, duration_s: float, compact: bool = False) -> str:
     """The line for simulated time ``sim_t`` reached after ``wall_s`` wall seconds of a run of
-    ``duration_s`` simulation seconds (0: until stopped)."""
+    ``duration_s`` simulation seconds (0: until stopped). ``compact``: the same facts in fewer
+    columns, for a narrow terminal."""
     rtf = sim_t / wall_s if wall_s > 0 else 0.0
-    parts = [f"t = {sim_t:.1f} s" + (f" of {duration_s:g} s" if duration_s > 0 else "")]
-    parts.append(f"real-time factor {rtf:.2f}" if rtf > 0 else "real-time factor -")
+    if compact:
+        parts = [f"t {sim_t:.1f}" + (f"/{duration_s:g} s" if duration_s > 0 else " s")]
+        parts.append(f"rtf {rtf:.2f}" if rtf > 0 else "rtf -")
+    else:
+        parts = [f"t = {sim_t:.1f} s" + (f" of {duration_s:g} s" if duration_s > 0 else "")]
+        parts.append(f"real-time factor {rtf:.2f}" if rtf > 0 else "real-time factor -")
     if duration_s <= 0:
         parts.append("until Ctrl-C")
     elif rtf > 0:
         parts.append(f"ETA {_clock_time(max(0.0, duration_s - sim_t) / rtf)}")
     else:
         parts.append("ETA -")
-    return "   ".join(parts)
+    return ("  " if compact else "   ").join(parts)
 
 
 def shows_progress(stream: TextIO) -> bool:
@@ -61,7 +67,7 @@ def run_progress(
     from rich.console import Console
     from rich.live import Live
 
-    line = _ProgressLine(sim_time, duration_s, monotonic)
+    line = ProgressLine(sim_time, duration_s, monotonic)
     live = Live(
         line,
         console=Console(file=stream),
@@ -76,8 +82,11 @@ def run_progress(
             yield
 
 
-class _ProgressLine:
-    """rich renderable: reads the simulated time each time rich redraws."""
+class ProgressLine:
+    """rich renderable: reads the simulated time each time rich redraws, and fits the line to
+    the terminal's width (a wrapped line would leave a trail of half lines): the bar shrinks,
+    the text turns compact, then the bar goes; the text is cut with an ellipsis only if it is
+    still too long."""
 
     def __init__(
         self, sim_time: Callable[[], float], duration_s: float, monotonic: Callable[[], float]
@@ -87,20 +96,29 @@ class _ProgressLine:
         self.monotonic = monotonic
         self.t0 = monotonic()
 
-    def __rich__(self) -> ConsoleRenderable:
+    def __rich_console__(self, console: Console, options: ConsoleOptions) -> RenderResult:
         from rich.progress_bar import ProgressBar
         from rich.table import Table
         from rich.text import Text
 
         t = self.sim_time()
-        text = Text(progress_text(t, self.monotonic() - self.t0, self.duration_s))
-        if self.duration_s <= 0:
-            return text
-        grid = Table.grid(padding=(0, 2))
+        wall = self.monotonic() - self.t0
+        width = options.max_width
+        full, compact = (progress_text(t, wall, self.duration_s, c) for c in (False, True))
+        # The first that fits: full text and bar, compact text and bar, either text alone.
+        room = width - BAR_GAP - MIN_BAR_WIDTH
+        with_bar = self.duration_s > 0 and len(compact) <= room
+        words = full if len(full) <= (room if with_bar else width) else compact
+        text = Text(words, no_wrap=True, overflow="ellipsis")
+        if not with_bar:
+            yield text
+            return
+        bar = min(BAR_WIDTH, width - len(words) - BAR_GAP)
+        grid = Table.grid(padding=(0, BAR_GAP))
         grid.add_row(
-            ProgressBar(total=self.duration_s, completed=min(t, self.duration_s), width=30), text
+            ProgressBar(total=self.duration_s, completed=min(t, self.duration_s), width=bar), text
         )
-        return grid
+        yield grid
 
 
 @contextmanager

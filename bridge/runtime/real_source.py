@@ -45,6 +45,7 @@ from dataclasses import dataclass, field
 from typing import Annotated, Any
 
 import can
+from koala_bridge.core.errors import TransportError
 from koala_bridge.core.schema import (
     ConfigError,
     Positive,
@@ -252,7 +253,8 @@ class RealRobotSource:
                 try:
                     self._can = open_can_transport(url, **dict(p.can_options))
                 except (OSError, ValueError) as e:
-                    raise OSError(f"cannot open CAN {p.can_interface}/{p.can_channel}: {e}") from e
+                    raise TransportError(
+                        f"cannot open CAN {p.can_interface}/{p.can_channel}: {e}") from e
             if p.mavlink:
                 self._mavlink = _open_port(
                     "MAVLink", p.mavlink, mavlink_connection_url(p.mavlink),
@@ -497,7 +499,7 @@ def _open_port(
     try:
         return open_byte_transport(url, **options())
     except (OSError, ValueError) as e:
-        raise OSError(f"cannot open {what} {name!r}: {e}") from e
+        raise TransportError(f"cannot open {what} {name!r}: {e}") from e
 
 
 def _discard_input(port: ByteTransport) -> None:

@@ -252,7 +252,7 @@ class ZenohLink:
         try:
             self._session = zenoh.open(config)
         except zenoh.ZError as e:
-            raise OSError(_session_error(settings, e)) from e
+            raise TransportError(_session_error(settings, e)) from e
         self._queryable = self._session.declare_queryable(
             f"{self.prefix}/world", self._on_world_query
         )

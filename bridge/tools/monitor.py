@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import zenoh
+from koala_bridge.core.errors import TransportError
 from koala_bridge.core.geometry import wrap_angle
 from koala_bridge.core.topics import (
     EstimateCell,
@@ -65,12 +66,13 @@ def target_from_endpoints_file(path: str | Path) -> tuple[list[str], str]:
     try:
         d = json.loads(p.read_text(encoding="utf-8"))
     except OSError as e:
-        raise OSError(f"cannot read the endpoints file {p}: {e.strerror or e}") from e
+        raise TransportError(f"cannot read the endpoints file {p}: {e.strerror or e}") from e
     except ValueError as e:
-        raise OSError(f"{p} is not an endpoints file (not JSON: {e})") from e
+        raise TransportError(f"{p} is not an endpoints file (not JSON: {e})") from e
     z = d.get("zenoh") if isinstance(d, dict) else None
     if not isinstance(z, dict) or not z.get("endpoints") or not z.get("prefix"):
-        raise OSError(f"{p} is not a koala-bridge endpoints file (no zenoh endpoints/prefix)")
+        raise TransportError(
+            f"{p} is not a koala-bridge endpoints file (no zenoh endpoints/prefix)")
     return list(z["endpoints"]), str(z["prefix"])
 
 
@@ -93,7 +95,7 @@ class ZenohWatch:
         try:
             self.session = zenoh.open(client_config(connect, mode))
         except zenoh.ZError as e:
-            raise OSError(
+            raise TransportError(
                 f"cannot reach a Zenoh peer at {', '.join(connect)}: {zenoh_error_text(e)} "
                 "(is the bridge running? --connect/--endpoints-file say where)"
             ) from e

@@ -57,15 +57,16 @@ def record_simulator(
     ``config`` is the whole parsed config (``[sim]``, ``[robot]``, ``[sensors.*]``, ``[world]``);
     ``command`` gives the body speed ``(v m/s, omega rad/s)`` at each step (default
     :func:`weave_command`); the truth pose is recorded at ``pose_rate_hz`` (default: the
-    config's ``[zenoh] pose_rate_hz``, else every step).
+    config's ``[zenoh] pose_rate_hz``, read with the bridge's typed settings as a run reads it).
     """
     from koala_bridge.core.topics import WorldMessage
     from koala_bridge.recording.mcap_file import Recorder, run_metadata
+    from koala_bridge.runtime.settings import BridgeSettings
     from koala_bridge.runtime.zenoh_io import pose_message, sensor_messages
 
+    rate = pose_rate_hz or BridgeSettings.from_config(config).zenoh.pose_rate_hz
     sim = Simulator(config)
     command = command or weave_command()
-    rate = pose_rate_hz or float((config.get("zenoh") or {}).get("pose_rate_hz", 1.0 / sim.dt))
     pose_period = max(1, round(1.0 / (rate * sim.dt)))
     half_base = 0.5 * sim.config.robot.wheel_base_m
     world = WorldMessage.of(sim.world, sim.robot_description()).to_json()

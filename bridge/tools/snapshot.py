@@ -6,11 +6,11 @@
 magnetic north, the truth (ring) and estimated (dot) trails and poses, and the belief / occupancy
 grid when one was published.
 
-Grids are accepted as ``[row][col]`` nested lists (row 0 the southern-most row,
-docs/architecture.md) or flat row-major lists with ``rows``/``cols`` members, under one of the
-keys of :data:`GRID_KEYS`, or in the bridge's own encodings (``encoding`` ``float32-le`` for the
-belief, ``int8-logodds`` for the occupancy map, drawn as P(occupied); docs/localisation.md). A
-grid with ``resolution_m`` (the occupancy map) is drawn at that resolution from ``origin``.
+Every payload is read with its typed message of :mod:`koala_bridge.core.topics`: the world
+(``WorldMessage``), the belief (``EstimateGrid``, base64 float32 probabilities) and the occupancy
+map (``OccupancyMap``, int8 log-odds, drawn as P(occupied) at its own ``resolution_m`` from its
+``origin``; docs/localisation.md). A grid payload of another shape is left out of the picture; a
+world of another shape is an error (:class:`~koala_bridge.core.topics.TopicError`).
 """
 
 from __future__ import annotations
@@ -22,17 +22,17 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from koala_bridge.core.topics import (
-    GRID_ENCODING,
-    OCCUPANCY_ENCODING,
     EstimateCell,
     EstimateGrid,
     EstimatePose,
     OccupancyMap,
+    TopicError,
     TruthPose,
+    WorldMessage,
     pose_of,
 )
 from koala_bridge.tools.monitor import ZenohWatch
@@ -41,19 +41,20 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
-GRID_KEYS = ("belief", "probabilities", "p", "occupancy", "grid", "cells", "values", "data")
 PoseT = tuple[float, float, float, float]  # t, x, y, theta
+G = TypeVar("G", EstimateGrid, OccupancyMap)
 
 
 @dataclass
 class Scene:
-    """What a snapshot shows; every part optional except the world."""
+    """What a snapshot shows; every part optional except the world (the ``world`` queryable's
+    JSON answer, read as a :class:`WorldMessage` when drawn)."""
 
     world: dict[str, Any] | None = None
     truth: list[PoseT] = field(default_factory=list)
     estimate: list[PoseT] = field(default_factory=list)
-    belief: Any = None
-    occupancy: Any = None
+    belief: EstimateGrid | None = None
+    occupancy: OccupancyMap | None = None
     cell: Any = None
     prefix: str = ""
 
@@ -83,9 +84,9 @@ class SceneCollector:
                     trail.append(p)
                     del trail[: -self._max_trail]
             elif suffix == EstimateGrid.TOPIC:
-                s.belief = msg
+                s.belief = _parsed(EstimateGrid, msg, s.belief)
             elif suffix == OccupancyMap.TOPIC:
-                s.occupancy = msg
+                s.occupancy = _parsed(OccupancyMap, msg, s.occupancy)
             elif suffix == EstimateCell.TOPIC:
                 s.cell = msg
 
@@ -110,56 +111,39 @@ def collect_scene(
     return collector.scene
 
 
-def grid_array(msg: Any, rows: int | None = None, cols: int | None = None) -> np.ndarray | None:
-    """A ``(rows, cols)`` float array from a grid message (see module docstring), or None."""
-    if not isinstance(msg, dict):
-        return None
-    encoded = _decode_encoded(msg)
-    if encoded is not None:
-        return encoded
-    rows = int(msg.get("rows", rows or 0)) or rows
-    cols = int(msg.get("cols", cols or 0)) or cols
-    for key in GRID_KEYS:
-        v = msg.get(key)
-        if not isinstance(v, list) or not v:
-            continue
-        try:
-            a = np.array(v, dtype=float)  # None -> nan
-        except (TypeError, ValueError):
-            continue
-        if a.ndim == 2:
-            return a
-        if a.ndim == 1 and rows and cols and a.size == rows * cols:
-            return a.reshape(rows, cols)
+def _parsed(cls: type[G], msg: Any, previous: G | None) -> G | None:
+    """``msg`` as a ``cls`` message, or the previous one when it has another shape."""
+    try:
+        return cls.from_json(msg)
+    except TopicError:
+        return previous
+
+
+def grid_array(msg: EstimateGrid | OccupancyMap | None) -> np.ndarray | None:
+    """The ``(rows, cols)`` float array of a grid message, row 0 south: the belief's
+    probabilities, or the occupancy map's P(occupied) (0.5 where unknown); None without a
+    message or when its ``data`` does not hold ``rows * cols`` cells."""
+    try:
+        if isinstance(msg, EstimateGrid):
+            return msg.probabilities()
+        if isinstance(msg, OccupancyMap):
+            return msg.p_occupied()
+    except TopicError:
+        pass
     return None
 
 
-def _decode_encoded(msg: dict[str, Any]) -> np.ndarray | None:
-    """The bridge's base64 grids (bridge/estimation/messages.py): belief probabilities, or the
-    occupancy log-odds as P(occupied) (0.5 where unknown); None for other messages."""
-    encoding = msg.get("encoding")
-    if encoding not in (GRID_ENCODING, OCCUPANCY_ENCODING):
-        return None
-    # Imported here: the estimation package loads scipy, which a plain snapshot does not need.
-    from koala_bridge.estimation import EstimationError, decode_grid, decode_occupancy
-
-    try:
-        if encoding == GRID_ENCODING:
-            return decode_grid(msg)
-        return 1.0 / (1.0 + np.exp(-decode_occupancy(msg)))
-    except (EstimationError, KeyError, TypeError, ValueError):
-        return None
-
-
 def _grid_extent(
-    msg: Any, grid: np.ndarray, world_extent: tuple[float, float, float, float]
+    msg: EstimateGrid | OccupancyMap, grid: np.ndarray,
+    world_extent: tuple[float, float, float, float],
 ) -> tuple[float, float, float, float]:
-    """Where a grid lies: its own ``resolution_m``/``origin`` if it has them, else the world's."""
-    res = msg.get("resolution_m") if isinstance(msg, dict) else None
-    if not isinstance(res, int | float) or not res > 0:
+    """Where a grid lies: the occupancy map's own ``resolution_m``/``origin``, the belief on the
+    world's cells."""
+    if not isinstance(msg, OccupancyMap) or not msg.resolution_m > 0:
         return world_extent
-    ox, oy = (msg.get("origin") or [0.0, 0.0])[:2]
+    ox, oy = (tuple(msg.origin) + (0.0, 0.0))[:2]
     rows, cols = grid.shape
+    res = msg.resolution_m
     return (float(ox), float(ox) + cols * res, float(oy), float(oy) + rows * res)
 
 
@@ -212,29 +196,28 @@ def _draw_pose_stream(
     ax.plot([], [], linestyle=style.trail, label=label, **marker)
 
 
-def _draw_world(ax: Axes, world: dict[str, Any]) -> tuple[float, float, float]:
+def _draw_world(ax: Axes, world: WorldMessage) -> tuple[float, float, float]:
     """Walls, blocked cells, landmarks, magnetic sources, north; returns (width, height, cell)."""
-    cell = float(world.get("cell_m", 0.5))
-    cols, rows = int(world.get("cols", 0)), int(world.get("rows", 0))
-    w, h = cols * cell, rows * cell
-    for c, r in world.get("blocked", []):
+    cell = world.cell_m
+    w, h = world.cols * cell, world.rows * cell
+    for c, r in world.blocked:
         ax.add_patch(Rectangle((c * cell, r * cell), cell, cell, color="0.35", zorder=1))
-    for i, (x0, y0, x1, y1) in enumerate(world.get("segments", [])):
+    for i, (x0, y0, x1, y1) in enumerate(world.segments):
         ax.plot([x0, x1], [y0, y1], color="black", lw=2.5, solid_capstyle="round", zorder=3,
                 label="wall" if i == 0 else None)
-    for i, lm in enumerate(world.get("landmarks", [])):
-        x, y = float(lm["x"]), float(lm["y"])
+    for i, lm in enumerate(world.landmarks):
+        x, y = lm.x, lm.y
         star: dict[str, Any] = {"markersize": 16, "mec": "black", "zorder": 4,
                 "label": "landmark Ln" if i == 0 else None}
         try:
-            ax.plot([x], [y], "*", color=lm.get("colour") or "magenta", **star)
+            ax.plot([x], [y], "*", color=lm.colour or "magenta", **star)
         except ValueError:  # a colour name matplotlib does not know
             ax.plot([x], [y], "*", color="magenta", **star)
         # The label goes towards the middle of the world: landmarks sit by the walls and in the
         # corners, where a label outside would cross a wall or leave the axes.
         right, above = x < w / 2, y < h / 2
         ax.annotate(
-            f"L{lm.get('id')}",
+            f"L{lm.id}",
             (x, y),
             textcoords="offset points",
             xytext=(9 if right else -9, 9 if above else -9),
@@ -243,23 +226,22 @@ def _draw_world(ax: Axes, world: dict[str, Any]) -> tuple[float, float, float]:
             fontsize=8,
             bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.8},
             zorder=_Z_LABEL,
-            gid=f"landmark-label-{lm.get('id')}",
+            gid=f"landmark-label-{lm.id}",
         )
-    for i, m in enumerate(world.get("magnetic_sources", [])):
-        s = float(m.get("strength_uT", 1.0))
+    for i, m in enumerate(world.magnetic_sources):
+        s = m.strength_uT
         ax.plot(
-            [m["x"]],
-            [m["y"]],
+            [m.x],
+            [m.y],
             "X",
             color="tab:purple",
             markersize=6 + 3 * min(abs(s), 5),
             zorder=4,
             label="magnetic source" if i == 0 else None,
         )
-    north = (world.get("earth_field") or {}).get("north_deg")
-    if north is not None and w > 0:
+    if w > 0:
         # In the right margin at mid-height, clear of the corners where landmarks usually are.
-        a = math.radians(float(north))
+        a = math.radians(world.earth_field.north_deg)
         cx, cy, half = w + 0.45 * cell, h / 2, 0.3 * cell
         ax.annotate(
             "",
@@ -282,12 +264,11 @@ def draw_scene(scene: Scene, dpi: int = 120) -> Figure:
     fig = Figure(figsize=(7.5, 7.0), dpi=dpi)
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
-    world = scene.world or {}
+    world = WorldMessage.from_json(scene.world, "world") if scene.world else None
     w, h, cell = _draw_world(ax, world) if world else (0.0, 0.0, 0.5)
-    rows, cols = int(world.get("rows", 0)) or None, int(world.get("cols", 0)) or None
     extent = (0.0, w, 0.0, h)
-    occupancy = grid_array(scene.occupancy, rows, cols)
-    if occupancy is not None and w > 0:
+    occupancy = grid_array(scene.occupancy)
+    if scene.occupancy is not None and occupancy is not None and w > 0:
         im = ax.imshow(
             occupancy,
             origin="lower",
@@ -299,7 +280,7 @@ def draw_scene(scene: Scene, dpi: int = 120) -> Figure:
             zorder=0,
         )
         fig.colorbar(im, ax=ax, fraction=0.04, label="P(occupied)")
-    belief = grid_array(scene.belief, rows, cols)
+    belief = grid_array(scene.belief)
     if belief is not None and w > 0:
         im = ax.imshow(belief, origin="lower", extent=extent, cmap="Blues", alpha=0.55, zorder=0)
         fig.colorbar(im, ax=ax, fraction=0.04, label="belief")
@@ -316,7 +297,7 @@ def draw_scene(scene: Scene, dpi: int = 120) -> Figure:
     ax.set_xlabel("x east (m)")
     ax.set_ylabel("y north (m)")
     t = scene.truth[-1][0] if scene.truth else None
-    title = f"{scene.prefix or 'koala'} — world {world.get('name', '?')}"
+    title = f"{scene.prefix or 'koala'} — world {world.name if world else '?'}"
     if t is not None:
         title += f", t = {t:.2f} s"
     ax.set_title(title)

@@ -19,8 +19,8 @@ MODELLED = ("drive", "ir", "sonar", "gyro", "compass", "camera")
 
 def __getattr__(name: str) -> Any:
     # ERROR_MODELS (the simulator's registry) pulls in sim.sensors; build it only when asked so
-    # that ``import sim.models`` stays light (sim/config.py imports the params classes lazily
-    # while it is itself being used).
+    # that ``import sim.models`` stays light (sim/sections.py imports the params classes lazily
+    # while the sensors' sections are being built).
     if name == "ERROR_MODELS":
         return error_models()
     raise AttributeError(f"module 'koala_bridge.sim.models' has no attribute {name!r}")

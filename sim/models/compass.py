@@ -63,7 +63,7 @@ class CompassErrorParams:
     Keyword defaults are the values of ``config/default.toml`` (sim/models/_params.py).
     """
 
-    # Keys of the sensor's table that the sensor's config owns and hands over (sim/config.py).
+    # Keys of the table that the sensor's section (sim/sensors/) owns and hands over.
     FROM_SENSOR: ClassVar[tuple[str, ...]] = ("ideal",)
     # The values of this model's error terms that mean "no such error" (not config defaults):
     # what `koala-bridge calibrate --write-config` writes for the terms it did not measure when

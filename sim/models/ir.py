@@ -63,7 +63,7 @@ class IrErrorParams:
     Keyword defaults are the values of ``config/default.toml`` (sim/models/_params.py).
     """
 
-    # Keys of the sensor's table that the sensor's config owns and hands over (sim/config.py).
+    # Keys of the table that the sensor's section (sim/sensors/) owns and hands over.
     FROM_SENSOR: ClassVar[tuple[str, ...]] = ("ideal", "ambient_counts", "max_counts")
     # The values of this model's error terms that mean "no such error" (not config defaults):
     # what `koala-bridge calibrate --write-config` writes for the terms it did not measure when
@@ -83,7 +83,7 @@ class IrErrorParams:
     max_counts: PositiveInt = 1023
     # Per-sensor offset of the counts (a sensor's own emitter/receiver gain and ambient leak, as
     # `koala-bridge calibrate` measures it: effect offset_per:sensor); () = none, else one value
-    # per sensor (sim/config.py checks the length).
+    # per sensor (IrConfig in sim/sensors/ir.py checks the length).
     per_sensor_offset_counts: FloatTuple = ()
 
     @classmethod

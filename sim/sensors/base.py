@@ -17,7 +17,8 @@ How the simulator finds error models: ``Simulator(config, error_models=...)`` ta
 ``{sensor name: factory}``; when it is None and any sensor (or ``[robot.drive_error]``) has
 ``ideal = false``, the simulator imports :mod:`sim.models` and uses its ``ERROR_MODELS`` mapping.
 A factory is called at every ``reset`` as ``factory(config, rng)`` with the sensor's typed config
-(:mod:`sim.config`; its ``errors`` attribute holds the error model's validated params object)
+(``<Name>Config`` of its own module; its ``errors`` attribute holds the error model's validated
+params object)
 and the sensor's own generator (for turn-on biases); it returns the model.
 The drive-error model is registered under the name ``"drive"``; its factory gets the whole
 :class:`sim.config.SimConfig` (it needs the wheel base and ``dt``) and the drive stream, and

@@ -13,26 +13,51 @@ landmark's facing direction and the direction from the landmark to the camera), 
 and the ids of all landmarks of the world (to draw a wrong id from).
 
 Error model: ``sim/models/camera.py`` (its params, pure functions and
-:class:`~koala_bridge.sim.models.camera.CameraErrorModel`); config section ``[sensors.camera]``.
+:class:`~koala_bridge.sim.models.camera.CameraErrorModel`); config section ``[sensors.camera]``,
+typed here by :class:`CameraConfig` (its keys; the error model's keys beside them go to its params).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Annotated, Any
 
 import numba
 import numpy as np
-from koala_bridge.sim.config import CameraConfig
+from koala_bridge.core.schema import Bool, NonNegative, Positive, section
 from koala_bridge.sim.noise import Variates
 from koala_bridge.sim.raycast import SegmentSet, first_hit, wrap_angle_compiled
 from koala_bridge.sim.robot import RobotState
+from koala_bridge.sim.sections import Pose, empty_errors, range_limits, sensor_section
 from koala_bridge.sim.sensors.base import ErrorModel
 from koala_bridge.sim.types import CameraReading, LandmarkObservation
 from koala_bridge.sim.world import World
+from pydantic import Field
 
 # A landmark on a wall is not hidden by that wall: the sight line stops this short of it.
 LOS_TOLERANCE_M = 1e-9
+
+
+@section
+class CameraConfig:
+    """``[sensors.camera]``: landmark observations within a field of view and line of sight."""
+
+    rate_hz: Positive
+    ideal: Bool
+    pose: Pose                          # body frame [x, y, theta_rad]
+    fov_deg: Annotated[Positive, Field(le=360)]   # full horizontal field of view
+    min_range_m: NonNegative
+    max_range_m: Positive
+    errors: Any = field(default_factory=empty_errors)
+
+    def __post_init__(self) -> None:
+        range_limits(self.min_range_m, self.max_range_m, "sensors.camera")
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> CameraConfig:
+        return sensor_section(cls, d, "sensors.camera", "camera")
 
 
 @dataclass(frozen=True, eq=False)

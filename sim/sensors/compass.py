@@ -15,21 +15,39 @@ Seam: ``CompassSensor.measure(state, variates)``; an error model (issue 3: hard/
 motor-current disturbance) gets :class:`CompassTruth`, which includes the wheel speeds.
 
 Error model: ``sim/models/compass.py`` (its params, pure functions and
-:class:`~koala_bridge.sim.models.compass.CompassErrorModel`); config section ``[sensors.compass]``.
+:class:`~koala_bridge.sim.models.compass.CompassErrorModel`); config section ``[sensors.compass]``,
+typed here by :class:`CompassConfig` (its keys; the error model's keys go to its params).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
-from koala_bridge.sim.config import CompassConfig
+from koala_bridge.core.schema import Bool, Positive, section
 from koala_bridge.sim.noise import Variates
 from koala_bridge.sim.robot import RobotState
+from koala_bridge.sim.sections import empty_errors, sensor_section
 from koala_bridge.sim.sensors.base import ErrorModel
 from koala_bridge.sim.types import CompassReading
 from koala_bridge.sim.world import World
+
+
+@section
+class CompassConfig:
+    """``[sensors.compass]``: 3-axis magnetometer, Earth field plus local sources (1/d^2)."""
+
+    rate_hz: Positive
+    ideal: Bool
+    min_source_distance_m: Positive     # 1/d^2 is clamped at this distance (no singularity)
+    errors: Any = field(default_factory=empty_errors)
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> CompassConfig:
+        return sensor_section(cls, d, "sensors.compass", "compass")
 
 
 @dataclass(frozen=True, slots=True, eq=False)

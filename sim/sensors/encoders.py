@@ -10,16 +10,44 @@ on the real robot. The counters start at 0 on ``reset``; setting them (K-Team ``
 kept by the bridge.
 
 The encoders have no error model of their own: whole ticks of the commanded rotation is what they
-report (``[sensors.encoders] ideal = false`` is a config error, see config/README.md).
+report (``[sensors.encoders] ideal = false`` is a config error, see config/README.md); config
+section ``[sensors.encoders]``, typed here by :class:`EncoderConfig`.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
+from dataclasses import field
+from typing import Any
 
-from koala_bridge.sim.config import BasicSensorConfig
+from koala_bridge.core.schema import Bool, ConfigError, Positive, section
 from koala_bridge.sim.robot import RobotState
+from koala_bridge.sim.sections import empty_errors, error_params_class, sensor_section
 from koala_bridge.sim.types import OdometryReading
+
+
+@section
+class EncoderConfig:
+    """``[sensors.encoders]``: a rate and the ideal switch, which must be true: the encoders have
+    no error model of their own."""
+
+    rate_hz: Positive
+    ideal: Bool
+    errors: Any = field(default_factory=empty_errors)
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> EncoderConfig:
+        sec, model = "sensors.encoders", "encoders"
+        out = sensor_section(cls, d, sec, model)
+        if not out.ideal and error_params_class(model) is None:
+            raise ConfigError(
+                f"[{sec}] 'ideal' must be true: the {model} have no error model of their own "
+                "(their errors come from [robot.drive_error]: the counts are whole ticks of the "
+                "commanded wheel rotation, from which the truth pose drifts); see "
+                "config/README.md"
+            )
+        return out
 
 
 def encoder_ticks(travel_m: float, ticks_per_metre: float) -> int:
@@ -30,7 +58,7 @@ def encoder_ticks(travel_m: float, ticks_per_metre: float) -> int:
 class EncoderSensor:
     name = "encoders"
 
-    def __init__(self, params: BasicSensorConfig, ticks_per_metre: float,
+    def __init__(self, params: EncoderConfig, ticks_per_metre: float,
                  wheel_diameter_ratio: float = 1.0) -> None:
         self.params = params
         self.ticks_per_metre = ticks_per_metre

@@ -12,18 +12,36 @@ The sensor object keeps the heading of its previous sample; the simulator builds
 every reset.
 
 Error model: ``sim/models/gyro.py`` (its params, pure functions and
-:class:`~koala_bridge.sim.models.gyro.GyroErrorModel`); config section ``[sensors.gyro]``.
+:class:`~koala_bridge.sim.models.gyro.GyroErrorModel`); config section ``[sensors.gyro]``,
+typed here by :class:`GyroConfig` (its keys; the error model's keys beside them go to its params).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
 
-from koala_bridge.sim.config import BasicSensorConfig
+from koala_bridge.core.schema import Bool, Positive, section
 from koala_bridge.sim.noise import Variates
 from koala_bridge.sim.robot import RobotState
+from koala_bridge.sim.sections import empty_errors, sensor_section
 from koala_bridge.sim.sensors.base import ErrorModel
 from koala_bridge.sim.types import GyroReading
+
+
+@section
+class GyroConfig:
+    """``[sensors.gyro]``: a rate and the ideal switch; the rest of the table is the error
+    model's (``sim/models/gyro.py``)."""
+
+    rate_hz: Positive
+    ideal: Bool
+    errors: Any = field(default_factory=empty_errors)
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> GyroConfig:
+        return sensor_section(cls, d, "sensors.gyro", "gyro")
 
 
 @dataclass(frozen=True, slots=True)
@@ -42,7 +60,7 @@ class GyroSensor:
 
     def __init__(
         self,
-        params: BasicSensorConfig,
+        params: GyroConfig,
         error_model: ErrorModel[GyroTruth, GyroReading] | None = None,
     ) -> None:
         self.params = params

@@ -13,22 +13,81 @@ reflectivity, distance error table +-3 %, ambient light; ``sim/models/ir.py``) g
 :class:`IrTruth` -- per-ray ranges -- and returns an :class:`koala_bridge.sim.types.IrReading`.
 
 Error model: ``sim/models/ir.py`` (its params, pure functions and
-:class:`~koala_bridge.sim.models.ir.IrErrorModel`); config section ``[sensors.ir]``.
+:class:`~koala_bridge.sim.models.ir.IrErrorModel`); config section ``[sensors.ir]``,
+typed here by :class:`IrConfig` (its keys; the error model's keys beside them go to its params).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
 
 import numba
 import numpy as np
-from koala_bridge.sim.config import IrConfig
+from koala_bridge.core.schema import (
+    Bool,
+    ConfigError,
+    NonNegative,
+    NonNegativeInt,
+    Positive,
+    PositiveInt,
+    section,
+)
 from koala_bridge.sim.noise import Variates
+from koala_bridge.sim.sections import Curve, Poses, Rays, empty_errors, sensor_section
 from koala_bridge.sim.sensors.base import ErrorModel
 from koala_bridge.sim.sensors.fan import RayFan
 from koala_bridge.sim.types import IrReading
+
+
+@section(eq=False)
+class IrConfig:
+    """``[sensors.ir]``: proximity sensors, K-Team counts from a response table range -> counts."""
+
+    rate_hz: Positive
+    ideal: Bool
+    poses: Poses                        # (n, 3) body frame [x, y, theta_rad]
+    rays: Rays                          # rays per sensor, spread over the aperture
+    aperture_deg: NonNegative
+    response_range_m: Curve             # (k,) increasing
+    response_counts: Curve              # (k,) counts at those ranges (linear interpolation)
+    ambient_counts: NonNegativeInt      # ambient light reading (K-Team 'O')
+    max_counts: PositiveInt             # full scale of the counts (K-Team: 10 bits, 1023)
+    errors: Any = field(default_factory=empty_errors)
+
+    def __post_init__(self) -> None:
+        sec = "sensors.ir"
+        rng_m, counts, full = self.response_range_m, self.response_counts, self.max_counts
+        if rng_m.shape != counts.shape or rng_m.size < 2:
+            raise ConfigError(
+                f"[{sec}] 'response_range_m' and 'response_counts' must be lists of equal "
+                "length >= 2"
+            )
+        if np.any(np.diff(rng_m) <= 0) or rng_m[0] < 0:
+            raise ConfigError(f"[{sec}] 'response_range_m' must be >= 0 and strictly increasing")
+        if np.any(counts < 0) or np.any(counts > full):
+            raise ConfigError(f"[{sec}] 'response_counts' must lie in 0..max_counts ({full})")
+        if self.ambient_counts > full:
+            raise ConfigError(
+                f"[{sec}] 'ambient_counts' must lie in 0..max_counts ({full}), "
+                f"got {self.ambient_counts}")
+        offsets = getattr(self.errors, "per_sensor_offset_counts", ())
+        if len(offsets) not in (0, self.poses.shape[0]):
+            raise ConfigError(
+                f"[{sec}] 'per_sensor_offset_counts' must be [] or one value per sensor "
+                f"({self.poses.shape[0]}), got {len(offsets)}"
+            )
+
+    @property
+    def max_range_m(self) -> float:
+        return float(self.response_range_m[-1])
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> IrConfig:
+        return sensor_section(cls, d, "sensors.ir", "ir")
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -16,23 +16,48 @@ second wall, crosstalk, glitches; ``sim/models/sonar.py``) gets the :class:`Sona
 ray's world geometry, range, incidence and wall index, and the walls.
 
 Error model: ``sim/models/sonar.py`` (its params, pure functions and
-:class:`~koala_bridge.sim.models.sonar.SonarErrorModel`); config section ``[sensors.sonar]``.
+:class:`~koala_bridge.sim.models.sonar.SonarErrorModel`); config section ``[sensors.sonar]``,
+typed here by :class:`SonarConfig` (its keys; the error model's keys beside them go to its params).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from functools import cached_property
+from typing import Any
 
 import numba
 import numpy as np
-from koala_bridge.sim.config import SonarConfig
+from koala_bridge.core.schema import Bool, NonNegative, Positive, section
 from koala_bridge.sim.noise import Variates
 from koala_bridge.sim.raycast import SegmentSet
+from koala_bridge.sim.sections import Poses, Rays, empty_errors, range_limits, sensor_section
 from koala_bridge.sim.sensors.base import ErrorModel
 from koala_bridge.sim.sensors.fan import RayFan
 from koala_bridge.sim.types import SonarReading
+
+
+@section(eq=False)
+class SonarConfig:
+    """``[sensors.sonar]``: ultrasonic ring, each sensor a cone of rays; first echo wins."""
+
+    rate_hz: Positive
+    ideal: Bool
+    poses: Poses                        # (n, 3) body frame [x, y, theta_rad]
+    rays: Rays
+    aperture_deg: NonNegative
+    min_range_m: NonNegative            # closer: the Koala reports 0
+    max_range_m: Positive               # farther: no echo
+    errors: Any = field(default_factory=empty_errors)
+
+    def __post_init__(self) -> None:
+        range_limits(self.min_range_m, self.max_range_m, "sensors.sonar")
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> SonarConfig:
+        return sensor_section(cls, d, "sensors.sonar", "sonar")
 
 
 @dataclass(frozen=True, eq=False)

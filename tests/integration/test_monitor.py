@@ -19,10 +19,17 @@ from _mpl import fonts_loaded  # noqa: F401 - autouse fixture
 from conftest import DEFAULT_CONFIG, free_port
 from koala_bridge.cli import monitor as monitor_cli
 from koala_bridge.cli import snapshot as snapshot_cli
-from koala_bridge.core.topics import WorldMessage
+from koala_bridge.core.topics import EstimateGrid, OccupancyMap, TopicError, WorldMessage
+from koala_bridge.estimation.messages import grid_message, occupancy_message
 from koala_bridge.sim.world import World
 from koala_bridge.tools.monitor import MonitorState, render_status, wrap_angle
-from koala_bridge.tools.snapshot import Scene, draw_scene, grid_array, render_scene
+from koala_bridge.tools.snapshot import (
+    Scene,
+    SceneCollector,
+    draw_scene,
+    grid_array,
+    render_scene,
+)
 from matplotlib.image import imread
 
 PREFIX = "koala/standin"
@@ -71,7 +78,7 @@ def standin() -> Iterator[StandIn]:
             if k % 5 == 0:
                 belief = np.full((rows, cols), 0.01)
                 belief[int(y / 0.5), int(x / 0.5)] = 0.8
-                put("estimate/grid", {"rows": rows, "cols": cols, "belief": belief.tolist()})
+                session.put(f"{PREFIX}/estimate/grid", json.dumps(grid_message(t, belief, 0.5)))
                 put("status", {"real_time_factor": 1.0,
                                "buses": {"can": {"sent": k, "received": 3, "rejected": 2}}})
             k += 1
@@ -156,12 +163,35 @@ def test_snapshot_without_a_bridge_fails_clearly(tmp_path: Path) -> None:
     assert not (tmp_path / "x.png").exists()
 
 
-def test_grid_array_shapes() -> None:
-    assert grid_array({"belief": [[1, 2, 3], [4, 5, 6]]}).shape == (2, 3)  # type: ignore[union-attr]
-    flat = grid_array({"rows": 2, "cols": 3, "p": [0, 1, 2, 3, 4, 5]})
-    assert flat is not None and flat[1, 0] == 3  # row-major from the south-west corner
-    assert grid_array({"belief": [1, 2, 3]}) is None
+def test_grid_array_reads_the_published_grids() -> None:
+    belief = grid_array(EstimateGrid.parse(grid_message(0.0, [[0, 1, 2], [3, 4, 5]], 0.5)))
+    assert belief is not None and belief.shape == (2, 3)
+    assert belief[1, 0] == 3  # row-major from the south-west corner
+    occupancy = grid_array(OccupancyMap.parse(occupancy_message(0.0, [[0.0, 4.0]], 0.1, 4.0)))
+    assert occupancy is not None and occupancy.shape == (1, 2)
+    assert occupancy[0, 0] == 0.5 and occupancy[0, 1] > 0.95  # P(occupied); 0.5 unknown
+    short = {**grid_message(0.0, [[1, 2, 3]], 0.5), "rows": 2}  # data holds 3 of 2x3 cells
+    assert grid_array(EstimateGrid.parse(short)) is None
     assert grid_array(None) is None
+
+
+def test_snapshot_collector_keeps_only_the_grid_messages_shapes() -> None:
+    collector = SceneCollector()
+    good = grid_message(0.0, [[0.1, 0.9]], 0.5)
+    collector.on_message("estimate/grid", json.dumps(good).encode())
+    collector.on_message("estimate/grid", json.dumps({"belief": [[1, 2]]}).encode())
+    assert collector.scene.belief == EstimateGrid.from_json(good)  # the other shape is left out
+    occ = occupancy_message(1.0, [[0.0, 1.0]], 0.1, 4.0)
+    collector.on_message("map/occupancy", json.dumps(occ).encode())
+    assert collector.scene.occupancy == OccupancyMap.from_json(occ)
+    collector.scene.world = default_world()
+    fig = draw_scene(collector.scene)
+    assert [a.get_ylabel() for a in fig.axes[1:]] == ["P(occupied)", "belief"]  # both drawn
+
+
+def test_snapshot_refuses_a_world_of_another_shape() -> None:
+    with pytest.raises(TopicError, match="world"):
+        draw_scene(Scene(world={"cols": 1, "rows": 1, "cell_m": 0.5}))
 
 
 def _green_red_pixels(scene: Scene, path: Path) -> tuple[int, int]:

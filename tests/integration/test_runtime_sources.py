@@ -20,6 +20,7 @@ from koala_bridge.drivers.messages import (
     GyroFrame,
     RangeFrame,
     RangeKind,
+    TransportError,
     WheelOdometryFrame,
 )
 from koala_bridge.drivers.rangeframes import encode_range_frame
@@ -218,8 +219,9 @@ def test_real_source_names_the_port_it_cannot_open(tmp_path: Path, free_tcp_port
         f'zenoh.listen=["tcp/127.0.0.1:{free_tcp_port}"]', real={"rangefinders": str(missing)}
     )
     source = make_source("real", config, BridgeSettings.from_config(config))
-    with source, pytest.raises(OSError, match=f"cannot open rangefinders port '{missing}'"):
+    with source, pytest.raises(OSError, match=f"cannot open rangefinders port '{missing}'") as e:
         source.open()
+    assert isinstance(e.value, TransportError)  # the tree's, so the CLI prints one line
 
 
 # ----------------------------------------------------------------------------- the session

@@ -1,4 +1,4 @@
-"""bridge.config: TOML loading, --set overrides (CLI > file), helpful errors."""
+"""runtime/settings.py: TOML loading, --set overrides (CLI > file), helpful errors."""
 
 from __future__ import annotations
 

@@ -55,6 +55,16 @@ def test_init_refuses_to_overwrite_unless_forced(tmp_path, capsys) -> None:
     assert edited.read_bytes() == (config_dir() / "worlds" / "lab_walls_2.toml").read_bytes()
 
 
+@pytest.mark.parametrize("where", ["notes.txt", "notes.txt/my-koala"])
+def test_init_into_a_file_is_one_clear_line(tmp_path, capsys, where) -> None:
+    (tmp_path / "notes.txt").write_text("mine\n")
+    assert main(["config", "init", str(tmp_path / where)]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"koala-bridge config init: {tmp_path / 'notes.txt'} is a file, not a folder: "
+                   "DIR must be a folder (new or existing)\n")
+    assert (tmp_path / "notes.txt").read_text() == "mine\n"
+
+
 def test_path_prints_the_shipped_folder(capsys) -> None:
     assert main(["config", "path"]) == 0
     printed = Path(capsys.readouterr().out.strip())

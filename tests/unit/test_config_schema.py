@@ -42,19 +42,16 @@ from koala_bridge.runtime.settings import (
     load_config,
     parse_override,
 )
-from koala_bridge.sim.config import (
-    ERROR_PARAMS,
-    BasicSensorConfig,
-    CameraConfig,
-    CompassConfig,
-    DriveConfig,
-    IrConfig,
-    RobotConfig,
-    SonarConfig,
-    StepConfig,
-    load_sim_config,
-)
+from koala_bridge.sim.config import StepConfig, load_sim_config
 from koala_bridge.sim.noise import LookupTable
+from koala_bridge.sim.robot import DriveConfig, RobotConfig
+from koala_bridge.sim.sections import ERROR_PARAMS
+from koala_bridge.sim.sensors.camera import CameraConfig
+from koala_bridge.sim.sensors.compass import CompassConfig
+from koala_bridge.sim.sensors.encoders import EncoderConfig
+from koala_bridge.sim.sensors.gyro import GyroConfig
+from koala_bridge.sim.sensors.ir import IrConfig
+from koala_bridge.sim.sensors.sonar import SonarConfig
 from koala_bridge.sim.world import EarthField
 
 REPO = Path(__file__).resolve().parents[2]
@@ -90,8 +87,8 @@ SECTIONS: list[tuple[Any, str]] = [
     (_error_params("ir"), "sensors.ir"),
     (SonarConfig, "sensors.sonar"),
     (_error_params("sonar"), "sensors.sonar"),
-    (BasicSensorConfig, "sensors.encoders"),
-    (BasicSensorConfig, "sensors.gyro"),
+    (EncoderConfig, "sensors.encoders"),
+    (GyroConfig, "sensors.gyro"),
     (_error_params("gyro"), "sensors.gyro"),
     (CompassConfig, "sensors.compass"),
     (_error_params("compass"), "sensors.compass"),
@@ -409,3 +406,18 @@ def test_shipped_configs_load(tmp_path: Path) -> None:
     cfg = copy.deepcopy(default())
     cfg["sim"]["dt_s"] = 0.005
     assert load_sim_config(cfg).sim.dt_s == 0.005
+
+
+def test_each_sensor_section_lives_in_its_sensor_module() -> None:
+    """sim/sensors/<name>.py (parameters + truth) and sim/models/<name>.py (error model) are the
+    whole sensor: the section SensorsConfig composes for <name> is defined in its truth module."""
+    import dataclasses
+    import importlib
+
+
+    sensors = load_sim_config(default()).sensors
+    for f in dataclasses.fields(sensors):
+        cls = type(getattr(sensors, f.name))
+        assert cls.__module__ == f"koala_bridge.sim.sensors.{f.name}", (f.name, cls.__module__)
+        assert getattr(importlib.import_module(cls.__module__), cls.__name__) is cls
+    assert RobotConfig.__module__ == DriveConfig.__module__ == "koala_bridge.sim.robot"

@@ -16,6 +16,7 @@ from koala_bridge.cli import main as cli_main
 from koala_bridge.core import errors
 from koala_bridge.core.errors import KoalaBridgeError
 from koala_bridge.core.schema import ConfigError
+from koala_bridge.core.topics import TopicError
 from koala_bridge.drivers.messages import (
     DriverError,
     FrameError,
@@ -29,6 +30,7 @@ from koala_bridge.runtime.buses import BusOpenError
 
 @pytest.mark.parametrize("cls, bases", [
     (ConfigError, (ValueError,)),
+    (TopicError, (ValueError,)),
     (DriverError, ()),
     (FrameError, (DriverError, ValueError)),
     (TransportError, (DriverError, OSError)),
@@ -51,6 +53,7 @@ def test_every_project_error_is_in_the_one_tree(cls: type, bases: tuple[type, ..
 
 def test_the_old_homes_re_export_the_tree_s_classes() -> None:
     assert ConfigError is errors.ConfigError
+    assert TopicError is errors.TopicError
     assert RecordingError is errors.RecordingError
     assert EstimationError is errors.EstimationError
     assert CalibrationError is errors.CalibrationError
@@ -88,3 +91,20 @@ def test_the_cli_does_not_swallow_a_bug(monkeypatch: pytest.MonkeyPatch) -> None
     monkeypatch.setattr(cli_main, "_load", lambda name: _fake_subcommand(KeyError("bug")))
     with pytest.raises(KeyError):
         cli_main.main(["export"])
+
+
+def test_an_unreadable_endpoints_file_is_a_transport_error(tmp_path: object) -> None:
+    from pathlib import Path
+
+    from koala_bridge.tools.monitor import target_from_endpoints_file
+
+    d = Path(str(tmp_path))
+    (d / "bad.json").write_text("{not json", encoding="utf-8")
+    (d / "other.json").write_text("{}", encoding="utf-8")
+    for name, words in [("missing.json", "cannot read the endpoints file"),
+                        ("bad.json", "is not an endpoints file"),
+                        ("other.json", "is not a koala-bridge endpoints file")]:
+        with pytest.raises(TransportError, match=words) as info:
+            target_from_endpoints_file(d / name)
+        assert isinstance(info.value, OSError)
+        assert isinstance(info.value, KoalaBridgeError)

@@ -7,7 +7,14 @@ import itertools
 import logging
 import threading
 
-from koala_bridge.runtime.progress import progress_text, run_progress, shows_progress
+import pytest
+from koala_bridge.runtime.progress import (
+    ProgressLine,
+    progress_text,
+    run_progress,
+    shows_progress,
+)
+from rich.console import Console
 
 
 class FakeTerminal(io.StringIO):
@@ -61,3 +68,29 @@ def test_a_terminal_gets_the_line_and_logging_goes_around_it() -> None:
         root.removeHandler(handler)
     assert handler.stream is terminal
     assert "t = 30.0 s of 60 s   real-time factor 15.00" in terminal.getvalue()
+
+
+@pytest.mark.parametrize("width", [80, 60, 40])
+@pytest.mark.parametrize("sim_t, wall_s, duration_s", [
+    (1234.5, 10.0, 3600.0),        # long run, fast: the widest numbers
+    (30.0, 2.0, 60.0),
+    (123456.7, 100000.0, 999999.0),  # hours to go
+])
+def test_the_line_fits_the_terminal_and_keeps_the_eta(
+    width: int, sim_t: float, wall_s: float, duration_s: float
+) -> None:
+    out = io.StringIO()
+    console = Console(file=out, width=width, force_terminal=True, color_system=None)
+    wall = itertools.chain([0.0], itertools.repeat(wall_s))
+    console.print(ProgressLine(lambda: sim_t, duration_s, lambda: next(wall)))
+    lines = out.getvalue().splitlines()
+    assert len(lines) == 1, lines  # one line: nothing wrapped
+    assert len(lines[0].rstrip()) <= width, lines[0]
+    assert "ETA" in lines[0]
+    if width == 80:
+        assert "━" in lines[0]  # the bar still shows on an 80-column terminal
+
+
+def test_compact_text_has_the_same_facts() -> None:
+    assert progress_text(30.0, 2.0, 60.0, compact=True) == "t 30.0/60 s  rtf 15.00  ETA 2 s"
+    assert progress_text(5.0, 5.0, 0.0, compact=True) == "t 5.0 s  rtf 1.00  until Ctrl-C"

@@ -263,7 +263,7 @@ class ScalarProblem(StreamProblem):
 
     def config_values(self, insts: Sequence[EffectInstance], x: FloatArray) -> dict[str, Any]:
         if self.curve_fitted and self.curve_points is not None:
-            # The simulator's IR response table ([sensors.ir], sim/config.py).
+            # The simulator's IR response table ([sensors.ir], sim/sensors/ir.py IrConfig).
             return {
                 "response_range_m": [round(float(v), 6) for v in self.curve_points[0]],
                 "response_counts": [round(float(v), 3) for v in self.curve_points[1]],
