@@ -2,7 +2,9 @@
 
 The configuration installed with koala-bridge (default.toml, ideal.toml, worlds/*.toml,
 koala.dbc and the README that says where every number comes from) lives inside the package;
-`config init DIR` copies it into DIR, to edit and run with `run --config DIR/default.toml`.
+`config init DIR` copies it into DIR, to edit and run with `run --config DIR/default.toml`; the
+copied default.toml and ideal.toml use the koala.dbc copied beside them (dbc = "koala.dbc",
+relative to the config file's folder).
 Existing files are left alone unless --force is given. `config path` prints the folder of the
 shipped files (read them there, do not edit them: a reinstall replaces them).
 
@@ -81,9 +83,24 @@ def write_copy(directory: Path, *, force: bool = False) -> list[Path]:
     for rel, resource in files:
         target = directory / rel
         target.parent.mkdir(parents=True, exist_ok=True)
-        target.write_bytes(resource.read_bytes())
+        data = resource.read_bytes()
+        if rel.suffix == ".toml" and rel.parent == PurePosixPath("."):
+            data = own_dbc(data)
+        target.write_bytes(data)
         written.append(target)
     return written
+
+
+#: The shipped configs' ``[buses.can] dbc = ""`` (the DBC inside the package) ...
+SHIPPED_DBC = b'dbc = ""          '
+#: ... and in a copy: the copied koala.dbc beside it (a config's relative paths are relative to
+#: its own folder), so editing the copy's DBC takes effect. Same width: the comment stays aligned.
+COPIED_DBC = b'dbc = "koala.dbc" '
+
+
+def own_dbc(config_toml: bytes) -> bytes:
+    """A shipped config's text, made to use the DBC copied beside it."""
+    return config_toml.replace(SHIPPED_DBC, COPIED_DBC, 1)
 
 
 def file_in_the_way(directory: Path) -> Path | None:
