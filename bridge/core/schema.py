@@ -43,6 +43,7 @@ from pydantic import (
 from pydantic.dataclasses import dataclass as _pydantic_dataclass
 
 __all__ = [
+    "one_of",
     "MAX_MAGNITUDE",
     "Bool",
     "ConfigError",
@@ -134,6 +135,19 @@ Str = Annotated[str, Strict()]
 Int = Annotated[int, Strict(), Field(ge=-int(MAX_MAGNITUDE), le=int(MAX_MAGNITUDE))]
 PositiveInt = Annotated[int, Strict(), Field(ge=1, le=int(MAX_MAGNITUDE))]
 NonNegativeInt = Annotated[int, Strict(), Field(ge=0, le=int(MAX_MAGNITUDE))]
+
+
+def one_of(choices: tuple[str, ...]) -> Any:
+    """A validator for ``Annotated[Str, one_of(...)]``: the value is one of ``choices``."""
+
+    def check(value: str) -> str:
+        if value not in choices:
+            raise ValueError(f"must be one of {', '.join(choices)}, got {value!r}")
+        return value
+
+    return AfterValidator(check)
+
+
 #: A TCP/UDP port; 0 asks the system for a free one where the section allows it.
 Port = Annotated[int, Strict(), Field(ge=0, le=65535)]
 #: A TOML array of numbers, as a tuple of floats.

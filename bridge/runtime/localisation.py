@@ -70,6 +70,7 @@ from koala_bridge.core.schema import (
     Probability,
     Str,
     field_names,
+    one_of,
     reject_unknown,
     section,
     validate,
@@ -137,14 +138,6 @@ def _sized(*sizes: int) -> Any:
 
     return AfterValidator(check)
 
-
-def _one_of(choices: tuple[str, ...]) -> Any:
-    def check(value: str) -> str:
-        if value not in choices:
-            raise ValueError(f"must be one of {', '.join(choices)}, got {value!r}")
-        return value
-
-    return AfterValidator(check)
 
 
 #: More occupancy cells than this is a configuration mistake (the default world has 3 600).
@@ -247,7 +240,7 @@ class LocalisationSettings:
     initial_pose: Annotated[FloatTuple, _sized(0, 3)]
     initial_sigma_xy_m: Positive
     initial_sigma_theta_deg: Positive
-    grid_prior: Annotated[Str, _one_of(GRID_PRIORS)]     # "start" | "uniform"
+    grid_prior: Annotated[Str, one_of(GRID_PRIORS)]     # "start" | "uniform"
     use_landmarks: Bool
     pose: PoseSettings
     grid: GridSettings

@@ -35,6 +35,7 @@ from koala_bridge.core.schema import (
     PositiveInt,
     Str,
     field_names,
+    one_of,
     reject_unknown,
     section,
     tuples,
@@ -229,14 +230,6 @@ def _section(config: Mapping[str, Any], name: str, parent: str = "") -> Mapping[
     return node
 
 
-def _one_of(choices: tuple[str, ...]) -> Any:
-    def check(value: str) -> str:
-        if value not in choices:
-            raise ValueError(f"must be one of {', '.join(choices)}, got {value!r}")
-        return value
-
-    return AfterValidator(check)
-
 
 def _duration(value: float) -> float:
     if not (math.isfinite(value) and 0 <= value <= MAX_MAGNITUDE):
@@ -316,7 +309,7 @@ def _virtual_channel(value: str) -> str:
 class RunSettings:
     """``[run]``: how the loop is paced and for how long."""
 
-    clock: Annotated[Str, _one_of(CLOCK_NAMES)]          # "realtime" | "fast"
+    clock: Annotated[Str, one_of(CLOCK_NAMES)]          # "realtime" | "fast"
     # simulation seconds; 0 = until SIGINT/SIGTERM (inf is refused with the same message)
     duration_s: Annotated[float, Strict(), Field(allow_inf_nan=True), AfterValidator(_duration)]
     endpoints_file: Str         # "" = do not write one
@@ -403,7 +396,7 @@ class MavlinkSettings:
     """``[buses.mavlink]``: the compass as a MAVLink 2 component."""
 
     enabled: Bool
-    transport: Annotated[Str, _one_of(MAVLINK_TRANSPORTS)]  # udp (send) | tcp (listen) | pty
+    transport: Annotated[Str, one_of(MAVLINK_TRANSPORTS)]  # udp (send) | tcp (listen) | pty
     host: Str
     port: _PortKey
     system_id: Annotated[int, Strict(), Field(ge=1, le=255)]
@@ -612,7 +605,7 @@ def _plain_prefix(value: str) -> str:
 class ZenohSettings:
     """``[zenoh]``: the session and what it publishes."""
 
-    mode: Annotated[Str, _one_of(("peer", "client"))]
+    mode: Annotated[Str, one_of(("peer", "client"))]
     listen: Annotated[_Locators, AfterValidator(_no_zero_port)]
     connect: _Locators
     multicast_scouting: Bool
