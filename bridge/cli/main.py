@@ -24,7 +24,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import NoReturn
 
-from koala_bridge.core.errors import KoalaBridgeError
+from koala_bridge.core.errors import ConfigError, KoalaBridgeError
 
 log = logging.getLogger(__name__)
 
@@ -186,8 +186,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         # The one place a project error becomes a line on stderr (core/errors.py); the cause,
         # if any, is in the traceback that --log-level DEBUG shows.
         log.debug("%s failed", args.command, exc_info=True)
-        print(f"koala-bridge {args.command}: {e}", file=sys.stderr)
+        print(f"koala-bridge {args.command}: {error_line(e)}", file=sys.stderr)
         return 2
+
+
+def error_line(e: KoalaBridgeError) -> str:
+    """The line a user reads for ``e``: a configuration error says so, and a config that lacks
+    keys says where a complete one comes from."""
+    if not isinstance(e, ConfigError):
+        return str(e)
+    hint = ""
+    if "missing required key" in str(e):
+        hint = (" (a bridge config sets every key: start from a copy of config/default.toml,"
+                " e.g. `koala-bridge config init DIR`)")
+    return f"configuration error: {e}{hint}"
 
 
 if __name__ == "__main__":

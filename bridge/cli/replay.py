@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 from koala_bridge.cli.main import positive, seconds
@@ -103,35 +102,29 @@ def run(args: argparse.Namespace) -> int:
     from koala_bridge.runtime.session import run_session
     from koala_bridge.runtime.settings import (
         BridgeSettings,
-        ConfigError,
         apply_override,
         load_config,
         parse_override,
     )
 
-    try:
-        rec = open_recording(args.recording)
-        plan = plan_replay(
-            rec, tuple(args.buses) if args.buses else None, zenoh=not args.no_zenoh
-        )
-    except RecordingError as e:
-        print(f"koala-bridge replay: cannot replay: {e}", file=sys.stderr)
-        return 2
-    try:
-        if args.config is not None:
-            config = load_config(args.config)
-        else:
-            text = rec.metadata.get("koala-bridge", {}).get("config")
+    # A bad recording or configuration raises the project's errors: cli/main.py prints them.
+    rec = open_recording(args.recording)
+    plan = plan_replay(rec, tuple(args.buses) if args.buses else None, zenoh=not args.no_zenoh)
+    if args.config is not None:
+        config = load_config(args.config)
+    else:
+        text = rec.metadata.get("koala-bridge", {}).get("config")
+        try:
             config = json.loads(text) if text else load_config(default_config_path())
-        for o in args.overrides:
-            config = apply_override(config, *parse_override(o))
-        settings = BridgeSettings.from_config(config)
-        speed = float(args.speed)
-        if not speed > 0:
-            raise ConfigError(f"--speed must be > 0, got {args.speed}")
-    except (ConfigError, ValueError) as e:
-        print(f"koala-bridge replay: configuration error: {e}", file=sys.stderr)
-        return 2
+        except json.JSONDecodeError as e:
+            raise RecordingError(
+                f"{args.recording}: the recorded configuration is not JSON ({e}); "
+                "give one with --config"
+            ) from e
+    for o in args.overrides:
+        config = apply_override(config, *parse_override(o))
+    settings = BridgeSettings.from_config(config)
+    speed = float(args.speed)  # > 0: argparse's `positive`
 
     source = ReplaySource(
         rec, plan, settings, speed=speed, linger_s=args.linger, zenoh=not args.no_zenoh,

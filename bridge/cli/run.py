@@ -27,7 +27,6 @@ from koala_bridge.core.resources import default_config_path
 from koala_bridge.runtime.clock import CLOCK_NAMES
 from koala_bridge.runtime.settings import (
     BridgeSettings,
-    ConfigError,
     apply_override,
     load_config,
     parse_override,
@@ -95,16 +94,10 @@ def run(args: argparse.Namespace) -> int:
     # Imported here so that `koala-bridge --help` does not load the simulator and Zenoh.
     from koala_bridge.runtime.session import make_source, run_session
 
-    try:
-        config = resolve_config(args)
-        settings = BridgeSettings.from_config(config)
-        source = make_source(args.source, config, settings)
-    except ConfigError as e:
-        hint = ""
-        if "missing required key" in str(e):
-            hint = " (a bridge config sets every key: start from a copy of config/default.toml)"
-        print(f"koala-bridge run: configuration error: {e}{hint}", file=sys.stderr)
-        return 2
+    # A bad configuration raises ConfigError: cli/main.py prints it, with a hint.
+    config = resolve_config(args)
+    settings = BridgeSettings.from_config(config)
+    source = make_source(args.source, config, settings)
 
     after_close = None
     if args.record is not None:

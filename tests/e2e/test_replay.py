@@ -23,6 +23,7 @@ from _recorded_run import RecordedRun, record_run
 from conftest import REPO, BridgeProcess, bridge_command, free_port, wait_endpoints
 from koala_bridge.cli import monitor as monitor_cli
 from koala_bridge.cli import replay as replay_cli
+from koala_bridge.cli.main import main as cli_main
 from koala_bridge.drivers.rangeframes import RangeFrameDecoder, encode_range_frame
 from koala_bridge.recording.mcap_file import FROM_ROBOT, Recorder, open_recording
 from koala_bridge.runtime.replay import plan_replay
@@ -254,7 +255,7 @@ def test_refuses_a_recording_without_bus_channels(
     path = tmp_path / "zenoh-only.mcap"
     with Recorder(path) as rec:
         rec.record("sensors/gyro", 0.0, {"t": 0.0, "yaw_rate": 0.0})
-    assert replay_cli.run(_args([str(path)])) == 2
+    assert cli_main(["replay", str(path)]) == 2
     err = capsys.readouterr().err
     assert "no bus channel" in err and "/sensors/gyro" in err
 
@@ -263,7 +264,7 @@ def test_refuses_another_format_version(tmp_path: Path, capsys: pytest.CaptureFi
     path = tmp_path / "future.mcap"
     with Recorder(path, metadata={"format_version": "99"}) as rec:
         rec.record_frame("can", FROM_ROBOT, 0.0, b"\x01", can_id=1)
-    assert replay_cli.run(_args([str(path)])) == 2
+    assert cli_main(["replay", str(path)]) == 2
     assert "format version 99" in capsys.readouterr().err
 
 
@@ -275,13 +276,13 @@ def test_refuses_a_foreign_mcap_and_a_recording_of_commands_only(
         w = Writer(f)
         w.start(profile="ros2")
         w.finish()
-    assert replay_cli.run(_args([str(foreign)])) == 2
+    assert cli_main(["replay", str(foreign)]) == 2
     assert "not a koala-bridge recording" in capsys.readouterr().err
 
     inbound = tmp_path / "inbound.mcap"
     with Recorder(inbound) as rec:
         rec.record_frame("can", "to_robot", 0.0, b"\x01", can_id=1)
-    assert replay_cli.run(_args([str(inbound)])) == 2
+    assert cli_main(["replay", str(inbound)]) == 2
     assert "no frame sent by the robot" in capsys.readouterr().err
 
 

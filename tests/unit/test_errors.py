@@ -84,7 +84,8 @@ def test_the_cli_prints_a_project_error_in_one_line(
 ) -> None:
     monkeypatch.setattr(cli_main, "_load", lambda name: _fake_subcommand(exc))
     assert cli_main.main(["export"]) == 2
-    assert capsys.readouterr().err == f"koala-bridge export: {exc}\n"
+    prefix = "configuration error: " if isinstance(exc, ConfigError) else ""
+    assert capsys.readouterr().err == f"koala-bridge export: {prefix}{exc}\n"
 
 
 def test_the_cli_does_not_swallow_a_bug(monkeypatch: pytest.MonkeyPatch) -> None:
