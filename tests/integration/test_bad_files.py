@@ -20,6 +20,7 @@ import json
 import logging
 import random
 import shutil
+import struct
 import subprocess
 import tempfile
 from collections.abc import Callable
@@ -399,7 +400,52 @@ def test_recover_salvages_up_to_the_damage(good: Path, tmp_path: Path) -> None:
     rec = open_recording(fixed)
     whole = open_recording(good)
     assert rec.complete and 0 < len(rec.messages) < len(whole.messages)
-    assert rec.messages == whole.messages[: len(rec.messages)]
+    # Reading goes on after a damaged chunk: what is kept is whole's messages, in order.
+    it = iter(whole.messages)
+    assert all(m in it for m in rec.messages)
+
+
+def chunk_offsets(raw: bytes) -> list[tuple[int, int, int, int]]:
+    """(record offset, body offset, start, end time in ns) of each chunk record of ``raw``."""
+    out, pos = [], len(MCAP_MAGIC)
+    while pos + 9 <= len(raw):
+        opcode, length = struct.unpack_from("<BQ", raw, pos)
+        if opcode == 0x06:
+            t0, t1 = struct.unpack_from("<QQ", raw, pos + 9)
+            out.append((pos, pos + 9, t0, t1))
+        if opcode == 0x02:  # the footer
+            break
+        pos += 9 + length
+    return out
+
+
+@pytest.mark.parametrize("where", ["compressed data", "length field"])
+def test_recover_skips_a_damaged_chunk_and_keeps_the_others(
+    where: str, good: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    raw = bytearray(good.read_bytes())
+    chunks = chunk_offsets(bytes(raw))
+    assert len(chunks) > 10
+    pos, body, t0, t1 = chunks[2]  # chunk 3
+    if where == "compressed data":
+        raw[body + 44 + 30] ^= 0x10  # inside its compressed records (after 44 bytes of fields)
+    else:
+        raw[pos + 8] ^= 0x40  # the high byte of its length: now past the end of the file
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(raw))
+    fixed = tmp_path / "fixed.mcap"
+    with caplog.at_level(logging.WARNING, logger="koala_bridge.recording"):
+        assert main(["recover", str(bad), str(fixed)]) == 0
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert any(f"byte {pos}" in w and "skipped" in w and "lost" in w and "t = " in w
+               for w in warnings), warnings
+    rec = open_recording(fixed)
+    whole = open_recording(good).messages
+    k = len(whole) - len(rec.messages)
+    a = next(i for i, (m, w) in enumerate(zip(rec.messages, whole, strict=False)) if m != w)
+    assert rec.complete and 0 < k
+    assert rec.messages == whole[:a] + whole[a + k :], "every message of the other chunks is kept"
+    assert all(t0 <= m.log_time_ns <= t1 for m in whole[a : a + k]), "only chunk 3's are lost"
 
 
 @pytest.fixture(scope="module")
