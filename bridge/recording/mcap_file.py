@@ -457,7 +457,13 @@ class Recording:
 
 class CorruptRecordingError(RecordingError):
     """A recording's bytes are damaged: a CRC does not match, or a complete record cannot be
-    decoded. The message names the record and its byte offset."""
+    decoded. The message names the record and its byte offset (for the data section's CRC, the
+    byte range it covers: the check cannot tell where in it the damage is) and ends in
+    :data:`RECOVER_HINT`."""
+
+
+#: The end of every :class:`CorruptRecordingError` message: what the user can do about it.
+RECOVER_HINT = "(koala-bridge recover IN OUT salvages what is intact)"
 
 
 #: MCAP record readers by opcode (the record's body as a stream; a message also needs its
@@ -600,7 +606,7 @@ class _Walk:
                 if (record.data_section_crc and not self.skipped  # skipped: damage already told
                         and record.data_section_crc != zlib.crc32(raw[:pos])):
                     self._damage(pos, f"the data section (bytes {len(MCAP_MAGIC)}-{pos}) fails "
-                                 "its CRC check")
+                                 "its CRC check", located=False)
                     break
                 self.in_summary = True
             if isinstance(record, Footer):
@@ -704,19 +710,24 @@ class _Walk:
     def _summary_intact(self, pos: int, footer: Footer) -> bool:
         if footer.summary_crc:
             start = footer.summary_start or pos
-            computed = zlib.crc32(self.raw[start : pos + _RECORD_HEADER.size + 16])
+            stop = pos + _RECORD_HEADER.size + 16
+            computed = zlib.crc32(self.raw[start:stop])
             if start > pos or computed != footer.summary_crc:
-                self._damage(pos, "the summary section fails its CRC check")
+                self._damage(pos, f"the summary section (bytes {start}-{stop}) fails its CRC "
+                             "check", located=False)
                 return False
         return True
 
     def _nothing_read(self) -> bool:
         return not self.rec.messages and not self.rec.metadata and not self.rec.profile
 
-    def _damage(self, pos: int, what: str) -> None:
-        where = f"{self.path} is damaged at byte {pos} of {len(self.raw)}: {what}"
+    def _damage(self, pos: int, what: str, *, located: bool = True) -> None:
+        """``located``: ``pos`` is where the damage is; else only where it was found (``what``
+        says which bytes are concerned)."""
+        at = f" at byte {pos} of {len(self.raw)}" if located else ""
+        where = f"{self.path} is damaged{at}: {what}"
         if not self.salvage:
-            raise CorruptRecordingError(where)
+            raise CorruptRecordingError(f"{where} {RECOVER_HINT}")
         self._cut(pos, what, damaged=True)
 
     def _cut(

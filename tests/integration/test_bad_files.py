@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import logging
 import random
+import re
 import shutil
 import struct
 import subprocess
@@ -37,6 +38,7 @@ from koala_bridge.core.errors import KoalaBridgeError
 from koala_bridge.recording.mcap_file import (
     FROM_ROBOT,
     MCAP_MAGIC,
+    RECOVER_HINT,
     Recorder,
     RecordingError,
     open_recording,
@@ -311,7 +313,9 @@ def test_bit_flips_are_named_and_export_leaves_no_bundle(
         bad = flipped(good, tmp_path, pos, rng.randrange(8))
         out = tmp_path / f"bundle-{pos}"
         assert main(["export", str(bad), "--bundle", str(out)]) == 2, pos
-        one_line(capsys.readouterr().err, "export", str(bad), "damaged at byte")
+        line = one_line(capsys.readouterr().err, "export", str(bad), "damaged", RECOVER_HINT)
+        # A CRC over a section cannot say where in it the damage is: the line gives the range.
+        assert "damaged at byte" in line or re.search(r"section \(bytes \d+-\d+\) fails", line)
         assert not out.exists(), "a damaged recording leaves no bundle"
         assert not [p for p in tmp_path.iterdir() if ".partial-" in p.name]
 
@@ -324,9 +328,10 @@ def test_damaged_recording_calibrate_and_replay_one_line(
     bad = flipped(good, tmp_path, landmarks(good)[part], 3)
     assert main(["calibrate", str(bad), "--out", str(tmp_path / "o"), "--no-plots",
                  "--quiet"]) == 2
-    one_line(capsys.readouterr().err, "calibrate", str(bad), "damaged")
+    one_line(capsys.readouterr().err, "calibrate", str(bad), "damaged", RECOVER_HINT)
     assert main(["replay", str(bad), "--no-zenoh"]) == 2
-    one_line(capsys.readouterr().err, "replay", str(bad), "damaged")
+    line = one_line(capsys.readouterr().err, "replay", str(bad), "damaged", RECOVER_HINT)
+    assert line.endswith(RECOVER_HINT)
 
 
 def test_damaged_recording_in_a_subprocess(good: Path, tmp_path: Path) -> None:
@@ -336,7 +341,7 @@ def test_damaged_recording_in_a_subprocess(good: Path, tmp_path: Path) -> None:
         p = subprocess.run(bridge_command(*args), cwd=tmp_path, capture_output=True, text=True,
                            timeout=300, stdin=subprocess.DEVNULL)
         assert p.returncode == 2, p.stderr
-        one_line(p.stderr, args[0], "damaged at byte")
+        one_line(p.stderr, args[0], "damaged at byte", RECOVER_HINT)
 
 
 def test_cut_at_any_offset_warns_what_was_lost_and_exports_the_rest(
@@ -484,3 +489,20 @@ def test_open_recording_on_a_mutated_recording(small: bytes, data: st.DataObject
             assert str(e)
         else:
             assert rec.complete or rec.lost
+
+
+def test_a_data_section_crc_failure_names_the_range_not_one_byte(
+    good: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    raw = bytearray(good.read_bytes())
+    pos, body, _, _ = chunk_offsets(bytes(raw))[1]
+    length = struct.unpack_from("<Q", raw, pos + 1)[0]
+    index = pos + 9 + length  # the message index record after chunk 2: only the DataEnd CRC sees it
+    assert raw[index] == 0x07
+    raw[index + 9 + 2 + 4 + 8 + 2] ^= 0x01  # inside its first entry's log time
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(raw))
+    assert main(["export", str(bad), "--bundle", str(tmp_path / "b")]) == 2
+    line = one_line(capsys.readouterr().err, "export", str(bad), RECOVER_HINT)
+    assert re.search(r"the data section \(bytes 8-\d+\) fails its CRC check", line), line
+    assert "at byte" not in line, "the check cannot tell where in the section the damage is"
