@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import random
 import re
 import shutil
@@ -506,3 +507,18 @@ def test_a_data_section_crc_failure_names_the_range_not_one_byte(
     line = one_line(capsys.readouterr().err, "export", str(bad), RECOVER_HINT)
     assert re.search(r"the data section \(bytes 8-\d+\) fails its CRC check", line), line
     assert "at byte" not in line, "the check cannot tell where in the section the damage is"
+
+
+def test_export_removes_the_folders_a_killed_export_left(good: Path, tmp_path: Path) -> None:
+    gone = subprocess.Popen(["true"])
+    gone.wait()  # its pid names no process now
+    stale = [tmp_path / f".bundle.partial-{gone.pid}-x1y2", tmp_path / f".bundle.old-{gone.pid}-z"]
+    running = tmp_path / f".bundle.partial-{os.getpid()}-abc"  # a live export's: kept
+    others = [tmp_path / f".other.partial-{gone.pid}-q", tmp_path / ".bundle.partial-oldstyle"]
+    for d in [*stale, running, *others]:
+        d.mkdir()
+        (d / "truth_pose.csv").write_text("t\n")
+    assert main(["export", str(good), "--bundle", str(tmp_path / "bundle")]) == 0
+    assert not any(d.exists() for d in stale)
+    assert running.exists() and all(d.exists() for d in others)
+    assert (tmp_path / "bundle" / "meta.json").exists()
