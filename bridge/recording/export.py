@@ -27,7 +27,9 @@ and every message is read with that class's parser: a message of another shape i
 from __future__ import annotations
 
 import csv
+import glob
 import json
+import logging
 import math
 import os
 import shutil
@@ -54,6 +56,8 @@ from koala_bridge.recording.mcap_file import (
     RecordingError,
     open_recording,
 )
+
+log = logging.getLogger(__name__)
 
 M = TypeVar("M", bound=TopicMessage)
 
@@ -200,13 +204,15 @@ def export_bundle(mcap_path: str | os.PathLike[str], out_dir: str | os.PathLike[
                 "choose a new or empty directory"
             )
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    _remove_stale_siblings(out)
+    pid = os.getpid()
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-{pid}-", dir=out.parent))
     try:
         _write_bundle(rec, mcap_path, tmp)
         if out.exists():
             # The old bundle moves aside first; between the two renames there is no bundle
             # at ``out`` at all, never a mixed or partial one.
-            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
+            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-{pid}-", dir=out.parent))
             os.rename(out, old / "bundle")
             os.rename(tmp, out)
             shutil.rmtree(old, ignore_errors=True)
@@ -216,6 +222,32 @@ def export_bundle(mcap_path: str | os.PathLike[str], out_dir: str | os.PathLike[
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
     return out
+
+
+def _remove_stale_siblings(out: Path) -> None:
+    """Remove the ``.NAME.partial-PID-*`` and ``.NAME.old-PID-*`` folders beside ``out`` that an
+    export killed mid-way left (its process PID is gone); a running export's are left alone."""
+    for kind in ("partial", "old"):
+        for stale in out.parent.glob(f".{glob.escape(out.name)}.{kind}-*"):
+            pid = stale.name[len(f".{out.name}.{kind}-") :].split("-", 1)[0]
+            if stale.is_dir() and pid.isdigit() and not _process_exists(int(pid)):
+                log.info("removing %s, left by an export (process %s) that did not finish",
+                         stale, pid)
+                shutil.rmtree(stale, ignore_errors=True)
+
+
+def _process_exists(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)  # signal 0: only checks that the process exists
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # it exists, owned by another user
+        return True
+    except OSError:
+        return True  # when in doubt, keep the folder
+    return True
 
 
 def _write_bundle(rec: Recording, mcap_path: str | os.PathLike[str], out: Path) -> None:

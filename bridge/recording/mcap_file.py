@@ -457,7 +457,13 @@ class Recording:
 
 class CorruptRecordingError(RecordingError):
     """A recording's bytes are damaged: a CRC does not match, or a complete record cannot be
-    decoded. The message names the record and its byte offset."""
+    decoded. The message names the record and its byte offset (for the data section's CRC, the
+    byte range it covers: the check cannot tell where in it the damage is) and ends in
+    :data:`RECOVER_HINT`."""
+
+
+#: The end of every :class:`CorruptRecordingError` message: what the user can do about it.
+RECOVER_HINT = "(koala-bridge recover IN OUT salvages what is intact)"
 
 
 #: MCAP record readers by opcode (the record's body as a stream; a message also needs its
@@ -516,7 +522,9 @@ def open_recording(path: str | os.PathLike[str], *, salvage: bool = False) -> Re
     the record and its byte offset. A file cut short (a writer killed with SIGKILL, a full
     disk) is read up to its last complete record, each chunk's CRC checked, and a WARNING says
     what was lost (:attr:`Recording.lost`). With ``salvage`` (``koala-bridge recover``), damage
-    is treated as a cut: everything before the damaged record is kept, with a warning.
+    skips a damaged chunk (or, when a record length is damaged, goes on at the next chunk whose
+    CRC holds), with a warning naming it and the time span lost; damage with no intact chunk after
+    it is treated as a cut.
 
     Raises :class:`RecordingError` if the file cannot be read or is not MCAP at all.
     """
@@ -547,6 +555,7 @@ class _Walk:
         self.rec = Recording(path, "", {}, [], False)
         self.last_t_ns: int | None = None
         self.in_summary = False  # past the DataEnd record: every message has been read
+        self.skipped: list[str] = []  # salvage: damaged parts skipped, reading went on after them
 
     def run(self) -> Recording:
         raw, n, pos = self.raw, len(self.raw), len(MCAP_MAGIC)
@@ -558,11 +567,14 @@ class _Walk:
             body_start = pos + _RECORD_HEADER.size
             if length > n - body_start:
                 if self.closed:
-                    self._damage(
+                    nxt = self._damaged(
                         pos, f"a {_record_name(opcode)} record claims {length} bytes, more than "
                         "the file holds after it"
                     )
-                    break
+                    if nxt is None:
+                        break
+                    pos = nxt
+                    continue
                 self._cut(pos, f"a partial record, a {_record_name(opcode)}", opcode, body_start)
                 break
             end = body_start + length
@@ -571,22 +583,30 @@ class _Walk:
                 if opcode >= 0x80:  # a private record (MCAP specification): skipped
                     pos = end
                     continue
-                self._damage(pos, f"a record of unknown type 0x{opcode:02x}")
-                break
+                nxt = self._damaged(pos, f"a record of unknown type 0x{opcode:02x}")
+                if nxt is None:
+                    break
+                pos = nxt
+                continue
             if self.in_summary and opcode != Opcode.FOOTER:
                 pos = end  # the summary repeats the data section; its CRC is checked below
                 continue
             try:
                 record = reader(ReadDataStream(io.BytesIO(raw[body_start:end])), length)
             except Exception as e:  # noqa: BLE001 - any decode error of a whole record: damage
-                self._damage(pos, f"a {_record_name(opcode)} record cannot be decoded "
-                             f"({_read_error(e)})")
-                break
+                nxt = self._damaged(pos, f"a {_record_name(opcode)} record cannot be decoded "
+                                    f"({_read_error(e)})")
+                if nxt is None:
+                    break
+                pos = nxt
+                continue
             if not self._take(pos, record):
                 break
             if isinstance(record, DataEnd):
-                if record.data_section_crc and record.data_section_crc != zlib.crc32(raw[:pos]):
-                    self._damage(pos, "the data section fails its CRC check")
+                if (record.data_section_crc and not self.skipped  # skipped: damage already told
+                        and record.data_section_crc != zlib.crc32(raw[:pos])):
+                    self._damage(pos, f"the data section (bytes {len(MCAP_MAGIC)}-{pos}) fails "
+                                 "its CRC check", located=False)
                     break
                 self.in_summary = True
             if isinstance(record, Footer):
@@ -601,6 +621,8 @@ class _Walk:
             if not self.rec.complete:
                 self._cut(pos, "the writer never closed it: no summary or footer")
         rec = self.rec
+        if self.skipped:
+            rec.lost = "; ".join([*self.skipped, *([rec.lost] if rec.lost else [])])
         rec.schemas = {
             ch.topic: rec.schema_records[ch.schema_id].data.decode("utf-8", "replace")
             for ch in rec.channel_records.values()
@@ -615,11 +637,15 @@ class _Walk:
             try:
                 inner = _chunk_records(record)
             except Exception as e:  # noqa: BLE001 - zstd, CRC, struct, UTF-8: all damage
-                self._damage(
-                    pos, f"chunk {rec.chunks + 1} (messages from t = "
-                    f"{record.message_start_time * 1e-9:.3f} s) is damaged: {_read_error(e)}"
-                )
-                return False
+                number = rec.chunks + len(self.skipped) + 1
+                what = (f"chunk {number} (messages from t = "
+                        f"{record.message_start_time * 1e-9:.3f} s) is damaged: {_read_error(e)}")
+                if not self.salvage:
+                    self._damage(pos, what)
+                    return False
+                # Its record length is intact: the records after it are read on.
+                self._skip(pos, what, record.message_start_time, record.message_end_time)
+                return True
             rec.chunks += 1
             for r in inner:
                 self._take(pos, r)
@@ -644,22 +670,64 @@ class _Walk:
                 self.last_t_ns = max(self.last_t_ns or 0, record.log_time)
         return True
 
+    def _damaged(self, pos: int, what: str) -> int | None:
+        """Damage at ``pos`` that leaves no record length to follow: raises unless salvaging;
+        then the offset of the next intact chunk (its CRC checked), or None (a cut at ``pos``)."""
+        if not self.salvage:
+            self._damage(pos, what)
+        nxt = self._next_intact_chunk(pos)
+        if nxt is None:
+            self._cut(pos, what, damaged=True)
+            return None
+        t1 = struct.unpack_from("<Q", self.raw, nxt + _RECORD_HEADER.size)[0]
+        self._skip(pos, f"{what}; bytes {pos}-{nxt} skipped", self.last_t_ns, t1)
+        return nxt
+
+    def _next_intact_chunk(self, pos: int) -> int | None:
+        """The offset after ``pos`` of the first chunk record that decodes and whose CRC holds."""
+        raw, n, q = self.raw, len(self.raw), pos + 1
+        while (q := raw.find(bytes([Opcode.CHUNK]), q)) >= 0 and n - q >= _RECORD_HEADER.size:
+            _, length = _RECORD_HEADER.unpack_from(raw, q)
+            body = q + _RECORD_HEADER.size
+            if 40 <= length <= n - body:
+                try:
+                    chunk = Chunk.read(ReadDataStream(io.BytesIO(raw[body : body + length])))
+                    if chunk.uncompressed_crc:  # without a CRC any bytes could pass
+                        _chunk_records(chunk)
+                        return q
+                except Exception:  # noqa: BLE001, S112 - not a chunk: look further
+                    pass
+            q += 1
+        return None
+
+    def _skip(self, pos: int, what: str, t0_ns: int | None, t1_ns: int | None) -> None:
+        span = "" if t1_ns is None else (
+            f", messages from t = {(t0_ns or 0) * 1e-9:.3f} to {t1_ns * 1e-9:.3f} s lost")
+        note = f"damaged at byte {pos} ({what}): skipped{span}"
+        self.skipped.append(note)
+        log.warning("%s %s; reading on", self.path, note)
+
     def _summary_intact(self, pos: int, footer: Footer) -> bool:
         if footer.summary_crc:
             start = footer.summary_start or pos
-            computed = zlib.crc32(self.raw[start : pos + _RECORD_HEADER.size + 16])
+            stop = pos + _RECORD_HEADER.size + 16
+            computed = zlib.crc32(self.raw[start:stop])
             if start > pos or computed != footer.summary_crc:
-                self._damage(pos, "the summary section fails its CRC check")
+                self._damage(pos, f"the summary section (bytes {start}-{stop}) fails its CRC "
+                             "check", located=False)
                 return False
         return True
 
     def _nothing_read(self) -> bool:
         return not self.rec.messages and not self.rec.metadata and not self.rec.profile
 
-    def _damage(self, pos: int, what: str) -> None:
-        where = f"{self.path} is damaged at byte {pos} of {len(self.raw)}: {what}"
+    def _damage(self, pos: int, what: str, *, located: bool = True) -> None:
+        """``located``: ``pos`` is where the damage is; else only where it was found (``what``
+        says which bytes are concerned)."""
+        at = f" at byte {pos} of {len(self.raw)}" if located else ""
+        where = f"{self.path} is damaged{at}: {what}"
         if not self.salvage:
-            raise CorruptRecordingError(where)
+            raise CorruptRecordingError(f"{where} {RECOVER_HINT}")
         self._cut(pos, what, damaged=True)
 
     def _cut(

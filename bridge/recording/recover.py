@@ -28,8 +28,11 @@ log = logging.getLogger(__name__)
 def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> Recording:
     """Write the readable part of the recording ``src`` to ``dst`` as a complete MCAP file.
 
-    ``salvage`` reading (:func:`open_recording`): a damaged record ends the readable part as a
-    cut does, with a warning. ``dst`` is written under a temporary name and renamed when
+    ``salvage`` reading (:func:`open_recording`): a damaged chunk is skipped with a warning
+    (which chunk, which time span is lost) and the records after it are read on -- its record
+    length, when intact, leads to the next record; when the length itself is damaged, reading
+    goes on at the next chunk record whose CRC holds. Damage with no intact chunk after it ends
+    the readable part as a cut does. ``dst`` is written under a temporary name and renamed when
     complete; it must not exist. Returns what was read. Raises :class:`RecordingError` when
     ``src`` has nothing readable, ``dst`` exists or is ``src``, or ``dst`` cannot be written.
     """
@@ -69,6 +72,6 @@ def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> Recordi
     log.info(
         "%s: %d messages in %d channels written to %s%s",
         src, len(rec.messages), len(rec.channel_records), dst,
-        "" if rec.complete else " (the source was cut short: see the warning above)",
+        "" if not rec.lost else " (parts of the source were lost: see the warnings above)",
     )
     return rec

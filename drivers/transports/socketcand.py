@@ -35,10 +35,13 @@ Limits, so that no client can hold memory or slots the others need:
   read the answers: it is disconnected, counted ``dropped``, and logged.
 - a connection that has not opened the bus within ``handshake_timeout_s`` is closed, counted
   ``rejected``.
-- with ``max_clients`` connected, a new connection takes the place of the client idle longest (no
-  byte received from it, none of its output taken by its socket) if that one has been idle for
-  ``idle_timeout_s``; the evicted client is counted ``rejected``. Else the newcomer is refused
-  (closed at once, counted ``rejected``). Working clients never lose their connection to a newcomer.
+- with ``max_clients`` connected, a new connection takes the place of the client idle longest if
+  that one has been idle for ``idle_timeout_s``; the evicted client is counted ``rejected``. Idle
+  means: it has neither put a frame on the bus (a valid ``< send >``) nor taken bus frames queued
+  for it. An ``< echo >`` or any other chatter is not activity, so keep-alives cannot hold a slot.
+  Else the newcomer gets ``< error too many clients >`` instead of ``< hi >`` and is closed
+  (counted ``rejected``; python-can's ``CanError`` shows the element). Working clients never lose
+  their connection to a newcomer.
 
 python-can reads the handshake replies with one ``recv`` each, so after ``< ok >`` to
 ``rawmode`` frames for that client are held back for ``handshake_grace_s`` lest they arrive in
@@ -115,7 +118,7 @@ def parse_send_element(words: list[str]) -> can.Message | str:
 
 class _Client:
     __slots__ = ("sock", "mode", "inbuf", "outbuf", "held", "hold_until", "in_garbage", "events",
-                 "open_deadline", "last_active", "closed")  # fmt: skip
+                 "open_deadline", "last_active", "frame_bytes", "closed")  # fmt: skip
 
     def __init__(self, sock: socket.socket, now: float, handshake_timeout_s: float) -> None:
         self.sock = sock
@@ -127,7 +130,9 @@ class _Client:
         self.in_garbage = False
         self.events = selectors.EVENT_READ
         self.open_deadline: float | None = now + handshake_timeout_s  # None once the bus is open
-        self.last_active = now  # last byte received from it or taken by its socket
+        # Last frame it put on the bus or bus frames its socket took: chatter is not activity.
+        self.last_active = now
+        self.frame_bytes = 0  # bytes of bus frames in outbuf (approximate order with replies)
         self.closed = False
 
     @property
@@ -298,8 +303,13 @@ class SocketcandServer(CanTransport):
             except (BlockingIOError, OSError):
                 return
             if len(self._clients) >= self._max_clients and not self._evict_idle():
+                self._stats.add("rejected")  # before the reply: the client may look at once
+                try:  # a fresh socket's buffer is empty: this does not block
+                    sock.setblocking(False)
+                    sock.send(b"< error too many clients >")
+                except OSError:
+                    pass
                 sock.close()
-                self._stats.add("rejected")
                 log.warning("socketcand: %d clients connected, refused one more",
                             len(self._clients))
                 continue
@@ -320,7 +330,6 @@ class SocketcandServer(CanTransport):
         if not data:
             self._drop(client)
             return
-        client.last_active = time.monotonic()
         client.inbuf += data
         self._parse(client)
 
@@ -373,6 +382,7 @@ class SocketcandServer(CanTransport):
             if isinstance(result, str):
                 self._error(client, f"syntax error: {result}")
                 return
+            client.last_active = time.monotonic()
             result.timestamp = time.time()
             result.channel = self.channel
             self._rx.put(result)
@@ -405,6 +415,8 @@ class SocketcandServer(CanTransport):
                     self._stats.add("dropped")
                     continue
                 target += line
+                if target is client.outbuf:
+                    client.frame_bytes += len(line)
                 self._peak_pending = max(self._peak_pending, client.queued)
 
     def _release_held(self) -> None:
@@ -412,6 +424,7 @@ class SocketcandServer(CanTransport):
         for client in self._clients.values():
             if client.hold_until is not None and now >= client.hold_until:
                 client.outbuf += client.held
+                client.frame_bytes += len(client.held)
                 client.held.clear()
                 client.hold_until = None
 
@@ -474,8 +487,9 @@ class SocketcandServer(CanTransport):
         except OSError:
             self._drop(client)
             return
-        if sent:
+        if sent and client.frame_bytes:
             client.last_active = time.monotonic()
+            client.frame_bytes = max(0, client.frame_bytes - sent)
         del client.outbuf[:sent]
 
     def _update_interest(self, client: _Client) -> None:

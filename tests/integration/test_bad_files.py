@@ -18,8 +18,11 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import random
+import re
 import shutil
+import struct
 import subprocess
 import tempfile
 from collections.abc import Callable
@@ -36,6 +39,7 @@ from koala_bridge.core.errors import KoalaBridgeError
 from koala_bridge.recording.mcap_file import (
     FROM_ROBOT,
     MCAP_MAGIC,
+    RECOVER_HINT,
     Recorder,
     RecordingError,
     open_recording,
@@ -310,7 +314,9 @@ def test_bit_flips_are_named_and_export_leaves_no_bundle(
         bad = flipped(good, tmp_path, pos, rng.randrange(8))
         out = tmp_path / f"bundle-{pos}"
         assert main(["export", str(bad), "--bundle", str(out)]) == 2, pos
-        one_line(capsys.readouterr().err, "export", str(bad), "damaged at byte")
+        line = one_line(capsys.readouterr().err, "export", str(bad), "damaged", RECOVER_HINT)
+        # A CRC over a section cannot say where in it the damage is: the line gives the range.
+        assert "damaged at byte" in line or re.search(r"section \(bytes \d+-\d+\) fails", line)
         assert not out.exists(), "a damaged recording leaves no bundle"
         assert not [p for p in tmp_path.iterdir() if ".partial-" in p.name]
 
@@ -323,9 +329,10 @@ def test_damaged_recording_calibrate_and_replay_one_line(
     bad = flipped(good, tmp_path, landmarks(good)[part], 3)
     assert main(["calibrate", str(bad), "--out", str(tmp_path / "o"), "--no-plots",
                  "--quiet"]) == 2
-    one_line(capsys.readouterr().err, "calibrate", str(bad), "damaged")
+    one_line(capsys.readouterr().err, "calibrate", str(bad), "damaged", RECOVER_HINT)
     assert main(["replay", str(bad), "--no-zenoh"]) == 2
-    one_line(capsys.readouterr().err, "replay", str(bad), "damaged")
+    line = one_line(capsys.readouterr().err, "replay", str(bad), "damaged", RECOVER_HINT)
+    assert line.endswith(RECOVER_HINT)
 
 
 def test_damaged_recording_in_a_subprocess(good: Path, tmp_path: Path) -> None:
@@ -335,7 +342,7 @@ def test_damaged_recording_in_a_subprocess(good: Path, tmp_path: Path) -> None:
         p = subprocess.run(bridge_command(*args), cwd=tmp_path, capture_output=True, text=True,
                            timeout=300, stdin=subprocess.DEVNULL)
         assert p.returncode == 2, p.stderr
-        one_line(p.stderr, args[0], "damaged at byte")
+        one_line(p.stderr, args[0], "damaged at byte", RECOVER_HINT)
 
 
 def test_cut_at_any_offset_warns_what_was_lost_and_exports_the_rest(
@@ -399,7 +406,52 @@ def test_recover_salvages_up_to_the_damage(good: Path, tmp_path: Path) -> None:
     rec = open_recording(fixed)
     whole = open_recording(good)
     assert rec.complete and 0 < len(rec.messages) < len(whole.messages)
-    assert rec.messages == whole.messages[: len(rec.messages)]
+    # Reading goes on after a damaged chunk: what is kept is whole's messages, in order.
+    it = iter(whole.messages)
+    assert all(m in it for m in rec.messages)
+
+
+def chunk_offsets(raw: bytes) -> list[tuple[int, int, int, int]]:
+    """(record offset, body offset, start, end time in ns) of each chunk record of ``raw``."""
+    out, pos = [], len(MCAP_MAGIC)
+    while pos + 9 <= len(raw):
+        opcode, length = struct.unpack_from("<BQ", raw, pos)
+        if opcode == 0x06:
+            t0, t1 = struct.unpack_from("<QQ", raw, pos + 9)
+            out.append((pos, pos + 9, t0, t1))
+        if opcode == 0x02:  # the footer
+            break
+        pos += 9 + length
+    return out
+
+
+@pytest.mark.parametrize("where", ["compressed data", "length field"])
+def test_recover_skips_a_damaged_chunk_and_keeps_the_others(
+    where: str, good: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    raw = bytearray(good.read_bytes())
+    chunks = chunk_offsets(bytes(raw))
+    assert len(chunks) > 10
+    pos, body, t0, t1 = chunks[2]  # chunk 3
+    if where == "compressed data":
+        raw[body + 44 + 30] ^= 0x10  # inside its compressed records (after 44 bytes of fields)
+    else:
+        raw[pos + 8] ^= 0x40  # the high byte of its length: now past the end of the file
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(raw))
+    fixed = tmp_path / "fixed.mcap"
+    with caplog.at_level(logging.WARNING, logger="koala_bridge.recording"):
+        assert main(["recover", str(bad), str(fixed)]) == 0
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert any(f"byte {pos}" in w and "skipped" in w and "lost" in w and "t = " in w
+               for w in warnings), warnings
+    rec = open_recording(fixed)
+    whole = open_recording(good).messages
+    k = len(whole) - len(rec.messages)
+    a = next(i for i, (m, w) in enumerate(zip(rec.messages, whole, strict=False)) if m != w)
+    assert rec.complete and 0 < k
+    assert rec.messages == whole[:a] + whole[a + k :], "every message of the other chunks is kept"
+    assert all(t0 <= m.log_time_ns <= t1 for m in whole[a : a + k]), "only chunk 3's are lost"
 
 
 @pytest.fixture(scope="module")
@@ -438,3 +490,35 @@ def test_open_recording_on_a_mutated_recording(small: bytes, data: st.DataObject
             assert str(e)
         else:
             assert rec.complete or rec.lost
+
+
+def test_a_data_section_crc_failure_names_the_range_not_one_byte(
+    good: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    raw = bytearray(good.read_bytes())
+    pos, body, _, _ = chunk_offsets(bytes(raw))[1]
+    length = struct.unpack_from("<Q", raw, pos + 1)[0]
+    index = pos + 9 + length  # the message index record after chunk 2: only the DataEnd CRC sees it
+    assert raw[index] == 0x07
+    raw[index + 9 + 2 + 4 + 8 + 2] ^= 0x01  # inside its first entry's log time
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(raw))
+    assert main(["export", str(bad), "--bundle", str(tmp_path / "b")]) == 2
+    line = one_line(capsys.readouterr().err, "export", str(bad), RECOVER_HINT)
+    assert re.search(r"the data section \(bytes 8-\d+\) fails its CRC check", line), line
+    assert "at byte" not in line, "the check cannot tell where in the section the damage is"
+
+
+def test_export_removes_the_folders_a_killed_export_left(good: Path, tmp_path: Path) -> None:
+    gone = subprocess.Popen(["true"])
+    gone.wait()  # its pid names no process now
+    stale = [tmp_path / f".bundle.partial-{gone.pid}-x1y2", tmp_path / f".bundle.old-{gone.pid}-z"]
+    running = tmp_path / f".bundle.partial-{os.getpid()}-abc"  # a live export's: kept
+    others = [tmp_path / f".other.partial-{gone.pid}-q", tmp_path / ".bundle.partial-oldstyle"]
+    for d in [*stale, running, *others]:
+        d.mkdir()
+        (d / "truth_pose.csv").write_text("t\n")
+    assert main(["export", str(good), "--bundle", str(tmp_path / "bundle")]) == 0
+    assert not any(d.exists() for d in stale)
+    assert running.exists() and all(d.exists() for d in others)
+    assert (tmp_path / "bundle" / "meta.json").exists()

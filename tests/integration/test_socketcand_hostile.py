@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import socket
+import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -239,11 +240,55 @@ def test_at_the_client_limit_working_clients_are_kept_and_the_newcomer_refused(
     server = server_factory(max_clients=2)  # default idle_timeout_s: nobody has idled that long
     with _bus(server) as first, _bus(server) as second:
         _wait_for(lambda: server.stats.clients == 2)
-        with pytest.raises(can.CanError, match="< hi >"):
+        with pytest.raises(can.CanError, match="< hi >") as refused:
             _bus(server)
+        assert "too many clients" in str(refused.value)  # python-can's error says why
+        del refused  # its traceback holds python-can's half-made bus and so its socket
         assert server.stats.rejected == 1
         _assert_both_ways(server, first, 1)
         assert bytes(_recv(second).data) == (1).to_bytes(4, "little")
+
+
+def test_keep_alives_do_not_hold_a_slot_against_a_python_can_newcomer(
+    server_factory: Callable[..., SocketcandServer],
+) -> None:
+    """Clients that open the bus and only send ``< echo >`` (never read, never send a frame) are
+    idle: a python-can newcomer takes the place of one of them."""
+    server = server_factory(max_clients=2, idle_timeout_s=0.2)
+    squatters = [_raw_client(server), _raw_client(server)]
+    stop = threading.Event()
+
+    def keep_alive(sock: socket.socket) -> None:
+        sock.sendall(f"< open {CHANNEL} >".encode())
+        while not stop.wait(0.01):
+            try:
+                sock.sendall(b"< echo >")
+            except OSError:  # evicted
+                return
+
+    threads = [threading.Thread(target=keep_alive, args=(s,), daemon=True) for s in squatters]
+    for thread in threads:
+        thread.start()
+    newcomer: list[can.BusABC] = []
+
+    def newcomer_admitted() -> bool:
+        try:
+            newcomer.append(_bus(server))
+        except can.CanError:
+            return False
+        return True
+
+    try:
+        _wait_for(newcomer_admitted, timeout=15.0)
+        with newcomer[0] as client:
+            _wait_for(lambda: server.stats.clients == 1)  # the squatters never entered raw mode
+            _assert_both_ways(server, client, 1)
+    finally:
+        stop.set()
+        for thread in threads:
+            thread.join()
+        for sock in squatters:
+            sock.close()
 
 
 # ------------------------------------------------------------------ 3. reconnect rounds
