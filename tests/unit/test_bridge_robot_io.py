@@ -113,7 +113,7 @@ def test_bad_commands_get_error_replies_and_change_nothing(line: bytes, reply: b
 
 def test_kteam_position_move_follows_the_j_trapezoid_and_k_reports_it() -> None:
     """C under J: integrate the arbiter's commands (10 ms steps, no drive error) and the counters
-    reach the targets; K says position mode, then on target. J 10 / 128 units: 0.1 m/s peak ..."""
+    reach the targets; K says position mode, then on target."""
     resp, arb, port = responder()
     dt, t, ticks = 0.01, 0.0, [0.0, 0.0]
     port.update(readings(t, 0, 0))
