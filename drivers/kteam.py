@@ -67,7 +67,14 @@ class KteamLimits:
 
     Attributes:
         max_speed: largest ``|speed|`` accepted by ``D``, pulse/10 ms. K-Team's KoreBot library
-            (``koala.c``, ``koa_setSpeed``) documents the range -127..127.
+            (``koala.c``, ``koa_setSpeed``) documents the range -127..127. Also the largest
+            profile speed ``J`` accepts.
+        max_acceleration: largest ``J`` acceleration, in 1/256 pulse/10 ms per 10 ms
+            (about 1.758 mm/s^2 on the classic Koala); 8-bit, our reading (docs/protocols.md).
+        pid_max: largest ``A`` / ``F`` PID gain (16-bit signed positive range; our reading).
+        pwm_max: largest ``|duty|`` accepted by ``P`` (8-bit duty; our reading).
+        analog_inputs: number of channels ``I`` reads (``0..analog_inputs-1``).
+        outputs: number of digital outputs ``Q`` sets (``0..outputs-1``).
         leds: number of LEDs; ``L`` accepts LED numbers ``0..leds-1`` (0 lateral, 1 frontal).
         sensors: number of IR proximity / ambient light sensors returned by ``N`` / ``O``.
         sensor_max: largest IR/ambient count (10-bit ADC).
@@ -77,6 +84,11 @@ class KteamLimits:
     leds: int = 2
     sensors: int = 16
     sensor_max: int = 1023
+    max_acceleration: int = 255
+    pid_max: int = 32767
+    pwm_max: int = 255
+    analog_inputs: int = 6
+    outputs: int = 4
 
 
 @dataclass(frozen=True, slots=True)
@@ -101,8 +113,30 @@ def command_specs(limits: KteamLimits | None = None) -> Mapping[str, CommandSpec
     lim = limits or KteamLimits()
     speed = (-lim.max_speed, lim.max_speed)
     counter = (INT32_MIN, INT32_MAX)
+    gain = (0, lim.pid_max)
+    profile_speed = (1, lim.max_speed)
+    profile_acc = (1, lim.max_acceleration)
+    pwm = (-lim.pwm_max, lim.pwm_max)
     specs = (
+        CommandSpec("A", "set speed PID gains (Kp, Ki, Kd)", (gain, gain, gain), 0),
         CommandSpec("B", "read firmware version", (), None),
+        CommandSpec("C", "move to position targets (left, right) in pulses", (counter, counter), 0),
+        CommandSpec("F", "set position PID gains (Kp, Ki, Kd)", (gain, gain, gain), 0),
+        CommandSpec(
+            "J",
+            "set position profile (max speed left, acc left, max speed right, acc right)",
+            (profile_speed, profile_acc, profile_speed, profile_acc),
+            0,
+        ),
+        CommandSpec(
+            "K", "read motion status (on target, mode, error) left then right", (), 6
+        ),
+        CommandSpec("I", "read analog input channel", ((0, lim.analog_inputs - 1),), 1),
+        CommandSpec("P", "set open-loop PWM duty (left, right)", (pwm, pwm), 0),
+        CommandSpec(
+            "Q", "set digital output (number, 0 off / 1 on)", ((0, lim.outputs - 1), (0, 1)), 0
+        ),
+        CommandSpec("Y", "read digital inputs (bit field)", (), 1),
         CommandSpec("D", "set wheel speeds (left, right) in pulse/10 ms", (speed, speed), 0),
         CommandSpec("E", "read wheel speeds in pulse/10 ms", (), 2),
         CommandSpec("G", "set encoder counters (left, right) in pulses", (counter, counter), 0),

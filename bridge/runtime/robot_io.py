@@ -16,6 +16,12 @@ that many simulation seconds pass without any command, when the wheels are set t
   robot has one pair of counters. Zenoh ``sensors/odometry`` carries the simulator's counts since
   reset, unaffected by ``G``.
 
+Position moves (classic Koala ``C`` under the ``J`` profile): the wheels follow, open loop, the
+speed of a rest-to-rest trapezoid (:mod:`koala_bridge.core.motion_profile`) from the counters at
+the time of ``C`` to its targets; the move is a wheel command like ``D`` (the last command wins).
+``J`` units: speed in pulse/10 ms, acceleration in 1/256 pulse/10 ms per 10 ms (with the classic
+Koala's 22'222 pulses/m: 4.5 mm/s and 1.758 mm/s^2, KoreBot ``koala.c``).
+
 Everything here is thread-safe and does no I/O: ``runtime.sim_source`` feeds it lines and readings.
 """
 
@@ -26,11 +32,15 @@ import threading
 from dataclasses import dataclass
 
 import numpy as np
+from koala_bridge.core.motion_profile import Trapezoid, trapezoid
 from koala_bridge.drivers.kteam import INT32_MIN, KteamLimits, command_specs, error_reply
 from koala_bridge.drivers.messages import KteamCommand, KteamReply, Reject
 from koala_bridge.sim.types import Readings, WheelCommand
 
-VERSION_TEXT = "koala-bridge 0.1.0"
+VERSION_TEXT = "0.1,1.0"
+"""``B`` reply fields, KoreBot ``koala.c`` format ``V.R,P.Q``: firmware (BIOS) version.revision,
+protocol version.revision. 0.1 = koala-bridge 0.1; the protocol is the classic Koala's, 1.0 (our
+numbering: K-Team's real numbers are not known to us)."""
 
 
 def _wrap_int32(value: int) -> int:
@@ -46,6 +56,7 @@ class MotorArbiter:
         self._source = ""
         self._t_command: float | None = None
         self._t_now = 0.0
+        self._move: tuple[Trapezoid, Trapezoid] | None = None
         self.watchdog_s = watchdog_s
 
     def set(self, left_mps: float, right_mps: float, source: str) -> None:
@@ -54,11 +65,34 @@ class MotorArbiter:
             self._command = WheelCommand(float(left_mps), float(right_mps))
             self._source = source
             self._t_command = self._t_now
+            self._move = None
+
+    def set_move(self, left: Trapezoid, right: Trapezoid, source: str) -> None:
+        """A position move (profiles in metres, m/s, m/s^2), starting now: the wheels follow its
+        speeds until it ends, then stop. The watchdog does not cut a move short."""
+        with self._lock:
+            self._move = (left, right)
+            self._command = WheelCommand(0.0, 0.0)
+            self._source = source
+            self._t_command = self._t_now
+
+    def move(self) -> tuple[tuple[Trapezoid, Trapezoid] | None, float]:
+        """The position move in force (None in speed mode) and the time since it started."""
+        with self._lock:
+            t0 = self._t_command if self._t_command is not None else self._t_now
+            return self._move, self._t_now - t0
 
     def command(self, t: float) -> WheelCommand:
         """The command to apply at simulation time ``t`` (also advances the watchdog's clock)."""
         with self._lock:
             self._t_now = t
+            if self._move is not None and self._t_command is not None:
+                elapsed = t - self._t_command
+                left, right = self._move
+                if elapsed < max(left.duration, right.duration):
+                    return WheelCommand(left.velocity(elapsed), right.velocity(elapsed))
+                self._command = WheelCommand(0.0, 0.0)
+                return self._command
             if (
                 self.watchdog_s > 0
                 and self._t_command is not None
@@ -67,6 +101,11 @@ class MotorArbiter:
                 self._command = WheelCommand(0.0, 0.0)
                 self._source = "watchdog"
                 self._t_command = None
+            return self._command
+
+    def command_in_force(self) -> WheelCommand:
+        """The last speed command, without advancing the watchdog's clock."""
+        with self._lock:
             return self._command
 
     @property
@@ -85,6 +124,14 @@ class RobotUnits:
 
     def kteam_speed_to_mps(self, pulses: int) -> float:
         return pulses / self.speed_unit_s / self.ticks_per_metre
+
+    def kteam_acceleration_to_mps2(self, units: int) -> float:
+        """``J`` acceleration: 1 unit = 1/256 speed unit per speed period (KoreBot ``koala.c``:
+        about 1.758 mm/s^2 with 4.5 mm/s speed units, 4.5 / 2.56)."""
+        return units / (256.0 * self.speed_unit_s**2 * self.ticks_per_metre)
+
+    def pulses_to_m(self, pulses: float) -> float:
+        return pulses / self.ticks_per_metre
 
     def mps_to_kteam_speed(self, v: float) -> int:
         return int(round(v * self.ticks_per_metre * self.speed_unit_s))
@@ -166,6 +213,14 @@ class KteamResponder:
         self.limits = limits or KteamLimits()
         self.specs = command_specs(self.limits)
         self.source = source
+        self._lock = threading.Lock()
+        # J profile per wheel: (max speed, acceleration) in K-Team units. The Khepera manual's
+        # power-on values (20, 64); the Koala's are not documented where we looked.
+        self.profile = [(20, 64), (20, 64)]
+        self.speed_pid = (0, 0, 0)          # A: stored, acknowledged; the simulator has no PID
+        self.position_pid = (0, 0, 0)       # F: idem
+        self.outputs = [0] * self.limits.outputs
+        self._targets = (0, 0)              # last C targets, robot counters
 
     def reject(self, reject: Reject) -> KteamReply:
         return error_reply(reject)
@@ -174,7 +229,41 @@ class KteamResponder:
         letter, args = cmd.letter, cmd.args
         lo = letter.lower()
         if letter == "B":
-            return KteamReply(lo, (VERSION_TEXT,))
+            return KteamReply(lo, tuple(VERSION_TEXT.split(",")))
+        if letter in ("A", "F"):
+            with self._lock:
+                if letter == "A":
+                    self.speed_pid = (args[0], args[1], args[2])
+                else:
+                    self.position_pid = (args[0], args[1], args[2])
+            return KteamReply(lo)
+        if letter == "J":
+            with self._lock:
+                self.profile = [(args[0], args[1]), (args[2], args[3])]
+            return KteamReply(lo)
+        if letter == "C":
+            self._start_move(args[0], args[1])
+            return KteamReply(lo)
+        if letter == "K":
+            return KteamReply(lo, tuple(str(v) for v in self._motion_status()))
+        if letter == "P":
+            # open-loop duty as a fraction of full speed (max_speed pulse/10 ms): the simulator
+            # has no motor model, so duty maps linearly to speed
+            full = self.limits.max_speed / self.limits.pwm_max
+            self.arbiter.set(
+                self.units.kteam_speed_to_mps(args[0] * full),
+                self.units.kteam_speed_to_mps(args[1] * full),
+                self.source,
+            )
+            return KteamReply(lo)
+        if letter == "Q":
+            with self._lock:
+                self.outputs[args[0]] = args[1]
+            return KteamReply(lo)
+        if letter == "I":
+            return KteamReply(lo, ("0",))    # nothing is wired to the analog inputs
+        if letter == "Y":
+            return KteamReply(lo, ("0",))    # nor to the digital inputs
         if letter == "D":
             self.arbiter.set(
                 self.units.kteam_speed_to_mps(args[0]),
@@ -205,3 +294,42 @@ class KteamResponder:
             return KteamReply(lo)
         # parse_command only lets through the letters of command_specs.
         raise AssertionError(f"no handler for K-Team command {letter!r}")
+
+    def _start_move(self, left_target: int, right_target: int) -> None:
+        now = self.port.counters()
+        with self._lock:
+            self._targets = (left_target, right_target)
+            profile = list(self.profile)
+        moves = [
+            trapezoid(
+                self.units.pulses_to_m(target - pos),
+                self.units.kteam_speed_to_mps(vmax),
+                self.units.kteam_acceleration_to_mps2(acc),
+            )
+            for target, pos, (vmax, acc) in zip(
+                (left_target, right_target), now, profile, strict=True
+            )
+        ]
+        self.arbiter.set_move(moves[0], moves[1], self.source)
+
+    def _motion_status(self) -> tuple[int, ...]:
+        """``K``: per wheel, left then right, (on target 0/1, mode 0 position / 1 speed, error).
+
+        Position mode: error = target - counter, pulses; on target once the profile has ended.
+        Speed mode: error = set-point - measured speed, pulse/10 ms; on target when |error| <= 1.
+        """
+        move, elapsed = self.arbiter.move()
+        if move is not None:
+            with self._lock:
+                targets = self._targets
+            done = int(elapsed >= max(m.duration for m in move))
+            counts = self.port.counters()
+            left_err, right_err = (t - c for t, c in zip(targets, counts, strict=True))
+            return (done, 0, left_err, done, 0, right_err)
+        cmd = self.arbiter.command_in_force()
+        ws = self.port.wheel_speeds()
+        errs = [
+            self.units.mps_to_kteam_speed(c - m) if math.isfinite(c - m) else 0
+            for c, m in ((cmd.left, ws.left), (cmd.right, ws.right))
+        ]
+        return (int(abs(errs[0]) <= 1), 1, errs[0], int(abs(errs[1]) <= 1), 1, errs[1])

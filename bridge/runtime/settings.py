@@ -66,6 +66,10 @@ __all__ = [
 ]
 
 MAVLINK_TRANSPORTS = ("udp", "tcp", "pty")
+#: K-Team serial dialects (docs/protocols.md §1): ``koala1`` = classic Koala / Koala II (KoreBot
+#: ``koala.c``), ``koala25`` = Koala 2.5 (``libkoala``, Koala 2.5 user manual §6).
+KTEAM_DIALECTS = ("koala1", "koala25")
+KTEAM_DIALECTS_IMPLEMENTED = ("koala1",)
 
 #: A Zenoh locator whose port is 0 (``tcp/127.0.0.1:0``, ``udp/[::1]:0#iface=lo``, ...).
 _ZERO_PORT = re.compile(r":0+(?:[?#].*)?$")
@@ -483,6 +487,7 @@ class KteamSettings:
 
     enabled: Bool
     max_speed: PositiveInt      # largest |speed| K-Team D accepts, pulses per speed unit
+    dialect: Annotated[Str, one_of(KTEAM_DIALECTS)]  # koala1 (classic Koala) | koala25
 
 
 @section
@@ -499,6 +504,7 @@ class BusesSettings:
     motor_watchdog_s: float     # 0 = off: a wheel command holds until the next one
     kteam: bool
     kteam_max_speed: int        # largest |speed| K-Team D accepts, pulses per speed unit
+    kteam_dialect: str          # which Koala's command set the pty speaks (KTEAM_DIALECTS)
     rangefinders: bool
     can: CanSettings
     mavlink: MavlinkSettings
@@ -509,12 +515,18 @@ class BusesSettings:
         reject_unknown(d, field_names(_BusesTable) + list(_BUS_TABLES), s)
         top = validate(_BusesTable, {k: v for k, v in d.items() if k not in _BUS_TABLES}, s)
         kteam = validate(KteamSettings, _section(d, "kteam", s), f"{s}.kteam")
+        if kteam.dialect not in KTEAM_DIALECTS_IMPLEMENTED:
+            raise ConfigError(
+                f"{s}.kteam.dialect = {kteam.dialect!r} is not implemented yet "
+                f"(implemented: {', '.join(KTEAM_DIALECTS_IMPLEMENTED)}; issue 13)"
+            )
         ranges = validate(RangefindersSettings, _section(d, "rangefinders", s),
                           f"{s}.rangefinders")
         return cls(
             motor_watchdog_s=top.motor_watchdog_s,
             kteam=kteam.enabled,
             kteam_max_speed=kteam.max_speed,
+            kteam_dialect=kteam.dialect,
             rangefinders=ranges.enabled,
             can=CanSettings.from_dict(_section(d, "can", s)),
             mavlink=MavlinkSettings.from_dict(_section(d, "mavlink", s)),

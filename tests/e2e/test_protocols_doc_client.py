@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import socket
 import struct
 import subprocess
@@ -405,7 +406,8 @@ def _run_client(ep: dict, closers: list) -> None:
 
     # ---------------------------------------------------------------- K-Team command set
     version = kt.ask(b"B")
-    assert version.startswith("b,") and len(version) > 2 and "," not in version[2:]
+    # koala1 table: `b,V.R,P.Q`, read by KoreBot as b,%d.%d,%d.%d
+    assert re.fullmatch(r"b,\d+\.\d+,\d+\.\d+", version), version
     kt.port.write(b"\r")  # empty line: ignored, no reply -- the next reply is B's
     assert kt.ask(b"B") == version
     assert kt.ask(b"b") == "z,Unknown command"  # lower case is not a command

@@ -209,7 +209,7 @@ def test_pyserial_client_talks_to_the_pty(robot: _Robot) -> None:
 def test_pty_keeps_serving_after_bad_input(robot: _Robot) -> None:
     rng = random.Random(7)
     with serial.Serial(robot.port.endpoint.path, 115200, timeout=5) as client:
-        assert _ask(client, robot, b"Q\r") == b"z,Unknown command\r\n"
+        assert _ask(client, robot, b"X\r") == b"z,Unknown command\r\n"
         assert _ask(client, robot, b"D,1\r") == b"z,Protocol error\r\n"
         assert _ask(client, robot, b"D,500,0\r") == b"z,Out of range\r\n"
         garbage = (

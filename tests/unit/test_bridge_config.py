@@ -149,3 +149,19 @@ def test_relative_file_paths_are_relative_to_the_config_file(tmp_path: Path) -> 
     assert config["buses"]["mavlink"]["signing_key_file"] == ""
     overridden = apply_override(config, *parse_override("buses.can.dbc='other.dbc'"))
     assert overridden["buses"]["can"]["dbc"] == "other.dbc"
+
+
+def test_kteam_dialect_defaults_to_koala1() -> None:
+    assert BridgeSettings.from_config(default()).buses.kteam_dialect == "koala1"
+
+
+def test_kteam_dialect_koala25_is_refused_until_implemented() -> None:
+    cfg = apply_override(default(), ["buses", "kteam", "dialect"], "koala25")
+    with pytest.raises(ConfigError, match=r"buses\.kteam\.dialect = 'koala25' is not implemented"):
+        BridgeSettings.from_config(cfg)
+
+
+def test_kteam_dialect_unknown_value_is_an_error() -> None:
+    cfg = apply_override(default(), ["buses", "kteam", "dialect"], "koala3")
+    with pytest.raises(ConfigError, match="dialect"):
+        BridgeSettings.from_config(cfg)

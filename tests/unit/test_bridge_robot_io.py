@@ -109,3 +109,51 @@ def test_bad_commands_get_error_replies_and_change_nothing(line: bytes, reply: b
     arb.set(0.01, 0.01, "kteam")
     assert ask(resp, line) == reply
     assert arb.command(0.0) == WheelCommand(0.01, 0.01)
+
+
+def test_kteam_position_move_follows_the_j_trapezoid_and_k_reports_it() -> None:
+    """C under J: integrate the arbiter's commands (10 ms steps, no drive error) and the counters
+    reach the targets; K says position mode, then on target."""
+    resp, arb, port = responder()
+    dt, t, ticks = 0.01, 0.0, [0.0, 0.0]
+    port.update(readings(t, 0, 0))
+    arb.command(t)
+    assert ask(resp, b"J,10,128,5,64") == b"j\r\n"
+    assert ask(resp, b"C,2000,-500") == b"c\r\n"
+    k = parse_command(b"K")
+    assert not isinstance(k, Reject)
+    first = resp.respond(k).ints
+    assert first[1] == 0 and first[4] == 0 and first[0] == 0
+    assert first[2] == 2000 and first[5] == -500
+    vmax_left = UNITS.kteam_speed_to_mps(10)
+    for _ in range(2000):
+        cmd = arb.command(t)
+        assert abs(cmd.left) <= vmax_left + 1e-12
+        ticks[0] += cmd.left * dt * UNITS.ticks_per_metre
+        ticks[1] += cmd.right * dt * UNITS.ticks_per_metre
+        t += dt
+        port.update(readings(t, round(ticks[0]), round(ticks[1])))
+        arb.command(t)
+        if resp.respond(k).ints[0] and resp.respond(k).ints[3]:
+            break
+    on_l, mode_l, err_l, on_r, mode_r, err_r = resp.respond(k).ints
+    assert (on_l, mode_l, on_r, mode_r) == (1, 0, 1, 0)
+    assert abs(err_l) <= 20 and abs(err_r) <= 20   # sampling of the ramps at 10 ms
+
+
+def test_kteam_d_after_c_is_speed_mode() -> None:
+    resp, arb, port = responder()
+    port.update(readings(0.0, 0, 0))
+    ask(resp, b"C,1000,1000")
+    ask(resp, b"D,3,3")
+    assert ask(resp, b"K").startswith(b"k,0,1,3,0,1,3")
+
+
+def test_kteam_b_is_numbers_and_settings_are_acknowledged() -> None:
+    resp, _arb, _port = responder()
+    assert ask(resp, b"B") == b"b,0.1,1.0\r\n"
+    assert ask(resp, b"A,3800,800,100") == b"a\r\n" and resp.speed_pid == (3800, 800, 100)
+    assert ask(resp, b"F,100,0,0") == b"f\r\n" and resp.position_pid == (100, 0, 0)
+    assert ask(resp, b"Q,1,1") == b"q\r\n" and resp.outputs[1] == 1
+    assert ask(resp, b"I,0") == b"i,0\r\n" and ask(resp, b"Y") == b"y,0\r\n"
+    assert ask(resp, b"J,0,10,10,10") == b"z,Out of range\r\n"

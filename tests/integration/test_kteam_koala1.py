@@ -1,0 +1,129 @@
+"""The classic Koala dialect (``koala1``) as K-Team's KoreBot ``koala.c`` drives it.
+
+The client below is written from docs/protocols.md §1 "Classic Koala (koala1) commands" — the
+command strings and reply formats KoreBot's ``koala.c`` sends and ``sscanf``s — not from the
+bridge's code: it formats commands by hand and parses replies as C does (``b,%d.%d,%d.%d``,
+``h,%d,%d``, ``k,%d,%d,%d,%d,%d,%d``). It talks to a ``koala-bridge run`` subprocess through the
+K-Team pty, opened as the ROS koala driver opens the robot's port (38400 baud, 8 data bits,
+2 stop bits; a pty ignores the line settings). Waits are on conditions, never on time.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from collections.abc import Iterator
+
+import pytest
+import serial
+
+DEADLINE_S = 60.0       # wall-clock bound on a condition, generous for a busy machine
+
+
+class KoreBotKoala:
+    """The subset of KoreBot ``koala.c`` the tests need: one command, one CR LF reply."""
+
+    def __init__(self, port: serial.Serial) -> None:
+        self.port = port
+
+    def _ask(self, command: str, reply_pattern: str) -> tuple[int, ...]:
+        self.port.write(command.encode("ascii") + b"\r")
+        line = self.port.read_until(b"\r\n")
+        assert line.endswith(b"\r\n"), f"no reply to {command!r}: {line!r}"
+        text = line[:-2].decode("ascii")
+        m = re.fullmatch(reply_pattern, text)
+        assert m is not None, f"{command!r} -> {text!r} does not match {reply_pattern!r}"
+        return tuple(int(g) for g in m.groups())
+
+    def get_os_version(self) -> tuple[int, int, int, int]:
+        """``koa_getOSVersion``: ``b,%d.%d,%d.%d`` -> version, revision, protocol v., r."""
+        v = self._ask("B", r"b,(\d+)\.(\d+),(\d+)\.(\d+)")
+        return v[0], v[1], v[2], v[3]
+
+    def set_speed(self, left: int, right: int) -> None:
+        self._ask(f"D,{left},{right}", "d")
+
+    def read_speed(self) -> tuple[int, ...]:
+        return self._ask("E", r"e,(-?\d+),(-?\d+)")
+
+    def set_position_counter(self, left: int, right: int) -> None:
+        self._ask(f"G,{left},{right}", "g")
+
+    def read_position(self) -> tuple[int, ...]:
+        return self._ask("H", r"h,(-?\d+),(-?\d+)")
+
+    def set_position(self, left: int, right: int) -> None:
+        self._ask(f"C,{left},{right}", "c")
+
+    def config_speed_profile(self, vmax_l: int, acc_l: int, vmax_r: int, acc_r: int) -> None:
+        self._ask(f"J,{vmax_l},{acc_l},{vmax_r},{acc_r}", "j")
+
+    def read_motion_status(self) -> tuple[int, ...]:
+        """``k,T_l,M_l,E_l,T_r,M_r,E_r``: on target, mode (0 position, 1 speed), error."""
+        return self._ask("K", r"k,([01]),([01]),(-?\d+),([01]),([01]),(-?\d+)")
+
+    def set_speed_pid(self, kp: int, ki: int, kd: int) -> None:
+        self._ask(f"A,{kp},{ki},{kd}", "a")
+
+    def set_position_pid(self, kp: int, ki: int, kd: int) -> None:
+        self._ask(f"F,{kp},{ki},{kd}", "f")
+
+    def raw(self, line: str) -> str:
+        self.port.write(line.encode("ascii") + b"\r")
+        return self.port.read_until(b"\r\n").decode("ascii")
+
+
+@pytest.fixture
+def koala(bridge) -> Iterator[KoreBotKoala]:
+    b = bridge(sets=["buses.rangefinders.enabled=false"])
+    path = b.endpoints["serial"]["kteam"]
+    with serial.Serial(path, 38400, bytesize=8, stopbits=serial.STOPBITS_TWO, timeout=5) as port:
+        yield KoreBotKoala(port)
+    assert b.stop() == 0
+
+
+def test_b_parses_as_numbers_like_korebot(koala: KoreBotKoala) -> None:
+    version, revision, proto, proto_rev = koala.get_os_version()
+    assert min(version, revision, proto, proto_rev) >= 0
+
+
+def test_pid_settings_are_acknowledged(koala: KoreBotKoala) -> None:
+    koala.set_speed_pid(3800, 800, 100)
+    koala.set_position_pid(100, 0, 0)
+    assert koala.raw("A,1,2") == "z,Protocol error\r\n"
+
+
+def test_unknown_letter_gets_unknown_command(koala: KoreBotKoala) -> None:
+    assert koala.raw("X") == "z,Unknown command\r\n"
+    assert koala.raw("J,0,10,10,10") == "z,Out of range\r\n"     # profile speed >= 1
+
+
+def test_c_moves_to_the_target_under_the_j_profile_and_k_reports_it(
+    koala: KoreBotKoala,
+) -> None:
+    koala.set_position_counter(0, 0)
+    koala.config_speed_profile(20, 64, 10, 64)
+    koala.set_position(3000, -1500)
+    status = koala.read_motion_status()
+    assert status[1] == 0 and status[4] == 0                     # position mode
+    deadline = time.monotonic() + DEADLINE_S
+    speeds_seen = []
+    while True:
+        speeds_seen.append(koala.read_speed())
+        status = koala.read_motion_status()
+        if status[0] == 1 and status[3] == 1:
+            break
+        assert time.monotonic() < deadline, f"move never ended: {status}"
+    # the profile's max speed per wheel is respected (E is rounded to whole units)
+    assert all(abs(left) <= 20 and abs(right) <= 10 for left, right in speeds_seen)
+    left, right = koala.read_position()
+    # open-loop trapezoid sampled every 10 ms: within a few pulses of the target
+    assert abs(left - 3000) <= 30 and abs(right + 1500) <= 30, (left, right)
+    assert status[2] == 3000 - left and status[5] == -1500 - right
+
+
+def test_d_after_c_switches_k_to_speed_mode(koala: KoreBotKoala) -> None:
+    koala.set_position(100000, 100000)
+    koala.set_speed(0, 0)
+    status = koala.read_motion_status()
+    assert status[1] == 1 and status[4] == 1
