@@ -239,7 +239,8 @@ def _check_rows(path: Path, table: Table) -> None:
             f"{path}{_line(table, int(missing[0]))}, column 't': empty or not a number: every "
             "row needs its time"
         )
-    back = np.flatnonzero(np.diff(t) < 0)
+    dt = np.diff(t)
+    back = np.flatnonzero(dt < 0)
     if back.size:
         k = int(back[0]) + 1
         raise BundleError(
@@ -254,7 +255,7 @@ def _check_rows(path: Path, table: Table) -> None:
                 f"{path}: {int(whole.sum())} row(s) with a number in every one of "
                 f"{', '.join(required)}: a stream needs at least two samples"
             )
-        same = np.flatnonzero(np.diff(t) == 0)
+        same = np.flatnonzero(dt == 0)
         if same.size:
             k = int(same[0]) + 1
             raise BundleError(
