@@ -239,7 +239,8 @@ def _check_rows(path: Path, table: Table) -> None:
             f"{path}{_line(table, int(missing[0]))}, column 't': empty or not a number: every "
             "row needs its time"
         )
-    back = np.flatnonzero(np.diff(t) < 0)
+    dt = np.diff(t)
+    back = np.flatnonzero(dt < 0)
     if back.size:
         k = int(back[0]) + 1
         raise BundleError(
@@ -254,7 +255,7 @@ def _check_rows(path: Path, table: Table) -> None:
                 f"{path}: {int(whole.sum())} row(s) with a number in every one of "
                 f"{', '.join(required)}: a stream needs at least two samples"
             )
-        same = np.flatnonzero(np.diff(t) == 0)
+        same = np.flatnonzero(dt == 0)
         if same.size:
             k = int(same[0]) + 1
             raise BundleError(
@@ -306,13 +307,10 @@ def read_meta(path: Path) -> dict[str, Any]:
             if key in start and (start[key] is not None or key in ("x", "y")):
                 _number(path, f"robot.start_pose.{key}", start[key])
     gyro = (meta.get("sensor") or {}).get("gyro")
-    for key in ("bias_rad_s", "scale_factor_error"):  # sensor.gyro may be a description
-        if isinstance(gyro, dict) and key in gyro:
-            _number(path, f"sensor.gyro.{key}", gyro[key])
+    if isinstance(gyro, dict):  # sensor.gyro may be a description
+        _numbers(path, gyro, "sensor.gyro.", ("bias_rad_s", "scale_factor_error"))
     reference = meta.get("reference") or {}
-    for key in ("from_t", "to_t", "total_rotation_rad"):
-        if key in reference:
-            _number(path, f"reference.{key}", reference[key])
+    _numbers(path, reference, "reference.", ("from_t", "to_t", "total_rotation_rad"))
     return meta
 
 
@@ -346,6 +344,13 @@ def _object_or_absent(
     if not isinstance(value, dict):
         raise BundleError(f"{path}: {where}{key} must be a JSON object, not {_json_kind(value)}")
     return value
+
+
+def _numbers(path: Path, section: Mapping[str, Any], where: str, keys: tuple[str, ...]) -> None:
+    """Each of ``keys`` present in ``section`` must be a finite number (:func:`_number`)."""
+    for key in keys:
+        if key in section:
+            _number(path, f"{where}{key}", section[key])
 
 
 def _number(path: Path, key: str, value: object) -> float:

@@ -604,7 +604,7 @@ class _Walk:
                 break
             if isinstance(record, DataEnd):
                 if (record.data_section_crc and not self.skipped  # skipped: damage already told
-                        and record.data_section_crc != zlib.crc32(raw[:pos])):
+                        and record.data_section_crc != zlib.crc32(memoryview(raw)[:pos])):
                     self._damage(pos, f"the data section (bytes {len(MCAP_MAGIC)}-{pos}) fails "
                                  "its CRC check", located=False)
                     break

@@ -122,7 +122,7 @@ class RobotUnits:
     ticks_per_metre: float
     speed_unit_s: float                 # K-Team speed unit: pulses per this many seconds
 
-    def kteam_speed_to_mps(self, pulses: int) -> float:
+    def kteam_speed_to_mps(self, pulses: float) -> float:
         return pulses / self.speed_unit_s / self.ticks_per_metre
 
     def kteam_acceleration_to_mps2(self, units: int) -> float:
@@ -250,11 +250,7 @@ class KteamResponder:
             # open-loop duty as a fraction of full speed (max_speed pulse/10 ms): the simulator
             # has no motor model, so duty maps linearly to speed
             full = self.limits.max_speed / self.limits.pwm_max
-            self.arbiter.set(
-                self.units.kteam_speed_to_mps(args[0] * full),
-                self.units.kteam_speed_to_mps(args[1] * full),
-                self.source,
-            )
+            self._set_speeds(args[0] * full, args[1] * full)
             return KteamReply(lo)
         if letter == "Q":
             with self._lock:
@@ -265,11 +261,7 @@ class KteamResponder:
         if letter == "Y":
             return KteamReply(lo, ("0",))    # nor to the digital inputs
         if letter == "D":
-            self.arbiter.set(
-                self.units.kteam_speed_to_mps(args[0]),
-                self.units.kteam_speed_to_mps(args[1]),
-                self.source,
-            )
+            self._set_speeds(args[0], args[1])
             return KteamReply(lo)
         if letter == "E":
             ws = self.port.wheel_speeds()
@@ -294,6 +286,12 @@ class KteamResponder:
             return KteamReply(lo)
         # parse_command only lets through the letters of command_specs.
         raise AssertionError(f"no handler for K-Team command {letter!r}")
+
+    def _set_speeds(self, left: float, right: float) -> None:
+        """Command wheel speeds given in K-Team speed units (pulse/10 ms)."""
+        self.arbiter.set(
+            self.units.kteam_speed_to_mps(left), self.units.kteam_speed_to_mps(right), self.source
+        )
 
     def _start_move(self, left_target: int, right_target: int) -> None:
         now = self.port.counters()
