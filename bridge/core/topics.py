@@ -323,9 +323,13 @@ class TopicMessage(_Message):
         return typing.cast(M, cls.from_json(payload))
 
 
+# One encoder for every payload: ``json.dumps`` with options builds a new one per call.
+_JSON = json.JSONEncoder(allow_nan=False, separators=(",", ":"))
+
+
 def encode(message: Mapping[str, Any]) -> bytes:
     """Strict JSON (no NaN/Infinity literals), compact, as UTF-8."""
-    return json.dumps(message, allow_nan=False, separators=(",", ":")).encode()
+    return _JSON.encode(message).encode()
 
 
 def _t() -> Any:
