@@ -108,7 +108,7 @@ def _encoder(tp: Any) -> Callable[[Any], Any]:
     if origin is tuple:
         if len(args) == 2 and args[1] is Ellipsis:
             item = _encoder(args[0])
-            return lambda v: [item(e) for e in v]
+            return lambda v: list(map(item, v))
         encs = [_encoder(a) for a in args]
         return lambda v: [enc(e) for enc, e in zip(encs, v, strict=True)]
     if origin in (dict, Mapping):
