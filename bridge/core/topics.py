@@ -67,12 +67,12 @@ def finite_or_none(v: Any) -> float | None:
 
 
 def ints(values: Iterable[Any]) -> tuple[int, ...]:
-    return tuple(int(v) for v in values)
+    return tuple(map(int, values))
 
 
 def nums(values: Iterable[Any]) -> tuple[float | None, ...]:
     """Finite floats, ``None`` for the rest (no echo, nothing in range, unknown)."""
-    return tuple(finite_or_none(v) for v in values)
+    return tuple(map(finite_or_none, values))
 
 
 def _optional_of(tp: Any) -> Any | None:
