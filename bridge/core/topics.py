@@ -67,12 +67,12 @@ def finite_or_none(v: Any) -> float | None:
 
 
 def ints(values: Iterable[Any]) -> tuple[int, ...]:
-    return tuple(int(v) for v in values)
+    return tuple(map(int, values))
 
 
 def nums(values: Iterable[Any]) -> tuple[float | None, ...]:
     """Finite floats, ``None`` for the rest (no echo, nothing in range, unknown)."""
-    return tuple(finite_or_none(v) for v in values)
+    return tuple(map(finite_or_none, values))
 
 
 def _optional_of(tp: Any) -> Any | None:
@@ -108,7 +108,7 @@ def _encoder(tp: Any) -> Callable[[Any], Any]:
     if origin is tuple:
         if len(args) == 2 and args[1] is Ellipsis:
             item = _encoder(args[0])
-            return lambda v: [item(e) for e in v]
+            return lambda v: list(map(item, v))
         encs = [_encoder(a) for a in args]
         return lambda v: [enc(e) for enc, e in zip(encs, v, strict=True)]
     if origin in (dict, Mapping):
@@ -323,9 +323,13 @@ class TopicMessage(_Message):
         return typing.cast(M, cls.from_json(payload))
 
 
+# One encoder for every payload: ``json.dumps`` with options builds a new one per call.
+_JSON = json.JSONEncoder(allow_nan=False, separators=(",", ":"))
+
+
 def encode(message: Mapping[str, Any]) -> bytes:
     """Strict JSON (no NaN/Infinity literals), compact, as UTF-8."""
-    return json.dumps(message, allow_nan=False, separators=(",", ":")).encode()
+    return _JSON.encode(message).encode()
 
 
 def _t() -> Any:

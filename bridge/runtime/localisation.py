@@ -173,10 +173,6 @@ class PoseSettings:
     landmark_bearing_sigma_deg: Positive
     ir_wall_fixes: Bool
 
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> PoseSettings:
-        return validate(cls, d, f"{SECTION}.pose")
-
 
 @section
 class GridSettings:
@@ -188,10 +184,6 @@ class GridSettings:
     ir_wall_threshold_counts: NonNegative
     observe_radius_m: NonNegative
     move_hysteresis_m: NonNegative
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> GridSettings:
-        return validate(cls, d, f"{SECTION}.grid")
 
 
 @section
@@ -215,10 +207,6 @@ class OccupancySettings:
     def __post_init__(self) -> None:
         if not self.l_min < 0 < self.l_max:
             raise ConfigError(f"[{SECTION}.occupancy] needs l_min < 0 < l_max")
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> OccupancySettings:
-        return validate(cls, d, f"{SECTION}.occupancy")
 
 
 #: The sub-tables of ``[localisation]``, each its own section.
@@ -256,7 +244,7 @@ class LocalisationSettings:
         for key, table_cls in _TABLES.items():
             if not isinstance(d.get(key), Mapping):
                 raise ConfigError(f"[{s}.{key}] missing or not a table")
-            tables[key] = table_cls.from_dict(d[key])
+            tables[key] = validate(table_cls, d[key], f"{s}.{key}")
         return validate(cls, {**d, **tables}, s)
 
     @classmethod

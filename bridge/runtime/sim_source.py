@@ -265,13 +265,7 @@ class SimulatedRobotSource:
         if n % self._pose_period == 0:
             topics = {TruthPose.TOPIC: truth_pose(r), **topics}
         for suffix, typed in topics.items():
-            message = typed.to_json()
-            try:
-                self.zenoh.publish(suffix, message)
-            except TransportError as e:  # the loop and the other buses go on
-                self._write_failed(ZENOH_BUS, e)
-            if self.tap is not None:
-                self.tap.record(suffix, r.t, message)
+            self._put(suffix, r.t, typed.to_json())
         if n % self._status_period == 0 and n > 0:
             self._publish_status(r.t)
 
@@ -301,23 +295,22 @@ class SimulatedRobotSource:
     def _publish_status(self, t: float) -> None:
         if self.zenoh is None:
             return
-        msg = self.status(t)
-        try:
-            self.zenoh.publish("status", msg)
-        except TransportError as e:
-            self._write_failed(ZENOH_BUS, e)
-        if self.tap is not None:
-            self.tap.record("status", t, msg)
+        self._put(StatusMessage.TOPIC, t, self.status(t))
 
     def _publish_estimate(self, suffix: str, msg: dict[str, Any]) -> None:
         """The localisation node's output: Zenoh and the recorder, like every other key."""
+        self._put(suffix, msg["t"], msg)
+
+    def _put(self, suffix: str, t: float, msg: dict[str, Any]) -> None:
+        """Publish ``msg`` on Zenoh (a failure is counted; the loop and the other buses go on)
+        and record it."""
         if self.zenoh is not None:
             try:
                 self.zenoh.publish(suffix, msg)
             except TransportError as e:
                 self._write_failed(ZENOH_BUS, e)
         if self.tap is not None:
-            self.tap.record(suffix, msg["t"], msg)
+            self.tap.record(suffix, t, msg)
 
     # -- output helpers ----------------------------------------------------------------------
 

@@ -37,6 +37,13 @@ def _plt():  # type: ignore[no-untyped-def]
     return plt
 
 
+def _save(plt, fig, out: Path) -> None:  # type: ignore[no-untyped-def]
+    """Lay ``fig`` out, write it to ``out`` and free it."""
+    fig.tight_layout()
+    fig.savefig(out)
+    plt.close(fig)
+
+
 def perception_vs_angle(out: Path) -> None:
     """seeds/000 Figures 2–3: miss probability vs viewing angle for several a_max (near range)."""
     plt = _plt()
@@ -50,9 +57,7 @@ def perception_vs_angle(out: Path) -> None:
     ax.set_title("Perception error vs angle, p_perc = 0.01, d = d_min (eq. 5)")
     ax.legend()
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(out)
-    plt.close(fig)
+    _save(plt, fig, out)
 
 
 def perception_vs_distance(out: Path) -> None:
@@ -68,9 +73,7 @@ def perception_vs_distance(out: Path) -> None:
     ax.set_title("Distance term of the perception error, d_min = 0.1 m, d_max = 4 m (eq. 6)")
     ax.legend()
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(out)
-    plt.close(fig)
+    _save(plt, fig, out)
 
 
 def perception_surface(out: Path) -> None:
@@ -87,9 +90,7 @@ def perception_surface(out: Path) -> None:
     ax.set_ylabel("angle (deg)")
     ax.set_zlabel("P(miss)")
     ax.set_title("Perception error, a_max = 120°, p_perc = 0.01 (eq. 8)")
-    fig.tight_layout()
-    fig.savefig(out)
-    plt.close(fig)
+    _save(plt, fig, out)
 
 
 def distance_error(out: Path, d_max: float, title: str) -> None:
@@ -116,9 +117,7 @@ def distance_error(out: Path, d_max: float, title: str) -> None:
     ax.set_title(title)
     ax.legend()
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(out)
-    plt.close(fig)
+    _save(plt, fig, out)
 
 
 def range_error_tables(out: Path) -> None:
@@ -137,9 +136,7 @@ def range_error_tables(out: Path) -> None:
     ax.set_title("Range error tables of seeds/004 (points), linear interpolation")
     ax.legend()
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(out)
-    plt.close(fig)
+    _save(plt, fig, out)
 
 
 def gyro_heading_error(out: Path) -> None:
@@ -162,9 +159,7 @@ def gyro_heading_error(out: Path) -> None:
     ax.set_title("Gyro at rest, Kalibr example densities (ADIS16448)")
     ax.legend()
     ax.grid(alpha=0.3, which="both")
-    fig.tight_layout()
-    fig.savefig(out)
-    plt.close(fig)
+    _save(plt, fig, out)
 
 
 FIGURES: dict[str, Callable[[Path], None]] = {
