@@ -6,14 +6,14 @@ from __future__ import annotations
 import random
 import socket
 import threading
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import can
 import cantools
 import pytest
 import serial
+from _can import recv, wait_for
 from koala_bridge.drivers.can_codec import (
     DEFAULT_DBC_PATH,
     KoalaCanCodec,
@@ -59,19 +59,6 @@ def _golden() -> list[tuple[object, int, bytes]]:
         can_id, _dlc, data = right.split()
         cases.append((FRAME_TYPES[name](**values), int(can_id, 16), bytes.fromhex(data)))
     return cases
-
-
-def _wait_for(predicate: Callable[[], bool], timeout: float = 5.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        assert time.monotonic() < deadline, "condition not met in time"
-        time.sleep(0.005)
-
-
-def _recv(bus: can.BusABC | CanTransport, timeout: float = 5.0) -> can.Message:
-    msg = bus.recv(timeout)
-    assert msg is not None, "no frame received"
-    return msg
 
 
 # --------------------------------------------------------------------------- DBC + codec
@@ -165,10 +152,10 @@ def _exchange(codec: KoalaCanCodec, server: CanTransport, client: can.BusABC) ->
     """Bridge -> client odometry and gyro; client -> bridge motor command; all decoded."""
     server.send(codec.encode(WheelOdometryFrame(1000, -1000)))
     server.send(codec.encode(GyroFrame(0.5)))
-    assert codec.decode(_recv(client)) == WheelOdometryFrame(1000, -1000)
-    assert codec.decode(_recv(client)) == GyroFrame(0.5)
+    assert codec.decode(recv(client)) == WheelOdometryFrame(1000, -1000)
+    assert codec.decode(recv(client)) == GyroFrame(0.5)
     client.send(codec.encode(MotorCommandFrame(0.2, -0.2)))
-    assert codec.decode(_recv(server)) == MotorCommandFrame(0.2, -0.2)
+    assert codec.decode(recv(server)) == MotorCommandFrame(0.2, -0.2)
 
 
 def test_socketcand_with_python_can_clients(
@@ -176,10 +163,10 @@ def test_socketcand_with_python_can_clients(
 ) -> None:
     config = python_can_config(socketcand.endpoint)
     with can.Bus(**config) as first, can.Bus(**config) as second:
-        _wait_for(lambda: socketcand.stats.clients == 2)
+        wait_for(lambda: socketcand.stats.clients == 2)
         _exchange(codec, socketcand, first)
         # Broadcast: the second client saw the bridge's frames and the first client's command.
-        seen = [codec.decode(_recv(second)) for _ in range(3)]
+        seen = [codec.decode(recv(second)) for _ in range(3)]
         assert seen == [
             WheelOdometryFrame(1000, -1000),
             GyroFrame(0.5),
@@ -187,7 +174,7 @@ def test_socketcand_with_python_can_clients(
         ]
         extended = can.Message(arbitration_id=0x1ABCDEF, data=b"\x01", is_extended_id=True)
         second.send(extended)
-        got = _recv(socketcand)
+        got = recv(socketcand)
         assert (got.arbitration_id, got.is_extended_id, bytes(got.data)) == (
             0x1ABCDEF,
             True,
@@ -224,10 +211,10 @@ def test_socketcand_counts_a_client_once_it_receives_frames(
         assert socketcand.stats.clients == 0
         raw.sendall(b"< rawmode >")
         assert _read_element(raw) == b"< ok >"
-        _wait_for(lambda: socketcand.stats.clients == 1)
+        wait_for(lambda: socketcand.stats.clients == 1)
         socketcand.send(codec.encode(GyroFrame(0.5)))
         assert _read_element(raw).startswith(b"< frame ")
-    _wait_for(lambda: socketcand.stats.clients == 0)
+    wait_for(lambda: socketcand.stats.clients == 0)
 
 
 def test_socketcand_rejects_bad_input_and_keeps_serving(
@@ -265,7 +252,7 @@ def test_socketcand_rejects_bad_input_and_keeps_serving(
         assert socketcand.stats.rejected >= 1 + len(bad_inputs) + 2
         # The same connection still sends valid frames, and a python-can client still works.
         raw.sendall(b"< send 100 4 c8 0 38 ff >")
-        assert codec.decode(_recv(socketcand)) == MotorCommandFrame(0.2, -0.2)
+        assert codec.decode(recv(socketcand)) == MotorCommandFrame(0.2, -0.2)
         with can.Bus(**python_can_config(socketcand.endpoint)) as client:
             _exchange(codec, socketcand, client)
         assert socketcand.stats.rejected >= len(bad_inputs) + 3
@@ -277,9 +264,9 @@ def test_slcan_with_python_can_client(codec: KoalaCanCodec, slcan: SlcanAdapter)
     ) as client:
         assert client.get_version(5) == (10, 13)
         assert client.get_serial_number(5) == "KOAL"
-        _wait_for(lambda: slcan.is_open)
+        wait_for(lambda: slcan.is_open)
         _exchange(codec, slcan, client)
-    _wait_for(lambda: not slcan.is_open)  # python-can sent "C" on shutdown
+    wait_for(lambda: not slcan.is_open)  # python-can sent "C" on shutdown
     assert slcan.stats.rejected == 0
 
 
@@ -317,9 +304,9 @@ def test_slcan_rejects_bad_input_and_keeps_serving(
         )
         assert ask(garbage) == b"\a"  # one over-long line, one BELL
         assert ask(b"t1004C80038FF") == b"z\r"
-        assert codec.decode(_recv(slcan)) == MotorCommandFrame(0.2, -0.2)
+        assert codec.decode(recv(slcan)) == MotorCommandFrame(0.2, -0.2)
         assert ask(b"T01ABCDEF1FF") == b"Z\r"
-        assert isinstance(codec.decode(_recv(slcan)), Reject)
+        assert isinstance(codec.decode(recv(slcan)), Reject)
         assert ask(b"Z1") == b"\r"
         slcan.send(codec.encode(GyroFrame(0.5)))
         line = port.read_until(b"\r")
@@ -327,7 +314,7 @@ def test_slcan_rejects_bad_input_and_keeps_serving(
         assert ask(b"C") == b"\r"
     assert slcan.stats.rejected >= 11
     with can.Bus(**python_can_config(slcan.endpoint), sleep_after_open=0) as client:
-        _wait_for(lambda: slcan.is_open)
+        wait_for(lambda: slcan.is_open)
         _exchange(codec, slcan, client)
 
 
@@ -336,7 +323,7 @@ def test_virtual_bus_through_the_url_registry(codec: KoalaCanCodec) -> None:
         with can.Bus(**python_can_config(bridge_side.endpoint)) as client:
             _exchange(codec, bridge_side, client)
             client.send(can.Message(arbitration_id=0x100, data=b"\0", is_extended_id=False))
-            assert codec.decode(_recv(bridge_side)).reason is RejectReason.WRONG_DLC  # type: ignore[union-attr]
+            assert codec.decode(recv(bridge_side)).reason is RejectReason.WRONG_DLC  # type: ignore[union-attr]
             _exchange(codec, bridge_side, client)
 
 
@@ -360,7 +347,7 @@ def test_socketcand_frame_time_is_the_senders_time_stamp(
         raw.sendall(b"< open koala0 >< rawmode >")
         assert _read_element(raw) == b"< ok >"
         assert _read_element(raw) == b"< ok >"
-        _wait_for(lambda: socketcand.stats.clients == 1)
+        wait_for(lambda: socketcand.stats.clients == 1)
         for t in (0.0, 0.01, 12.34):
             msg = codec.encode(GyroFrame(0.5))
             msg.timestamp = t

@@ -20,6 +20,7 @@ from pathlib import Path
 import can
 import pytest
 import serial
+from _can import wait_for
 from koala_bridge.drivers.messages import TransportClosedError
 from koala_bridge.drivers.transports import (
     BYTE_BACKENDS,
@@ -343,10 +344,8 @@ def can_pair(request: pytest.FixtureRequest) -> Iterator[CanPair]:
 
 def _wait_for_raw_client(bridge: CanTransport) -> None:
     if bridge.endpoint.kind in ("socketcand", "slcan"):  # the client's handshake must be done
-        deadline = time.monotonic() + 5
-        while bridge.stats.clients == 0 and time.monotonic() < deadline:
-            time.sleep(0.01)
-        time.sleep(0.1)  # socketcand's handshake grace
+        # (frames sent during socketcand's handshake grace are held back for the client, not lost)
+        wait_for(lambda: bridge.stats.clients > 0, timeout=5.0)
 
 
 def test_frames_both_ways(can_pair: CanPair) -> None:

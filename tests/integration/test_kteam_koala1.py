@@ -16,6 +16,7 @@ from collections.abc import Iterator
 
 import pytest
 import serial
+from koala_bridge.runtime.robot_io import VERSION_TEXT
 
 DEADLINE_S = 60.0       # wall-clock bound on a condition, generous for a busy machine
 
@@ -84,7 +85,9 @@ def koala(bridge) -> Iterator[KoreBotKoala]:
 
 def test_b_parses_as_numbers_like_korebot(koala: KoreBotKoala) -> None:
     version, revision, proto, proto_rev = koala.get_os_version()
-    assert min(version, revision, proto, proto_rev) >= 0
+    # the regex already admits only digits: the numbers must be the ones the bridge sends
+    assert (version, revision, proto, proto_rev) == tuple(
+        int(n) for n in re.split(r"[.,]", VERSION_TEXT))
 
 
 def test_pid_settings_are_acknowledged(koala: KoreBotKoala) -> None:

@@ -13,6 +13,7 @@ from typing import Any
 
 import can
 import pytest
+from _can import wait_for
 from koala_bridge.drivers.can_codec import KoalaCanCodec
 from koala_bridge.drivers.mavlink_codec import CompassEncoder, MavlinkIdentity
 from koala_bridge.drivers.messages import (
@@ -150,13 +151,6 @@ class ListTap:
         raise AssertionError(f"no {key} published")
 
 
-def _wait(predicate: Callable[[], bool], timeout: float = 5.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        assert time.monotonic() < deadline, "condition not met in time"
-        time.sleep(0.01)
-
-
 def test_real_source_reads_its_ports_through_the_registry(
     free_tcp_port: int, free_udp_port: int
 ) -> None:
@@ -188,8 +182,7 @@ def test_real_source_reads_its_ports_through_the_registry(
             assert isinstance(source._kteam, SerialTransport)  # loop:// through serial:
             assert set(tap.buses) == {"serial/kteam", "serial/rangefinders", "can", "mavlink"}
             runner.start()
-            _wait(lambda: ranges.stats.clients == 1 and canbus.stats.clients == 1)
-            time.sleep(0.1)  # socketcand's handshake grace
+            wait_for(lambda: ranges.stats.clients == 1 and canbus.stats.clients == 1)
             ranges.write(encode_range_frame(RangeFrame(RangeKind.IR, 0, 0, tuple(range(16)))))
             assert tap.first("sensors/ir")["counts"] == list(range(16))
             codec = KoalaCanCodec()
@@ -280,7 +273,7 @@ def test_session_order_endpoints_file_and_stop(tmp_path: Path) -> None:
         )
     )
     runner.start()
-    _wait(lambda: "run" in source.calls)
+    wait_for(lambda: "run" in source.calls)
     assert json.loads(endpoints_file.read_text())["serial"]["kteam"] == "/dev/pts/99"
     stop.set()
     runner.join(10)

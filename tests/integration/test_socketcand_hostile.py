@@ -17,24 +17,12 @@ import can
 import cantools
 import pytest
 import serial
+from _can import recv, wait_for
 from koala_bridge.drivers.transports import python_can_config
 from koala_bridge.drivers.transports.slcan import SlcanAdapter
 from koala_bridge.drivers.transports.socketcand import SocketcandServer
 
 CHANNEL = "koala0"
-
-
-def _wait_for(predicate: Callable[[], bool], timeout: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        assert time.monotonic() < deadline, "condition not met in time"
-        time.sleep(0.005)
-
-
-def _recv(bus: can.BusABC | SocketcandServer, timeout: float = 5.0) -> can.Message:
-    msg = bus.recv(timeout)
-    assert msg is not None, "no frame received"
-    return msg
 
 
 def _frame(i: int) -> can.Message:
@@ -50,11 +38,11 @@ def _assert_both_ways(server: SocketcandServer, client: can.BusABC, i: int) -> N
     """A bridge frame reaches ``client`` as a data frame; a frame from ``client`` reaches the
     bridge."""
     server.send(_frame(i))
-    got = _recv(client)
+    got = recv(client)
     assert not got.is_error_frame
     assert (got.arbitration_id, bytes(got.data)) == (0x110, i.to_bytes(4, "little"))
     client.send(can.Message(arbitration_id=0x100, is_extended_id=False, data=bytes([i % 256] * 4)))
-    got = _recv(server)
+    got = recv(server)
     assert (got.arbitration_id, bytes(got.data)) == (0x100, bytes([i % 256] * 4))
 
 
@@ -112,14 +100,14 @@ def test_python_can_keeps_working_after_a_remote_frame_and_a_garbage_element(
 ) -> None:
     server = server_factory()
     with _bus(server) as client, _bus(server) as bystander:
-        _wait_for(lambda: server.stats.clients == 2)
+        wait_for(lambda: server.stats.clients == 2)
         _assert_both_ways(server, client, 1)
         # python-can sends a remote frame as "< send 100 4  >": no data bytes for a DLC of 4,
         # a syntax error for socketcand (the daemon drops it too).
         client.send(can.Message(arbitration_id=0x100, is_remote_frame=True, dlc=4))
         client._tcp_send("< bogus >")  # and an element no socketcand knows
         client._tcp_send("< send 100 4 1 2 >")
-        _wait_for(lambda: server.stats.rejected == 3)
+        wait_for(lambda: server.stats.rejected == 3)
         # Answering "< error ... >" here made every later recv() raise in python-can 4.6.
         for i in range(2, 12):
             _assert_both_ways(server, client, i)
@@ -168,7 +156,7 @@ def test_a_client_that_floods_and_never_reads_is_dropped_and_counted(
     with _bus(server) as listener, _raw_client(server, rcvbuf=4096) as flooder:
         if handshake:
             _raw_mode(flooder)
-        _wait_for(lambda: server.stats.clients == 1 + handshake)
+        wait_for(lambda: server.stats.clients == 1 + handshake)
         sent, limit, i = 0, 64 << 20, 0
         try:
             while sent < limit:  # every element gets a reply the flooder never reads
@@ -177,11 +165,11 @@ def test_a_client_that_floods_and_never_reads_is_dropped_and_counted(
                 i += 1
                 if i % 16 == 0:  # meanwhile the well-behaved client is served
                     server.send(_frame(i))
-                    assert bytes(_recv(listener).data) == i.to_bytes(4, "little")
+                    assert bytes(recv(listener).data) == i.to_bytes(4, "little")
         except (ConnectionResetError, BrokenPipeError):
             pass  # the server disconnected the flooder
         assert sent < limit, f"flooder still connected after {sent} bytes"
-        _wait_for(lambda: server.stats.dropped >= 1 and server.stats.clients == 1)
+        wait_for(lambda: server.stats.dropped >= 1 and server.stats.clients == 1)
         if not handshake:  # no frame is ever queued for it: the one drop is the disconnection
             assert server.stats.dropped == 1
         # Memory bound: never more than max_pending bytes queued for one client.
@@ -211,7 +199,7 @@ def test_a_connection_that_never_opens_the_bus_is_closed(
         assert _closed_by_server(idle)
     assert server.stats.rejected == 1
     with _bus(server) as client:  # the slot is free again
-        _wait_for(lambda: server.stats.clients == 1)
+        wait_for(lambda: server.stats.clients == 1)
         _assert_both_ways(server, client, 1)
 
 
@@ -228,7 +216,7 @@ def test_at_the_client_limit_a_newcomer_evicts_the_client_idle_longest(
             assert _closed_by_server(oldest)
             other.sendall(b"< echo >")  # the other idle client was left alone
             assert _read_element(other) == b"< echo >"
-            _wait_for(lambda: server.stats.clients == 2)
+            wait_for(lambda: server.stats.clients == 2)
             _assert_both_ways(server, client, 1)
             assert _read_element(other).startswith(b"< frame 110 ")
     assert server.stats.rejected == 1
@@ -239,14 +227,14 @@ def test_at_the_client_limit_working_clients_are_kept_and_the_newcomer_refused(
 ) -> None:
     server = server_factory(max_clients=2)  # default idle_timeout_s: nobody has idled that long
     with _bus(server) as first, _bus(server) as second:
-        _wait_for(lambda: server.stats.clients == 2)
+        wait_for(lambda: server.stats.clients == 2)
         with pytest.raises(can.CanError, match="< hi >") as refused:
             _bus(server)
         assert "too many clients" in str(refused.value)  # python-can's error says why
         del refused  # its traceback holds python-can's half-made bus and so its socket
         assert server.stats.rejected == 1
         _assert_both_ways(server, first, 1)
-        assert bytes(_recv(second).data) == (1).to_bytes(4, "little")
+        assert bytes(recv(second).data) == (1).to_bytes(4, "little")
 
 
 def test_keep_alives_do_not_hold_a_slot_against_a_python_can_newcomer(
@@ -279,9 +267,9 @@ def test_keep_alives_do_not_hold_a_slot_against_a_python_can_newcomer(
         return True
 
     try:
-        _wait_for(newcomer_admitted, timeout=15.0)
+        wait_for(newcomer_admitted, timeout=15.0)
         with newcomer[0] as client:
-            _wait_for(lambda: server.stats.clients == 1)  # the squatters never entered raw mode
+            wait_for(lambda: server.stats.clients == 1)  # the squatters never entered raw mode
             _assert_both_ways(server, client, 1)
     finally:
         stop.set()
@@ -300,9 +288,9 @@ def test_fifty_python_can_reconnect_rounds(
     server = server_factory()
     for i in range(50):
         with _bus(server) as client:
-            _wait_for(lambda: server.stats.clients == 1)
+            wait_for(lambda: server.stats.clients == 1)
             _assert_both_ways(server, client, i)
-        _wait_for(lambda: server.stats.clients == 0)
+        wait_for(lambda: server.stats.clients == 0)
     stats = server.stats
     assert (stats.sent, stats.received, stats.rejected, stats.dropped) == (50, 50, 0, 0)
     # (conftest's leak check fails this test on a leaked thread or socket)
@@ -336,11 +324,11 @@ def test_fifty_reconnect_rounds_against_the_bridge(bridge, zenoh_watch) -> None:
         with can.Bus(interface="socketcand", host=sc["host"], port=sc["port"],
                      channel=sc["channel"]) as client:
             deadline = time.monotonic() + 10
-            while (msg := _recv(client)).arbitration_id != odometry:  # every round gets frames
+            while (msg := recv(client)).arbitration_id != odometry:  # every round gets frames
                 assert time.monotonic() < deadline, "no odometry frame"
             assert not msg.is_error_frame
             client.send(stop)
-    _wait_for(lambda: _open_sockets(b.proc.pid) <= baseline)
+    wait_for(lambda: _open_sockets(b.proc.pid) <= baseline)
     status = watch.wait_for("status", lambda m: m["buses"]["can.socketcand"]["received"] >= 50)
     assert status["buses"]["can.socketcand"]["rejected"] == 0
     assert b.proc.poll() is None

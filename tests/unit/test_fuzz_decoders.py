@@ -306,7 +306,8 @@ def test_range_split_stream_decodes_as_the_whole(data: st.DataObject, parts: lis
 
 
 @FUZZ
-@given(st.binary(max_size=300) | mutated(range_frame_bytes), st.lists(range_frames, min_size=1))
+@given(st.binary(max_size=300) | mutated(range_frame_bytes),
+       st.lists(range_frames, min_size=1, max_size=5))
 def test_range_decoder_recovers_after_garbage(garbage: bytes, frames: list[RangeFrame]) -> None:
     # A false sync in the garbage may claim up to 255 readings: once that many bytes have come,
     # its CRC fails and the decoder rescans them, so the good frames are all found.

@@ -50,8 +50,10 @@ def test_shipped_config_is_found_as_package_data() -> None:
     worlds = sorted(p.name for p in (config_dir() / "worlds").glob("*.toml"))
     assert "lab_walls_1.toml" in worlds
     package_data = _pyproject()["tool"]["setuptools"]["package-data"]
+    # Every data file, whatever its suffix: a new kind of file under config/ must be carried too.
     shipped = {p.relative_to(config_dir()).as_posix() for p in config_dir().rglob("*")
-               if p.is_file() and p.suffix in {".toml", ".dbc", ".md"}}
+               if p.is_file() and p.suffix not in {".py", ".pyc"}
+               and "__pycache__" not in p.parts}
     # Each package's patterns, relative to config/ (koala_bridge.config.worlds -> worlds/*.toml).
     patterns = [
         "/".join([*package.split(".")[2:], pattern])
