@@ -233,6 +233,7 @@ class PtyTransport(ByteTransport):
 
     def _end_session(self) -> None:
         """The client has closed the slave: nothing meant for it may reach the next one."""
+        log.debug("%s: the client closed the port; its session ends", self._slave_name)
         self._in_session = False
         self._boundary = True
         self._answering_gone = self._last_read_data  # replies to it must not reach the next
