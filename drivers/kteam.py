@@ -1,4 +1,4 @@
-"""K-Team ASCII serial protocol codec (Koala), usable from both ends of the line.
+"""K-Team ASCII serial protocol codec (Koala), usable from both ends of the line, in two dialects.
 
 Robot side (the bridge emulating a Koala): :class:`LineSplitter` -> :func:`parse_command` ->
 (bridge acts) -> :func:`format_reply`; a rejected line is answered with :func:`error_reply`.
@@ -7,8 +7,12 @@ Controller side (firmware, or a tool reading a real Koala): :func:`format_comman
 
 Wire format (docs/protocols.md, "K-Team ASCII"): a command is an upper-case letter, optional
 comma-separated decimal integer arguments, ended by CR (LF and CRLF accepted too); the reply is the
-same letter in lower case, ``,`` and the values, ended by CR LF. Errors are answered ``z,<text>``
-as K-Team firmware does (``z,Protocol error``; see docs for the sources).
+same letter in lower case, ``,`` and the values, ended by the dialect's terminator.
+
+A :class:`Dialect` is one robot's command set and line discipline: :data:`KOALA1` (the classic
+Koala / Koala II as KoreBot ``koala.c`` and the ROS koala driver drive it: 38400 8N2, replies end
+CR LF, errors ``z,<text>``) here, ``KOALA25`` (the Koala 2.5 as K-Team ``libkoala`` drives it)
+in :mod:`koala_bridge.drivers.koala25`; :func:`dialect` returns either by name.
 
 Units are the robot's: speeds in pulse/10 ms, positions in encoder pulses, sensors in raw counts.
 Conversion to SI lives in :mod:`bridge`, with the constants in ``config/``.
@@ -18,12 +22,16 @@ from __future__ import annotations
 
 import re
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from types import MappingProxyType
 
 from koala_bridge.drivers.messages import FrameError, KteamCommand, KteamReply, Reject, RejectReason
 
 __all__ = [
+    "KOALA1",
+    "Dialect",
+    "SerialLine",
+    "dialect",
     "ERROR_OUT_OF_RANGE",
     "ERROR_PROTOCOL",
     "ERROR_UNKNOWN_COMMAND",
@@ -58,7 +66,14 @@ _ERROR_TEXT: Mapping[RejectReason, str] = MappingProxyType(
 )
 
 _INT_FIELD = re.compile(r"[+-]?[0-9]{1,11}")
+#: Printable ASCII but the separator: the one text argument (Koala 2.5 ``X``) and text fields.
+_TEXT_ARG = re.compile(r"[ -~]{1,200}")
+#: Upper bound on the arguments of a variadic command (Koala 2.5 ``W``: I2C bytes).
+MAX_ARGS = 64
 _TERMINATORS = re.compile(rb"[\r\n]")
+#: First characters of a reply: the lower-case letters, and the Koala 2.5's ``@`` (``&``),
+#: ``!`` (``?``) and ``#`` (error).
+_REPLY_LETTERS = frozenset("abcdefghijklmnopqrstuvwxyz@!#")
 
 
 @dataclass(frozen=True, slots=True)
@@ -100,12 +115,17 @@ class CommandSpec:
         name: short description for docs and logs.
         arg_ranges: inclusive ``(low, high)`` per argument; its length is the command's arity.
         reply_fields: number of reply fields, or ``None`` when variable or textual (``b``).
+        more: range of further arguments after ``arg_ranges`` (a variadic command, at most
+            :data:`MAX_ARGS` in all); None: exactly ``len(arg_ranges)``.
+        text: the command takes one free-text argument instead (Koala 2.5 ``X,<NMEA>``).
     """
 
     letter: str
     name: str
     arg_ranges: tuple[tuple[int, int], ...]
     reply_fields: int | None
+    more: tuple[int, int] | None = None
+    text: bool = False
 
 
 def command_specs(limits: KteamLimits | None = None) -> Mapping[str, CommandSpec]:
@@ -151,6 +171,104 @@ def command_specs(limits: KteamLimits | None = None) -> Mapping[str, CommandSpec
 
 
 _DEFAULT_SPECS = command_specs()
+
+
+@dataclass(frozen=True, slots=True)
+class SerialLine:
+    """A serial port's line settings, as pyserial names them (a pty ignores them)."""
+
+    baudrate: int
+    bytesize: int = 8
+    parity: str = "N"
+    stopbits: float = 1
+
+    def pyserial(self) -> dict[str, object]:
+        """Keyword arguments of ``serial.Serial`` / ``serial_for_url``."""
+        return {"baudrate": self.baudrate, "bytesize": self.bytesize, "parity": self.parity,
+                "stopbits": self.stopbits}
+
+    def __str__(self) -> str:
+        return f"{self.baudrate} {self.bytesize}{self.parity}{self.stopbits:g}"
+
+
+@dataclass(frozen=True, slots=True)
+class Dialect:
+    """One Koala's command set and line discipline (docs/protocols.md §1 "Dialects").
+
+    Attributes:
+        name: ``koala1`` or ``koala25`` (``[buses.kteam] dialect``, ``[real] kteam_dialect``).
+        specs: the commands, keyed by letter.
+        line: the serial line settings of the real robot's port.
+        reply_terminator: what ends every reply line.
+        command_terminator: what a controller ends a command with.
+        error_letter: first character of the reply to a rejected command.
+        reply_letters: reply first characters that are not the command's lower-case letter
+            (Koala 2.5: ``&`` -> ``@``, ``?`` -> ``!``).
+    """
+
+    name: str
+    specs: Mapping[str, CommandSpec]
+    line: SerialLine
+    reply_terminator: bytes
+    command_terminator: bytes
+    error_letter: str
+    reply_letters: Mapping[str, str] = field(default_factory=lambda: MappingProxyType({}))
+
+    def reply_letter(self, command_letter: str) -> str:
+        """The first character of the reply to ``command_letter``."""
+        return self.reply_letters.get(command_letter, command_letter.lower())
+
+    @property
+    def reply_commands(self) -> Mapping[str, str]:
+        """Reply first character -> command letter, for the exceptions of ``reply_letters``."""
+        return {v: k for k, v in self.reply_letters.items()}
+
+    def reply(self, command_letter: str, fields: tuple[object, ...] = ()) -> KteamReply:
+        """The reply to ``command_letter`` carrying ``fields`` (numbers or text)."""
+        return KteamReply(self.reply_letter(command_letter), tuple(str(f) for f in fields))
+
+    def error_reply(self, reject: Reject) -> KteamReply:
+        return error_reply(reject, self.error_letter)
+
+    def format_reply(self, reply: KteamReply) -> bytes:
+        return format_reply(reply, self.reply_terminator)
+
+    def format_command(self, command: KteamCommand) -> bytes:
+        return format_command(command, self.command_terminator)
+
+    def parse_command(self, line: bytes | str) -> KteamCommand | Reject:
+        return parse_command(line, self.specs)
+
+    def parse_reply(self, line: bytes | str) -> KteamReply | Reject:
+        return parse_reply(line, self)
+
+
+KOALA1 = Dialect(
+    name="koala1",
+    specs=_DEFAULT_SPECS,
+    # The ROS koala driver (jdawkins/koala-ros, jjdawkins/koala_ros2) opens the classic Koala's
+    # port at 38400 baud, 8 data bits, no parity, 2 stop bits.
+    line=SerialLine(38400, 8, "N", 2),
+    reply_terminator=b"\r\n",
+    command_terminator=b"\r",
+    error_letter="z",
+)
+"""The classic Koala / Koala II (docs/protocols.md §1 "Classic Koala (koala1) commands")."""
+
+
+def dialect(name: str, limits: KteamLimits | None = None) -> Dialect:
+    """The dialect called ``name`` (``koala1``, ``koala25``); ``limits`` (koala1 only) sets the
+    ranges of :func:`command_specs`. Raises ``ValueError`` for another name."""
+    if name == "koala1":
+        if limits is None:
+            return KOALA1
+        return Dialect(KOALA1.name, command_specs(limits), KOALA1.line, KOALA1.reply_terminator,
+                       KOALA1.command_terminator, KOALA1.error_letter)
+    if name == "koala25":
+        from koala_bridge.drivers.koala25 import KOALA25  # noqa: PLC0415 (it imports this module)
+
+        return KOALA25
+    raise ValueError(f"unknown K-Team dialect {name!r} (koala1, koala25)")
 
 
 # --------------------------------------------------------------------------- line framing
@@ -229,16 +347,24 @@ def parse_command(
     spec = specs.get(letter)
     if spec is None:
         return Reject(RejectReason.UNKNOWN_COMMAND, f"command {letter!r} not implemented", raw[:32])
+    if spec.text:
+        if not rest.startswith(",") or not _TEXT_ARG.fullmatch(rest[1:]) or "," in rest[1:]:
+            return Reject(RejectReason.SYNTAX, f"{letter} takes one text argument", raw[:32])
+        return KteamCommand(letter, (), rest[1:])
     args = _parse_int_fields(rest)
     if args is None:
         return Reject(RejectReason.SYNTAX, f"{letter}: arguments must be ,<decimal>...", raw[:32])
-    if len(args) != len(spec.arg_ranges):
+    n_fixed = len(spec.arg_ranges)
+    if len(args) != n_fixed and not (
+        spec.more is not None and n_fixed < len(args) <= MAX_ARGS
+    ):
         return Reject(
             RejectReason.ARITY,
-            f"{letter} takes {len(spec.arg_ranges)} argument(s), got {len(args)}",
+            f"{letter} takes {n_fixed}{'+' if spec.more else ''} argument(s), got {len(args)}",
             raw[:32],
         )
-    for i, (value, (low, high)) in enumerate(zip(args, spec.arg_ranges, strict=True)):
+    ranges = spec.arg_ranges + ((spec.more,) * (len(args) - n_fixed) if spec.more else ())
+    for i, (value, (low, high)) in enumerate(zip(args, ranges, strict=True)):
         if not low <= value <= high:
             return Reject(
                 RejectReason.OUT_OF_RANGE,
@@ -248,19 +374,21 @@ def parse_command(
     return KteamCommand(letter, args)
 
 
-def format_reply(reply: KteamReply) -> bytes:
-    """Encode a reply as sent by the robot: ``letter[,field...]\\r\\n``."""
-    if len(reply.letter) != 1 or not ("a" <= reply.letter <= "z"):
+def format_reply(reply: KteamReply, terminator: bytes = b"\r\n") -> bytes:
+    """Encode a reply as sent by the robot: ``letter[,field...]`` + ``terminator`` (the
+    dialect's: CR LF for :data:`KOALA1`)."""
+    if len(reply.letter) != 1 or reply.letter not in _REPLY_LETTERS:
         raise FrameError(f"reply letter must be one lower-case letter, got {reply.letter!r}")
     for f in reply.fields:
         if any(c in f for c in ",\r\n") or not f.isascii():
             raise FrameError(f"reply field {f!r} contains a separator or non-ASCII character")
-    return ",".join((reply.letter, *reply.fields)).encode("ascii") + b"\r\n"
+    return ",".join((reply.letter, *reply.fields)).encode("ascii") + terminator
 
 
-def error_reply(reject: Reject) -> KteamReply:
-    """The ``z,<text>`` reply the robot sends for a rejected command line."""
-    return KteamReply("z", (_ERROR_TEXT.get(reject.reason, ERROR_PROTOCOL),))
+def error_reply(reject: Reject, letter: str = "z") -> KteamReply:
+    """The ``z,<text>`` reply the robot sends for a rejected command line (``letter``: the
+    dialect's error letter)."""
+    return KteamReply(letter, (_ERROR_TEXT.get(reject.reason, ERROR_PROTOCOL),))
 
 
 # --------------------------------------------------------------------------- controller side
@@ -268,37 +396,43 @@ def error_reply(reject: Reject) -> KteamReply:
 
 def format_command(command: KteamCommand, terminator: bytes = b"\r") -> bytes:
     """Encode a command as a controller sends it: ``LETTER[,arg...]`` + ``terminator``."""
-    if len(command.letter) != 1 or not ("A" <= command.letter <= "Z"):
+    if len(command.letter) != 1 or not ("A" <= command.letter <= "Z" or command.letter in "&?"):
         raise FrameError(f"command letter must be one upper-case letter, got {command.letter!r}")
     if terminator not in (b"\r", b"\n", b"\r\n"):
         raise FrameError("terminator must be CR, LF or CRLF")
-    return (
-        ",".join((command.letter, *(str(int(a)) for a in command.args))).encode("ascii")
-        + terminator
-    )
+    if command.text and (not _TEXT_ARG.fullmatch(command.text) or "," in command.text):
+        raise FrameError(f"text argument {command.text!r} must be printable ASCII without ','")
+    fields = (command.text,) if command.text else tuple(str(int(a)) for a in command.args)
+    return ",".join((command.letter, *fields)).encode("ascii") + terminator
 
 
 def parse_reply(
-    line: bytes | str, specs: Mapping[str, CommandSpec] = _DEFAULT_SPECS
+    line: bytes | str, specs: Mapping[str, CommandSpec] | Dialect = _DEFAULT_SPECS
 ) -> KteamReply | Reject:
     """Parse one reply line (terminator stripped) into a :class:`KteamReply`.
 
-    A ``z,...`` error reply is returned as a reply (``is_error``), not a reject: it is a valid
-    message. Replies to known commands are checked for their field count and integer fields.
+    ``specs``: the command set (a :class:`Dialect` or its ``specs``; default :data:`KOALA1`'s).
+    An error reply (``z,...``; Koala 2.5 ``#...``) is returned as a reply (``is_error``), not a
+    reject: it is a valid message. Replies to known commands are checked for their field count
+    and integer fields.
     """
+    commands = specs.reply_commands if isinstance(specs, Dialect) else {}
+    if isinstance(specs, Dialect):
+        specs = specs.specs
     raw = line.encode("latin-1", "replace") if isinstance(line, str) else bytes(line)
     try:
         text = raw.decode("ascii").strip()
     except UnicodeDecodeError:
         return Reject(RejectReason.SYNTAX, "non-ASCII byte in reply", raw[:32])
-    if not text or not ("a" <= text[0] <= "z"):
+    if not text or text[0] not in _REPLY_LETTERS:
         return Reject(RejectReason.SYNTAX, "reply must start with a lower-case letter", raw[:32])
     letter, rest = text[0], text[1:]
     if rest and rest[0] != ",":
         return Reject(RejectReason.SYNTAX, "reply letter must be followed by ',' or end", raw[:32])
     fields = tuple(f.strip() for f in rest[1:].split(",")) if rest else ()
-    spec = specs.get(letter.upper())
-    if letter != "z" and spec is not None and spec.reply_fields is not None:
+    spec = specs.get(commands.get(letter, letter.upper()))
+    error = letter == "#" or (letter == "z" and bool(fields))
+    if not error and spec is not None and spec.reply_fields is not None:
         if len(fields) != spec.reply_fields:
             return Reject(
                 RejectReason.ARITY,

@@ -94,6 +94,7 @@ class KteamCommand:
 
     letter: str
     args: tuple[int, ...] = ()
+    text: str = ""              # the one text argument of a text command (Koala 2.5 ``X``)
 
 
 @dataclass(frozen=True, slots=True)
@@ -104,7 +105,8 @@ class KteamReply:
     integers; :attr:`ints` converts the usual numeric case.
 
     Attributes:
-        letter: lower-case letter of the command answered, or ``z`` for an error reply.
+        letter: lower-case letter of the command answered (Koala 2.5: ``@`` for ``&``, ``!`` for
+            ``?``), or the dialect's error letter (``z,<text>``; Koala 2.5 ``#``).
         fields: comma-separated fields after the letter, without the separators.
     """
 
@@ -113,8 +115,9 @@ class KteamReply:
 
     @property
     def is_error(self) -> bool:
-        """True for the K-Team error reply ``z,<message>``."""
-        return self.letter == "z"
+        """True for an error reply: ``z,<message>`` (classic Koala; a bare ``z`` is the Koala
+        2.5's answer to its reset command ``Z``) or ``#...`` (Koala 2.5)."""
+        return self.letter == "#" or (self.letter == "z" and bool(self.fields))
 
     @property
     def ints(self) -> tuple[int, ...]:

@@ -34,7 +34,8 @@ displacement of the step and returns the displacement that really happens (and m
 wheel travel the encoders see); collision handling applies to the displacement it returns.
 
 Parameters: ``[robot]`` (:class:`RobotConfig`) and its ``[robot.drive_error]`` table
-(:class:`DriveConfig`; the model's own keys go to ``sim/models/drive.py``) are typed here.
+(:class:`DriveConfig`; the model's own keys go to ``sim/models/drive.py``) are typed here; its
+``[robot.battery]`` table in ``sim/battery.py``.
 """
 
 from __future__ import annotations
@@ -56,6 +57,7 @@ from koala_bridge.core.schema import (
     section,
     validate,
 )
+from koala_bridge.sim.battery import BatteryConfig
 from koala_bridge.sim.noise import Variates
 from koala_bridge.sim.raycast import SegmentSet, point_segment_distances, sweep_circle
 from koala_bridge.sim.sections import empty_errors, own_keys, sensor_section
@@ -93,6 +95,7 @@ class RobotConfig:
     max_wheel_speed_mps: Positive   # wheel surface speed limit, each wheel
     speed_unit_s: Positive          # K-Team speed unit = pulses per this many seconds (10 ms)
     drive: DriveConfig              # the file's [robot.drive_error] table
+    battery: BatteryConfig          # the file's [robot.battery] table (sim/battery.py)
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> RobotConfig:
@@ -101,9 +104,10 @@ class RobotConfig:
             raise ConfigError(f"[{sec}] must be a table, got {d!r}")
         keys = [k for k in own_keys(cls) if k != "drive"] + ["drive_error"]
         reject_unknown(d, keys, sec)
-        own = {k: v for k, v in d.items() if k != "drive_error"}
+        own = {k: v for k, v in d.items() if k not in ("drive_error", "battery")}
         drive = DriveConfig.from_dict(require(d, "drive_error", sec))
-        return validate(cls, {**own, "drive": drive}, sec)
+        battery = BatteryConfig.from_dict(require(d, "battery", sec))
+        return validate(cls, {**own, "drive": drive, "battery": battery}, sec)
 
 
 @dataclass(frozen=True, slots=True)

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 from koala_bridge.core.schema import ConfigError
 from koala_bridge.sim import robot as kin
+from koala_bridge.sim.battery import Battery
 from koala_bridge.sim.config import SENSOR_NAMES, SimConfig, load_sim_config
 from koala_bridge.sim.noise import BlockStream
 from koala_bridge.sim.raycast import SegmentSet, cast_fan_arrays
@@ -99,6 +100,7 @@ class Simulator:
         else:
             self._state = RobotState.at(start.x, start.y, start.theta)
         self._k = 0
+        self.battery = Battery(self.config.robot.battery, self.config.robot.max_wheel_speed_mps)
         return self._readings(self._state)
 
     def step(self, command: WheelCommand) -> Readings:
@@ -110,7 +112,9 @@ class Simulator:
             self._streams["drive"], self._drive_error,
         )
         self._k += 1
-        return self._readings(self._state)
+        st = self._state
+        self.battery.step((st.left_speed, st.right_speed), (command.left, command.right), self.dt)
+        return self._readings(st)
 
     def robot_description(self) -> dict[str, Any]:
         """The robot's parameters, JSON-ready (the ``robot`` part of the Zenoh ``world`` answer)."""
@@ -241,4 +245,5 @@ class Simulator:
             self.compass.measure(st, streams["compass"]) if k % p["compass"] == 0 else None,
             self.camera.measure(st, streams["camera"]) if k % p["camera"] == 0 else None,
             st.collided,
+            battery=self.battery.reading,
         )

@@ -77,6 +77,23 @@ class CameraReading:
 
 
 @dataclass(frozen=True, slots=True)
+class BatteryReading:
+    """The battery and motors after a step (SI units but charge, in mAh)."""
+
+    voltage_V: float                    # at the terminals, under load
+    current_A: float                    # drawn from the battery, > 0 discharging
+    charge_mAh: float                   # remaining
+    capacity_mAh: float
+    temperature_C: float                # battery
+    ambient_temperature_C: float
+    motor_currents_A: tuple[float, float]   # left, right
+
+    @property
+    def state_of_charge(self) -> float:
+        return self.charge_mAh / self.capacity_mAh
+
+
+@dataclass(frozen=True, slots=True)
 class Readings:
     """What one simulation step produced: the truth pose and every reading due at this step."""
 
@@ -91,3 +108,4 @@ class Readings:
     camera: CameraReading | None = None
     collided: bool = False
     extra: dict[str, object] = field(default_factory=dict)
+    battery: BatteryReading | None = None   # every step (sim/battery.py)

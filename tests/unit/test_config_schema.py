@@ -42,6 +42,7 @@ from koala_bridge.runtime.settings import (
     load_config,
     parse_override,
 )
+from koala_bridge.sim.battery import BatteryConfig
 from koala_bridge.sim.config import StepConfig, load_sim_config
 from koala_bridge.sim.noise import LookupTable
 from koala_bridge.sim.robot import DriveConfig, RobotConfig
@@ -94,6 +95,7 @@ SECTIONS: list[tuple[Any, str]] = [
     (_error_params("compass"), "sensors.compass"),
     (CameraConfig, "sensors.camera"),
     (_error_params("camera"), "sensors.camera"),
+    (BatteryConfig, "robot.battery"),
     (EarthField, "world.earth_field"),
     (RunSettings, "run"),
     (KteamSettings, "buses.kteam"),
@@ -108,8 +110,8 @@ SECTIONS: list[tuple[Any, str]] = [
 ]
 
 #: Fields that are built, not read from the file: the error model's params, and [robot]'s
-#: [robot.drive_error] table (read under its file name).
-BUILT = {"errors", "drive"}
+#: [robot.drive_error] and [robot.battery] tables (read under their own names).
+BUILT = {"errors", "drive", "battery"}
 
 
 def _same(a: Any, b: Any) -> bool:
