@@ -655,13 +655,15 @@ def test_n_gyro_reads_zero_at_rest_and_the_spin_rate_when_spinning(start_koala) 
 
 def test_magnetometer_reads_the_worlds_earth_field_in_mgauss(koala: Koala25) -> None:
     """|B| = |Earth field| (world answer, 1 uT = 10 mGauss) plus at most the world's magnetic
-    sources at the start pose (strength at 1 m over d^2, the slower of the usual fall-offs)."""
+    sources at the start pose (strength at 1 m over d^2, the slower of the usual fall-offs;
+    d less the body radius)."""
     world = koala.world()
     ef = world["earth_field"]
     earth_mg = 10.0 * math.hypot(ef["horizontal_uT"], ef["vertical_uT"])
     start = world["start"]
+    body = world["robot"]["body_radius_m"]                     # the sensor is on the body
     local_mg = sum(10.0 * s["strength_uT"] / max(
-        (s["x"] - start["x"]) ** 2 + (s["y"] - start["y"]) ** 2, 0.05**2)
+        math.hypot(s["x"] - start["x"], s["y"] - start["y"]) - body, 0.05) ** 2
         for s in world["magnetic_sources"])
     for _ in range(3):
         x, y, z = koala.lib.read_magnetometer()
