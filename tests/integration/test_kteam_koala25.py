@@ -536,6 +536,12 @@ def test_h_sets_the_pid(koala: Koala25) -> None:
 
 def test_z_resets_counters_and_stops_the_motors(koala: Koala25) -> None:
     lib = koala.lib
+    lib.set_motor_encoders(500, -500)                          # at rest: nothing to coast
+    lib.reset_microcontroller()
+    koala.wait_sim(3.0)
+    while (line := lib.read_line_nowait()) is not None:
+        assert line[:1] == "b", f"after Z: {line!r}"
+    assert lib.read_motor_position() == (0, 0)
     v = 60
     lib.set_motor_speed(-v, v)
     wait_until(lib.read_motor_position, lambda p: p[1] > 20 * v, "P while spinning")
