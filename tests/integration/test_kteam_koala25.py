@@ -436,7 +436,8 @@ def test_d_accepts_the_manuals_speed_range(koala: Koala25) -> None:
     lib = koala.lib
     for v in (10, 450):
         lib.set_motor_speed(-v, v)                             # spin in place
-        wait_until(lib.read_motor_speed, lambda s, v=v: s == (-v, v), f"E after D,-{v},{v}")
+        koala.wait_sim(0.2)                                    # D is not ramped: 20 PID periods
+        assert lib.read_motor_speed() == (-v, v), f"E after D,-{v},{v}"
     lib.set_motor_speed(0, 0)
 
 
@@ -811,4 +812,18 @@ def test_auto_mode_rates_in_simulated_time(start_koala) -> None:
     expected = {"g": window / 0.180, "m": window / 0.100, "n": window / 0.105, "@": window * 10}
     for mode, n in counts.items():
         assert abs(n - expected[mode]) <= 0.15 * expected[mode] + 1, (counts, expected)
-    koala.lib.sendcommand("A,0")
+    # one sonar enabled: a sweep is one 20 ms measurement
+    lib = koala.lib
+    lib.sendcommand("A,0")
+    while (line := lib.read_line()) is not None and line[:1] != "a":
+        pass
+    lib.configure_us_io(1 << 3, 0)
+    lib.configure_auto_monitoring_mode(AUTO_US)
+    window = 2.0
+    t0 = koala.sim_time() + 0.5
+    lines = _auto_lines(koala, lambda got: bool(got) and got[-1][0] >= t0 + window + 0.2)
+    n = sum(1 for t, mode, _ in lines if mode == "g" and t0 <= t < t0 + window)
+    assert abs(n - window / 0.020) <= 0.15 * window / 0.020 + 1, n
+    assert all(data[i] == KOALA_US_DISABLED_SENSOR for _, _, data in lines
+               for i in range(9) if i != 3)
+    lib.sendcommand("A,0")
