@@ -296,6 +296,46 @@ class LibKoala:
     def read_magnetometer(self) -> list[int]:
         return self._params("koala_read_magnetometer", "&", "@", 3)
 
+    def read_gps(self) -> tuple[Any, ...]:
+        """``koala_gps_data``: all 14 fields of ``sscanf(buffer,
+        "%*c,%c,%d,%lf,%c,%lf,%c,%d:%d:%d,%d.%d.%d,%lf,%d")`` must convert."""
+        line = self._command("koala_gps_data", "Q", "q")
+        num, i = r"\s*([+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)", r"\s*([+-]?\d+)"
+        m = re.match(rf"q,(.),{i},{num},(.),{num},(.),{i}:{i}:{i},{i}\.{i}\.{i},{num},{i}",
+                     line)
+        if m is None:
+            raise LibKoalaError("koala_gps_data", -2, line)
+        return m.groups()
+
+    def scan_i2c(self) -> list[int]:
+        """``koala_scan_i2c``: ``'!'``, then the count, then that many addresses."""
+        line = self._command("koala_scan_i2c", "?", "!")
+        values = process_param(line, 128)
+        if not values or None in values or len(values) != 1 + (values[0] or 0):
+            raise LibKoalaError("koala_scan_i2c", -2, line)
+        return [int(v) for v in values[1:] if v is not None]
+
+    def read_i2c(self, addr: int, reg: int, n: int) -> list[int]:
+        values = self._params("koala_read_i2c", f"R,{addr},{reg},{n}", "r", n)
+        return values
+
+    def write_i2c(self, addr: int, reg: int, data: list[int]) -> None:
+        self._command("koala_write_i2c", f"W,{addr},{reg}" + "".join(f",{d}" for d in data), "w")
+
+    def send_gps_cmd(self, text: str) -> None:
+        self._command("koala_send_gps_cmd", f"X,{text}", "x")
+
+    def set_pwr_io_output(self, pwr: int, io0: int, io1: int, io2: int, io3: int) -> None:
+        self._command("koala_set_pwr_io_output", f"S,{pwr},{io0},{io1},{io2},{io3}", "s")
+
+    def read_io(self) -> tuple[int, int]:
+        io, inputs = self._ints("koala_read_io", "T", "t", 2)
+        return io, inputs
+
+    def read_ad(self) -> tuple[int, int]:
+        ad0, ad1 = self._ints("koala_read_ad", "U", "u", 2)
+        return ad0, ad1
+
     def get_from_auto_mode(self) -> tuple[str, Any] | None:
         """``koala_get_from_auto_mode``: None if no line waits (-1), else (mode, data); an
         unknown mode or a failed parse raises with the library's code."""
@@ -417,6 +457,19 @@ def test_unknown_command_does_not_look_like_success(koala: Koala25) -> None:
         assert line is not None, f"no reply to {command!r}"
         assert line[:1] not in LIBKOALA_SUCCESS_CHARS, (command, line)
     assert koala.lib.read_motor_speed() == (0, 0)              # the port still works
+
+
+def test_the_rest_of_the_command_set_answers_as_libkoala_checks(koala: Koala25) -> None:
+    lib = koala.lib
+    valid, sats, lat, ns, lon, ew, *_ = lib.read_gps()
+    assert valid in "AV" and ns in "NS" and ew in "EW", (valid, ns, ew)
+    lib.scan_i2c()
+    assert len(lib.read_i2c(0x10, 0, 3)) == 3
+    lib.write_i2c(0x10, 0, [1, 2])
+    lib.send_gps_cmd("$PMTK000*32")
+    lib.set_pwr_io_output(0, 0, 0, 0, 0)
+    lib.read_io()
+    assert all(0 <= v <= 1023 for v in lib.read_ad())        # 10 bits: 0..3.3 V
 
 
 # -- motion --------------------------------------------------------------------------------------
