@@ -4,13 +4,13 @@ The configuration installed with koala-bridge (default.toml, ideal.toml, koala25
 Koala 2.5, worlds/*.toml,
 koala.dbc and the README that says where every number comes from) lives inside the package;
 `config init DIR` copies it into DIR, to edit and run with `run --config DIR/default.toml`; the
-copied default.toml, ideal.toml and koala25.toml use the koala.dbc copied beside them (dbc = "koala.dbc",
-relative to the config file's folder).
+copied default.toml, ideal.toml and koala25.toml use the koala.dbc copied beside them
+(dbc = "koala.dbc", relative to the config file's folder).
 Existing files are left alone unless --force is given. `config path` prints the folder of the
 shipped files (read them there, do not edit them: a reinstall replaces them).
 
 examples:
-  koala-bridge config init my-koala                # default, ideal, koala25 .toml, worlds/, koala.dbc
+  koala-bridge config init my-koala                # *.toml, worlds/, koala.dbc, README.md
   koala-bridge run --config my-koala/default.toml --clock fast --duration 10
   koala-bridge config init my-koala --force        # overwrite with the shipped files again
   koala-bridge config path                         # where the shipped configuration lives
