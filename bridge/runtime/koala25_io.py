@@ -114,6 +114,7 @@ class Koala25Responder:
         self.mode = [IDLE, IDLE]
         self._targets = (0, 0)
         self._next_due: dict[str, float] = {}
+        self._auto_t0 = 0.0
 
     # -- commands ----------------------------------------------------------------------------
 
@@ -129,6 +130,7 @@ class Koala25Responder:
             with self._lock:
                 self.auto_bits = a[0]
                 self._next_due = {}
+                self._auto_t0 = self.port.t     # the streams' periods count from here
             return reply("A")
         if letter == "C":
             with self._lock:
@@ -323,10 +325,11 @@ class Koala25Responder:
             with self._lock:
                 due = self._next_due.get(name)
                 if due is None:
-                    due = self._next_due[name] = t + period
+                    due = self._next_due[name] = self._auto_t0 + period
                 if t + 1e-9 < due:
                     continue
-                self._next_due[name] = due + period
+                # on the grid from A; a late call (a stalled loop) skips the missed pushes
+                self._next_due[name] = due + period if t < due + period else t + period
             out.append(KOALA25.reply(letter, self._read(letter, ())))
         return out
 

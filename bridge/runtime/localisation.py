@@ -12,7 +12,8 @@ bus                      codec (``drivers``)                     estimator input
 ``can``                  ``can_codec.KoalaCanCodec`` (the DBC)   ``WheelOdometry``, ``Gyro``
 ``mavlink``              ``mavlink_codec.CompassDecoder``        ``SCALED_IMU`` field
 ``serial/rangefinders``  ``rangeframes.RangeFrameDecoder``       IR counts, sonar mm
-``serial/kteam``         ``kteam.parse_reply``                   ``n`` IR counts, ``h`` ticks
+``serial/kteam``         the dialect's ``parse_reply``           koala1 ``n`` IR, ``h`` ticks;
+                                                                 koala25 ``p`` ticks
 =======================  ======================================  ============================
 
 So it runs the same against the simulator (``runtime/sim_source.py`` hands it every frame it sends)
@@ -76,7 +77,8 @@ from koala_bridge.core.schema import (
     validate,
 )
 from koala_bridge.drivers.can_codec import KoalaCanCodec, wrap_int32
-from koala_bridge.drivers.kteam import LineSplitter, parse_reply
+from koala_bridge.drivers.dialects import dialect
+from koala_bridge.drivers.kteam import LineSplitter
 from koala_bridge.drivers.mavlink_codec import CompassDecoder
 from koala_bridge.drivers.messages import (
     CompassSample,
@@ -317,7 +319,7 @@ class LocalisationNode:
     """
 
     def __init__(self, settings: LocalisationSettings, robot: SimConfig, publish: Publish,
-                 can_codec: KoalaCanCodec | None = None) -> None:
+                 can_codec: KoalaCanCodec | None = None, kteam_dialect: str = "koala1") -> None:
         self.settings = settings
         self.world: World = robot.world
         self._publish = publish
@@ -382,6 +384,10 @@ class LocalisationNode:
         self._mavlink = CompassDecoder()
         self._ranges = RangeFrameDecoder()
         self._kteam = LineSplitter()
+        self._kteam_dialect = dialect(kteam_dialect)
+        # reply letter -> what it carries: koala1 n = IR counts, h = counters; koala25 p = counters
+        self._kteam_odometry = "p" if kteam_dialect == "koala25" else "h"
+        self._kteam_ir = "n" if kteam_dialect == "koala1" else None
         self._streamed: set[str] = set()       # "ir", "odometry": a streaming source was seen
         self._raw_ticks: tuple[int, int] | None = None
         self._ticks = (0, 0)                   # counters fed to the EKF (resets removed)
@@ -419,11 +425,15 @@ class LocalisationNode:
 
     @classmethod
     def from_config(cls, config: Mapping[str, Any], robot: SimConfig, publish: Publish,
-                    can_codec: KoalaCanCodec | None = None) -> LocalisationNode | None:
+                    can_codec: KoalaCanCodec | None = None,
+                    kteam_dialect: str = "koala1") -> LocalisationNode | None:
         """A node for ``config``'s ``[localisation]`` section, or None when it is off.
-        ``can_codec``: the owner's (its ``[buses.can] dbc``); default: the shipped DBC."""
+        ``can_codec``: the owner's (its ``[buses.can] dbc``); default: the shipped DBC.
+        ``kteam_dialect``: what the K-Team serial link speaks (its replies are read by it)."""
         settings = LocalisationSettings.from_config(config)
-        return None if settings is None else cls(settings, robot, publish, can_codec)
+        if settings is None:
+            return None
+        return cls(settings, robot, publish, can_codec, kteam_dialect=kteam_dialect)
 
     def _initial_pose(self) -> tuple[float, float, float]:
         p = self.settings.initial_pose
@@ -519,17 +529,18 @@ class LocalisationNode:
 
     def _on_kteam(self, t: float, data: bytes) -> None:
         for line in self._kteam.feed(data):
-            reply = parse_reply(line) if isinstance(line, bytes) else None
+            reply = self._kteam_dialect.parse_reply(line) if isinstance(line, bytes) else None
             if not isinstance(reply, KteamReply):
                 continue
             try:
                 values = reply.ints
             except ValueError:
                 continue
-            if reply.letter == "n" and "ir" not in self._streamed \
+            if reply.letter == self._kteam_ir and "ir" not in self._streamed \
                     and len(values) == len(self._ir_poses):
                 self._ir(t, np.asarray(values, dtype=float))
-            elif reply.letter == "h" and "odometry" not in self._streamed and len(values) == 2:
+            elif reply.letter == self._kteam_odometry and "odometry" not in self._streamed \
+                    and len(values) == 2:
                 self._odometry(t, values[0], values[1])
 
     # -- estimators ----------------------------------------------------------------------
