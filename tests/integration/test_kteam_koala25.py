@@ -580,10 +580,25 @@ def test_k_ramps_to_the_speed_under_the_j_profile(koala: Koala25) -> None:
 
 
 def test_l_is_open_loop(koala: Koala25) -> None:
+    """L under the default J current limit (1 A) may start in mode 5 (current limitation); with
+    the limit off (J max_current 0 = disable, manual) it is mode 4 from the first period on."""
     lib = koala.lib
     lib.set_motor_speed_open_loop(-800, 800)
-    assert lib.get_motor_status()[:2] == (MODE_OPEN_LOOP, MODE_OPEN_LOOP)
     wait_until(lib.read_motor_speed, lambda s: s[0] < 0 < s[1], "E under L,-800,800")
+    koala.wait_sim(0.5)
+    assert lib.get_motor_status()[:2] == (MODE_OPEN_LOOP, MODE_OPEN_LOOP)
+    lib.set_motor_speed(0, 0)
+    wait_until(lib.read_motor_speed, lambda s: s == (0, 0), "E after D,0,0")
+    lib.set_speed_profile(5, 1, 10, 200, 10, 0)
+    lib.set_motor_speed_open_loop(-800, 800)
+    statuses = [lib.get_motor_status()[:2]]
+
+    def speed() -> tuple[int, int]:
+        statuses.append(lib.get_motor_status()[:2])
+        return lib.read_motor_speed()
+
+    wait_until(speed, lambda s: s[0] < 0 < s[1], "E under L,-800,800")
+    assert set(statuses) == {(MODE_OPEN_LOOP, MODE_OPEN_LOOP)}, statuses
     lib.set_motor_speed_open_loop(0, 0)                        # free wheel
     lib.set_motor_speed(0, 0)
     wait_until(lib.read_motor_speed, lambda s: s == (0, 0), "E after D,0,0")
