@@ -130,3 +130,123 @@ def test_d_after_c_switches_k_to_speed_mode(koala: KoreBotKoala) -> None:
     koala.set_speed(0, 0)
     status = koala.read_motion_status()
     assert status[1] == 1 and status[4] == 1
+
+
+# -- management sensors, as the ROS koala driver reads them --------------------------------------
+#
+# jdawkins/koala-ros, jjdawkins/koala_driver (src/koala.cpp) and jjdawkins/koala_ros2
+# (koala_node.py) open the port at 38400 baud, 8 data bits, no parity, 2 stop bits, end every
+# command with "\n", read a reply up to "\n" and take the text after the first comma. `M,n`
+# reads management sensor n; their conversions: 0 battery voltage 20 mV/unit, 1 consumption
+# current 8 mA/unit, 2 ambient temperature 0.1 degC, 3/4 left/right motor current 4 mA/unit,
+# 5 battery temperature 0.1 degC. `S` -> `s,<remaining charge, mAh>` is the bridge's reading (no
+# driver sends S). Bounds come from [robot.battery] (config/default.toml) through the model in
+# sim/battery.py's docstring.
+
+MGMT_UNITS = {0: 0.020, 1: 0.008, 2: 0.1, 3: 0.004, 4: 0.004, 5: 0.1}   # V, A, degC, A, A, degC
+
+
+class RosKoala:
+    """The ROS koala driver's serial I/O: "\\n"-ended commands, replies read up to "\\n"."""
+
+    def __init__(self, port: serial.Serial) -> None:
+        self.port = port
+
+    def ask(self, command: str, letter: str) -> str:
+        self.port.write(command.encode("ascii") + b"\n")
+        line = self.port.read_until(b"\n").decode("ascii")
+        assert line.endswith("\n"), f"no reply to {command!r}: {line!r}"
+        assert line.startswith(letter), f"{command!r} -> {line!r}"
+        return line
+
+    def management(self, n: int) -> float:
+        """``M,n`` -> the driver's value in SI-ish units (V, A, degC)."""
+        line = self.ask(f"M,{n}", "m")
+        return float(line.split(",", 1)[1]) * MGMT_UNITS[n]
+
+    def charge_mAh(self) -> float:
+        return float(self.ask("S", "s").split(",", 1)[1])
+
+    def set_speed(self, left: int, right: int) -> None:
+        self.ask(f"D,{left},{right}", "d")
+
+    def read_speed(self) -> tuple[int, int]:
+        left, right = self.ask("E", "e").split(",", 1)[1].split(",")
+        return int(left), int(right)
+
+
+def _battery() -> dict[str, float]:
+    import tomllib
+
+    from conftest import DEFAULT_CONFIG
+
+    with open(DEFAULT_CONFIG, "rb") as f:
+        return dict(tomllib.load(f)["robot"]["battery"])
+
+
+@pytest.fixture
+def ros_koala(bridge, zenoh_watch):
+    b = bridge(sets=["buses.rangefinders.enabled=false"])
+    path = b.endpoints["serial"]["kteam"]
+    with serial.Serial(path, 38400, bytesize=serial.EIGHTBITS, parity=serial.PARITY_NONE,
+                       stopbits=serial.STOPBITS_TWO, timeout=5) as port:
+        yield RosKoala(port), zenoh_watch(b)
+    assert b.stop() == 0
+
+
+def test_management_sensors_at_rest_are_the_configured_battery(ros_koala) -> None:
+    koala, watch = ros_koala
+    bat = _battery()
+    i_max = bat["idle_current_A"] + 2 * bat["motor_stall_current_A"]
+    voltage, current, ambient, left, right, bat_temp = (koala.management(n) for n in range(6))
+    # V = V_empty + (V_full - V_empty) soc - R I, soc <= initial_charge, I <= I_max
+    ocv_max = bat["voltage_empty_V"] + (
+        bat["voltage_full_V"] - bat["voltage_empty_V"]) * bat["initial_charge"]
+    v_lo = bat["voltage_empty_V"] - bat["internal_resistance_ohm"] * i_max
+    assert v_lo - 0.020 <= voltage <= ocv_max + 0.020, voltage
+    # at rest I = I_idle (the wheels draw nothing): one unit of rounding either way
+    assert abs(current - bat["idle_current_A"]) <= 0.008, current
+    assert left == 0.0 and right == 0.0, (left, right)
+    assert abs(ambient - bat["ambient_temperature_C"]) <= 0.1, ambient
+    # T_bat rises from ambient towards T_amb + R I^2 R_th, never beyond it
+    t_max = bat["ambient_temperature_C"] + (
+        bat["internal_resistance_ohm"] * i_max**2 * bat["thermal_resistance_K_per_W"])
+    assert bat["ambient_temperature_C"] - 0.1 <= bat_temp <= t_max + 0.1, bat_temp
+    # Q = capacity x initial charge at reset, drained by at most I_max for the time run so far
+    t = watch.wait_for("truth/pose")["t"]
+    full = bat["capacity_mAh"] * bat["initial_charge"]
+    assert full - i_max * (t + 1.0) / 3.6 - 1.0 <= koala.charge_mAh() <= full, t
+
+
+def test_driving_draws_motor_current_and_charge(ros_koala) -> None:
+    """At a steady wheel speed v a motor draws k_v |v| (sim/battery.py); 1 unit = 4.5 mm/s. The
+    charge (whole mAh) falls by at least (I_idle + 2 k_v v) T / 3.6 over T s of steady driving and
+    by at most I_max T / 3.6."""
+    koala, watch = ros_koala
+    bat = _battery()
+    at_rest = koala.management(1)
+    v_units = 60
+    koala.set_speed(-v_units, v_units)                         # spin on the spot: no wall
+    deadline = time.monotonic() + DEADLINE_S
+    while koala.read_speed() != (-v_units, v_units):
+        assert time.monotonic() < deadline
+    t0 = watch.wait_for("truth/pose")["t"]
+    watch.after("truth/pose", t0 + 0.5, timeout=DEADLINE_S)    # steady: no acceleration term
+    v = v_units * 0.0045
+    expected = bat["motor_current_per_mps_A"] * v
+    left, right = koala.management(3), koala.management(4)
+    assert abs(left - expected) <= 0.008 and abs(right - expected) <= 0.008, (left, right)
+    driving = koala.management(1)
+    i_drive = bat["idle_current_A"] + 2 * expected
+    assert abs(driving - i_drive) <= 0.016, driving
+    assert driving > at_rest
+    t1 = watch.wait_for("truth/pose")["t"]
+    charge1 = koala.charge_mAh()
+    drive_s = 30.0
+    watch.after("truth/pose", t1 + drive_s, timeout=DEADLINE_S)
+    charge2 = koala.charge_mAh()
+    t2 = watch.wait_for("truth/pose")["t"]
+    koala.set_speed(0, 0)
+    used = charge1 - charge2
+    i_max = bat["idle_current_A"] + 2 * bat["motor_stall_current_A"]
+    assert i_drive * drive_s / 3.6 - 1.0 <= used <= i_max * (t2 - t1 + 1.0) / 3.6 + 1.0, used
