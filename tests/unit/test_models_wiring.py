@@ -99,7 +99,7 @@ def _oblique_sonar(late: float) -> Readings:
 
 
 def test_specular_wall_loses_the_echo_or_returns_it_late_via_a_second_wall() -> None:
-    front = 4                                                   # sonar on the robot's axis
+    front = 3                                                   # sonar on the robot's axis
     lost = _oblique_sonar(0.0).sonar
     assert lost is not None
     assert math.isnan(lost.ranges[front])
