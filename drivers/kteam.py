@@ -12,7 +12,8 @@ same letter in lower case, ``,`` and the values, ended by the dialect's terminat
 A :class:`Dialect` is one robot's command set and line discipline: :data:`KOALA1` (the classic
 Koala / Koala II as KoreBot ``koala.c`` and the ROS koala driver drive it: 38400 8N2, replies end
 CR LF, errors ``z,<text>``) here, ``KOALA25`` (the Koala 2.5 as K-Team ``libkoala`` drives it)
-in :mod:`koala_bridge.drivers.koala25`; :func:`dialect` returns either by name.
+in :mod:`koala_bridge.drivers.koala25`; :func:`koala_bridge.drivers.dialects.dialect` returns
+either by name.
 
 Units are the robot's: speeds in pulse/10 ms, positions in encoder pulses, sensors in raw counts.
 Conversion to SI lives in :mod:`bridge`, with the constants in ``config/``.
@@ -31,12 +32,13 @@ __all__ = [
     "KOALA1",
     "Dialect",
     "SerialLine",
-    "dialect",
     "ERROR_OUT_OF_RANGE",
     "ERROR_PROTOCOL",
     "ERROR_UNKNOWN_COMMAND",
     "INT32_MAX",
     "INT32_MIN",
+    "MANAGEMENT_CHANNELS",
+    "MANAGEMENT_UNITS",
     "CommandSpec",
     "KteamLimits",
     "LineSplitter",
@@ -64,6 +66,12 @@ _ERROR_TEXT: Mapping[RejectReason, str] = MappingProxyType(
         RejectReason.OUT_OF_RANGE: ERROR_OUT_OF_RANGE,
     }
 )
+
+MANAGEMENT_CHANNELS = 6
+"""Classic Koala ``M,n`` channels (the ROS koala driver reads 0..5)."""
+MANAGEMENT_UNITS = (0.020, 0.008, 0.1, 0.004, 0.004, 0.1)
+"""Classic Koala ``M,n`` units: V, A, degC, A, A, degC per count (the ROS koala driver's
+conversions: 20 mV, 8 mA, 0.1 degC, 4 mA, 4 mA, 0.1 degC)."""
 
 _INT_FIELD = re.compile(r"[+-]?[0-9]{1,11}")
 #: Printable ASCII but the separator: the one text argument (Koala 2.5 ``X``) and text fields.
@@ -157,6 +165,14 @@ def command_specs(limits: KteamLimits | None = None) -> Mapping[str, CommandSpec
             "Q", "set digital output (number, 0 off / 1 on)", ((0, lim.outputs - 1), (0, 1)), 0
         ),
         CommandSpec("Y", "read digital inputs (bit field)", (), 1),
+        CommandSpec(
+            "M",
+            "read management sensor n (0 battery voltage, 1 current, 2 ambient temperature, "
+            "3 / 4 left / right motor current, 5 battery temperature)",
+            ((0, MANAGEMENT_CHANNELS - 1),),
+            1,
+        ),
+        CommandSpec("S", "read the battery's remaining charge, mAh", (), 1),
         CommandSpec("D", "set wheel speeds (left, right) in pulse/10 ms", (speed, speed), 0),
         CommandSpec("E", "read wheel speeds in pulse/10 ms", (), 2),
         CommandSpec("G", "set encoder counters (left, right) in pulses", (counter, counter), 0),
@@ -254,21 +270,6 @@ KOALA1 = Dialect(
     error_letter="z",
 )
 """The classic Koala / Koala II (docs/protocols.md §1 "Classic Koala (koala1) commands")."""
-
-
-def dialect(name: str, limits: KteamLimits | None = None) -> Dialect:
-    """The dialect called ``name`` (``koala1``, ``koala25``); ``limits`` (koala1 only) sets the
-    ranges of :func:`command_specs`. Raises ``ValueError`` for another name."""
-    if name == "koala1":
-        if limits is None:
-            return KOALA1
-        return Dialect(KOALA1.name, command_specs(limits), KOALA1.line, KOALA1.reply_terminator,
-                       KOALA1.command_terminator, KOALA1.error_letter)
-    if name == "koala25":
-        from koala_bridge.drivers.koala25 import KOALA25  # noqa: PLC0415 (it imports this module)
-
-        return KOALA25
-    raise ValueError(f"unknown K-Team dialect {name!r} (koala1, koala25)")
 
 
 # --------------------------------------------------------------------------- line framing

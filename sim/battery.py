@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import Any
+from typing import Annotated, Any
 
 from koala_bridge.core.schema import (
     ConfigError,
@@ -42,16 +42,21 @@ from koala_bridge.core.schema import (
     NonNegative,
     Positive,
     Probability,
+    Str,
+    one_of,
     section,
     validate,
 )
 from koala_bridge.sim.types import BatteryReading
+
+CHEMISTRIES = ("NiMH", "Li-ion")
 
 
 @section
 class BatteryConfig:
     """``[robot.battery]``: the battery and motor-current model above (units in the key names)."""
 
+    chemistry: Annotated[Str, one_of(CHEMISTRIES)]  # reported by Koala 2.5 V (type code)
     capacity_mAh: Positive
     initial_charge: Probability   # state of charge at reset, 0..1
     voltage_full_V: Positive            # open-circuit voltage at full charge

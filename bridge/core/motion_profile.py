@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-__all__ = ["Trapezoid", "trapezoid"]
+__all__ = ["Trapezoid", "ramp_speed", "trapezoid"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -83,3 +83,15 @@ def trapezoid(distance: float, v_max: float, accel: float) -> Trapezoid:
     # distance covered by the two ramps together is v_peak * t_accel; the rest is cruise
     t_cruise = (d - v_peak * t_accel) / v_peak if v_peak > 0 else 0.0
     return Trapezoid(float(distance), v_peak, accel, t_accel, max(0.0, t_cruise))
+
+
+def ramp_speed(v_from: float, v_to: float, accel: float, t: float) -> float:
+    """Speed ``t`` after a ramp from ``v_from`` towards ``v_to`` at ``|a| = accel`` started (the
+    Koala 2.5's ``K``: a speed set-point reached under the ``J`` acceleration); ``v_to`` once
+    reached. ``accel`` must be > 0."""
+    if t <= 0.0:
+        return v_from
+    step = accel * t
+    if abs(v_to - v_from) <= step:
+        return v_to
+    return v_from + math.copysign(step, v_to - v_from)

@@ -21,6 +21,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from koala_bridge.drivers.dialects import dialect
+
 if TYPE_CHECKING:
     from koala_bridge.runtime.buses import OpenBuses
     from koala_bridge.runtime.settings import BridgeSettings
@@ -38,6 +40,7 @@ class Endpoints:
     """Every place a client can connect to, as the bridge opened them."""
 
     kteam: str | None = None
+    kteam_dialect: str = "koala1"               # banner only: [buses.kteam] dialect
     rangefinders: str | None = None
     socketcand: SocketcandEndpoint | None = None
     slcan: str | None = None
@@ -70,7 +73,8 @@ class Endpoints:
         lines = ["koala-bridge is serving. Connect clients to:"]
         lines.append(
             f"  K-Team serial (ASCII)   {self.kteam or off}"
-            + ("   e.g. serial.Serial(PATH, 115200)" if self.kteam else "")
+            + (f"   {self.kteam_dialect}: e.g. serial.Serial(PATH, "
+               f"{_serial_args(self.kteam_dialect)})" if self.kteam else "")
         )
         lines.append(f"  Range frames (binary)   {self.rangefinders or off}")
         if self.socketcand:
@@ -109,6 +113,13 @@ class Endpoints:
         return "\n".join(lines)
 
 
+def _serial_args(dialect_name: str) -> str:
+    """pyserial arguments opening a port as the dialect's robot has it (a pty ignores them)."""
+    line = dialect(dialect_name).line
+    return (f"{line.baudrate}, bytesize={line.bytesize}, parity='{line.parity}', "
+            f"stopbits={line.stopbits:g}")
+
+
 def endpoints_of(buses: OpenBuses, settings: BridgeSettings, zenoh: bool = True) -> Endpoints:
     """Where clients connect to ``buses`` opened from ``settings`` (``run`` and ``replay``).
 
@@ -124,6 +135,7 @@ def endpoints_of(buses: OpenBuses, settings: BridgeSettings, zenoh: bool = True)
         mav_url = settings.buses.mavlink.client_url(pty_path=ep.path, bound_port=ep.port)
     return Endpoints(
         kteam=buses.kteam.transport.endpoint.path if buses.kteam else None,
+        kteam_dialect=settings.buses.kteam_dialect,
         rangefinders=buses.rangefinders.transport.endpoint.path if buses.rangefinders else None,
         socketcand=socketcand,
         slcan=buses.can["can.slcan"].endpoint.path if "can.slcan" in buses.can else None,

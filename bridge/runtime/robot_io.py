@@ -29,13 +29,26 @@ from __future__ import annotations
 
 import math
 import threading
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
-from koala_bridge.core.motion_profile import Trapezoid, trapezoid
-from koala_bridge.drivers.kteam import INT32_MIN, KteamLimits, command_specs, error_reply
+from koala_bridge.core.motion_profile import Trapezoid, ramp_speed, trapezoid
+from koala_bridge.drivers.kteam import (
+    INT32_MIN,
+    KOALA1,
+    MANAGEMENT_UNITS,
+    KteamLimits,
+    command_specs,
+    error_reply,
+)
 from koala_bridge.drivers.messages import KteamCommand, KteamReply, Reject
-from koala_bridge.sim.types import Readings, WheelCommand
+from koala_bridge.sim.types import BatteryReading, Readings, WheelCommand
+
+HISTORY = 10
+"""Gyro and accelerometer samples kept (the Koala 2.5's ``N`` / ``M`` report the last 10)."""
+STANDARD_GRAVITY = 9.80665
+"""m/s^2 (CGPM 1901), what a level accelerometer at rest reads on its up axis."""
 
 VERSION_TEXT = "0.1,1.0"
 """``B`` reply fields, KoreBot ``koala.c`` format ``V.R,P.Q``: firmware (BIOS) version.revision,
@@ -57,6 +70,8 @@ class MotorArbiter:
         self._t_command: float | None = None
         self._t_now = 0.0
         self._move: tuple[Trapezoid, Trapezoid] | None = None
+        self._ramp: tuple[WheelCommand, float] | None = None   # start speeds, acceleration
+        self._applied = WheelCommand(0.0, 0.0)                  # what command() last returned
         self.watchdog_s = watchdog_s
 
     def set(self, left_mps: float, right_mps: float, source: str) -> None:
@@ -66,12 +81,25 @@ class MotorArbiter:
             self._source = source
             self._t_command = self._t_now
             self._move = None
+            self._ramp = None
+
+    def set_ramp(self, left_mps: float, right_mps: float, accel_mps2: float, source: str) -> None:
+        """A speed set-point reached from the speeds in force at ``accel_mps2`` (Koala 2.5
+        ``K``); then held like :meth:`set`."""
+        with self._lock:
+            start = self._applied
+            self._command = WheelCommand(float(left_mps), float(right_mps))
+            self._source = source
+            self._t_command = self._t_now
+            self._move = None
+            self._ramp = (start, float(accel_mps2))
 
     def set_move(self, left: Trapezoid, right: Trapezoid, source: str) -> None:
         """A position move (profiles in metres, m/s, m/s^2), starting now: the wheels follow its
         speeds until it ends, then stop. The watchdog does not cut a move short."""
         with self._lock:
             self._move = (left, right)
+            self._ramp = None
             self._command = WheelCommand(0.0, 0.0)
             self._source = source
             self._t_command = self._t_now
@@ -85,23 +113,41 @@ class MotorArbiter:
     def command(self, t: float) -> WheelCommand:
         """The command to apply at simulation time ``t`` (also advances the watchdog's clock)."""
         with self._lock:
-            self._t_now = t
-            if self._move is not None and self._t_command is not None:
-                elapsed = t - self._t_command
-                left, right = self._move
-                if elapsed < max(left.duration, right.duration):
-                    return WheelCommand(left.velocity(elapsed), right.velocity(elapsed))
-                self._command = WheelCommand(0.0, 0.0)
-                return self._command
-            if (
-                self.watchdog_s > 0
-                and self._t_command is not None
-                and t - self._t_command > self.watchdog_s
-            ):
-                self._command = WheelCommand(0.0, 0.0)
-                self._source = "watchdog"
-                self._t_command = None
+            self._applied = self._command_at(t)
+            return self._applied
+
+    def _command_at(self, t: float) -> WheelCommand:
+        self._t_now = t
+        if self._move is not None and self._t_command is not None:
+            elapsed = t - self._t_command
+            left, right = self._move
+            if elapsed < max(left.duration, right.duration):
+                return WheelCommand(left.velocity(elapsed), right.velocity(elapsed))
+            self._command = WheelCommand(0.0, 0.0)
             return self._command
+        if (
+            self.watchdog_s > 0
+            and self._t_command is not None
+            and t - self._t_command > self.watchdog_s
+        ):
+            self._command = WheelCommand(0.0, 0.0)
+            self._source = "watchdog"
+            self._t_command = None
+            self._ramp = None
+        if self._ramp is not None and self._t_command is not None:
+            start, accel = self._ramp
+            elapsed = t - self._t_command
+            cmd = WheelCommand(ramp_speed(start.left, self._command.left, accel, elapsed),
+                               ramp_speed(start.right, self._command.right, accel, elapsed))
+            if cmd == self._command:
+                self._ramp = None
+            return cmd
+        return self._command
+
+    def ramping(self) -> bool:
+        """True while a :meth:`set_ramp` set-point is not reached yet."""
+        with self._lock:
+            return self._ramp is not None
 
     def command_in_force(self) -> WheelCommand:
         """The last speed command, without advancing the watchdog's clock."""
@@ -141,21 +187,42 @@ class RobotPort:
     """The latest readings as the robot's controller sees them, plus its counters and LEDs.
 
     Written by the simulation loop (:meth:`update`), read by bus handlers on other threads.
+    Besides the latest reading of each sensor it keeps the last :data:`HISTORY` gyro and
+    accelerometer samples (the Koala 2.5 reports 10 at a time), counted in ``gyro_samples`` /
+    ``accel_samples``.
+
+    The accelerometer is not a simulated sensor of its own: its samples are the specific force of
+    the planar robot at the body centre, from the wheel speeds of each step (``v`` mean wheel
+    speed, ``w = (v_r - v_l) / wheel_base``): ``f = (dv/dt, v w, g)`` in FLU, m/s^2 -- exact for
+    the simulated kinematics, no noise (no accelerometer error model exists yet).
     """
 
-    def __init__(self, n_ir: int = 16) -> None:
+    def __init__(self, n_ir: int = 16, wheel_base_m: float = 0.285) -> None:
         self._lock = threading.Lock()
         self.n_ir = n_ir
+        self.wheel_base_m = wheel_base_m
         self._ticks = (0, 0)                # simulator's cumulative counts
         self._offset = (0, 0)               # set by K-Team G
         self._wheel_speeds = WheelCommand(0.0, 0.0)
         self._ir = np.zeros(n_ir, dtype=np.int64)
         self._ambient = np.zeros(n_ir, dtype=np.int64)
+        self._sonar: tuple[float, ...] = ()
+        self._compass: tuple[float, float, float] | None = None
+        self._battery: BatteryReading | None = None
+        self._gyro: deque[float] = deque(maxlen=HISTORY)
+        self._accel: deque[tuple[float, float, float]] = deque(maxlen=HISTORY)
+        self.gyro_samples = 0
+        self.accel_samples = 0
         self.leds = [0, 0]
         self.t = 0.0
+        self._t_prev: float | None = None
 
     def update(self, r: Readings) -> None:
         with self._lock:
+            if self._t_prev is not None and r.t > self._t_prev:
+                self._accel.append(self._specific_force(r.wheel_speeds, r.t - self._t_prev))
+                self.accel_samples += 1
+            self._t_prev = r.t
             self.t = r.t
             self._wheel_speeds = r.wheel_speeds
             if r.odometry is not None:
@@ -163,6 +230,50 @@ class RobotPort:
             if r.ir is not None:
                 self._ir = np.asarray(r.ir.counts)
                 self._ambient = np.asarray(r.ir.ambient)
+            if r.sonar is not None:
+                self._sonar = tuple(float(v) for v in r.sonar.ranges)
+            if r.gyro is not None:
+                self._gyro.append(float(r.gyro.yaw_rate))
+                self.gyro_samples += 1
+            if r.compass is not None:
+                f = r.compass.field_uT
+                self._compass = (float(f[0]), float(f[1]), float(f[2]))
+            if r.battery is not None:
+                self._battery = r.battery
+
+    def _specific_force(self, speeds: WheelCommand, dt: float) -> tuple[float, float, float]:
+        prev = self._wheel_speeds
+        v = 0.5 * (speeds.left + speeds.right)
+        v_prev = 0.5 * (prev.left + prev.right)
+        w = (speeds.right - speeds.left) / self.wheel_base_m
+        fx, fy = (v - v_prev) / dt, v * w
+        if not (math.isfinite(fx) and math.isfinite(fy)):
+            fx = fy = 0.0
+        return (fx, fy, STANDARD_GRAVITY)
+
+    def sonar(self) -> tuple[float, ...]:
+        """The latest sonar ranges, m (nan: no echo); () before the first reading."""
+        with self._lock:
+            return self._sonar
+
+    def compass(self) -> tuple[float, float, float] | None:
+        """The latest magnetometer field, body FLU, uT."""
+        with self._lock:
+            return self._compass
+
+    def battery(self) -> BatteryReading | None:
+        with self._lock:
+            return self._battery
+
+    def gyro_history(self) -> list[float]:
+        """The last yaw rates (rad/s), newest first."""
+        with self._lock:
+            return list(reversed(self._gyro))
+
+    def accel_history(self) -> list[tuple[float, float, float]]:
+        """The last specific forces (m/s^2, FLU), newest first."""
+        with self._lock:
+            return list(reversed(self._accel))
 
     def counters(self) -> tuple[int, int]:
         """Encoder counters as the robot reports them (after ``G``), wrapped to int32."""
@@ -197,7 +308,10 @@ class RobotPort:
 
 
 class KteamResponder:
-    """Acts on one parsed K-Team command and returns the reply (docs/protocols.md)."""
+    """Acts on one parsed classic-Koala (``koala1``) command and returns the reply
+    (docs/protocols.md)."""
+
+    dialect = KOALA1
 
     def __init__(
         self,
@@ -256,6 +370,11 @@ class KteamResponder:
             with self._lock:
                 self.outputs[args[0]] = args[1]
             return KteamReply(lo)
+        if letter == "M":
+            return KteamReply(lo, (str(self._management(args[0])),))
+        if letter == "S":
+            bat = self.port.battery()
+            return KteamReply(lo, (str(round(bat.charge_mAh) if bat else 0),))
         if letter == "I":
             return KteamReply(lo, ("0",))    # nothing is wired to the analog inputs
         if letter == "Y":
@@ -286,6 +405,15 @@ class KteamResponder:
             return KteamReply(lo)
         # parse_command only lets through the letters of command_specs.
         raise AssertionError(f"no handler for K-Team command {letter!r}")
+
+    def _management(self, channel: int) -> int:
+        """``M,n``: the battery model's value in the channel's unit (``MANAGEMENT_UNITS``)."""
+        bat = self.port.battery()
+        if bat is None:
+            return 0
+        value = (bat.voltage_V, bat.current_A, bat.ambient_temperature_C,
+                 bat.motor_currents_A[0], bat.motor_currents_A[1], bat.temperature_C)[channel]
+        return max(0, min(0xFFFF, round(value / MANAGEMENT_UNITS[channel])))
 
     def _set_speeds(self, left: float, right: float) -> None:
         """Command wheel speeds given in K-Team speed units (pulse/10 ms)."""

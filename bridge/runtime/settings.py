@@ -41,6 +41,7 @@ from koala_bridge.core.schema import (
     tuples,
     validate,
 )
+from koala_bridge.drivers.dialects import DIALECTS
 from koala_bridge.runtime.clock import CLOCK_NAMES
 from pydantic import AfterValidator, BeforeValidator, Field, Strict
 
@@ -68,8 +69,7 @@ __all__ = [
 MAVLINK_TRANSPORTS = ("udp", "tcp", "pty")
 #: K-Team serial dialects (docs/protocols.md §1): ``koala1`` = classic Koala / Koala II (KoreBot
 #: ``koala.c``), ``koala25`` = Koala 2.5 (``libkoala``, Koala 2.5 user manual §6).
-KTEAM_DIALECTS = ("koala1", "koala25")
-KTEAM_DIALECTS_IMPLEMENTED = ("koala1",)
+KTEAM_DIALECTS = tuple(DIALECTS)
 
 #: A Zenoh locator whose port is 0 (``tcp/127.0.0.1:0``, ``udp/[::1]:0#iface=lo``, ...).
 _ZERO_PORT = re.compile(r":0+(?:[?#].*)?$")
@@ -515,11 +515,6 @@ class BusesSettings:
         reject_unknown(d, field_names(_BusesTable) + list(_BUS_TABLES), s)
         top = validate(_BusesTable, {k: v for k, v in d.items() if k not in _BUS_TABLES}, s)
         kteam = validate(KteamSettings, _section(d, "kteam", s), f"{s}.kteam")
-        if kteam.dialect not in KTEAM_DIALECTS_IMPLEMENTED:
-            raise ConfigError(
-                f"{s}.kteam.dialect = {kteam.dialect!r} is not implemented yet "
-                f"(implemented: {', '.join(KTEAM_DIALECTS_IMPLEMENTED)}; issue 13)"
-            )
         ranges = validate(RangefindersSettings, _section(d, "rangefinders", s),
                           f"{s}.rangefinders")
         return cls(

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 from koala_bridge.core.topics import StatusMessage, TruthPose, WorldMessage
-from koala_bridge.drivers.kteam import KteamLimits, LineSplitter, format_reply, parse_command
+from koala_bridge.drivers.kteam import KteamLimits, LineSplitter, parse_command
 from koala_bridge.drivers.mavlink_codec import CompassDecoder, CompassEncoder, MavlinkIdentity
 from koala_bridge.drivers.messages import (
     CompassSample,
@@ -52,6 +52,7 @@ from koala_bridge.runtime.buses import LockedByteLink, OpenBuses, open_buses
 from koala_bridge.runtime.clock import Clock, make_clock
 from koala_bridge.runtime.counters import BusCounters
 from koala_bridge.runtime.endpoints import Endpoints, endpoints_of
+from koala_bridge.runtime.koala25_io import Koala25Responder
 from koala_bridge.runtime.localisation import LocalisationNode
 from koala_bridge.runtime.robot_io import KteamResponder, MotorArbiter, RobotPort, RobotUnits
 from koala_bridge.runtime.settings import BridgeSettings
@@ -96,13 +97,20 @@ class SimulatedRobotSource:
         self.units = RobotUnits(robot.ticks_per_metre, robot.speed_unit_s)
         self.counters = BusCounters()
         self.arbiter = MotorArbiter(settings.buses.motor_watchdog_s)
-        self.port = RobotPort(n_ir=len(self.sim.config.sensors.ir.poses))
-        self.kteam = KteamResponder(
-            self.port,
-            self.arbiter,
-            self.units,
-            KteamLimits(max_speed=settings.buses.kteam_max_speed, sensors=self.port.n_ir),
-        )
+        self.port = RobotPort(n_ir=len(self.sim.config.sensors.ir.poses),
+                              wheel_base_m=robot.wheel_base_m)
+        # [buses.kteam] dialect: the command set the K-Team pty speaks
+        self.kteam: KteamResponder | Koala25Responder
+        if settings.buses.kteam_dialect == "koala25":
+            self.kteam = Koala25Responder(self.port, self.arbiter, self.units,
+                                          robot.max_wheel_speed_mps, robot.battery.chemistry)
+        else:
+            self.kteam = KteamResponder(
+                self.port,
+                self.arbiter,
+                self.units,
+                KteamLimits(max_speed=settings.buses.kteam_max_speed, sensors=self.port.n_ir),
+            )
         self.can_codec = settings.buses.can.codec()   # [buses.can] dbc
         mav = settings.buses.mavlink
         # [buses.mavlink] signing_key_file: None = unsigned (a bad key file: ConfigError here)
@@ -254,6 +262,10 @@ class SimulatedRobotSource:
                 self._send_bytes(
                     "mavlink", self.buses.mavlink, self.mav_encoder.scaled_imu(sample), r.t
                 )
+        if self.buses.kteam is not None and isinstance(self.kteam, Koala25Responder):
+            for line in self.kteam.auto_lines(r.t):     # Koala 2.5 auto mode (A,bits)
+                self._send_bytes("kteam", self.buses.kteam, self.kteam.dialect.format_reply(line),
+                                 r.t)
         if self.localisation is not None and r.camera is not None:
             self.localisation.on_camera(r.t, r.camera.observations)
         self._publish(r, n)
@@ -380,6 +392,7 @@ class SimulatedRobotSource:
     def _kteam_reader(self, link: LockedByteLink) -> Callable[[], None]:
         splitter = LineSplitter()
         responder = self.kteam
+        dialect = responder.dialect
         session = link.client_session
 
         def step() -> None:
@@ -406,7 +419,8 @@ class SimulatedRobotSource:
                 else:
                     self.counters.received("kteam")
                     reply = responder.respond(cmd)
-                self._send_bytes("kteam", link, format_reply(reply), t)
+                # one write per reply: libkoala reads the 7 bytes of Koala 2.5 'B' in one read()
+                self._send_bytes("kteam", link, dialect.format_reply(reply), t)
 
         return step
 

@@ -155,9 +155,11 @@ def test_kteam_dialect_defaults_to_koala1() -> None:
     assert BridgeSettings.from_config(default()).buses.kteam_dialect == "koala1"
 
 
-def test_kteam_dialect_koala25_is_refused_until_implemented() -> None:
+def test_kteam_dialect_is_koala1_or_koala25() -> None:
     cfg = apply_override(default(), ["buses", "kteam", "dialect"], "koala25")
-    with pytest.raises(ConfigError, match=r"buses\.kteam\.dialect = 'koala25' is not implemented"):
+    assert BridgeSettings.from_config(cfg).buses.kteam_dialect == "koala25"
+    cfg = apply_override(default(), ["buses", "kteam", "dialect"], "koala2")
+    with pytest.raises(ConfigError, match=r"must be one of koala1, koala25, got 'koala2'"):
         BridgeSettings.from_config(cfg)
 
 
