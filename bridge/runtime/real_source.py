@@ -76,8 +76,9 @@ from koala_bridge.core.topics import (
     StatusMessage,
     TopicMessage,
 )
+from koala_bridge.drivers.dialects import dialect
 from koala_bridge.drivers.koala25 import AUTO_BITS
-from koala_bridge.drivers.kteam import Dialect, dialect
+from koala_bridge.drivers.kteam import Dialect
 from koala_bridge.drivers.mavlink_codec import CompassDecoder
 from koala_bridge.drivers.messages import (
     CompassSample,

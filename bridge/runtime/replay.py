@@ -38,7 +38,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import can
-from koala_bridge.drivers.kteam import KOALA1, Dialect, LineSplitter, dialect
+from koala_bridge.drivers.dialects import dialect
+from koala_bridge.drivers.kteam import KOALA1, Dialect, LineSplitter
 from koala_bridge.drivers.messages import Reject, RejectReason, TransportError
 from koala_bridge.recording.mcap_file import (
     BUSES,
