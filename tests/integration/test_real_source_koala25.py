@@ -239,8 +239,8 @@ kteam_poll_hz = 10.0
     assert answers[3].startswith(b"#,") and answers[3].endswith(b"\n")   # U was never asked
     assert answers[4].startswith(b"#,")                                    # bad arity
 
-    # calibrate: runs on the recording of a real robot (no truth/pose: streams without a
-    # reference are skipped and said so)
+    # calibrate: runs on the recording of a real robot; without truth/pose the gyro is referred
+    # to the compass heading, and the streams without a reference are skipped and said so
     out = tmp_path / "cal"
     cal = subprocess.run(
         bridge_command("calibrate", str(real_rec), "--config", str(DEFAULT_CONFIG),
@@ -248,8 +248,10 @@ kteam_poll_hz = 10.0
         cwd=REPO, capture_output=True, text=True, timeout=300,
     )
     assert cal.returncode == 0, cal.stdout + cal.stderr
-    report = json.loads((out / "report.json").read_text())
-    assert report
+    assert "odometry: no reference pose (truth_pose) in the bundle; stream skipped" in cal.stderr
+    assert "range sonar: no reference range (true_range) in the bundle" in cal.stderr
+    streams = json.loads((out / "report.json").read_text())["streams"]
+    assert {s["stream"] for s in streams} == {"gyro", "compass"}
 
 
 def replay_kteam(rec: Path, tmp_path: Path, commands: list[bytes]) -> list[bytes]:
