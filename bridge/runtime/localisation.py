@@ -13,6 +13,8 @@ bus                      codec (``drivers``)                     estimator input
 ``mavlink``              ``mavlink_codec.CompassDecoder``        ``SCALED_IMU`` field
 ``serial/rangefinders``  ``rangeframes.RangeFrameDecoder``       IR counts, sonar mm
 ``serial/kteam``         ``kteam.parse_reply``                   ``n`` IR counts, ``h`` ticks
+``serial/kteam`` 2.5     ``Dialect.parse_reply`` (``koala25``)   ``p`` ticks, ``n`` gyro,
+                                                                 ``@`` field, ``g`` sonar
 =======================  ======================================  ============================
 
 So it runs the same against the simulator (``runtime/sim_source.py`` hands it every frame it sends)
@@ -22,7 +24,9 @@ has no bus: in simulation the service passes the simulator's *measured* landmark
 
 One source per quantity, as in ``real_source``: K-Team ``n``/``h`` replies (answers to whoever
 polls the robot) are used only until a streaming source (range frames, CAN ``WheelOdometry``)
-has been seen.
+has been seen; so are a Koala 2.5's ``p``, ``n``, ``@`` and ``g`` lines (``kteam_dialect``,
+converted by :class:`runtime.real_kteam.KteamReplyDecoder`) until CAN ``WheelOdometry`` or
+``Gyro``, MAVLink compass or sonar range frames have been seen.
 
 What it does with them (docs/localisation.md, "In the bridge"):
 
@@ -75,8 +79,9 @@ from koala_bridge.core.schema import (
     section,
     validate,
 )
+from koala_bridge.core.topics import CompassMessage, GyroMessage, OdometryMessage, SonarMessage
 from koala_bridge.drivers.can_codec import KoalaCanCodec, wrap_int32
-from koala_bridge.drivers.kteam import LineSplitter, parse_reply
+from koala_bridge.drivers.kteam import KOALA1, Dialect, LineSplitter, parse_reply
 from koala_bridge.drivers.mavlink_codec import CompassDecoder
 from koala_bridge.drivers.messages import (
     CompassSample,
@@ -108,6 +113,7 @@ from koala_bridge.estimation.messages import (
     occupancy_message,
     pose_message,
 )
+from koala_bridge.runtime.real_kteam import KteamReplyDecoder
 from koala_bridge.sim.config import SimConfig
 from koala_bridge.sim.world import SIDE_STEP, SIDES, World
 from pydantic import AfterValidator, Field
@@ -314,10 +320,13 @@ class LocalisationNode:
         publish: called with ``(key suffix, JSON-ready payload)`` for each output message.
         can_codec: decodes the CAN frames (the owner's, from ``[buses.can] dbc``); default: a
             codec of the shipped DBC.
+        kteam_dialect: the dialect of the K-Team frames (the real robot's ``[real]
+            kteam_dialect``); default: the classic Koala's.
     """
 
     def __init__(self, settings: LocalisationSettings, robot: SimConfig, publish: Publish,
-                 can_codec: KoalaCanCodec | None = None) -> None:
+                 can_codec: KoalaCanCodec | None = None,
+                 kteam_dialect: Dialect = KOALA1) -> None:
         self.settings = settings
         self.world: World = robot.world
         self._publish = publish
@@ -382,6 +391,9 @@ class LocalisationNode:
         self._mavlink = CompassDecoder()
         self._ranges = RangeFrameDecoder()
         self._kteam = LineSplitter()
+        self._kteam_dialect = kteam_dialect
+        self._kteam25 = (KteamReplyDecoder(kteam_dialect)
+                         if kteam_dialect.name != KOALA1.name else None)
         self._streamed: set[str] = set()       # "ir", "odometry": a streaming source was seen
         self._raw_ticks: tuple[int, int] | None = None
         self._ticks = (0, 0)                   # counters fed to the EKF (resets removed)
@@ -419,11 +431,14 @@ class LocalisationNode:
 
     @classmethod
     def from_config(cls, config: Mapping[str, Any], robot: SimConfig, publish: Publish,
-                    can_codec: KoalaCanCodec | None = None) -> LocalisationNode | None:
+                    can_codec: KoalaCanCodec | None = None,
+                    kteam_dialect: Dialect = KOALA1) -> LocalisationNode | None:
         """A node for ``config``'s ``[localisation]`` section, or None when it is off.
-        ``can_codec``: the owner's (its ``[buses.can] dbc``); default: the shipped DBC."""
+        ``can_codec``: the owner's (its ``[buses.can] dbc``); default: the shipped DBC.
+        ``kteam_dialect``: what the K-Team frames speak; default: the classic Koala."""
         settings = LocalisationSettings.from_config(config)
-        return None if settings is None else cls(settings, robot, publish, can_codec)
+        return None if settings is None else cls(settings, robot, publish, can_codec,
+                                                 kteam_dialect)
 
     def _initial_pose(self) -> tuple[float, float, float]:
         p = self.settings.initial_pose
@@ -495,6 +510,7 @@ class LocalisationNode:
             self._streamed.add("odometry")
             self._odometry(t, frame.left_ticks, frame.right_ticks)
         elif isinstance(frame, GyroFrame):
+            self._streamed.add("gyro")
             self.counters.took("gyro")
             self.tracker.on_gyro(t, frame.yaw_rate)
         else:  # a Reject, or a MotorCommand (not the robot's)
@@ -504,6 +520,7 @@ class LocalisationNode:
         before = self._mavlink.rejected
         for m in self._mavlink.feed(data):
             if isinstance(m, CompassSample):
+                self._streamed.add("compass")
                 self._compass(t, m.x_ut, m.y_ut, m.z_ut)
         self.counters.bad("mavlink", self._mavlink.rejected - before)
 
@@ -514,10 +531,14 @@ class LocalisationNode:
                 self._streamed.add("ir")
                 self._ir(t, np.asarray(f.readings, dtype=float))
             else:
+                self._streamed.add("sonar")
                 self._sonar(t, f.readings)
         self.counters.bad("serial/rangefinders", self._ranges.rejected - before)
 
     def _on_kteam(self, t: float, data: bytes) -> None:
+        if self._kteam25 is not None:
+            self._on_koala25(t, data)
+            return
         for line in self._kteam.feed(data):
             reply = parse_reply(line) if isinstance(line, bytes) else None
             if not isinstance(reply, KteamReply):
@@ -531,6 +552,25 @@ class LocalisationNode:
                 self._ir(t, np.asarray(values, dtype=float))
             elif reply.letter == "h" and "odometry" not in self._streamed and len(values) == 2:
                 self._odometry(t, values[0], values[1])
+
+    def _on_koala25(self, t: float, data: bytes) -> None:
+        assert self._kteam25 is not None
+        for line in self._kteam.feed(data):
+            reply = self._kteam_dialect.parse_reply(line) if isinstance(line, bytes) else None
+            if not isinstance(reply, KteamReply):
+                continue
+            for m in self._kteam25.messages(t, reply):
+                if isinstance(m, OdometryMessage) and "odometry" not in self._streamed:
+                    self._odometry(t, m.left_ticks, m.right_ticks)
+                elif isinstance(m, GyroMessage) and "gyro" not in self._streamed:
+                    self.counters.took("gyro")
+                    self.tracker.on_gyro(m.t, m.yaw_rate)
+                elif isinstance(m, CompassMessage) and "compass" not in self._streamed:
+                    self._compass(t, m.mx, m.my, m.mz)
+                elif isinstance(m, SonarMessage) and "sonar" not in self._streamed:
+                    # as the range frames carry them: mm, NO_ECHO for none
+                    self._sonar(t, [NO_ECHO if r is None else round(r * 1000.0)
+                                    for r in m.ranges])
 
     # -- estimators ----------------------------------------------------------------------
 

@@ -231,6 +231,11 @@ kteam_poll_hz = 10.0
     assert asked == {b"P\r", b"G\r", b"N\r", b"&\r", b"E\r"}
     assert replies and all(r.endswith(b"\n") and not r.endswith(b"\r\n") for r in replies)
     assert {r[:1] for r in replies} == {b"p", b"g", b"n", b"@", b"e"}
+    # The estimator node took the same lines in the same dialect (status counts what it took;
+    # the last status comes after the last poll)
+    took = real.topic("status")[-1].json()["localisation"]["frames"]
+    assert {k: took.get(k) for k in ("odometry", "sonar", "gyro", "compass")} == {
+        k: len(values(real, k)) for k in ("odometry", "sonar", "gyro", "compass")}
 
     # replay: the recorded Koala 2.5 answers a libkoala-style client in its own dialect
     answers = replay_kteam(real_rec, tmp_path, [b"&\r", b"P\r", b"E\r", b"U\r", b"D,1\r"])
@@ -309,3 +314,5 @@ kteam_auto = {bits}
     # then the pushed lines (and, if it came before the port closed, A,0's "a")
     data = pushed[1:-1] if pushed[-1] == b"a\n" else pushed[1:]
     assert {p[:1] for p in data} == {b"g", b"p", b"n", b"@"}
+    took = real.topic("status")[-1].json()["localisation"]["frames"]
+    assert all(took.get(k, 0) > 0 for k in ("odometry", "sonar", "gyro", "compass")), took
