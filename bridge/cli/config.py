@@ -1,15 +1,16 @@
 """Write an editable copy of the shipped configuration, or print where it lives.
 
-The configuration installed with koala-bridge (default.toml, ideal.toml, worlds/*.toml,
+The configuration installed with koala-bridge (default.toml, ideal.toml, koala25.toml for a
+Koala 2.5, worlds/*.toml,
 koala.dbc and the README that says where every number comes from) lives inside the package;
 `config init DIR` copies it into DIR, to edit and run with `run --config DIR/default.toml`; the
-copied default.toml and ideal.toml use the koala.dbc copied beside them (dbc = "koala.dbc",
-relative to the config file's folder).
+copied default.toml, ideal.toml and koala25.toml use the koala.dbc copied beside them
+(dbc = "koala.dbc", relative to the config file's folder).
 Existing files are left alone unless --force is given. `config path` prints the folder of the
 shipped files (read them there, do not edit them: a reinstall replaces them).
 
 examples:
-  koala-bridge config init my-koala                # default.toml, ideal.toml, worlds/, koala.dbc
+  koala-bridge config init my-koala                # *.toml, worlds/, koala.dbc, README.md
   koala-bridge run --config my-koala/default.toml --clock fast --duration 10
   koala-bridge config init my-koala --force        # overwrite with the shipped files again
   koala-bridge config path                         # where the shipped configuration lives
@@ -27,7 +28,7 @@ from pathlib import Path, PurePosixPath
 from koala_bridge.core.resources import CONFIG_PACKAGE, config_dir
 
 # What `config init` copies, relative to the shipped config folder (koala_bridge.config).
-SHIPPED_NAMES = ("default.toml", "ideal.toml", "koala.dbc", "README.md")
+SHIPPED_NAMES = ("default.toml", "ideal.toml", "koala25.toml", "koala.dbc", "README.md")
 SHIPPED_FOLDERS = {"worlds": ".toml"}
 
 
@@ -36,7 +37,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     init = actions.add_parser(
         "init",
         help="write an editable copy of the shipped configuration into DIR",
-        description="Write default.toml, ideal.toml, worlds/*.toml, koala.dbc and README.md\n"
+        description="Write default.toml, ideal.toml, koala25.toml (a Koala 2.5), worlds/*.toml,\n"
+        "koala.dbc and README.md"
         "into DIR (created if needed). Existing files are not overwritten unless --force.",
         epilog="example:\n  koala-bridge config init my-koala\n"
         "  koala-bridge run --config my-koala/default.toml",

@@ -12,8 +12,8 @@ bus                      codec (``drivers``)                     estimator input
 ``can``                  ``can_codec.KoalaCanCodec`` (the DBC)   ``WheelOdometry``, ``Gyro``
 ``mavlink``              ``mavlink_codec.CompassDecoder``        ``SCALED_IMU`` field
 ``serial/rangefinders``  ``rangeframes.RangeFrameDecoder``       IR counts, sonar mm
-``serial/kteam``         ``kteam.parse_reply``                   ``n`` IR counts, ``h`` ticks
-``serial/kteam`` 2.5     ``Dialect.parse_reply`` (``koala25``)   ``p`` ticks, ``n`` gyro,
+``serial/kteam``         the dialect's ``parse_reply``,          koala1 ``n`` IR, ``h`` ticks;
+                         ``real_kteam.KteamReplyDecoder``        koala25 ``p`` ticks, ``n`` gyro,
                                                                  ``@`` field, ``g`` sonar
 =======================  ======================================  ============================
 
@@ -79,9 +79,16 @@ from koala_bridge.core.schema import (
     section,
     validate,
 )
-from koala_bridge.core.topics import CompassMessage, GyroMessage, OdometryMessage, SonarMessage
+from koala_bridge.core.topics import (
+    CompassMessage,
+    GyroMessage,
+    IrMessage,
+    OdometryMessage,
+    SonarMessage,
+)
 from koala_bridge.drivers.can_codec import KoalaCanCodec, wrap_int32
-from koala_bridge.drivers.kteam import KOALA1, Dialect, LineSplitter, parse_reply
+from koala_bridge.drivers.dialects import dialect
+from koala_bridge.drivers.kteam import LineSplitter
 from koala_bridge.drivers.mavlink_codec import CompassDecoder
 from koala_bridge.drivers.messages import (
     CompassSample,
@@ -325,8 +332,7 @@ class LocalisationNode:
     """
 
     def __init__(self, settings: LocalisationSettings, robot: SimConfig, publish: Publish,
-                 can_codec: KoalaCanCodec | None = None,
-                 kteam_dialect: Dialect = KOALA1) -> None:
+                 can_codec: KoalaCanCodec | None = None, kteam_dialect: str = "koala1") -> None:
         self.settings = settings
         self.world: World = robot.world
         self._publish = publish
@@ -391,9 +397,10 @@ class LocalisationNode:
         self._mavlink = CompassDecoder()
         self._ranges = RangeFrameDecoder()
         self._kteam = LineSplitter()
-        self._kteam_dialect = kteam_dialect
-        self._kteam25 = (KteamReplyDecoder(kteam_dialect)
-                         if kteam_dialect.name != KOALA1.name else None)
+        self._kteam_dialect = dialect(kteam_dialect)
+        # its replies as the topic messages they are published as (koala1 n = IR counts, h =
+        # counters; koala25 p = counters, n = gyro samples, @ = field, g = sonar)
+        self._kteam_decoder = KteamReplyDecoder(self._kteam_dialect)
         self._streamed: set[str] = set()       # "ir", "odometry": a streaming source was seen
         self._raw_ticks: tuple[int, int] | None = None
         self._ticks = (0, 0)                   # counters fed to the EKF (resets removed)
@@ -432,13 +439,14 @@ class LocalisationNode:
     @classmethod
     def from_config(cls, config: Mapping[str, Any], robot: SimConfig, publish: Publish,
                     can_codec: KoalaCanCodec | None = None,
-                    kteam_dialect: Dialect = KOALA1) -> LocalisationNode | None:
+                    kteam_dialect: str = "koala1") -> LocalisationNode | None:
         """A node for ``config``'s ``[localisation]`` section, or None when it is off.
         ``can_codec``: the owner's (its ``[buses.can] dbc``); default: the shipped DBC.
-        ``kteam_dialect``: what the K-Team frames speak; default: the classic Koala."""
+        ``kteam_dialect``: what the K-Team serial link speaks (its replies are read by it)."""
         settings = LocalisationSettings.from_config(config)
-        return None if settings is None else cls(settings, robot, publish, can_codec,
-                                                 kteam_dialect)
+        if settings is None:
+            return None
+        return cls(settings, robot, publish, can_codec, kteam_dialect=kteam_dialect)
 
     def _initial_pose(self) -> tuple[float, float, float]:
         p = self.settings.initial_pose
@@ -536,31 +544,15 @@ class LocalisationNode:
         self.counters.bad("serial/rangefinders", self._ranges.rejected - before)
 
     def _on_kteam(self, t: float, data: bytes) -> None:
-        if self._kteam25 is not None:
-            self._on_koala25(t, data)
-            return
-        for line in self._kteam.feed(data):
-            reply = parse_reply(line) if isinstance(line, bytes) else None
-            if not isinstance(reply, KteamReply):
-                continue
-            try:
-                values = reply.ints
-            except ValueError:
-                continue
-            if reply.letter == "n" and "ir" not in self._streamed \
-                    and len(values) == len(self._ir_poses):
-                self._ir(t, np.asarray(values, dtype=float))
-            elif reply.letter == "h" and "odometry" not in self._streamed and len(values) == 2:
-                self._odometry(t, values[0], values[1])
-
-    def _on_koala25(self, t: float, data: bytes) -> None:
-        assert self._kteam25 is not None
         for line in self._kteam.feed(data):
             reply = self._kteam_dialect.parse_reply(line) if isinstance(line, bytes) else None
             if not isinstance(reply, KteamReply):
                 continue
-            for m in self._kteam25.messages(t, reply):
-                if isinstance(m, OdometryMessage) and "odometry" not in self._streamed:
+            for m in self._kteam_decoder.messages(t, reply):
+                if isinstance(m, IrMessage) and "ir" not in self._streamed \
+                        and len(m.counts) == len(self._ir_poses):
+                    self._ir(t, np.asarray(m.counts, dtype=float))
+                elif isinstance(m, OdometryMessage) and "odometry" not in self._streamed:
                     self._odometry(t, m.left_ticks, m.right_ticks)
                 elif isinstance(m, GyroMessage) and "gyro" not in self._streamed:
                     self.counters.took("gyro")

@@ -276,7 +276,7 @@ class RealRobotSource:
         # The estimator node, fed with every frame read from the robot (_frame); None when off.
         self.localisation = LocalisationNode.from_config(
             config, load_sim_config(config), self._publish, can_codec=self._can_codec,
-            kteam_dialect=self.dialect,
+            kteam_dialect=p.kteam_dialect,
         )
 
     # -- life cycle --------------------------------------------------------------------------

@@ -137,7 +137,8 @@ class SimulatedRobotSource:
         # The estimator node ([localisation]): fed with the frames this service puts on the
         # buses (_send_bytes, _send_can) and the camera's observations (no bus); None when off.
         self.localisation = LocalisationNode.from_config(
-            config, self.sim.config, self._publish_estimate, can_codec=self.can_codec
+            config, self.sim.config, self._publish_estimate, can_codec=self.can_codec,
+            kteam_dialect=settings.buses.kteam_dialect,
         )
 
     # -- lifecycle ---------------------------------------------------------------------------

@@ -12,6 +12,7 @@ from koala_bridge.runtime.settings import BridgeSettings, load_config
 EXPECTED = {
     "default.toml",
     "ideal.toml",
+    "koala25.toml",
     "koala.dbc",
     "README.md",
     "worlds/lab_trilateration.toml",
@@ -31,7 +32,7 @@ def test_init_writes_a_byte_identical_copy_that_runs(tmp_path, capsys) -> None:
     assert _tree(target) == EXPECTED
     for rel in EXPECTED:
         shipped = (config_dir() / rel).read_bytes()
-        if rel in ("default.toml", "ideal.toml"):  # the copy uses the DBC copied beside it
+        if rel in ("default.toml", "ideal.toml", "koala25.toml"):  # uses the DBC copied beside it
             assert shipped.count(b'dbc = ""') == 1, rel
             shipped = shipped.replace(b'dbc = ""         ', b'dbc = "koala.dbc"', 1)
         assert (target / rel).read_bytes() == shipped, rel

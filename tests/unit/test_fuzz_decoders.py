@@ -26,9 +26,11 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from koala_bridge.drivers.can_codec import KoalaCanCodec
+from koala_bridge.drivers.koala25 import KOALA25
 from koala_bridge.drivers.kteam import (
     INT32_MAX,
     INT32_MIN,
+    MAX_ARGS,
     LineSplitter,
     command_specs,
     error_reply,
@@ -235,6 +237,72 @@ def test_kteam_recovers_after_garbage(garbage: bytes, command: KteamCommand) -> 
     # before, the next line is a command of its own.
     lines = _split_lines([garbage, b"\r", format_command(command)])
     assert lines and parse_command(lines[-1]) == command  # type: ignore[arg-type]
+
+# --------------------------------------------------------------------------- K-Team, Koala 2.5
+
+
+def _k25_command_for(letter: str) -> st.SearchStrategy[KteamCommand]:
+    spec = KOALA25.specs[letter]
+    if spec.text:
+        return _reply_text.filter(bool).map(lambda text: KteamCommand(letter, (), text))
+    fixed = st.tuples(*(st.integers(lo, hi) for lo, hi in spec.arg_ranges))
+    more = (st.lists(st.integers(*spec.more), max_size=MAX_ARGS - len(spec.arg_ranges))
+            if spec.more else st.just([]))
+    return st.tuples(fixed, more).map(lambda a: KteamCommand(letter, (*a[0], *a[1])))
+
+
+k25_commands = st.sampled_from(sorted(KOALA25.specs)).flatmap(_k25_command_for)
+
+
+def _k25_reply_for(letter: str) -> st.SearchStrategy[KteamReply]:
+    spec = KOALA25.specs.get(KOALA25.reply_commands.get(letter, letter.upper()))
+    if spec is None or spec.reply_fields is None:   # b, q, r, !, and the error reply #
+        fields = st.lists(_reply_text, max_size=3)
+    else:
+        fields = st.lists(st.integers(-32768, 32767).map(str),
+                          min_size=spec.reply_fields, max_size=spec.reply_fields)
+    return fields.map(lambda f: KteamReply(letter, tuple(f)))
+
+
+k25_replies = st.sampled_from(
+    sorted({KOALA25.reply_letter(c) for c in KOALA25.specs} | {"#"})).flatmap(_k25_reply_for)
+
+
+@FUZZ
+@given(st.binary(max_size=200) | mutated(st.builds(KOALA25.format_command, k25_commands)))
+def test_koala25_parsers_accept_any_bytes(line: bytes) -> None:
+    for item in _split_lines([line]):
+        if not isinstance(item, bytes):
+            continue
+        result = KOALA25.parse_command(item)
+        if isinstance(result, KteamCommand):
+            spec = KOALA25.specs[result.letter]
+            ranges = [*spec.arg_ranges, *[spec.more] * (len(result.args) - len(spec.arg_ranges))]
+            assert len(result.args) <= MAX_ARGS
+            assert all(lo <= a <= hi for a, (lo, hi) in zip(result.args, ranges, strict=True))
+            assert not spec.text or (result.text and "," not in result.text)
+        else:
+            assert KOALA25.error_reply(result).letter == "#"
+        assert isinstance(KOALA25.parse_reply(item), KteamReply | Reject)
+
+
+@FUZZ
+@given(k25_commands)
+def test_koala25_command_round_trip(command: KteamCommand) -> None:
+    (line,) = _split_lines([KOALA25.format_command(command)], max_line=256)
+    assert isinstance(line, bytes)
+    assert KOALA25.parse_command(line) == command
+
+
+@FUZZ
+@given(k25_replies)
+def test_koala25_reply_round_trip_ends_with_one_lf(reply: KteamReply) -> None:
+    wire = KOALA25.format_reply(reply)
+    assert wire.endswith(b"\n") and b"\r" not in wire    # libkoala: one terminator byte
+    (line,) = _split_lines([wire], max_line=256)
+    assert isinstance(line, bytes)
+    assert KOALA25.parse_reply(line) == reply
+    assert KOALA25.parse_reply(line).is_error == (reply.letter == "#")  # type: ignore[union-attr]
 
 
 # --------------------------------------------------------------------------- range frames

@@ -218,6 +218,31 @@ def test_default_runs_every_model_and_ideal_toml_differs_only_in_the_switches() 
     assert default == ideal
 
 
+#: The keys in which koala25.toml (the Koala 2.5) differs from default.toml.
+KOALA25_KEYS = {
+    ("robot", "name"), ("robot", "ticks_per_metre"), ("robot", "wheel_diameter_m"),
+    ("robot", "wheel_base_m"), ("robot", "max_wheel_speed_mps"),
+    ("robot", "battery", "chemistry"), ("robot", "battery", "voltage_full_V"),
+    ("robot", "battery", "voltage_empty_V"), ("buses", "kteam", "dialect"),
+}
+
+
+def test_koala25_toml_is_default_toml_with_the_koala25_keys() -> None:
+    with DEFAULT.open("rb") as f:
+        default = tomllib.load(f)
+    with (DEFAULT.parent / "koala25.toml").open("rb") as f:
+        k25 = tomllib.load(f)
+    for path in KOALA25_KEYS:
+        d, k = default, k25
+        for key in path[:-1]:
+            d, k = d[key], k[key]
+        assert d[path[-1]] != k[path[-1]], path
+        d[path[-1]] = k[path[-1]] = None
+    assert default == k25
+    with (DEFAULT.parent / "koala25.toml").open("rb") as f:
+        assert load_sim_config(tomllib.load(f)).robot.ticks_per_metre == 90284.0
+
+
 def test_encoders_have_no_error_model() -> None:
     cfg = copy.deepcopy(default_config())
     cfg["sensors"]["encoders"]["ideal"] = False
