@@ -10,11 +10,13 @@ in whole 0.066 deg/s units (libkoala ``KOALA_GYRO_DEG_S``), ``P`` the encoder co
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import signal
 import subprocess
 import time
+import tomllib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -116,6 +118,19 @@ def test_real_section_koala25_keys() -> None:
         RealPorts.from_dict({"kteam": "loop://", "kteam_auto": 4})
     with pytest.raises(ConfigError, match="0..511"):
         RealPorts.from_dict({"kteam": "loop://", "kteam_dialect": "koala25", "kteam_auto": 512})
+
+
+def test_koala25_toml_shows_the_real_section_in_its_dialect() -> None:
+    """config/koala25.toml's commented [real] table is default.toml's but for kteam_dialect."""
+    lines = (DEFAULT_CONFIG.parent / "koala25.toml").read_text().splitlines()
+    start = lines.index("# [real]")
+    block = []
+    for line in lines[start:]:
+        if not line.startswith("# "):
+            break
+        block.append(line[2:])
+    shown = RealPorts.from_dict(tomllib.loads("\n".join(block))["real"])
+    assert shown == dataclasses.replace(RealPorts(), kteam_dialect="koala25")
 
 
 # ----------------------------------------------------------------------------- a robot on a pty
