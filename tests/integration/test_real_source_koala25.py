@@ -10,6 +10,7 @@ in whole 0.066 deg/s units (libkoala ``KOALA_GYRO_DEG_S``), ``P`` the encoder co
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
@@ -17,7 +18,7 @@ import signal
 import subprocess
 import time
 import tomllib
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -155,8 +156,9 @@ def turning_koala25(bridge: Callable[..., BridgeProcess], robot_rec: Path) -> Br
     return robot
 
 
-def run_real(tmp_path: Path, name: str, real_table: str, *extra: str) -> tuple[Path, Path]:
-    """``koala-bridge run --source real`` for REAL_SECONDS with ``[real]`` = ``real_table``;
+def run_real(tmp_path: Path, name: str, real_table: str,
+             duration: float = REAL_SECONDS) -> tuple[Path, Path]:
+    """``koala-bridge run --source real`` for ``duration`` s with ``[real]`` = ``real_table``;
     returns (recording, log)."""
     config = tmp_path / f"{name}.toml"
     config.write_text(DEFAULT_CONFIG.read_text() + "\n[real]\n" + real_table)
@@ -165,8 +167,8 @@ def run_real(tmp_path: Path, name: str, real_table: str, *extra: str) -> tuple[P
         proc = subprocess.run(
             bridge_command(
                 "run", "--source", "real", "--config", str(config), "--duration",
-                str(REAL_SECONDS), "--record", str(rec),
-                "--set", f'zenoh.listen=["tcp/127.0.0.1:{free_port()}"]', *extra,
+                str(duration), "--record", str(rec),
+                "--set", f'zenoh.listen=["tcp/127.0.0.1:{free_port()}"]',
             ),
             cwd=REPO, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
             timeout=120,
@@ -258,6 +260,18 @@ kteam_poll_hz = 10.0
     assert answers[:3] == [last[b"@"], last[b"p"], last[b"e"]]
     assert answers[3].startswith(b"#,") and answers[3].endswith(b"\n")   # U was never asked
     assert answers[4].startswith(b"#,")                                    # bad arity
+    # ... and the real source reads the replay as it read the robot: every value it publishes
+    # is one the recording holds
+    with replaying(real_rec, tmp_path, "replay-real") as (pty, _):
+        again_rec, _ = run_real(tmp_path, "again", f"""
+kteam = "{pty}"
+kteam_dialect = "koala25"
+kteam_poll = ["P", "&"]
+""", duration=1.0)
+    again = open_recording(again_rec)
+    for key in ("odometry", "compass"):
+        assert values(again, key), key
+        assert set(values(again, key)) <= set(values(real, key)), key
 
     # calibrate: runs on the recording of a real robot; without truth/pose the gyro is referred
     # to the compass heading, and the streams without a reference are skipped and said so
@@ -274,10 +288,11 @@ kteam_poll_hz = 10.0
     assert {s["stream"] for s in streams} == {"gyro", "compass"}
 
 
-def replay_kteam(rec: Path, tmp_path: Path, commands: list[bytes]) -> list[bytes]:
-    """``koala-bridge replay REC`` (K-Team only); once every frame is out, send ``commands`` on
-    its pty and return the lines it answers."""
-    endpoints_file, log_path = tmp_path / "replay.json", tmp_path / "replay.log"
+@contextlib.contextmanager
+def replaying(rec: Path, tmp_path: Path, name: str) -> Iterator[tuple[str, Path]]:
+    """``koala-bridge replay REC`` (K-Team only, ports open until the end); yields its K-Team
+    pty and log, then stops it with SIGINT and checks it ended cleanly."""
+    endpoints_file, log_path = tmp_path / f"{name}.json", tmp_path / f"{name}.log"
     with log_path.open("wb") as log:
         proc = subprocess.Popen(
             bridge_command(
@@ -288,22 +303,28 @@ def replay_kteam(rec: Path, tmp_path: Path, commands: list[bytes]) -> list[bytes
             cwd=REPO, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
         )
     try:
-        ep = wait_endpoints(proc, endpoints_file, log_path)
-        with serial.Serial(ep["serial"]["kteam"], 115200, timeout=30) as port:
-            deadline = time.monotonic() + 120
-            while "Every frame sent" not in log_path.read_text():
-                assert proc.poll() is None and time.monotonic() < deadline, log_path.read_text()
-                time.sleep(0.02)
-            answers = []
-            for c in commands:
-                port.write(c)
-                answers.append(port.read_until(b"\n"))
+        yield wait_endpoints(proc, endpoints_file, log_path)["serial"]["kteam"], log_path
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=60) == 0, log_path.read_text()
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def replay_kteam(rec: Path, tmp_path: Path, commands: list[bytes]) -> list[bytes]:
+    """Once a replay of ``rec`` has sent every frame, send ``commands`` on its K-Team pty and
+    return the lines it answers."""
+    with replaying(rec, tmp_path, "replay") as (pty, log_path), \
+            serial.Serial(pty, 115200, timeout=30) as port:
+        deadline = time.monotonic() + 120
+        while "Every frame sent" not in log_path.read_text():
+            assert time.monotonic() < deadline, log_path.read_text()
+            time.sleep(0.02)
+        answers = []
+        for c in commands:
+            port.write(c)
+            answers.append(port.read_until(b"\n"))
     return answers
 
 
