@@ -106,7 +106,11 @@ def run(args: argparse.Namespace) -> int:
         try:
             recorder = Recorder(
                 args.record,
-                metadata=run_metadata(args.source, config, args.config),
+                metadata=run_metadata(
+                    args.source, config, args.config,
+                    # the K-Team frames' dialect: the real robot's, else the simulated pty's
+                    getattr(source, "kteam_dialect", settings.buses.kteam_dialect),
+                ),
                 world=source.world_answer(),
             )
         except RecordingError as e:

@@ -4,8 +4,10 @@ File layout (docs/recording.md has the full description):
 
 * profile ``koala-bridge``; a metadata record ``koala-bridge`` with ``format_version`` (this
   module's :data:`FORMAT_VERSION`), ``source`` (``sim`` | ``real``), ``seed``, ``config_path``,
-  ``config`` (the TOML text), and a metadata record ``world`` with the world and robot parameters
-  as JSON (the answer of the ``<prefix>/world`` queryable).
+  ``config`` (the TOML text), ``kteam_dialect`` (``koala1`` | ``koala25``: what the
+  ``/bus/serial/kteam`` frames speak; absent in older recordings, read as ``koala1``), and a
+  metadata record ``world`` with the world and robot parameters as JSON
+  (the answer of the ``<prefix>/world`` queryable).
 * one channel per Zenoh key, named after the key below the prefix: ``/truth/pose``,
   ``/sensors/sonar``, ``/status``, ``/estimate/pose`` …; message encoding ``json``, schema
   encoding ``jsonschema`` (Foxglove opens both), the schema derived from the key's typed message
@@ -360,16 +362,22 @@ class Recorder:
 
 
 def run_metadata(
-    source: str, config: Mapping[str, Any], config_path: str | os.PathLike[str] | None
+    source: str,
+    config: Mapping[str, Any],
+    config_path: str | os.PathLike[str] | None,
+    kteam_dialect: str = "koala1",
 ) -> dict[str, str]:
-    """The ``koala-bridge`` metadata of a run: source, seed, config path and the resolved
-    configuration (file + command-line overrides) as JSON."""
+    """The ``koala-bridge`` metadata of a run: source, seed, config path, the resolved
+    configuration (file + command-line overrides) as JSON, and the dialect of the K-Team frames
+    (``kteam_dialect``: the simulated pty's ``[buses.kteam] dialect`` or the real robot's
+    ``[real] kteam_dialect``; a replay answers in it)."""
     seed = (config.get("sim") or {}).get("seed")
     return {
         "source": source,
         "seed": "" if seed is None else str(seed),
         "config_path": "" if config_path is None else str(Path(config_path).resolve()),
         "config": json.dumps(config, default=str),
+        "kteam_dialect": kteam_dialect,
     }
 
 

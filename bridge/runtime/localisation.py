@@ -12,8 +12,9 @@ bus                      codec (``drivers``)                     estimator input
 ``can``                  ``can_codec.KoalaCanCodec`` (the DBC)   ``WheelOdometry``, ``Gyro``
 ``mavlink``              ``mavlink_codec.CompassDecoder``        ``SCALED_IMU`` field
 ``serial/rangefinders``  ``rangeframes.RangeFrameDecoder``       IR counts, sonar mm
-``serial/kteam``         the dialect's ``parse_reply``           koala1 ``n`` IR, ``h`` ticks;
-                                                                 koala25 ``p`` ticks
+``serial/kteam``         the dialect's ``parse_reply``,          koala1 ``n`` IR, ``h`` ticks;
+                         ``real_kteam.KteamReplyDecoder``        koala25 ``p`` ticks, ``n`` gyro,
+                                                                 ``@`` field, ``g`` sonar
 =======================  ======================================  ============================
 
 So it runs the same against the simulator (``runtime/sim_source.py`` hands it every frame it sends)
@@ -23,7 +24,9 @@ has no bus: in simulation the service passes the simulator's *measured* landmark
 
 One source per quantity, as in ``real_source``: K-Team ``n``/``h`` replies (answers to whoever
 polls the robot) are used only until a streaming source (range frames, CAN ``WheelOdometry``)
-has been seen.
+has been seen; so are a Koala 2.5's ``p``, ``n``, ``@`` and ``g`` lines (``kteam_dialect``,
+converted by :class:`runtime.real_kteam.KteamReplyDecoder`) until CAN ``WheelOdometry`` or
+``Gyro``, MAVLink compass or sonar range frames have been seen.
 
 What it does with them (docs/localisation.md, "In the bridge"):
 
@@ -76,6 +79,13 @@ from koala_bridge.core.schema import (
     section,
     validate,
 )
+from koala_bridge.core.topics import (
+    CompassMessage,
+    GyroMessage,
+    IrMessage,
+    OdometryMessage,
+    SonarMessage,
+)
 from koala_bridge.drivers.can_codec import KoalaCanCodec, wrap_int32
 from koala_bridge.drivers.dialects import dialect
 from koala_bridge.drivers.kteam import LineSplitter
@@ -110,6 +120,7 @@ from koala_bridge.estimation.messages import (
     occupancy_message,
     pose_message,
 )
+from koala_bridge.runtime.real_kteam import KteamReplyDecoder
 from koala_bridge.sim.config import SimConfig
 from koala_bridge.sim.world import SIDE_STEP, SIDES, World
 from pydantic import AfterValidator, Field
@@ -316,6 +327,8 @@ class LocalisationNode:
         publish: called with ``(key suffix, JSON-ready payload)`` for each output message.
         can_codec: decodes the CAN frames (the owner's, from ``[buses.can] dbc``); default: a
             codec of the shipped DBC.
+        kteam_dialect: the dialect of the K-Team frames (the real robot's ``[real]
+            kteam_dialect``); default: the classic Koala's.
     """
 
     def __init__(self, settings: LocalisationSettings, robot: SimConfig, publish: Publish,
@@ -385,9 +398,9 @@ class LocalisationNode:
         self._ranges = RangeFrameDecoder()
         self._kteam = LineSplitter()
         self._kteam_dialect = dialect(kteam_dialect)
-        # reply letter -> what it carries: koala1 n = IR counts, h = counters; koala25 p = counters
-        self._kteam_odometry = "p" if kteam_dialect == "koala25" else "h"
-        self._kteam_ir = "n" if kteam_dialect == "koala1" else None
+        # its replies as the topic messages they are published as (koala1 n = IR counts, h =
+        # counters; koala25 p = counters, n = gyro samples, @ = field, g = sonar)
+        self._kteam_decoder = KteamReplyDecoder(self._kteam_dialect)
         self._streamed: set[str] = set()       # "ir", "odometry": a streaming source was seen
         self._raw_ticks: tuple[int, int] | None = None
         self._ticks = (0, 0)                   # counters fed to the EKF (resets removed)
@@ -505,6 +518,7 @@ class LocalisationNode:
             self._streamed.add("odometry")
             self._odometry(t, frame.left_ticks, frame.right_ticks)
         elif isinstance(frame, GyroFrame):
+            self._streamed.add("gyro")
             self.counters.took("gyro")
             self.tracker.on_gyro(t, frame.yaw_rate)
         else:  # a Reject, or a MotorCommand (not the robot's)
@@ -514,6 +528,7 @@ class LocalisationNode:
         before = self._mavlink.rejected
         for m in self._mavlink.feed(data):
             if isinstance(m, CompassSample):
+                self._streamed.add("compass")
                 self._compass(t, m.x_ut, m.y_ut, m.z_ut)
         self.counters.bad("mavlink", self._mavlink.rejected - before)
 
@@ -524,6 +539,7 @@ class LocalisationNode:
                 self._streamed.add("ir")
                 self._ir(t, np.asarray(f.readings, dtype=float))
             else:
+                self._streamed.add("sonar")
                 self._sonar(t, f.readings)
         self.counters.bad("serial/rangefinders", self._ranges.rejected - before)
 
@@ -532,16 +548,21 @@ class LocalisationNode:
             reply = self._kteam_dialect.parse_reply(line) if isinstance(line, bytes) else None
             if not isinstance(reply, KteamReply):
                 continue
-            try:
-                values = reply.ints
-            except ValueError:
-                continue
-            if reply.letter == self._kteam_ir and "ir" not in self._streamed \
-                    and len(values) == len(self._ir_poses):
-                self._ir(t, np.asarray(values, dtype=float))
-            elif reply.letter == self._kteam_odometry and "odometry" not in self._streamed \
-                    and len(values) == 2:
-                self._odometry(t, values[0], values[1])
+            for m in self._kteam_decoder.messages(t, reply):
+                if isinstance(m, IrMessage) and "ir" not in self._streamed \
+                        and len(m.counts) == len(self._ir_poses):
+                    self._ir(t, np.asarray(m.counts, dtype=float))
+                elif isinstance(m, OdometryMessage) and "odometry" not in self._streamed:
+                    self._odometry(t, m.left_ticks, m.right_ticks)
+                elif isinstance(m, GyroMessage) and "gyro" not in self._streamed:
+                    self.counters.took("gyro")
+                    self.tracker.on_gyro(m.t, m.yaw_rate)
+                elif isinstance(m, CompassMessage) and "compass" not in self._streamed:
+                    self._compass(t, m.mx, m.my, m.mz)
+                elif isinstance(m, SonarMessage) and "sonar" not in self._streamed:
+                    # as the range frames carry them: mm, NO_ECHO for none
+                    self._sonar(t, [NO_ECHO if r is None else round(r * 1000.0)
+                                    for r in m.ranges])
 
     # -- estimators ----------------------------------------------------------------------
 

@@ -6,10 +6,14 @@ the ``[real]`` section of the configuration (docs/recording.md, "Real drivers"):
 
     [real]
     kteam = "/dev/ttyUSB0"              # serial device or pyserial URL (socket://, rfc2217://, loop://)
-    kteam_baud = 115200
-    kteam_poll = ["N", "H"]             # commands asked at kteam_poll_hz: N -> sensors/ir,
-    kteam_poll_hz = 10.0                #   H -> sensors/odometry, unless a streaming bus below
-                                        #   serves that key (then the poll is only recorded)
+    kteam_dialect = "koala25"           # koala1 (classic Koala) | koala25 (Koala 2.5)
+    kteam_baud = 0                      # 0: the dialect's (koala1 38400 8N2, koala25 115200 8N1)
+    kteam_poll = ["P", "G", "N", "&"]   # commands asked at kteam_poll_hz (runtime.real_kteam
+    kteam_poll_hz = 10.0                #   POLLABLE: koala25 P -> sensors/odometry, G -> sonar,
+                                        #   N -> gyro, & -> compass; koala1 N -> ir, H ->
+                                        #   odometry), unless a streaming bus below serves that
+                                        #   key (then the poll is only recorded)
+    kteam_auto = 0                      # koala25: A,<bits> auto mode (the robot pushes lines)
     rangefinders = "/dev/ttyUSB1"       # range frames: kind 1 -> sensors/ir, 2 -> sensors/sonar
     rangefinders_baud = 115200
     can_interface = "socketcand"        # python-can interface; WheelOdometry -> sensors/odometry,
@@ -17,11 +21,18 @@ the ``[real]`` section of the configuration (docs/recording.md, "Real drivers"):
     can_options = { host = "192.168.1.20", port = 29536 }   # extra can.Bus keyword arguments
     mavlink = "udpin:0.0.0.0:14550"     # MAVLink connection string; SCALED_IMU -> sensors/compass
 
-Every key is optional: a port not named is not opened. ``t`` of every message is the host's
-monotonic time since the start, in seconds (a real robot has no simulation time; its own sample
-stamps stay in the raw frames of the recording). The rest of the configuration (robot, world,
-zenoh) is read as for a simulated run: the world and robot description answer the ``world``
-queryable, so monitor and snapshot work unchanged. No ``truth/pose`` is published.
+Every key is optional: a port not named is not opened. The K-Team port speaks
+``kteam_dialect``: commands are formatted and replies parsed by its
+:class:`~koala_bridge.drivers.kteam.Dialect`, and :mod:`runtime.real_kteam` turns the replies
+into topic messages in SI. With ``kteam_auto`` (Koala 2.5 only) the source sends ``A,<bits>``
+after opening the port, reads every line the robot pushes as it comes (polls, if any, are then
+sent without waiting: their replies are read by the same reader) and sends ``A,0`` on close.
+
+``t`` of every message is the host's monotonic time since the start, in seconds (a real robot
+has no simulation time; its own sample stamps stay in the raw frames of the recording). The rest
+of the configuration (robot, world, zenoh) is read as for a simulated run: the world and robot
+description answer the ``world`` queryable, so monitor and snapshot work unchanged.
+No ``truth/pose`` is published.
 
 With ``[localisation] enabled``, every frame read from the robot also goes to the estimator node
 (:class:`runtime.localisation.LocalisationNode`), which decodes it as it decodes the simulated
@@ -40,7 +51,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Annotated, Any
 
@@ -48,9 +59,11 @@ import can
 from koala_bridge.core.errors import TransportError
 from koala_bridge.core.schema import (
     ConfigError,
+    NonNegativeInt,
     Positive,
     PositiveInt,
     Str,
+    one_of,
     section,
     tuples,
     validate,
@@ -58,14 +71,14 @@ from koala_bridge.core.schema import (
 from koala_bridge.core.topics import (
     CompassMessage,
     GyroMessage,
-    IrMessage,
     OdometryMessage,
     SonarMessage,
     StatusMessage,
     TopicMessage,
-    ints,
 )
-from koala_bridge.drivers.kteam import LineSplitter, format_command, parse_reply
+from koala_bridge.drivers.dialects import dialect
+from koala_bridge.drivers.koala25 import AUTO_BITS
+from koala_bridge.drivers.kteam import Dialect
 from koala_bridge.drivers.mavlink_codec import CompassDecoder
 from koala_bridge.drivers.messages import (
     CompassSample,
@@ -89,7 +102,8 @@ from koala_bridge.drivers.transports.serialport import serial_url
 from koala_bridge.runtime.counters import BusCounters
 from koala_bridge.runtime.endpoints import Endpoints
 from koala_bridge.runtime.localisation import LocalisationNode
-from koala_bridge.runtime.settings import BridgeSettings
+from koala_bridge.runtime.real_kteam import POLLABLE, KteamReplyDecoder, ir_message
+from koala_bridge.runtime.settings import KTEAM_DIALECTS, BridgeSettings
 from koala_bridge.runtime.source import READ_TIMEOUT_S, Tap, start_reader, until_text
 from koala_bridge.runtime.zenoh_io import ZENOH_BUS, ZenohLink
 from koala_bridge.sim.config import load_sim_config
@@ -98,19 +112,20 @@ from pydantic import AfterValidator, BeforeValidator, Strict
 log = logging.getLogger(__name__)
 
 KTEAM_REPLY_TIMEOUT_S = 0.5
-POLLABLE = {"N": "sensors/ir", "H": "sensors/odometry"}
+KTEAM_MAX_LINE = 1024   # bytes without a terminator before an auto-mode reader drops them
+AUTO_ALL = sum(AUTO_BITS.values())
+
+
+def _auto_bits(value: int) -> int:
+    if value > AUTO_ALL:
+        raise ValueError(f"must be a bit mask of libkoala's KOALA_AUTOM_* (0..{AUTO_ALL}), "
+                         f"got {value}")
+    return value
 
 
 def _port_name(value: Any) -> Any:
     """A port key: "" (the file's way to say "not opened") is None."""
     return None if value == "" else value
-
-
-def _pollable(value: tuple[str, ...]) -> tuple[str, ...]:
-    for c in value:
-        if c not in POLLABLE:
-            raise ValueError(f"has {c!r}, not one of {sorted(POLLABLE)}")
-    return value
 
 
 #: A port: a device, pyserial URL or connection string; "" or absent = not opened.
@@ -126,10 +141,11 @@ class RealPorts:
     """
 
     kteam: _Port = None
-    kteam_baud: PositiveInt = 115200
-    kteam_poll: Annotated[tuple[Str, ...], BeforeValidator(tuples),
-                          AfterValidator(_pollable)] = ()
+    kteam_dialect: Annotated[Str, one_of(KTEAM_DIALECTS)] = "koala1"
+    kteam_baud: NonNegativeInt = 0          # 0: the dialect's line settings
+    kteam_poll: Annotated[tuple[Str, ...], BeforeValidator(tuples)] = ()
     kteam_poll_hz: Positive = 10.0
+    kteam_auto: Annotated[NonNegativeInt, AfterValidator(_auto_bits)] = 0
     rangefinders: _Port = None
     rangefinders_baud: PositiveInt = 115200
     can_interface: _Port = None
@@ -143,10 +159,37 @@ class RealPorts:
             raise ConfigError(f"[{s}] 'can_interface' and 'can_channel' go together")
         if self.kteam_poll and not self.kteam:
             raise ConfigError(f"[{s}] 'kteam_poll' needs 'kteam' (the K-Team serial port)")
+        pollable = POLLABLE[self.kteam_dialect]
+        for c in self.kteam_poll:
+            if c not in pollable:
+                raise ConfigError(
+                    f"[{s}] 'kteam_poll' has {c!r}, not a command of kteam_dialect = "
+                    f"{self.kteam_dialect!r} it can poll (one of {', '.join(pollable)})"
+                )
+        if self.kteam_auto and self.kteam_dialect != "koala25":
+            raise ConfigError(
+                f"[{s}] 'kteam_auto' is the Koala 2.5's auto mode: it needs "
+                f"kteam_dialect = \"koala25\" (not {self.kteam_dialect!r})"
+            )
+        if self.kteam_auto and not self.kteam:
+            raise ConfigError(f"[{s}] 'kteam_auto' needs 'kteam' (the K-Team serial port)")
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> RealPorts:
         return validate(cls, d, "real")
+
+    @property
+    def dialect(self) -> Dialect:
+        """The K-Team port's dialect (``kteam_dialect``)."""
+        return dialect(self.kteam_dialect)
+
+    def kteam_line(self) -> dict[str, Any]:
+        """pyserial options of the K-Team port: the dialect's line settings, with
+        ``kteam_baud`` as the bit rate unless it is 0."""
+        line = self.dialect.line.pyserial()
+        if self.kteam_baud:
+            line["baudrate"] = self.kteam_baud
+        return line
 
     @property
     def any_port(self) -> bool:
@@ -221,12 +264,19 @@ class RealRobotSource:
         self._can_codec = settings.buses.can.codec(needed=bool(self.ports.can_interface))
         self.last = _LastReadings()
         p = self.ports
-        self._streamed = ({"sensors/ir"} if p.rangefinders else set()) | (
-            {"sensors/odometry"} if p.can_interface else set()
+        self.dialect = p.dialect
+        self.kteam_dialect = p.kteam_dialect    # recorded in the metadata (cli/run.py)
+        self._kteam_decoder = KteamReplyDecoder(self.dialect)
+        # Keys a streaming bus serves: a K-Team reply for them is only recorded.
+        self._streamed = (
+            ({"sensors/ir", "sensors/sonar"} if p.rangefinders else set())
+            | ({"sensors/odometry", "sensors/gyro"} if p.can_interface else set())
+            | ({"sensors/compass"} if p.mavlink else set())
         )
         # The estimator node, fed with every frame read from the robot (_frame); None when off.
         self.localisation = LocalisationNode.from_config(
-            config, load_sim_config(config), self._publish, can_codec=self._can_codec
+            config, load_sim_config(config), self._publish, can_codec=self._can_codec,
+            kteam_dialect=p.kteam_dialect,
         )
 
     # -- life cycle --------------------------------------------------------------------------
@@ -240,9 +290,7 @@ class RealRobotSource:
         try:
             # Every port through the transport registry, as the simulated buses are.
             if p.kteam:
-                self._kteam = _open_port(
-                    "kteam port", p.kteam, serial_url(p.kteam), lambda: {"baudrate": p.kteam_baud}
-                )
+                self._kteam = _open_port("kteam port", p.kteam, serial_url(p.kteam), p.kteam_line)
             if p.rangefinders:
                 self._ranges = _open_port(
                     "rangefinders port", p.rangefinders, serial_url(p.rangefinders),
@@ -275,6 +323,11 @@ class RealRobotSource:
             )
             self.tap.declare(["status"], [bus for bus, port in opened if port is not None])
         self.clock.start()
+        if self._kteam is not None and p.kteam_auto:
+            # Auto mode: one reader takes every line, pushed or replied (libkoala's
+            # koala_get_from_auto_mode does not tell them apart either).
+            self._send_kteam(KteamCommand("A", (p.kteam_auto,)))
+            self._spawn("kteam", self._kteam_reader(self._kteam))
         if self._ranges is not None:
             self._spawn("rangefinders", self._range_reader(self._ranges))
         if self._can is not None:
@@ -300,7 +353,10 @@ class RealRobotSource:
                 break
             if poll_period is not None and now >= next_poll:
                 for letter in self.ports.kteam_poll:
-                    self._poll_kteam(letter)
+                    if self.ports.kteam_auto:
+                        self._send_kteam(KteamCommand(letter))   # the reader takes the reply
+                    else:
+                        self._poll_kteam(letter)
                 next_poll += poll_period
             if now >= next_status:
                 self._publish_status()
@@ -319,6 +375,8 @@ class RealRobotSource:
         return f"Stopped at t = {self.last.t:.3f} s (real-time factor {rtf:.2f})."
 
     def close(self) -> None:
+        if self._kteam is not None and self.ports.kteam_auto:
+            self._send_kteam(KteamCommand("A", (0,)))        # the robot stops pushing
         self._stop.set()
         for t in self._threads:
             t.join(timeout=5.0)
@@ -391,7 +449,7 @@ class RealRobotSource:
                 self.counters.received("rangefinders")
                 self._frame("serial/rangefinders", "from_robot", t, encode_range_frame(f))
                 if f.kind == RangeKind.IR:
-                    self._publish_topic(_ir_message(t, f.readings))
+                    self._publish_topic(ir_message(t, f.readings))
                 else:
                     ranges = tuple(None if r == NO_ECHO else r / 1000.0 for r in f.readings)
                     self._publish_topic(SonarMessage(t, ranges))
@@ -445,11 +503,28 @@ class RealRobotSource:
 
         return step
 
-    def _poll_kteam(self, letter: str) -> None:
+    def _send_kteam(self, command: KteamCommand) -> None:
+        """Write one command to the K-Team port and record it; the reply is not awaited."""
         port = self._kteam
         if port is None:
             return
-        command = format_command(KteamCommand(letter))
+        data = self.dialect.format_command(command)
+        with self._kteam_lock:
+            try:
+                port.write(data)
+            except OSError as e:
+                log.warning("kteam: %s", e)
+                return
+            self._frame("serial/kteam", "to_robot", self.clock.now(), data)
+            self.counters.sent("kteam")
+
+    def _poll_kteam(self, letter: str) -> None:
+        """Ask ``letter`` and wait (at most :data:`KTEAM_REPLY_TIMEOUT_S`) for its reply line."""
+        port = self._kteam
+        if port is None:
+            return
+        command = self.dialect.format_command(KteamCommand(letter))
+        end = self.dialect.reply_terminator[-1:]
         t = self.clock.now()
         with self._kteam_lock:
             try:
@@ -457,38 +532,55 @@ class RealRobotSource:
                 port.write(command)
                 self._frame("serial/kteam", "to_robot", t, command)
                 self.counters.sent("kteam")
-                line = _read_line(port, KTEAM_REPLY_TIMEOUT_S)
+                line = _read_line(port, KTEAM_REPLY_TIMEOUT_S, end)
             except OSError as e:
                 log.warning("kteam: %s", e)
                 return
-        t = self.clock.now()
-        if not line.endswith(b"\n"):
+        if not line.endswith(end):
             self.counters.rejected("kteam")
             log.debug("kteam: no reply to %s", letter)
             return
+        self._on_kteam_line(self.clock.now(), line, expected=letter)
+
+    def _kteam_reader(self, port: ByteTransport) -> Callable[[], None]:
+        """Auto mode: every line the robot sends, as it comes (recorded with its terminator)."""
+        end = self.dialect.reply_terminator[-1:]
+        buf = bytearray()
+
+        def step() -> None:
+            data = port.read() if port.wait(READ_TIMEOUT_S) else b""
+            if not data:
+                return
+            buf.extend(data)
+            t = self.clock.now()
+            while (i := buf.find(end)) >= 0:
+                line = bytes(buf[: i + 1])
+                del buf[: i + 1]
+                if line.strip():
+                    self._on_kteam_line(t, line)
+            if len(buf) > KTEAM_MAX_LINE:
+                self.counters.rejected("kteam")
+                buf.clear()
+
+        return step
+
+    def _on_kteam_line(self, t: float, line: bytes, expected: str | None = None) -> None:
+        """One line from the robot (terminator included): recorded, parsed in the dialect,
+        published unless a streaming bus serves its key. ``expected``: the command polled (a
+        reply to another one is counted as rejected)."""
         self._frame("serial/kteam", "from_robot", t, line)
-        splitter = LineSplitter()
-        lines = [x for x in splitter.feed(line) if isinstance(x, bytes)]
-        reply = parse_reply(lines[0]) if lines else None
-        if not isinstance(reply, KteamReply) or reply.letter != letter.lower():
+        reply = self.dialect.parse_reply(line.strip(b"\r\n"))
+        if not isinstance(reply, KteamReply) or reply.is_error or (
+            expected is not None and reply.letter != self.dialect.reply_letter(expected)
+        ):
             self.counters.rejected("kteam")
             return
         self.counters.received("kteam")
-        values = list(reply.ints)
-        # One source per key: a streaming bus wins over polling (the poll is still recorded).
-        if POLLABLE[letter] in self._streamed:
+        # One source per key: a streaming bus wins over K-Team (the line is still recorded).
+        if self._kteam_decoder.topic_of(reply) in self._streamed:
             return
-        if letter == "N":
-            self._publish_topic(_ir_message(t, values))
-        elif letter == "H" and len(values) == 2:
-            self._publish_topic(OdometryMessage(t, values[0], values[1]))
-
-
-def _ir_message(t: float, counts: Sequence[int]) -> IrMessage:
-    """``sensors/ir`` of a real robot: proximity counts only. Neither the range frames nor the
-    K-Team ``N`` reply carry ambient light, so ``ambient`` is null for every sensor (not
-    measured) and there is no ``truth``."""
-    return IrMessage(t, ints(counts), (None,) * len(counts))
+        for message in self._kteam_decoder.messages(t, reply):
+            self._publish_topic(message)
 
 
 def _open_port(
@@ -510,15 +602,16 @@ def _discard_input(port: ByteTransport) -> None:
             return
 
 
-def _read_line(port: ByteTransport, timeout: float) -> bytes:
-    """The port's input up to and including the first ``\\n``, or what came within ``timeout``
-    seconds (then without ``\\n``); input after the line is dropped."""
+def _read_line(port: ByteTransport, timeout: float, end: bytes = b"\n") -> bytes:
+    """The port's input up to and including the first ``end`` byte (the dialect's last
+    terminator byte: LF for both), or what came within ``timeout`` seconds (then without it);
+    input after the line is dropped."""
     deadline = time.monotonic() + timeout
     buf = bytearray()
-    while b"\n" not in buf:
+    while end not in buf:
         remaining = deadline - time.monotonic()
         if remaining <= 0 or not port.wait(remaining):
             break
         buf += port.read()
-    end = buf.find(b"\n")
-    return bytes(buf if end < 0 else buf[: end + 1])
+    i = buf.find(end)
+    return bytes(buf if i < 0 else buf[: i + 1])

@@ -9,7 +9,11 @@ leaves within a fraction of a millisecond of its time (docs/recording.md has the
 
 K-Team ASCII is request/response, so its replies are not replayed as a stream: a command from
 the client is answered with the latest recorded reply to the same letter at the current replay
-time (``h,...`` for ``H``), or with the K-Team error reply if the recording has none.
+time (``h,...`` for ``H``; Koala 2.5 ``@,...`` for ``&``), or with the K-Team error reply if the
+recording has none. Commands are parsed and replies ended and errors lettered in the recording's
+dialect (metadata ``kteam_dialect``, :func:`recorded_dialect`): ``z,...`` and CR LF for the
+classic Koala, ``#,...`` and LF for the Koala 2.5. Lines a Koala 2.5 pushed in auto mode are
+replayed as replies to their commands (``g,...`` answers ``G``); they are not pushed.
 
 The recorded Zenoh messages (``truth/pose``, ``sensors/*``, ``status``, ``estimate/*``, ...) go
 back out on a Zenoh session at their times too, byte for byte, under ``[zenoh] prefix``, and the
@@ -23,6 +27,7 @@ another format version, no bus channel, no frame from the robot.
 from __future__ import annotations
 
 import bisect
+import json
 import logging
 import os
 import sys
@@ -33,12 +38,14 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import can
-from koala_bridge.drivers.kteam import LineSplitter, error_reply, format_reply, parse_command
+from koala_bridge.drivers.dialects import dialect
+from koala_bridge.drivers.kteam import KOALA1, Dialect, LineSplitter
 from koala_bridge.drivers.messages import Reject, RejectReason, TransportError
 from koala_bridge.recording.mcap_file import (
     BUSES,
     FORMAT_VERSION,
     FROM_ROBOT,
+    META_NAME,
     PROFILE,
     Recording,
     UnsupportedRecordingError,
@@ -78,6 +85,27 @@ class ReplayPlan:
     counts: dict[str, int]
     t0: float
     t_end: float
+    dialect: Dialect = KOALA1
+    """The K-Team frames' dialect (:func:`recorded_dialect`)."""
+
+
+def recorded_dialect(rec: Recording) -> Dialect:
+    """The dialect of ``rec``'s K-Team frames: its metadata ``kteam_dialect``; a recording
+    without it (older versions) is read as a simulated run's ``[buses.kteam] dialect`` of its
+    configuration, else ``koala1``. Raises :class:`UnsupportedRecordingError` for a name this
+    version does not know."""
+    meta = rec.metadata.get(META_NAME, {})
+    name = meta.get("kteam_dialect")
+    if not name and meta.get("source") == "sim":
+        try:
+            config = json.loads(meta.get("config") or "{}")
+            name = ((config.get("buses") or {}).get("kteam") or {}).get("dialect")
+        except (ValueError, AttributeError):
+            name = None
+    try:
+        return dialect(name or KOALA1.name)
+    except ValueError as e:
+        raise UnsupportedRecordingError(f"{rec.path.name}: {e}") from e
 
 
 def plan_replay(
@@ -105,6 +133,7 @@ def plan_replay(
             f"/bus/mavlink), only {others}: there are no raw frames to put back on a bus"
         )
     wanted = set(buses or BUSES)
+    kteam_dialect = recorded_dialect(rec)
     frames: list[ReplayFrame] = []
     replies: dict[str, tuple[list[float], list[bytes]]] = {}
     counts: dict[str, int] = {}
@@ -130,7 +159,7 @@ def plan_replay(
                 if line:
                     times, lines = replies.setdefault(chr(line[0]), ([], []))
                     times.append(m.t)
-                    lines.append(line + b"\r\n")
+                    lines.append(line + kteam_dialect.reply_terminator)
         else:
             cid = msg.get("can_id")
             frames.append(
@@ -155,7 +184,7 @@ def plan_replay(
         replies[letter] = ([ts[i] for i in order], [ls[i] for i in order])
     times = [f.t for f in frames] + [ts[0] for ts, _ in replies.values() if ts]
     t_end = max([f.t for f in frames] + [ts[-1] for ts, _ in replies.values() if ts])
-    return ReplayPlan(frames, replies, counts, min(times), t_end)
+    return ReplayPlan(frames, replies, counts, min(times), t_end, kteam_dialect)
 
 
 @dataclass
@@ -339,14 +368,15 @@ class Replayer:
 
     def kteam_reply(self, line: bytes | Reject) -> bytes:
         """The recorded answer to one command line at the current replay time."""
-        cmd = line if isinstance(line, Reject) else parse_command(line)
+        d = self.plan.dialect
+        cmd = line if isinstance(line, Reject) else d.parse_command(line)
         if isinstance(cmd, Reject):
-            return format_reply(error_reply(cmd))
-        times, lines = self.plan.kteam_replies.get(cmd.letter.lower(), ([], []))
+            return d.format_reply(d.error_reply(cmd))
+        times, lines = self.plan.kteam_replies.get(d.reply_letter(cmd.letter), ([], []))
         i = bisect.bisect_right(times, self.replay_time()) - 1
         if i < 0:
             reject = Reject(RejectReason.UNSUPPORTED, f"no recorded reply to {cmd.letter}")
-            return format_reply(error_reply(reject))
+            return d.format_reply(d.error_reply(reject))
         return lines[i]
 
 

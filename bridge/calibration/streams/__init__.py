@@ -332,6 +332,9 @@ def build_odometry(
     bundle: Bundle, model: DeclaredModel, window_s: float = 10.0
 ) -> OdometryProblem | None:
     odo, truth = bundle.get("odometry"), bundle.get("truth_pose")
+    if odo is not None and truth is None:
+        # e.g. a real robot's recording: nothing says where the wheels took it
+        log.warning("odometry: no reference pose (truth_pose) in the bundle; stream skipped")
     if odo is None or truth is None:
         return None
     t = odo["t"]
@@ -444,6 +447,10 @@ def build_ranges(bundle: Bundle, model: DeclaredModel) -> list[ScalarProblem]:
             edge = (tr - 3 * sig < lo) | (tr + 3 * sig > hi)
             beyond += int((ok & edge).sum())
             ok &= ~edge
+        if not np.isfinite(sub["true_range"]).any():
+            log.warning("range %s: no reference range (true_range) in the bundle; stream skipped",
+                        kind or ("ir" if counts else "sonar"))
+            continue
         sub = sub.select(ok)
         if len(sub) < 10:
             continue
