@@ -12,8 +12,10 @@ the client is answered with the latest recorded reply to the same letter at the 
 time (``h,...`` for ``H``; Koala 2.5 ``@,...`` for ``&``), or with the K-Team error reply if the
 recording has none. Commands are parsed and replies ended and errors lettered in the recording's
 dialect (metadata ``kteam_dialect``, :func:`recorded_dialect`): ``z,...`` and CR LF for the
-classic Koala, ``#,...`` and LF for the Koala 2.5. Lines a Koala 2.5 pushed in auto mode are
-replayed as replies to their commands (``g,...`` answers ``G``); they are not pushed.
+classic Koala, ``#,...`` and LF for the Koala 2.5. Auto mode of a Koala 2.5 recording: ``A,bits``
+is answered ``a`` and from then on the recorded lines of the selected streams (``g``, ``e``,
+``p``, ``o``, ``m``, ``n``, ``@``; :data:`AUTO_LETTERS`) are pushed at their recorded times
+(within ``AUTO_PUSH_PERIOD_S``), until ``A,0``; they also answer their commands as above.
 
 The recorded Zenoh messages (``truth/pose``, ``sensors/*``, ``status``, ``estimate/*``, ...) go
 back out on a Zenoh session at their times too, byte for byte, under ``[zenoh] prefix``, and the
@@ -39,6 +41,7 @@ from typing import Any
 
 import can
 from koala_bridge.drivers.dialects import dialect
+from koala_bridge.drivers.koala25 import AUTO_BITS
 from koala_bridge.drivers.kteam import KOALA1, Dialect, LineSplitter
 from koala_bridge.drivers.messages import Reject, RejectReason, TransportError
 from koala_bridge.recording.mcap_file import (
@@ -60,6 +63,10 @@ log = logging.getLogger(__name__)
 SPIN_S = 0.002  # sleep until this close to a deadline, then spin: sleep overshoots ~0.1-1 ms
 SWITCH_INTERVAL_S = 0.0005  # GIL hand-over while replaying (CPython's default: 5 ms)
 STREAM_BUSES = ("serial/rangefinders", "can", "mavlink")
+AUTO_PUSH_PERIOD_S = 0.01  # how often recorded Koala 2.5 auto-mode lines are pushed
+#: Koala 2.5 auto-mode streams (``A`` bits, drivers.koala25.AUTO_BITS) -> their lines' letter.
+AUTO_LETTERS = {"sonar": "g", "speed": "e", "position": "p", "current": "o", "accel": "m",
+                "gyro": "n", "magnetometer": "@"}
 ZENOH = "zenoh"  # the pseudo-bus of replayed Zenoh messages in plans and statistics
 
 
@@ -231,6 +238,8 @@ class Replayer:
         self._sleep = sleep
         self._on_sent_all = on_sent_all
         self._start: float | None = None
+        self._auto_letters: list[str] = []      # Koala 2.5 auto mode: the streams pushed
+        self._pushed_until = 0.0                # replay time of the last push
         self.stats = ReplayStats()
         missing = [b for b in plan.counts if not self._has_bus(b)]
         if missing:
@@ -354,12 +363,13 @@ class Replayer:
         splitter = LineSplitter()
         while not stop.is_set():
             try:
-                if not link.wait(0.1):
-                    continue
-                data = link.read()
+                ready = link.wait(AUTO_PUSH_PERIOD_S if self._auto_letters else 0.1)
+                data = link.read() if ready else b""
                 for line in splitter.feed(data) if data else []:
                     link.write(self.kteam_reply(line))
                     self.stats.kteam_answered += 1
+                for pushed in self._auto_lines():
+                    link.write(pushed)
             except TransportError as e:
                 if stop.is_set():
                     return
@@ -372,12 +382,33 @@ class Replayer:
         cmd = line if isinstance(line, Reject) else d.parse_command(line)
         if isinstance(cmd, Reject):
             return d.format_reply(d.error_reply(cmd))
+        if d.name == "koala25" and cmd.letter == "A":
+            # auto mode: the recorded lines of the selected streams are pushed from now on
+            self._auto_letters = [letter for name, letter in AUTO_LETTERS.items()
+                                  if cmd.args[0] & AUTO_BITS[name]]
+            self._pushed_until = self.replay_time()
+            return d.format_reply(d.reply("A"))
         times, lines = self.plan.kteam_replies.get(d.reply_letter(cmd.letter), ([], []))
         i = bisect.bisect_right(times, self.replay_time()) - 1
         if i < 0:
             reject = Reject(RejectReason.UNSUPPORTED, f"no recorded reply to {cmd.letter}")
             return d.format_reply(d.error_reply(reject))
         return lines[i]
+
+    def _auto_lines(self) -> list[bytes]:
+        """The recorded lines of the auto-mode streams whose times have come since the last call,
+        in time order."""
+        if not self._auto_letters:
+            return []
+        now = self.replay_time()
+        due: list[tuple[float, bytes]] = []
+        for letter in self._auto_letters:
+            times, lines = self.plan.kteam_replies.get(letter, ([], []))
+            lo = bisect.bisect_right(times, self._pushed_until)
+            hi = bisect.bisect_right(times, now)
+            due += zip(times[lo:hi], lines[lo:hi], strict=True)
+        self._pushed_until = now
+        return [line for _, line in sorted(due, key=lambda x: x[0])]
 
 
 class ReplaySource:

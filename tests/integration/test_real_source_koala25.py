@@ -352,3 +352,19 @@ kteam_auto = {bits}
     assert {p[:1] for p in data} == {b"g", b"p", b"n", b"@"}
     took = real.topic("status")[-1].json()["localisation"]["frames"]
     assert all(took.get(k, 0) > 0 for k in ("odometry", "sonar", "gyro", "compass")), took
+
+    # the replay of this recording pushes its recorded lines to a client in auto mode: the real
+    # source, in auto mode again, publishes values the recording holds (and nothing else)
+    with replaying(real_rec, tmp_path, "replay-auto") as (pty, _):
+        again_rec, _ = run_real(tmp_path, "again-auto", f"""
+kteam = "{pty}"
+kteam_dialect = "koala25"
+kteam_auto = {4 | 256}
+""", duration=1.0)
+    again = open_recording(again_rec)
+    again_pushed = [m.frame_bytes() for m in again.topic("/bus/serial/kteam")
+                    if m.json()["dir"] == FROM_ROBOT]
+    assert {p[:1] for p in again_pushed} == {b"a", b"p", b"@"}
+    for key in ("odometry", "compass"):
+        assert values(again, key), key
+        assert set(values(again, key)) <= set(values(real, key)), key
