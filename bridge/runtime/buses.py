@@ -185,9 +185,12 @@ def open_bus(name: str, url: str) -> ByteTransport | CanTransport:
     except (TransportError, OSError) as e:
         hint = ""
         if name in PORT_KEYS and address_in_use(e):
+            # port 0 (any free one) only where the bridge listens: not for MAVLink over UDP,
+            # whose port is the ground station's (settings.MavlinkSettings)
+            any_free = ", 0 any free one" if name == "can.socketcand" else ""
             hint = (
                 f" (another koala-bridge running? --set {PORT_KEYS[name]}=N picks another "
-                "port, 0 any free one)"
+                f"port{any_free})"
             )
         raise BusOpenError(f"cannot open bus {name}: {e}{hint}") from e
 
