@@ -9,12 +9,15 @@ seldom and their quantisation, one ADC count, dominates).
 Per wheel, each step (``v`` the wheel's mean surface speed over the step, ``v_cmd`` its set-point,
 ``a = (v - v_prev) / dt``; SI units)::
 
-    I_wheel = min(I_stall, k_v |v| + k_a |a| + I_stall |v_cmd - v| / v_max)
+    I_wheel = min(I_stall, k_v |v| + k_a |a| + I_stall (|v_cmd - v| + |v - v_ground|) / v_max)
 
 ``k_v |v|`` is the running current (friction and viscous losses grow with speed), ``k_a |a|`` the
-torque that accelerates the robot, and the last term the speed controller pushing against a wheel
-that does not follow (stalled against a wall: ``v = 0`` while ``v_cmd`` is not, so the motor draws
-up to its stall current). A DC motor at full duty cannot draw more than ``I_stall``.
+torque that accelerates the robot, and the last term the motor pushing against what stops the
+robot: a wheel that does not follow its set-point (stalled against a wall with ideal drive:
+``v = 0`` while ``v_cmd`` is not) or, in wall contact, a wheel that turns while the ground under
+it does not move as fast (``v_ground``: the body's motion at the wheel; with the drive-error
+model a pushing wheel slips at its set-point and works against the friction). Either way the
+motor draws up to its stall current; a DC motor at full duty cannot draw more.
 
 The battery (a charge counter, an open-circuit voltage linear in the state of charge, and a series
 resistance)::
@@ -83,13 +86,15 @@ class BatteryConfig:
 
 
 def motor_current(v: float, v_prev: float, v_cmd: float, dt: float, v_max: float,
-                  cfg: BatteryConfig) -> float:
-    """``I_wheel`` of the module docstring, A (non-finite inputs count as 0)."""
+                  cfg: BatteryConfig, v_ground: float | None = None) -> float:
+    """``I_wheel`` of the module docstring, A (non-finite inputs count as 0; ``v_ground`` None:
+    no wall contact, no slip term)."""
     v = v if math.isfinite(v) else 0.0
     v_prev = v_prev if math.isfinite(v_prev) else 0.0
     v_cmd = min(max(v_cmd, -v_max), v_max) if math.isfinite(v_cmd) else 0.0
     accel = abs(v - v_prev) / dt if dt > 0 else 0.0
-    push = cfg.motor_stall_current_A * abs(v_cmd - v) / v_max
+    slip = abs(v - v_ground) if v_ground is not None and math.isfinite(v_ground) else 0.0
+    push = cfg.motor_stall_current_A * (abs(v_cmd - v) + slip) / v_max
     running = cfg.motor_current_per_mps_A * abs(v) + cfg.motor_current_per_mps2_A * accel
     return min(cfg.motor_stall_current_A, running + push)
 
@@ -106,12 +111,14 @@ class Battery:
         self._reading = self._read((0.0, 0.0), cfg.idle_current_A)
 
     def step(self, speeds: tuple[float, float], commands: tuple[float, float],
-             dt: float) -> BatteryReading:
-        """Advance by ``dt`` s with the wheels' mean speeds and set-points (m/s) over it."""
+             dt: float, ground: tuple[float, float] | None = None) -> BatteryReading:
+        """Advance by ``dt`` s with the wheels' mean surface speeds and set-points (m/s) over
+        it; ``ground``: in wall contact, the body's speed at each wheel (else None)."""
         cfg = self.cfg
+        g = ground or (None, None)
         motors = (
-            motor_current(speeds[0], self._speeds[0], commands[0], dt, self.v_max, cfg),
-            motor_current(speeds[1], self._speeds[1], commands[1], dt, self.v_max, cfg),
+            motor_current(speeds[0], self._speeds[0], commands[0], dt, self.v_max, cfg, g[0]),
+            motor_current(speeds[1], self._speeds[1], commands[1], dt, self.v_max, cfg, g[1]),
         )
         self._speeds = speeds
         current = cfg.idle_current_A + motors[0] + motors[1]

@@ -107,13 +107,16 @@ class Simulator:
         """Advance one step ``dt`` with the commanded wheel surface speeds (m/s)."""
         if self._state is None:
             raise RuntimeError("call reset() before step()")
+        before = self._state
         self._state = kin.step(
             self._state, command.left, command.right, self.dt, self.config.robot, self.walls,
             self._streams["drive"], self._drive_error,
         )
         self._k += 1
         st = self._state
-        self.battery.step((st.left_speed, st.right_speed), (command.left, command.right), self.dt)
+        self.battery.step((st.left_speed, st.right_speed), (command.left, command.right), self.dt,
+                          _ground_speeds(before, st, self.dt, self.config.robot.wheel_base_m)
+                          if st.collided else None)
         return self._readings(st)
 
     def robot_description(self) -> dict[str, Any]:
@@ -247,3 +250,13 @@ class Simulator:
             st.collided,
             battery=self.battery.reading,
         )
+
+
+def _ground_speeds(before: RobotState, after: RobotState, dt: float,
+                   wheel_base: float) -> tuple[float, float]:
+    """The body's mean speed over a step at the left and right wheel contact, m/s (forward speed
+    along the starting heading, minus / plus half the wheel base times the yaw rate)."""
+    c, s = np.cos(before.theta), np.sin(before.theta)
+    v = float((after.x - before.x) * c + (after.y - before.y) * s) / dt
+    w = (after.heading - before.heading) / dt
+    return (v - 0.5 * wheel_base * w, v + 0.5 * wheel_base * w)

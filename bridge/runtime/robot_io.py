@@ -43,7 +43,7 @@ from koala_bridge.drivers.kteam import (
     error_reply,
 )
 from koala_bridge.drivers.messages import KteamCommand, KteamReply, Reject
-from koala_bridge.sim.types import BatteryReading, Readings, WheelCommand
+from koala_bridge.sim.types import BatteryReading, Pose, Readings, WheelCommand
 
 HISTORY = 10
 """Gyro and accelerometer samples kept (the Koala 2.5's ``N`` / ``M`` report the last 10)."""
@@ -82,6 +82,9 @@ class MotorArbiter:
             self._t_command = self._t_now
             self._move = None
             self._ramp = None
+            # a set-point applies in full (no acceleration model): a ramp that follows at once
+            # starts from it, not from the speeds of the step before
+            self._applied = self._command
 
     def set_ramp(self, left_mps: float, right_mps: float, accel_mps2: float, source: str) -> None:
         """A speed set-point reached from the speeds in force at ``accel_mps2`` (Koala 2.5
@@ -192,15 +195,14 @@ class RobotPort:
     ``accel_samples``.
 
     The accelerometer is not a simulated sensor of its own: its samples are the specific force of
-    the planar robot at the body centre, from the wheel speeds of each step (``v`` mean wheel
-    speed, ``w = (v_r - v_l) / wheel_base``): ``f = (dv/dt, v w, g)`` in FLU, m/s^2 -- exact for
-    the simulated kinematics, no noise (no accelerometer error model exists yet).
+    the planar robot at the body centre, from the truth pose of each step (``v`` forward speed,
+    ``w`` yaw rate): ``f = (dv/dt, v w, g)`` in FLU, m/s^2 -- exact for the simulated motion,
+    no noise (no accelerometer error model exists yet).
     """
 
-    def __init__(self, n_ir: int = 16, wheel_base_m: float = 0.285) -> None:
+    def __init__(self, n_ir: int = 16) -> None:
         self._lock = threading.Lock()
         self.n_ir = n_ir
-        self.wheel_base_m = wheel_base_m
         self._ticks = (0, 0)                # simulator's cumulative counts
         self._offset = (0, 0)               # set by K-Team G
         self._wheel_speeds = WheelCommand(0.0, 0.0)
@@ -216,13 +218,16 @@ class RobotPort:
         self.leds = [0, 0]
         self.t = 0.0
         self._t_prev: float | None = None
+        self._pose = Pose(0.0, 0.0, 0.0)
+        self._body_speed = 0.0
 
     def update(self, r: Readings) -> None:
         with self._lock:
             if self._t_prev is not None and r.t > self._t_prev:
-                self._accel.append(self._specific_force(r.wheel_speeds, r.t - self._t_prev))
+                self._accel.append(self._specific_force(r.pose, r.t - self._t_prev))
                 self.accel_samples += 1
             self._t_prev = r.t
+            self._pose = r.pose
             self.t = r.t
             self._wheel_speeds = r.wheel_speeds
             if r.odometry is not None:
@@ -241,12 +246,16 @@ class RobotPort:
             if r.battery is not None:
                 self._battery = r.battery
 
-    def _specific_force(self, speeds: WheelCommand, dt: float) -> tuple[float, float, float]:
-        prev = self._wheel_speeds
-        v = 0.5 * (speeds.left + speeds.right)
-        v_prev = 0.5 * (prev.left + prev.right)
-        w = (speeds.right - speeds.left) / self.wheel_base_m
-        fx, fy = (v - v_prev) / dt, v * w
+    def _specific_force(self, pose: Pose, dt: float) -> tuple[float, float, float]:
+        """The body's specific force from its motion (truth pose): forward speed ``v`` and yaw
+        rate ``w`` of the step, ``f = (dv/dt, v w, g)`` -- a robot pinned against a wall whose
+        wheels spin reads no acceleration, as a real accelerometer would not."""
+        prev = self._pose
+        c, s = math.cos(prev.theta), math.sin(prev.theta)
+        v = ((pose.x - prev.x) * c + (pose.y - prev.y) * s) / dt
+        w = math.remainder(pose.theta - prev.theta, math.tau) / dt
+        fx, fy = (v - self._body_speed) / dt, v * w
+        self._body_speed = v
         if not (math.isfinite(fx) and math.isfinite(fy)):
             fx = fy = 0.0
         return (fx, fy, STANDARD_GRAVITY)

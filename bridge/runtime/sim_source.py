@@ -97,8 +97,7 @@ class SimulatedRobotSource:
         self.units = RobotUnits(robot.ticks_per_metre, robot.speed_unit_s)
         self.counters = BusCounters()
         self.arbiter = MotorArbiter(settings.buses.motor_watchdog_s)
-        self.port = RobotPort(n_ir=len(self.sim.config.sensors.ir.poses),
-                              wheel_base_m=robot.wheel_base_m)
+        self.port = RobotPort(n_ir=len(self.sim.config.sensors.ir.poses))
         # [buses.kteam] dialect: the command set the K-Team pty speaks
         self.kteam: KteamResponder | Koala25Responder
         if settings.buses.kteam_dialect == "koala25":

@@ -49,6 +49,28 @@ def test_a_stalled_wheel_draws_up_to_the_stall_current() -> None:
     assert motor_current(V_MAX, -V_MAX, V_MAX, 0.01, V_MAX, CFG) == pytest.approx(2.0)
 
 
+def test_a_wheel_slipping_against_a_wall_draws_the_stall_current() -> None:
+    # wall contact with the drive-error model: the wheel turns at its set-point, the ground under
+    # it does not move; without contact the same speeds are free running
+    assert motor_current(V_MAX, V_MAX, V_MAX, 0.01, V_MAX, CFG, v_ground=0.0) == pytest.approx(2.0)
+    assert motor_current(0.2, 0.2, 0.2, 0.01, V_MAX, CFG, v_ground=0.1) == pytest.approx(
+        1.0 * 0.2 + 2.0 * 0.1 / V_MAX)
+    assert motor_current(0.2, 0.2, 0.2, 0.01, V_MAX, CFG) == pytest.approx(0.2)
+
+
+def test_pushing_into_a_wall_draws_the_stall_current_with_or_without_slip() -> None:
+    for name in ("default.toml", "ideal.toml"):    # drive-error model on (slip) and off (stall)
+        cfg = load_config(REPO / "config" / name)
+        sim = Simulator(cfg)
+        sim.reset(1)
+        v = cfg["robot"]["max_wheel_speed_mps"]
+        for _ in range(3000):                        # 30 s at full speed: into the first wall
+            r = sim.step(WheelCommand(v, v))
+        assert r.collided and r.battery is not None, name
+        stall = cfg["robot"]["battery"]["motor_stall_current_A"]
+        assert r.battery.motor_currents_A == pytest.approx((stall, stall)), name
+
+
 def test_charge_never_goes_below_zero_and_temperature_relaxes_to_its_target() -> None:
     bat = Battery(CFG, V_MAX)
     for _ in range(100):

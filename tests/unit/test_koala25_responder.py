@@ -24,11 +24,12 @@ from koala_bridge.sim.types import (
 
 UNITS = RobotUnits(ticks_per_metre=90284.0, speed_unit_s=0.01)
 V_MAX = 0.55
+ORIGIN = Pose(0, 0, 0)
 DT = 0.01
 
 
 def make() -> tuple[Koala25Responder, MotorArbiter, RobotPort]:
-    arb, port = MotorArbiter(), RobotPort(n_ir=16, wheel_base_m=0.25)
+    arb, port = MotorArbiter(), RobotPort(n_ir=16)
     return Koala25Responder(port, arb, UNITS, V_MAX, "Li-ion"), arb, port
 
 
@@ -39,9 +40,10 @@ def ask(resp: Koala25Responder, line: bytes) -> bytes:
 
 
 def step(port: RobotPort, t: float, speeds: tuple[float, float] = (0.0, 0.0),
-         sonar: tuple[float, ...] | None = None, yaw_rate: float = 0.0) -> None:
+         sonar: tuple[float, ...] | None = None, yaw_rate: float = 0.0,
+         pose: Pose = ORIGIN) -> None:
     port.update(Readings(
-        t=t, pose=Pose(0, 0, 0), wheel_speeds=WheelCommand(*speeds),
+        t=t, pose=pose, wheel_speeds=WheelCommand(*speeds),
         odometry=OdometryReading(0, 0),
         sonar=None if sonar is None else SonarReading(np.array(sonar), np.array(sonar),
                                                       np.zeros(len(sonar))),
@@ -79,12 +81,18 @@ def test_gyro_and_accelerometer_carry_ten_samples_newest_first() -> None:
     assert m[2::3] == [16384] * 10 and m[0::3] == [0] * 10   # at rest: 1 g up, 16384 / g
 
 
-def test_accelerometer_sees_the_acceleration_of_a_speed_step() -> None:
+def test_accelerometer_sees_the_body_move_not_the_wheels_turn() -> None:
     resp, _, port = make()
-    step(port, 0.0)
-    step(port, DT, speeds=(0.1, 0.1))                        # 10 m/s^2 forward for one step
+    step(port, 0.0, pose=Pose(1.0, 2.0, math.pi / 2))
+    # heading north, 1 mm north in 10 ms: 0.1 m/s forward from rest, 10 m/s^2 for one step
+    step(port, DT, speeds=(0.1, 0.1), pose=Pose(1.0, 2.001, math.pi / 2))
     m = [int(v) for v in ask(resp, b"M").decode()[2:].split(",")]
-    assert m[0] == round(10.0 / 9.80665 * 16384)
+    assert m[0] == round(10.0 / 9.80665 * 16384) and m[1] == 0
+    # pinned against a wall: the wheels spin at 0.3 m/s, the body does not move
+    step(port, 2 * DT, speeds=(0.3, 0.3), pose=Pose(1.0, 2.001, math.pi / 2))
+    step(port, 3 * DT, speeds=(0.3, 0.3), pose=Pose(1.0, 2.001, math.pi / 2))
+    m = [int(v) for v in ask(resp, b"M").decode()[2:].split(",")]
+    assert m[:3] == [0, 0, 16384]
 
 
 def test_magnetometer_battery_and_currents_in_the_manual_units() -> None:
