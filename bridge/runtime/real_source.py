@@ -112,6 +112,7 @@ from pydantic import AfterValidator, BeforeValidator, Strict
 log = logging.getLogger(__name__)
 
 KTEAM_REPLY_TIMEOUT_S = 0.5
+KTEAM_BAD_WARN = 5      # replies in a row not understood before a WARNING names the likely cause
 KTEAM_MAX_LINE = 1024   # bytes without a terminator before an auto-mode reader drops them
 AUTO_ALL = sum(AUTO_BITS.values())
 
@@ -255,6 +256,8 @@ class RealRobotSource:
         self.zenoh: ZenohLink | None = None
         self._kteam: ByteTransport | None = None
         self._kteam_lock = threading.Lock()
+        self._kteam_bad_run = 0             # K-Team replies in a row not understood
+        self._kteam_warned = False
         self._ranges: ByteTransport | None = None
         self._can: CanTransport | None = None
         self._mavlink: ByteTransport | None = None
@@ -323,6 +326,11 @@ class RealRobotSource:
             )
             self.tap.declare(["status"], [bus for bus, port in opened if port is not None])
         self.clock.start()
+        if self._kteam is not None:
+            # The firmware version, once, as libkoala's and KoreBot's start-up do: the recording
+            # holds the robot's B reply (a replay answers B with it), and a port that does not
+            # answer it in the configured dialect is said at once.
+            self._poll_kteam("B")
         if self._kteam is not None and p.kteam_auto:
             # Auto mode: one reader takes every line, pushed or replied (libkoala's
             # koala_get_from_auto_mode does not tell them apart either).
@@ -537,10 +545,26 @@ class RealRobotSource:
                 log.warning("kteam: %s", e)
                 return
         if not line.endswith(end):
-            self.counters.rejected("kteam")
-            log.debug("kteam: no reply to %s", letter)
+            self._kteam_bad(f"no reply to {letter} within {KTEAM_REPLY_TIMEOUT_S} s")
             return
         self._on_kteam_line(self.clock.now(), line, expected=letter)
+
+    def _kteam_bad(self, what: str) -> None:
+        """A K-Team reply missing or not understood: counted; the first run of
+        :data:`KTEAM_BAD_WARN` in a row (nothing understood in between) is said once, with the
+        likeliest cause."""
+        self.counters.rejected("kteam")
+        log.debug("kteam: %s", what)
+        self._kteam_bad_run += 1
+        if self._kteam_bad_run == KTEAM_BAD_WARN and not self._kteam_warned:
+            self._kteam_warned = True
+            d = self.dialect
+            log.warning(
+                "kteam: %d replies in a row not understood in the %s dialect (last: %s): is "
+                "[real] kteam_dialect right for this robot (koala1: classic Koala, 38400 8N2, "
+                "replies end CR LF; koala25: Koala 2.5, 115200 8N1, replies end LF), and the "
+                "port's speed (now %s)?", KTEAM_BAD_WARN, d.name, what,
+                self.ports.kteam_baud or d.line)
 
     def _kteam_reader(self, port: ByteTransport) -> Callable[[], None]:
         """Auto mode: every line the robot sends, as it comes (recorded with its terminator)."""
@@ -573,9 +597,10 @@ class RealRobotSource:
         if not isinstance(reply, KteamReply) or reply.is_error or (
             expected is not None and reply.letter != self.dialect.reply_letter(expected)
         ):
-            self.counters.rejected("kteam")
+            self._kteam_bad(f"{line[:40]!r}" + (f" to {expected}" if expected else ""))
             return
         self.counters.received("kteam")
+        self._kteam_bad_run = 0
         # One source per key: a streaming bus wins over K-Team (the line is still recorded).
         if self._kteam_decoder.topic_of(reply) in self._streamed:
             return

@@ -9,13 +9,15 @@ leaves within a fraction of a millisecond of its time (docs/recording.md has the
 
 K-Team ASCII is request/response, so its replies are not replayed as a stream: a command from
 the client is answered with the latest recorded reply to the same letter at the current replay
-time (``h,...`` for ``H``; Koala 2.5 ``@,...`` for ``&``), or with the K-Team error reply if the
-recording has none. Commands are parsed and replies ended and errors lettered in the recording's
-dialect (metadata ``kteam_dialect``, :func:`recorded_dialect`): ``z,...`` and CR LF for the
-classic Koala, ``#,...`` and LF for the Koala 2.5. Auto mode of a Koala 2.5 recording: ``A,bits``
-is answered ``a`` and from then on the recorded lines of the selected streams (``g``, ``e``,
-``p``, ``o``, ``m``, ``n``, ``@``; :data:`AUTO_LETTERS`) are pushed at their recorded times
-(within ``AUTO_PUSH_PERIOD_S``), until ``A,0``; they also answer their commands as above.
+time (``h,...`` for ``H``; Koala 2.5 ``@,...`` for ``&``), or with the dialect's error reply
+``Not recorded`` if the recording has none (Koala 2.5 ``B``: a bare ``#``, shorter than the 7
+bytes libkoala reads, so that it stays in step). Commands are parsed, replies ended and errors
+lettered in the recording's dialect (metadata ``kteam_dialect``, :func:`recorded_dialect`):
+``z,...`` and CR LF for the classic Koala, ``#,...`` and LF for the Koala 2.5. Auto mode of a
+Koala 2.5 recording: ``A,bits`` is answered ``a`` and from then on the recorded lines of the
+selected streams (``g``, ``e``, ``p``, ``o``, ``m``, ``n``, ``@``; :data:`AUTO_LETTERS`) are
+pushed at their recorded times (within ``AUTO_PUSH_PERIOD_S``), until ``A,0``; they also answer
+their commands as above.
 
 The recorded Zenoh messages (``truth/pose``, ``sensors/*``, ``status``, ``estimate/*``, ...) go
 back out on a Zenoh session at their times too, byte for byte, under ``[zenoh] prefix``, and the
@@ -43,7 +45,7 @@ import can
 from koala_bridge.drivers.dialects import dialect
 from koala_bridge.drivers.koala25 import AUTO_BITS
 from koala_bridge.drivers.kteam import KOALA1, Dialect, LineSplitter
-from koala_bridge.drivers.messages import Reject, RejectReason, TransportError
+from koala_bridge.drivers.messages import KteamReply, Reject, TransportError
 from koala_bridge.recording.mcap_file import (
     BUSES,
     FORMAT_VERSION,
@@ -63,6 +65,8 @@ log = logging.getLogger(__name__)
 SPIN_S = 0.002  # sleep until this close to a deadline, then spin: sleep overshoots ~0.1-1 ms
 SWITCH_INTERVAL_S = 0.0005  # GIL hand-over while replaying (CPython's default: 5 ms)
 STREAM_BUSES = ("serial/rangefinders", "can", "mavlink")
+ERROR_NOT_RECORDED = "Not recorded"
+"""Text of the error reply to a well-formed command the recording holds no reply to."""
 AUTO_PUSH_PERIOD_S = 0.01  # how often recorded Koala 2.5 auto-mode lines are pushed
 #: Koala 2.5 auto-mode streams (``A`` bits, drivers.koala25.AUTO_BITS) -> their lines' letter.
 AUTO_LETTERS = {"sonar": "g", "speed": "e", "position": "p", "current": "o", "accel": "m",
@@ -391,8 +395,11 @@ class Replayer:
         times, lines = self.plan.kteam_replies.get(d.reply_letter(cmd.letter), ([], []))
         i = bisect.bisect_right(times, self.replay_time()) - 1
         if i < 0:
-            reject = Reject(RejectReason.UNSUPPORTED, f"no recorded reply to {cmd.letter}")
-            return d.format_reply(d.error_reply(reject))
+            if d.name == "koala25" and cmd.letter == "B":
+                # libkoala reads B's reply as one 7-byte read(): a longer error reply would leave
+                # bytes that it reads as the next command's reply
+                return d.format_reply(KteamReply(d.error_letter))
+            return d.format_reply(KteamReply(d.error_letter, (ERROR_NOT_RECORDED,)))
         return lines[i]
 
     def _auto_lines(self) -> list[bytes]:

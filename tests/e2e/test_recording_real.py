@@ -172,12 +172,13 @@ mavlink = "udpin:127.0.0.1:{robot.mavlink_port}"
         assert contiguous_in(recorded, sent[key]), key      # what the robot sent, no gap
         assert contiguous_in(live, recorded), key           # Zenoh carried the same
     assert len(set(map(tuple, sent["odometry"]))) > 5, "the robot was turning"
-    # K-Team: H polled (odometry comes from CAN, so H replies are recorded, not published).
+    # K-Team: the version once at the start, then H polled (odometry comes from CAN, so H
+    # replies are recorded, not published).
     kteam = rec.topic("/bus/serial/kteam")
     asked = [m.frame_bytes() for m in kteam if m.json()["dir"] == "to_robot"]
     replies = [m.frame_bytes() for m in kteam if m.json()["dir"] == FROM_ROBOT]
-    assert asked and set(asked) == {b"H\r"}
-    assert replies and all(r.startswith(b"h,") for r in replies)
+    assert asked[0] == b"B\r" and len(asked) > 1 and set(asked[1:]) == {b"H\r"}
+    assert replies[0].startswith(b"b,") and all(r.startswith(b"h,") for r in replies[1:])
     status = received["status"][-1]
     assert status["source"] == "real"
     assert status["buses"]["rangefinders"]["received"] > 0

@@ -246,9 +246,11 @@ kteam_poll_hz = 10.0
     kteam = real.topic("/bus/serial/kteam")
     asked = {m.frame_bytes() for m in kteam if m.json()["dir"] == TO_ROBOT}
     replies = [m.frame_bytes() for m in kteam if m.json()["dir"] == FROM_ROBOT]
-    assert asked == {b"P\r", b"G\r", b"N\r", b"&\r", b"E\r"}
+    # the firmware version once at the start (as libkoala's start-up), then the polls
+    assert asked == {b"B\r", b"P\r", b"G\r", b"N\r", b"&\r", b"E\r"}
     assert replies and all(r.endswith(b"\n") and not r.endswith(b"\r\n") for r in replies)
-    assert {r[:1] for r in replies} == {b"p", b"g", b"n", b"@", b"e"}
+    assert {r[:1] for r in replies} == {b"b", b"p", b"g", b"n", b"@", b"e"}
+    assert replies[0] == b"b,A-02\n"
     # The estimator node took the same lines in the same dialect (status counts what it took;
     # the last status comes after the last poll)
     took = real.topic("status")[-1].json()["localisation"]["frames"]
@@ -256,11 +258,13 @@ kteam_poll_hz = 10.0
         k: len(values(real, k)) for k in ("odometry", "sonar", "gyro", "compass")}
 
     # replay: the recorded Koala 2.5 answers a libkoala-style client in its own dialect
-    answers = replay_kteam(real_rec, tmp_path, [b"&\r", b"P\r", b"E\r", b"U\r", b"D,1\r"])
+    answers = replay_kteam(real_rec, tmp_path,
+                           [b"&\r", b"P\r", b"E\r", b"U\r", b"D,1\r", b"B\r"])
     last = {r[:1]: r for r in replies}
     assert answers[:3] == [last[b"@"], last[b"p"], last[b"e"]]
-    assert answers[3].startswith(b"#,") and answers[3].endswith(b"\n")   # U was never asked
-    assert answers[4].startswith(b"#,")                                    # bad arity
+    assert answers[3] == b"#,Not recorded\n"                              # U was never asked
+    assert answers[4] == b"#,Protocol error\n"                            # bad arity
+    assert answers[5] == b"b,A-02\n"              # the robot's version, asked at the start
     # ... and the real source reads the replay as it read the robot: every value it publishes
     # is one the recording holds
     with replaying(real_rec, tmp_path, "replay-real") as (pty, _):
@@ -348,10 +352,11 @@ kteam_auto = {bits}
     kteam = real.topic("/bus/serial/kteam")
     asked = [m.frame_bytes() for m in kteam if m.json()["dir"] == TO_ROBOT]
     pushed = [m.frame_bytes() for m in kteam if m.json()["dir"] == FROM_ROBOT]
-    assert asked == [f"A,{bits}\r".encode(), b"A,0\r"]    # on at the start, off at the end
-    assert pushed[0] == b"a\n"                             # A's acknowledgement
+    # the version, auto mode on at the start, off at the end
+    assert asked == [b"B\r", f"A,{bits}\r".encode(), b"A,0\r"]
+    assert pushed[:2] == [b"b,A-02\n", b"a\n"]             # B's reply, A's acknowledgement
     # then the pushed lines (and, if it came before the port closed, A,0's "a")
-    data = pushed[1:-1] if pushed[-1] == b"a\n" else pushed[1:]
+    data = pushed[2:-1] if pushed[-1] == b"a\n" else pushed[2:]
     assert {p[:1] for p in data} == {b"g", b"p", b"n", b"@"}
     took = real.topic("status")[-1].json()["localisation"]["frames"]
     assert all(took.get(k, 0) > 0 for k in ("odometry", "sonar", "gyro", "compass")), took
@@ -367,7 +372,24 @@ kteam_auto = {4 | 256}
     again = open_recording(again_rec)
     again_pushed = [m.frame_bytes() for m in again.topic("/bus/serial/kteam")
                     if m.json()["dir"] == FROM_ROBOT]
-    assert {p[:1] for p in again_pushed} == {b"a", b"p", b"@"}
+    assert {p[:1] for p in again_pushed} == {b"b", b"a", b"p", b"@"}
     for key in ("odometry", "compass"):
         assert values(again, key), key
         assert set(values(again, key)) <= set(values(real, key)), key
+
+
+def test_a_real_source_in_the_wrong_dialect_says_so(
+    bridge: Callable[..., BridgeProcess], tmp_path: Path
+) -> None:
+    # the classic dialect's polls against a Koala 2.5: N carries 30 gyro values there, not 16 IR
+    # counts, and H is a PID setting without a reply field
+    robot = bridge(clock="realtime", sets=["buses.kteam.dialect=koala25"])
+    _, log_path = run_real(tmp_path, "wrong", f"""
+kteam = "{robot.endpoints["serial"]["kteam"]}"
+kteam_dialect = "koala1"
+kteam_poll = ["N", "H"]
+""", duration=2.0)
+    assert robot.stop() == 0
+    log = log_path.read_text()
+    assert log.count("not understood in the koala1 dialect") == 1, log   # said once, not per reply
+    assert "is [real] kteam_dialect right for this robot" in log
