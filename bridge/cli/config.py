@@ -139,6 +139,7 @@ def run(args: argparse.Namespace) -> int:
         "Edit it and run with it:\n"
         f"  koala-bridge run --config {default}\n"
         f"  koala-bridge run --config {args.directory / 'ideal.toml'}   # every error model off\n"
+        f"  koala-bridge run --config {args.directory / 'koala25.toml'}   # a Koala 2.5\n"
         f"worlds/*.toml are other [world] tables: paste one over the [world] of {default}."
     )
     return 0

@@ -7,6 +7,7 @@ JSON once every endpoint accepts clients. SIGINT (Ctrl-C) or SIGTERM stops it cl
 examples:
   koala-bridge run                                  # config/default.toml, real time
   koala-bridge run --clock fast --duration 30 --seed 7
+  koala-bridge run --config "$(koala-bridge config path)/koala25.toml"   # a Koala 2.5 (libkoala)
   koala-bridge run --endpoints-file /tmp/koala.json --set buses.mavlink.port=14551
   koala-bridge run --set 'zenoh.listen=["tcp/127.0.0.1:7500"]' --set robot.name=k2
   koala-bridge run --clock fast --duration 60 --record /tmp/run.mcap   # docs/recording.md
