@@ -4,7 +4,6 @@ python-can's own clients, plus malformed input on each."""
 from __future__ import annotations
 
 import random
-import socket
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -14,6 +13,7 @@ import cantools
 import pytest
 import serial
 from _can import recv, wait_for
+from _socketcand_client import raw_client, read_element
 from koala_bridge.drivers.can_codec import (
     DEFAULT_DBC_PATH,
     KoalaCanCodec,
@@ -185,35 +185,20 @@ def test_socketcand_with_python_can_clients(
     assert stats.sent == 2 and stats.received == 2 and stats.rejected == 0
 
 
-def _raw_client(server: SocketcandServer) -> socket.socket:
-    sock = socket.create_connection((server.endpoint.host, server.endpoint.port), timeout=5)
-    assert _read_element(sock) == b"< hi >"
-    return sock
-
-
-def _read_element(sock: socket.socket) -> bytes:
-    buf = b""
-    while not buf.endswith(b">"):
-        chunk = sock.recv(1)
-        assert chunk, "server closed the connection"
-        buf += chunk
-    return buf.strip()
-
-
 def test_socketcand_counts_a_client_once_it_receives_frames(
     codec: KoalaCanCodec, socketcand: SocketcandServer
 ) -> None:
     # What `replay --wait-clients` waits on: a frame sent before `rawmode` never reaches the
     # client, so a client still in its handshake is not counted yet.
-    with _raw_client(socketcand) as raw:
+    with raw_client(socketcand) as raw:
         raw.sendall(b"< open koala0 >")
-        assert _read_element(raw) == b"< ok >"
+        assert read_element(raw) == b"< ok >"
         assert socketcand.stats.clients == 0
         raw.sendall(b"< rawmode >")
-        assert _read_element(raw) == b"< ok >"
+        assert read_element(raw) == b"< ok >"
         wait_for(lambda: socketcand.stats.clients == 1)
         socketcand.send(codec.encode(GyroFrame(0.5)))
-        assert _read_element(raw).startswith(b"< frame ")
+        assert read_element(raw).startswith(b"< frame ")
     wait_for(lambda: socketcand.stats.clients == 0)
 
 
@@ -221,12 +206,12 @@ def test_socketcand_rejects_bad_input_and_keeps_serving(
     codec: KoalaCanCodec, socketcand: SocketcandServer
 ) -> None:
     rng = random.Random(11)
-    with _raw_client(socketcand) as raw:
+    with raw_client(socketcand) as raw:
         raw.sendall(b"< open wrongbus >")
-        assert _read_element(raw) == b"< error could not open bus >"
+        assert read_element(raw) == b"< error could not open bus >"
         raw.sendall(b"< open koala0 >< rawmode >")
-        assert _read_element(raw) == b"< ok >"
-        assert _read_element(raw) == b"< ok >"
+        assert read_element(raw) == b"< ok >"
+        assert read_element(raw) == b"< ok >"
         bad_inputs = [
             b"< bogus >",
             b"< send 100 4 1 2 >",  # dlc says 4, two bytes
@@ -241,14 +226,14 @@ def test_socketcand_rejects_bad_input_and_keeps_serving(
         # each one proves that nothing was sent before it.
         for n, bad in enumerate(bad_inputs, start=1):
             raw.sendall(bad + b"< echo >")
-            assert _read_element(raw) == b"< echo >", bad
+            assert read_element(raw) == b"< echo >", bad
             assert socketcand.stats.rejected == 1 + n, bad  # 1: the wrong bus above
         raw.sendall(
             bytes(rng.randrange(256) for _ in range(200)).replace(b"<", b"").replace(b">", b"")
         )
         raw.sendall(b"< " + b"x" * 300)  # an element that never ends
         raw.sendall(b">< echo >")  # (the stray '>' closes nothing: junk)
-        assert _read_element(raw) == b"< echo >"
+        assert read_element(raw) == b"< echo >"
         assert socketcand.stats.rejected >= 1 + len(bad_inputs) + 2
         # The same connection still sends valid frames, and a python-can client still works.
         raw.sendall(b"< send 100 4 c8 0 38 ff >")
@@ -343,13 +328,13 @@ def test_socketcand_frame_time_is_the_senders_time_stamp(
 ) -> None:
     # The bridge stamps its frames with the sample's simulation time (docs/protocols.md,
     # "Time"); the first step's frames are at t = 0 and must say 0, not the host's clock.
-    with _raw_client(socketcand) as raw:
+    with raw_client(socketcand) as raw:
         raw.sendall(b"< open koala0 >< rawmode >")
-        assert _read_element(raw) == b"< ok >"
-        assert _read_element(raw) == b"< ok >"
+        assert read_element(raw) == b"< ok >"
+        assert read_element(raw) == b"< ok >"
         wait_for(lambda: socketcand.stats.clients == 1)
         for t in (0.0, 0.01, 12.34):
             msg = codec.encode(GyroFrame(0.5))
             msg.timestamp = t
             socketcand.send(msg)
-            assert _read_element(raw) == f"< frame 120 {t:.6f} 50C30000 >".encode()
+            assert read_element(raw) == f"< frame 120 {t:.6f} 50C30000 >".encode()

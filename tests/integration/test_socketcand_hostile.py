@@ -18,6 +18,7 @@ import cantools
 import pytest
 import serial
 from _can import recv, wait_for
+from _socketcand_client import raw_client, read_element
 from koala_bridge.drivers.transports import python_can_config
 from koala_bridge.drivers.transports.slcan import SlcanAdapter
 from koala_bridge.drivers.transports.socketcand import SocketcandServer
@@ -46,29 +47,10 @@ def _assert_both_ways(server: SocketcandServer, client: can.BusABC, i: int) -> N
     assert (got.arbitration_id, bytes(got.data)) == (0x100, bytes([i % 256] * 4))
 
 
-def _raw_client(server: SocketcandServer, rcvbuf: int | None = None) -> socket.socket:
-    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-    if rcvbuf is not None:  # before connect, so the TCP window stays small
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
-    sock.settimeout(10)
-    sock.connect((server.endpoint.host, server.endpoint.port))
-    assert _read_element(sock) == b"< hi >"
-    return sock
-
-
-def _read_element(sock: socket.socket) -> bytes:
-    buf = b""
-    while not buf.endswith(b">"):
-        chunk = sock.recv(1)
-        assert chunk, "server closed the connection"
-        buf += chunk
-    return buf.strip()
-
-
 def _raw_mode(sock: socket.socket) -> None:
     sock.sendall(f"< open {CHANNEL} >< rawmode >".encode())
-    assert _read_element(sock) == b"< ok >"
-    assert _read_element(sock) == b"< ok >"
+    assert read_element(sock) == b"< ok >"
+    assert read_element(sock) == b"< ok >"
 
 
 def _closed_by_server(sock: socket.socket) -> bool:
@@ -127,14 +109,14 @@ def test_errors_before_rawmode_are_still_answered(
     # The handshake is a dialogue (python-can's constructor compares each reply): an error
     # there is answered as the daemon does, and python-can reports it.
     server = server_factory()
-    with _raw_client(server) as raw:
+    with raw_client(server) as raw:
         raw.sendall(b"<x>")
-        assert _read_element(raw) == b"< error open a bus first >"
+        assert read_element(raw) == b"< error open a bus first >"
         raw.sendall(b"< open can9 >")
-        assert _read_element(raw) == b"< error could not open bus >"
+        assert read_element(raw) == b"< error could not open bus >"
         raw.sendall(f"< open {CHANNEL} >< bogus >".encode())
-        assert _read_element(raw) == b"< ok >"
-        assert _read_element(raw) == b"< error unknown command >"
+        assert read_element(raw) == b"< ok >"
+        assert read_element(raw) == b"< error unknown command >"
     config = {**python_can_config(server.endpoint), "channel": "can9"}
     with pytest.raises(can.CanError, match="could not open bus"):
         can.Bus(**config)
@@ -153,7 +135,7 @@ def test_a_client_that_floods_and_never_reads_is_dropped_and_counted(
 ) -> None:
     max_pending = 4096
     server = server_factory(max_pending=max_pending, handshake_timeout_s=600.0)
-    with _bus(server) as listener, _raw_client(server, rcvbuf=4096) as flooder:
+    with _bus(server) as listener, raw_client(server, rcvbuf=4096) as flooder:
         if handshake:
             _raw_mode(flooder)
         wait_for(lambda: server.stats.clients == 1 + handshake)
@@ -182,11 +164,11 @@ def test_rejected_elements_in_raw_mode_queue_nothing(
     server_factory: Callable[..., SocketcandServer],
 ) -> None:
     server = server_factory(max_pending=4096)
-    with _raw_client(server, rcvbuf=4096) as raw:
+    with raw_client(server, rcvbuf=4096) as raw:
         _raw_mode(raw)
         raw.sendall(b"<x>" * 20_000)
         raw.sendall(b"< echo >")
-        assert _read_element(raw) == b"< echo >"  # nothing came before it
+        assert read_element(raw) == b"< echo >"  # nothing came before it
         assert server.stats.rejected == 20_000
     assert server.peak_pending <= len(b"< echo >")  # the largest reply it was sent
 
@@ -195,7 +177,7 @@ def test_a_connection_that_never_opens_the_bus_is_closed(
     server_factory: Callable[..., SocketcandServer],
 ) -> None:
     server = server_factory(max_clients=1, handshake_timeout_s=0.2)
-    with _raw_client(server) as idle:
+    with raw_client(server) as idle:
         assert _closed_by_server(idle)
     assert server.stats.rejected == 1
     with _bus(server) as client:  # the slot is free again
@@ -208,17 +190,17 @@ def test_at_the_client_limit_a_newcomer_evicts_the_client_idle_longest(
 ) -> None:
     idle_timeout_s = 0.2
     server = server_factory(max_clients=2, idle_timeout_s=idle_timeout_s)
-    with _raw_client(server) as oldest, _raw_client(server) as other:
+    with raw_client(server) as oldest, raw_client(server) as other:
         _raw_mode(oldest)
         _raw_mode(other)
         time.sleep(1.5 * idle_timeout_s)  # both idle now (a precondition, not the oracle)
         with _bus(server) as client:
             assert _closed_by_server(oldest)
             other.sendall(b"< echo >")  # the other idle client was left alone
-            assert _read_element(other) == b"< echo >"
+            assert read_element(other) == b"< echo >"
             wait_for(lambda: server.stats.clients == 2)
             _assert_both_ways(server, client, 1)
-            assert _read_element(other).startswith(b"< frame 110 ")
+            assert read_element(other).startswith(b"< frame 110 ")
     assert server.stats.rejected == 1
 
 
@@ -243,7 +225,7 @@ def test_keep_alives_do_not_hold_a_slot_against_a_python_can_newcomer(
     """Clients that open the bus and only send ``< echo >`` (never read, never send a frame) are
     idle: a python-can newcomer takes the place of one of them."""
     server = server_factory(max_clients=2, idle_timeout_s=0.2)
-    squatters = [_raw_client(server), _raw_client(server)]
+    squatters = [raw_client(server), raw_client(server)]
     stop = threading.Event()
 
     def keep_alive(sock: socket.socket) -> None:

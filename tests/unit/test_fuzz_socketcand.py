@@ -15,6 +15,7 @@ import socket
 
 import can
 import pytest
+from _socketcand_client import read_element
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from koala_bridge.drivers.transports.socketcand import SocketcandServer, parse_send_element
@@ -92,15 +93,6 @@ def test_a_mutated_send_element_is_a_message_or_a_reason(msg: can.Message, data:
     _check_result(parse_send_element(_words(text)))
 
 
-def _read_element(sock: socket.socket) -> bytes:
-    buf = b""
-    while not buf.endswith(b">"):
-        chunk = sock.recv(1)
-        assert chunk, "server closed the connection"
-        buf += chunk
-    return buf.strip()
-
-
 def _mutated_elements() -> st.SearchStrategy[bytes]:
     valid = st.sampled_from([b"< send 123 1 AB >", b"< echo >", b"< rawmode >", b"< bcmmode >",
                              b"< open koala0 >", b"< send 1FFFFFFF 8 0 1 2 3 4 5 6 7 >"])
@@ -116,10 +108,10 @@ def test_the_stream_parser_survives_any_bytes() -> None:
         @given(_mutated_elements())
         def feed(garbage: bytes) -> None:
             with socket.create_connection((server.endpoint.host, server.endpoint.port), 10) as s:
-                assert _read_element(s) == b"< hi >"
+                assert read_element(s) == b"< hi >"
                 s.sendall(f"< open {CHANNEL} >< rawmode >".encode())
-                assert _read_element(s) == b"< ok >"
-                assert _read_element(s) == b"< ok >"
+                assert read_element(s) == b"< ok >"
+                assert read_element(s) == b"< ok >"
                 s.sendall(garbage)
                 # ">" ends an element the garbage left open; then a valid frame must still land
                 # (the connection stayed open and the parser found the next element).
