@@ -24,6 +24,7 @@ import subprocess
 import sys
 import threading
 import time
+import tomllib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -66,6 +67,18 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 
 
 # -- ports -------------------------------------------------------------------------------------
+
+def commented_real_block(config_file: Path) -> dict[str, Any]:
+    """The commented-out ``[real]`` table of a shipped config file, uncommented and parsed."""
+    lines = config_file.read_text().splitlines()
+    start = lines.index("# [real]")
+    block = []
+    for line in lines[start:]:
+        if not line.startswith("# "):
+            break
+        block.append(line[2:])
+    return tomllib.loads("\n".join(block))["real"]
+
 
 def _free_port(kind: int) -> int:
     with socket.socket(socket.AF_INET, kind) as s:

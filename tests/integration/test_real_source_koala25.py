@@ -17,7 +17,6 @@ import math
 import signal
 import subprocess
 import time
-import tomllib
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -31,6 +30,7 @@ from conftest import (
     BridgeProcess,
     ZenohWatch,
     bridge_command,
+    commented_real_block,
     free_port,
     wait_endpoints,
 )
@@ -123,14 +123,7 @@ def test_real_section_koala25_keys() -> None:
 
 def test_koala25_toml_shows_the_real_section_in_its_dialect() -> None:
     """config/koala25.toml's commented [real] table is default.toml's but for kteam_dialect."""
-    lines = (DEFAULT_CONFIG.parent / "koala25.toml").read_text().splitlines()
-    start = lines.index("# [real]")
-    block = []
-    for line in lines[start:]:
-        if not line.startswith("# "):
-            break
-        block.append(line[2:])
-    shown = RealPorts.from_dict(tomllib.loads("\n".join(block))["real"])
+    shown = RealPorts.from_dict(commented_real_block(DEFAULT_CONFIG.parent / "koala25.toml"))
     assert shown == dataclasses.replace(RealPorts(), kteam_dialect="koala25")
 
 

@@ -10,13 +10,13 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
-import tomllib
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 import pytest
+from conftest import commented_real_block
 from koala_bridge.calibration.errors import ModelConfigError
 from koala_bridge.calibration.model import declared_model
 from koala_bridge.core.resources import default_config_path, default_dbc_path
@@ -124,18 +124,6 @@ def _same(a: Any, b: Any) -> bool:
     return bool(a == b)
 
 
-def _real_block() -> dict[str, Any]:
-    """The commented-out ``[real]`` table of default.toml, uncommented."""
-    lines = DEFAULT.read_text().splitlines()
-    start = lines.index("# [real]")
-    block = []
-    for line in lines[start:]:
-        if not line.startswith("# "):
-            break
-        block.append(line[2:])
-    return tomllib.loads("\n".join(block))["real"]
-
-
 @pytest.mark.parametrize(("cls", "where"), SECTIONS, ids=[f"{w}:{c.__name__}" for c, w in SECTIONS])
 def test_every_field_is_in_default_toml_with_its_default(cls: Any, where: str) -> None:
     """The policy's one-default rule: every key is written in default.toml, and a field that has
@@ -179,7 +167,7 @@ def test_default_toml_holds_no_key_the_schema_lacks() -> None:
 
 
 def test_real_section_defaults_are_the_commented_block_of_default_toml() -> None:
-    block = _real_block()
+    block = commented_real_block(DEFAULT)
     assert set(block) == {f.name for f in dataclasses.fields(RealPorts)}
     assert RealPorts.from_dict(block) == RealPorts()
     with pytest.raises(ConfigError, match=r"\[real\] section naming the robot's ports"):
