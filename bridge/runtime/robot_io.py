@@ -348,6 +348,11 @@ class KteamResponder:
     def reject(self, reject: Reject) -> KteamReply:
         return error_reply(reject)
 
+    def auto_lines(self, t: float) -> list[KteamReply]:
+        """Lines pushed unasked at simulation time ``t``: none (the classic Koala has no auto
+        mode; the Koala 2.5's is :meth:`runtime.koala25_io.Koala25Responder.auto_lines`)."""
+        return []
+
     def respond(self, cmd: KteamCommand) -> KteamReply:
         letter, args = cmd.letter, cmd.args
         lo = letter.lower()

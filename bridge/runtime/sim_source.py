@@ -262,8 +262,8 @@ class SimulatedRobotSource:
                 self._send_bytes(
                     "mavlink", self.buses.mavlink, self.mav_encoder.scaled_imu(sample), r.t
                 )
-        if self.buses.kteam is not None and isinstance(self.kteam, Koala25Responder):
-            for line in self.kteam.auto_lines(r.t):     # Koala 2.5 auto mode (A,bits)
+        if self.buses.kteam is not None:
+            for line in self.kteam.auto_lines(r.t):     # what the robot pushes unasked
                 self._send_bytes("kteam", self.buses.kteam, self.kteam.dialect.format_reply(line),
                                  r.t)
         if self.localisation is not None and r.camera is not None:
