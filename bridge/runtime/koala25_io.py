@@ -32,7 +32,6 @@ import math
 import threading
 from dataclasses import dataclass
 
-from koala_bridge.core.motion_profile import trapezoid
 from koala_bridge.drivers.koala25 import (
     ACCEL_G_PER_UNIT,
     AUTO_BITS,
@@ -47,7 +46,13 @@ from koala_bridge.drivers.koala25 import (
     VERSION_REPLY,
 )
 from koala_bridge.drivers.messages import KteamCommand, KteamReply, Reject
-from koala_bridge.runtime.robot_io import STANDARD_GRAVITY, MotorArbiter, RobotPort, RobotUnits
+from koala_bridge.runtime.robot_io import (
+    STANDARD_GRAVITY,
+    MotorArbiter,
+    RobotPort,
+    RobotUnits,
+    wheel_moves,
+)
 
 #: Controller modes reported by ``Y`` (Koala 2.5 manual).
 IDLE, SPEED, SPEED_ACCEL, POSITION, OPEN_LOOP, CURRENT_LIMIT = 0, 1, 2, 3, 4, 5
@@ -280,15 +285,14 @@ class Koala25Responder:
 
     def status(self) -> tuple[int, int, int, int]:
         """``Y``: control mode left, right; on target left, right (position mode)."""
-        move, elapsed = self.arbiter.move()
+        move, ended = self.arbiter.move()
         with self._lock:
             modes = list(self.mode)
             targets, margin, max_current = self._targets, self.profile[4], self.profile[5]
         on_target = [0, 0]
         if move is not None:
-            done = elapsed >= max(m.duration for m in move)
             counts = self.port.counters()
-            on_target = [int(done and abs(t - c) <= margin)
+            on_target = [int(ended and abs(t - c) <= margin)
                          for t, c in zip(targets, counts, strict=True)]
         elif modes == [POSITION, POSITION]:
             on_target = [1, 1]          # a move ended, or was replaced by a stop
@@ -364,9 +368,8 @@ class Koala25Responder:
         accel = self._accel_mps2()
         # the motors cannot cruise faster than the robot's top wheel speed ([robot])
         v_max = min(self.units.kteam_speed_to_mps(cruise), self.max_wheel_speed_mps)
-        moves = [trapezoid(self.units.pulses_to_m(target - pos), v_max, accel)
-                 for target, pos in zip((left_target, right_target), now, strict=True)]
-        self.arbiter.set_move(moves[0], moves[1], self.source)
+        moves = wheel_moves(self.units, now, (left_target, right_target), [(v_max, accel)] * 2)
+        self.arbiter.set_move(*moves, self.source)
         self._set_mode(POSITION)
 
     def _set_mode(self, mode: int) -> None:

@@ -30,6 +30,7 @@ from __future__ import annotations
 import math
 import threading
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -58,6 +59,11 @@ numbering: K-Team's real numbers are not known to us)."""
 
 def _wrap_int32(value: int) -> int:
     return (int(value) - INT32_MIN) % 2**32 + INT32_MIN
+
+
+def _duration(move: tuple[Trapezoid, Trapezoid]) -> float:
+    """How long a two-wheel move lasts: until the longer profile ends."""
+    return max(move[0].duration, move[1].duration)
 
 
 class MotorArbiter:
@@ -107,11 +113,12 @@ class MotorArbiter:
             self._source = source
             self._t_command = self._t_now
 
-    def move(self) -> tuple[tuple[Trapezoid, Trapezoid] | None, float]:
-        """The position move in force (None in speed mode) and the time since it started."""
+    def move(self) -> tuple[tuple[Trapezoid, Trapezoid] | None, bool]:
+        """The position move in force (None in speed mode) and whether its profile has ended."""
         with self._lock:
             t0 = self._t_command if self._t_command is not None else self._t_now
-            return self._move, self._t_now - t0
+            move = self._move
+            return move, move is not None and self._t_now - t0 >= _duration(move)
 
     def command(self, t: float) -> WheelCommand:
         """The command to apply at simulation time ``t`` (also advances the watchdog's clock)."""
@@ -124,7 +131,7 @@ class MotorArbiter:
         if self._move is not None and self._t_command is not None:
             elapsed = t - self._t_command
             left, right = self._move
-            if elapsed < max(left.duration, right.duration):
+            if elapsed < _duration(self._move):
                 return WheelCommand(left.velocity(elapsed), right.velocity(elapsed))
             self._command = WheelCommand(0.0, 0.0)
             return self._command
@@ -184,6 +191,16 @@ class RobotUnits:
 
     def mps_to_kteam_speed(self, v: float) -> int:
         return int(round(v * self.ticks_per_metre * self.speed_unit_s))
+
+
+def wheel_moves(units: RobotUnits, counters: tuple[int, int], targets: tuple[int, int],
+                limits: Sequence[tuple[float, float]]) -> tuple[Trapezoid, Trapezoid]:
+    """The rest-to-rest trapezoid of each wheel (left, right) from its counter to its target
+    (pulses), with its ``(max speed m/s, acceleration m/s^2)`` of ``limits``: a position move
+    (classic ``C``, Koala 2.5 ``F``)."""
+    left, right = (trapezoid(units.pulses_to_m(target - pos), v_max, accel)
+                   for target, pos, (v_max, accel) in zip(targets, counters, limits, strict=True))
+    return left, right
 
 
 class RobotPort:
@@ -440,17 +457,10 @@ class KteamResponder:
         with self._lock:
             self._targets = (left_target, right_target)
             profile = list(self.profile)
-        moves = [
-            trapezoid(
-                self.units.pulses_to_m(target - pos),
-                self.units.kteam_speed_to_mps(vmax),
-                self.units.kteam_acceleration_to_mps2(acc),
-            )
-            for target, pos, (vmax, acc) in zip(
-                (left_target, right_target), now, profile, strict=True
-            )
-        ]
-        self.arbiter.set_move(moves[0], moves[1], self.source)
+        limits = [(self.units.kteam_speed_to_mps(vmax), self.units.kteam_acceleration_to_mps2(acc))
+                  for vmax, acc in profile]
+        moves = wheel_moves(self.units, now, (left_target, right_target), limits)
+        self.arbiter.set_move(*moves, self.source)
 
     def _motion_status(self) -> tuple[int, ...]:
         """``K``: per wheel, left then right, (on target 0/1, mode 0 position / 1 speed, error).
@@ -458,11 +468,11 @@ class KteamResponder:
         Position mode: error = target - counter, pulses; on target once the profile has ended.
         Speed mode: error = set-point - measured speed, pulse/10 ms; on target when |error| <= 1.
         """
-        move, elapsed = self.arbiter.move()
+        move, ended = self.arbiter.move()
         if move is not None:
             with self._lock:
                 targets = self._targets
-            done = int(elapsed >= max(m.duration for m in move))
+            done = int(ended)
             counts = self.port.counters()
             left_err, right_err = (t - c for t, c in zip(targets, counts, strict=True))
             return (done, 0, left_err, done, 0, right_err)
