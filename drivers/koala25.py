@@ -39,6 +39,7 @@ from koala_bridge.drivers.kteam import INT32_MAX, INT32_MIN, CommandSpec, Dialec
 __all__ = [
     "ACCEL_G_PER_UNIT",
     "AUTO_BITS",
+    "AUTO_COMMANDS",
     "GYRO_DEG_S_PER_UNIT",
     "KOALA25",
     "SAMPLES",
@@ -84,6 +85,18 @@ AUTO_BITS = MappingProxyType({
     "magnetometer": 1 << 8,
 })
 """``A,bits``: what auto mode pushes (LK ``KOALA_AUTOM_*``; 0 = off, 511 = all)."""
+
+AUTO_COMMANDS = MappingProxyType({
+    "sonar": "G",
+    "speed": "E",
+    "position": "P",
+    "current": "O",
+    "accel": "M",
+    "gyro": "N",
+    "magnetometer": "&",
+})
+"""The read command whose reply line each auto-mode stream pushes (UM: "the same format as the
+protocol"); GPS and NMEA are not simulated."""
 
 _I16 = (-32768, 32767)
 _U16 = (0, 65535)

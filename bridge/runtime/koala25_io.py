@@ -35,6 +35,7 @@ from dataclasses import dataclass
 from koala_bridge.drivers.koala25 import (
     ACCEL_G_PER_UNIT,
     AUTO_BITS,
+    AUTO_COMMANDS,
     GYRO_DEG_S_PER_UNIT,
     KOALA25,
     SAMPLES,
@@ -313,17 +314,12 @@ class Koala25Responder:
         if not bits:
             return []
         r = self.rates
-        streams = (
-            ("sonar", r.sonar_per_sensor * n_sonar, "G"),
-            ("speed", r.motors, "E"),
-            ("position", r.motors, "P"),
-            ("current", r.motors, "O"),
-            ("accel", r.accel, "M"),
-            ("gyro", r.gyro, "N"),
-            ("magnetometer", r.magnetometer, "&"),
-        )
+        periods = {"sonar": r.sonar_per_sensor * n_sonar, "speed": r.motors,
+                   "position": r.motors, "current": r.motors, "accel": r.accel, "gyro": r.gyro,
+                   "magnetometer": r.magnetometer}
         out = []
-        for name, period, letter in streams:
+        for name, letter in AUTO_COMMANDS.items():
+            period = periods[name]
             if not bits & AUTO_BITS[name] or period <= 0:
                 continue
             with self._lock:

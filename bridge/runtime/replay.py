@@ -15,9 +15,9 @@ bytes libkoala reads, so that it stays in step). Commands are parsed, replies en
 lettered in the recording's dialect (metadata ``kteam_dialect``, :func:`recorded_dialect`):
 ``z,...`` and CR LF for the classic Koala, ``#,...`` and LF for the Koala 2.5. Auto mode of a
 Koala 2.5 recording: ``A,bits`` is answered ``a`` and from then on the recorded lines of the
-selected streams (``g``, ``e``, ``p``, ``o``, ``m``, ``n``, ``@``; :data:`AUTO_LETTERS`) are
-pushed at their recorded times (within ``AUTO_PUSH_PERIOD_S``), until ``A,0``; they also answer
-their commands as above.
+selected streams (``g``, ``e``, ``p``, ``o``, ``m``, ``n``, ``@``: the replies of
+``drivers.koala25.AUTO_COMMANDS``) are pushed at their recorded times (within
+``AUTO_PUSH_PERIOD_S``), until ``A,0``; they also answer their commands as above.
 
 The recorded Zenoh messages (``truth/pose``, ``sensors/*``, ``status``, ``estimate/*``, ...) go
 back out on a Zenoh session at their times too, byte for byte, under ``[zenoh] prefix``, and the
@@ -43,7 +43,7 @@ from typing import Any
 
 import can
 from koala_bridge.drivers.dialects import dialect
-from koala_bridge.drivers.koala25 import AUTO_BITS
+from koala_bridge.drivers.koala25 import AUTO_BITS, AUTO_COMMANDS
 from koala_bridge.drivers.kteam import KOALA1, Dialect, LineSplitter
 from koala_bridge.drivers.messages import KteamReply, Reject, TransportError
 from koala_bridge.recording.mcap_file import (
@@ -68,9 +68,7 @@ STREAM_BUSES = ("serial/rangefinders", "can", "mavlink")
 ERROR_NOT_RECORDED = "Not recorded"
 """Text of the error reply to a well-formed command the recording holds no reply to."""
 AUTO_PUSH_PERIOD_S = 0.01  # how often recorded Koala 2.5 auto-mode lines are pushed
-#: Koala 2.5 auto-mode streams (``A`` bits, drivers.koala25.AUTO_BITS) -> their lines' letter.
-AUTO_LETTERS = {"sonar": "g", "speed": "e", "position": "p", "current": "o", "accel": "m",
-                "gyro": "n", "magnetometer": "@"}
+
 ZENOH = "zenoh"  # the pseudo-bus of replayed Zenoh messages in plans and statistics
 
 
@@ -388,8 +386,8 @@ class Replayer:
             return d.format_reply(d.error_reply(cmd))
         if d.name == "koala25" and cmd.letter == "A":
             # auto mode: the recorded lines of the selected streams are pushed from now on
-            self._auto_letters = [letter for name, letter in AUTO_LETTERS.items()
-                                  if cmd.args[0] & AUTO_BITS[name]]
+            self._auto_letters = [d.reply_letter(command) for name, command
+                                  in AUTO_COMMANDS.items() if cmd.args[0] & AUTO_BITS[name]]
             self._pushed_until = self.replay_time()
             return d.format_reply(d.reply("A"))
         times, lines = self.plan.kteam_replies.get(d.reply_letter(cmd.letter), ([], []))
