@@ -397,11 +397,11 @@ class LocalisationNode:
         self._mavlink = CompassDecoder()
         self._ranges = RangeFrameDecoder()
         self._kteam = LineSplitter()
-        self._kteam_dialect = dialect(kteam_dialect)
         # its replies as the topic messages they are published as (koala1 n = IR counts, h =
         # counters; koala25 p = counters, n = gyro samples, @ = field, g = sonar)
-        self._kteam_decoder = KteamReplyDecoder(self._kteam_dialect)
-        self._streamed: set[str] = set()       # "ir", "odometry": a streaming source was seen
+        self._kteam_decoder = KteamReplyDecoder(dialect(kteam_dialect))
+        # "ir", "odometry", "gyro", "compass", "sonar": a streaming source of it was seen
+        self._streamed: set[str] = set()
         self._raw_ticks: tuple[int, int] | None = None
         self._ticks = (0, 0)                   # counters fed to the EKF (resets removed)
         self._odo_t: float | None = None
@@ -545,7 +545,8 @@ class LocalisationNode:
 
     def _on_kteam(self, t: float, data: bytes) -> None:
         for line in self._kteam.feed(data):
-            reply = self._kteam_dialect.parse_reply(line) if isinstance(line, bytes) else None
+            reply = (self._kteam_decoder.dialect.parse_reply(line) if isinstance(line, bytes)
+                     else None)
             if not isinstance(reply, KteamReply):
                 continue
             for m in self._kteam_decoder.messages(t, reply):
