@@ -872,32 +872,23 @@ def test_auto_mode_pushes_lines_libkoala_parses_and_a0_stops_them(koala: Koala25
     lib.set_motor_speed(0, 0)
 
 
-def test_auto_mode_rates_in_simulated_time(start_koala) -> None:
-    """Manual: accelerometer 10 samples per 100 ms, gyro 10 per ~105 ms, magnetometer 10 Hz,
-    sonar one line per sweep (20 ms per enabled sensor: 180 ms for 9). Lines are stamped with
-    Zenoh's simulated time (realtime clock: a few ms of skew against a window of seconds)."""
+def test_auto_mode_pushes_the_selected_streams_and_honours_the_sonar_mask(start_koala) -> None:
+    """Every selected stream arrives, as koala_get_from_auto_mode parses it; with one sonar
+    enabled (C mask) the others read disabled. (The rates, in simulated time, are asserted
+    exactly in tests/unit/test_koala25_responder.py: a client's read times depend on the
+    machine's load, so they are not counted here.)"""
     koala = start_koala(clock="realtime")
-    window = 5.0
     koala.lib.configure_auto_monitoring_mode(AUTO_US | AUTO_ACCEL | AUTO_GYRO | AUTO_MAGNE)
-    t0 = koala.sim_time() + 0.5
-    lines = _auto_lines(koala, lambda got: bool(got) and got[-1][0] >= t0 + window + 0.2)
-    counts = {m: sum(1 for t, mode, _ in lines if mode == m and t0 <= t < t0 + window)
-              for m in ("g", "m", "n", "@")}
-    expected = {"g": window / 0.180, "m": window / 0.100, "n": window / 0.105, "@": window * 10}
-    for mode, n in counts.items():
-        assert abs(n - expected[mode]) <= 0.15 * expected[mode] + 1, (counts, expected)
-    # one sonar enabled: a sweep is one 20 ms measurement
+    lines = _auto_lines(koala, lambda got: {"g", "m", "n", "@"} <= {m for _, m, _ in got})
+    assert {mode for _, mode, _ in lines} == {"g", "m", "n", "@"}
     lib = koala.lib
     lib.sendcommand("A,0")
     while (line := lib.read_line()) is not None and line[:1] != "a":
         pass
     lib.configure_us_io(1 << 3, 0)
     lib.configure_auto_monitoring_mode(AUTO_US)
-    window = 2.0
-    t0 = koala.sim_time() + 0.5
-    lines = _auto_lines(koala, lambda got: bool(got) and got[-1][0] >= t0 + window + 0.2)
-    n = sum(1 for t, mode, _ in lines if mode == "g" and t0 <= t < t0 + window)
-    assert abs(n - window / 0.020) <= 0.15 * window / 0.020 + 1, n
+    lines = _auto_lines(koala, lambda got: len(got) >= 5)
+    assert {mode for _, mode, _ in lines} == {"g"}
     assert all(data[i] == KOALA_US_DISABLED_SENSOR for _, _, data in lines
                for i in range(9) if i != 3)
     lib.sendcommand("A,0")

@@ -162,5 +162,9 @@ def test_auto_mode_pushes_each_stream_at_its_rate_in_simulated_time() -> None:
             lines[reply.letter] = lines.get(reply.letter, 0) + 1
     # 9 sonars x 20 ms = 180 ms: 20 sweeps in 3.6 s; gyro and magnetometer every 100 ms: 36
     assert lines == {"g": 20, "n": 36, "@": 36}
+    # one sonar enabled: a sweep is one 20 ms measurement (the manual)
+    assert ask(resp, b"C,8,0") == b"c\n" and ask(resp, b"A,1") == b"a\n"
+    sweeps = sum(len(resp.auto_lines(k * DT)) for k in range(361, 561))   # 2 s more
+    assert sweeps == 100
     assert ask(resp, b"A,0") == b"a\n"
     assert resp.auto_lines(3.7) == []
