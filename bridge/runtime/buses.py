@@ -71,6 +71,15 @@ class LockedByteLink:
         with self._lock:
             return self.transport.write(data)
 
+    def has_client(self) -> bool:
+        """Whether a client is connected, where the transport can tell (a pty); True where it
+        cannot (UDP, TCP servers count their own clients)."""
+        probe = getattr(self.transport, "has_client", None)
+        if probe is None:
+            return True
+        with self._lock:
+            return bool(probe())
+
     def wait(self, timeout: float) -> bool:
         """Block until input may be waiting or ``timeout`` s pass; True if readable."""
         if self._poll is None:

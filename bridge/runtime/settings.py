@@ -57,6 +57,7 @@ __all__ = [
     "CanSettings",
     "ConfigError",
     "MavlinkSettings",
+    "LockstepSettings",
     "RunSettings",
     "ZenohSettings",
     "apply_override",
@@ -77,7 +78,8 @@ _ZERO_PORT = re.compile(r":0+(?:[?#].*)?$")
 #: The top-level tables of a configuration: sim/ reads the first four (sim/config.py), the bridge
 #: the others (``[real]``: runtime/real_source.py, for ``run --source real``; ``[localisation]``:
 #: bridge/runtime/localisation.py, the estimator node).
-SECTIONS = ("sim", "robot", "sensors", "world", "run", "buses", "zenoh", "real", "localisation")
+SECTIONS = ("sim", "robot", "sensors", "world", "run", "buses", "zenoh", "real", "localisation",
+            "lockstep", "faults")
 
 
 #: The keys that name an input file. A relative path in a config file is relative to that file's
@@ -324,6 +326,48 @@ class RunSettings:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> RunSettings:
         return validate(cls, d, "run")
+
+
+#: ``[lockstep] on_quiet``: what the loop does when the firmware sends no cycle message.
+QUIET_POLICIES = ("wait", "step")
+#: ``[lockstep] cycle_bus``: the buses a firmware commands the robot on.
+CYCLE_BUSES = ("kteam", "can")
+
+
+@section
+class LockstepSettings:
+    """``[lockstep]``: how ``--clock lockstep`` is paced by the firmware (docs/protocols.md,
+    "Lockstep")."""
+
+    # Defaults = config/default.toml's, so that a config written before [lockstep] existed
+    # still runs in lockstep.
+    cycle_bus: Annotated[Str, one_of(CYCLE_BUSES)] = "kteam"  # the bus whose message closes a cycle
+    # K-Team: the command letter ("D"); CAN: the DBC message name ("MotorCommand")
+    cycle_message: Str = "D"
+    period_s: Positive = 0.01   # simulated seconds one cycle advances (a multiple of [sim] dt_s)
+    on_quiet: Annotated[Str, one_of(QUIET_POLICIES)] = "wait"  # wait | step (after quiet_timeout_s)
+    quiet_timeout_s: Positive = 1.0  # wall s without a cycle message before on_quiet = "step" steps
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> LockstepSettings:
+        ls = validate(cls, d, "lockstep")
+        if ls.cycle_bus == "kteam" and not (len(ls.cycle_message) == 1
+                                            and ls.cycle_message.isalpha()):
+            raise ConfigError(
+                f"[lockstep] 'cycle_message' must be a K-Team command letter such as \"D\" "
+                f"when cycle_bus = \"kteam\", got {ls.cycle_message!r}"
+            )
+        return ls
+
+    def steps_per_cycle(self, dt: float) -> int:
+        """Simulation steps in one cycle; ConfigError unless ``period_s`` is a multiple of dt."""
+        n = round(self.period_s / dt)
+        if n < 1 or abs(n * dt - self.period_s) > 1e-9 * max(1.0, self.period_s):
+            raise ConfigError(
+                f"[lockstep] 'period_s' must be a whole multiple of [sim] dt_s = {dt:g} s, "
+                f"got {self.period_s!r}"
+            )
+        return n
 
 
 @section
@@ -622,6 +666,9 @@ class ZenohSettings:
     # Zenoh's own configuration file (JSON5), for TLS, authentication and access control;
     # "" = none. The keys above are applied on top of it (they win). docs/security.md.
     config_file: Str = ""
+    # Accept commands over Zenoh: the lockstep step and fault-scheduling queryables
+    # (docs/protocols.md "Lockstep", docs/faults.md). Off by default, like every remote command.
+    remote_commands: Bool = False
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], robot_name: str) -> ZenohSettings:
@@ -646,6 +693,7 @@ class BridgeSettings:
     buses: BusesSettings
     zenoh: ZenohSettings
     robot_name: str
+    lockstep: LockstepSettings = LockstepSettings()
 
     @classmethod
     def from_config(cls, config: Mapping[str, Any]) -> BridgeSettings:
@@ -662,6 +710,7 @@ class BridgeSettings:
             buses=BusesSettings.from_dict(_section(config, "buses")),
             zenoh=ZenohSettings.from_dict(_section(config, "zenoh"), name),
             robot_name=name,
+            lockstep=LockstepSettings.from_dict(_section(config, "lockstep")),
         )
         exposed = settings.exposure()
         if exposed and not settings.run.allow_non_loopback:
@@ -689,5 +738,7 @@ def reject_unknown_sections(config: Mapping[str, Any]) -> None:
             near = difflib.get_close_matches(key, SECTIONS, n=1)
             hint = f"did you mean [{near[0]}]?" if near else f"valid: {', '.join(SECTIONS)}"
             raise ConfigError(f"unknown section [{key}]; {hint}")
+        if key == "faults":     # [[faults]]: an array of tables, checked by runtime/faults.py
+            continue
         if not isinstance(value, Mapping):
             raise ConfigError(f"[{key}] must be a table, got {value!r}")

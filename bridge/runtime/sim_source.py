@@ -25,6 +25,7 @@ no client was connected or a client could not keep up).
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import threading
@@ -47,15 +48,16 @@ from koala_bridge.drivers.messages import (
     WheelOdometryFrame,
 )
 from koala_bridge.drivers.rangeframes import NO_ECHO, encode_range_frame
+from koala_bridge.drivers.transports.socketcand import SocketcandServer
 from koala_bridge.estimation.messages import KEY_CELL, KEY_GRID, KEY_OCCUPANCY, KEY_POSE
 from koala_bridge.runtime.buses import LockedByteLink, OpenBuses, open_buses
-from koala_bridge.runtime.clock import Clock, make_clock
+from koala_bridge.runtime.clock import Clock, LockstepClock, make_clock
 from koala_bridge.runtime.counters import BusCounters
 from koala_bridge.runtime.endpoints import Endpoints, endpoints_of
 from koala_bridge.runtime.koala25_io import Koala25Responder
 from koala_bridge.runtime.localisation import LocalisationNode
 from koala_bridge.runtime.robot_io import KteamResponder, MotorArbiter, RobotPort, RobotUnits
-from koala_bridge.runtime.settings import BridgeSettings
+from koala_bridge.runtime.settings import BridgeSettings, ConfigError
 from koala_bridge.runtime.source import READ_TIMEOUT_S, Tap, start_reader, until_text
 from koala_bridge.runtime.zenoh_io import ZENOH_BUS, ZenohLink, sensor_topics, truth_pose
 from koala_bridge.sim.simulator import Simulator
@@ -91,7 +93,14 @@ class SimulatedRobotSource:
         self.sim = Simulator(config)
         self.seed = seed
         self.dt = self.sim.dt
-        self.clock = clock or make_clock(settings.run.clock, self.dt)
+        ls = settings.lockstep
+        if clock is None:
+            steps = ls.steps_per_cycle(self.dt) if settings.run.clock == "lockstep" else 1
+            clock = make_clock(settings.run.clock, self.dt, steps, ls.on_quiet,
+                               ls.quiet_timeout_s)
+        self.clock = clock
+        #: the lockstep clock when the run is paced by the firmware (docs/protocols.md)
+        self.lockstep: LockstepClock | None = clock if isinstance(clock, LockstepClock) else None
         self.tap = tap
         robot = self.sim.config.robot
         self.units = RobotUnits(robot.ticks_per_metre, robot.speed_unit_s)
@@ -111,6 +120,21 @@ class SimulatedRobotSource:
                 KteamLimits(max_speed=settings.buses.kteam_max_speed, sensors=self.port.n_ir),
             )
         self.can_codec = settings.buses.can.codec()   # [buses.can] dbc
+        # [lockstep] cycle_bus/cycle_message: what closes a control cycle
+        self._cycle_letter = ls.cycle_message if ls.cycle_bus == "kteam" else None
+        self._cycle_can_id: int | None = None
+        if self.lockstep is not None and ls.cycle_bus == "can":
+            ids = self.can_codec.frame_ids
+            if ls.cycle_message not in ids:
+                raise ConfigError(
+                    f"[lockstep] 'cycle_message' {ls.cycle_message!r} is not a message of the "
+                    f"DBC; its messages: {', '.join(sorted(ids))}"
+                )
+            self._cycle_can_id = ids[ls.cycle_message]
+        # Step 0's bus frames, re-sent while lockstep holds at t = 0 (before the first command),
+        # kept by the loop's thread (_capture_thread) while it emits step 0
+        self._initial_frames: list[Callable[[], None]] | None = None
+        self._capture_thread: int | None = None
         mav = settings.buses.mavlink
         # [buses.mavlink] signing_key_file: None = unsigned (a bad key file: ConfigError here)
         self.mav_signing = mav.signing(time.time())
@@ -197,14 +221,35 @@ class SimulatedRobotSource:
         if self.tap is not None:
             self.tap.declare(self._published_keys(r), self._tap_buses())
         self.clock.start()
+        lockstep = self.lockstep
+        if lockstep is not None:
+            self._initial_frames = []     # _send_bytes/_send_can keep step 0's frames
+            self._capture_thread = threading.get_ident()
+            self._register_step_queryable()
         self._emit(r, 0)
+        self._capture_thread = None
         n = 0
+        wait = READ_TIMEOUT_S
+        if lockstep is not None:
+            # holding at t = 0: re-send step 0's frames every period of wall time
+            wait = min(READ_TIMEOUT_S, max(self.settings.lockstep.period_s, 0.005))
         while not stop.is_set() and (last_step is None or n < last_step):
-            if not self.clock.wait_for_step(n + 1, timeout=READ_TIMEOUT_S):
+            if not self.clock.wait_for_step(n + 1, timeout=wait):
+                if lockstep is not None:
+                    if not lockstep.engaged:
+                        self._resend_initial()
+                    elif not self._firmware_connected():
+                        log.info("lockstep: the firmware has disconnected at t = %.3f s; "
+                                 "the run ends", r.t)
+                        break
                 continue
             r = self.sim.step(self.arbiter.command(self.sim.t))
             n += 1
             self._emit(r, n)
+            if lockstep is not None:
+                lockstep.step_done(n)
+        if lockstep is not None:
+            lockstep.wake()
         # The final counters, unless the last step just published them (one status per t).
         if n == 0 or n % self._status_period != 0:
             self._publish_status(r.t)
@@ -213,7 +258,86 @@ class SimulatedRobotSource:
 
     def describe(self) -> str:
         run = self.settings.run
+        if self.lockstep is not None:
+            ls = self.settings.lockstep
+            bus = "K-Team" if ls.cycle_bus == "kteam" else "CAN"
+            quiet = ("waits for it" if ls.on_quiet == "wait"
+                     else f"steps after {ls.quiet_timeout_s:g} s of silence")
+            return (f"Simulating in lockstep: {ls.period_s:g} s per {bus} {ls.cycle_message} "
+                    f"from the firmware (held at t = 0 until its first one; a silent firmware "
+                    f"{quiet}) {until_text(run.duration_s)}.")
         return f"Simulating ({run.clock} clock) {until_text(run.duration_s)}."
+
+    # -- lockstep ----------------------------------------------------------------------------
+
+    def _resend_initial(self) -> None:
+        """Holding at t = 0: put step 0's frames on the buses again (not recorded: the
+        recording holds each sample once), for a firmware that waits for data before its
+        first command."""
+        for resend in self._initial_frames or ():
+            resend()
+
+    def _firmware_connected(self) -> bool:
+        """Whether a client is on the cycle bus (unknown for python-can interfaces: True)."""
+        if self.settings.lockstep.cycle_bus == "kteam":
+            link = self.buses.kteam
+            return link is None or link.has_client()
+        servers = [t for t in self.buses.can.values() if isinstance(t, SocketcandServer)]
+        return not servers or any(t.stats.clients > 0 for t in servers)
+
+    def _wait_lockstep(self, wait: Callable[[float], bool]) -> bool:
+        """Run a lockstep wait in slices so that close() is not held up; False if stopping."""
+        while not self._stop_readers.is_set():
+            if wait(READ_TIMEOUT_S):
+                return True
+        return False
+
+    def _cycle(self) -> float | None:
+        """The firmware's cycle message was acted on: grant one period, wait until it has been
+        simulated; the simulated time then (None: shutting down)."""
+        assert self.lockstep is not None
+        target = self.lockstep.grant()
+        if not self._wait_lockstep(lambda timeout: self.lockstep.wait_done(target, timeout)):
+            return None
+        return self.port.t
+
+    def _at_cycle_boundary(self) -> bool:
+        """Lockstep: wait until every granted step ran, so that a command takes effect (and a
+        request is answered) at a cycle boundary. True at once in the other clocks."""
+        if self.lockstep is None:
+            return True
+        return self._wait_lockstep(self.lockstep.wait_idle)
+
+    def _register_step_queryable(self) -> None:
+        """``<prefix>/lockstep/step`` (``[zenoh] remote_commands``): grant cycles from outside."""
+        if self.zenoh is None or not self.settings.zenoh.remote_commands:
+            return
+        assert self.lockstep is not None
+        lockstep = self.lockstep
+
+        def step(payload: bytes) -> dict[str, Any]:
+            cycles = 1
+            if payload.strip():
+                try:
+                    body = json.loads(payload)
+                except ValueError as e:
+                    raise ValueError(f"lockstep/step: payload is not JSON: {e}") from None
+                if not isinstance(body, dict) or set(body) - {"cycles"}:
+                    raise ValueError('lockstep/step: payload must be {"cycles": N} or empty')
+                cycles = body.get("cycles", 1)
+                if isinstance(cycles, bool) or not isinstance(cycles, int) or not (
+                        1 <= cycles <= 1_000_000):
+                    raise ValueError(f"lockstep/step: 'cycles' must be an integer 1..1000000, "
+                                     f"got {cycles!r}")
+            if not self._at_cycle_boundary():
+                raise ValueError("lockstep/step: the bridge is stopping")
+            target = lockstep.grant(cycles, explicit=True)
+            while not lockstep.wait_done(target, READ_TIMEOUT_S):
+                if self._stop_readers.is_set():
+                    raise ValueError("lockstep/step: the bridge is stopping")
+            return {"t": self.port.t, "step": lockstep.done, "cycles": cycles}
+
+        self.zenoh.command_queryable("lockstep/step", step)
 
     def summary(self) -> str:
         t = 0.0 if self._last is None else self._last.t
@@ -340,6 +464,8 @@ class SimulatedRobotSource:
         except TransportError as e:
             self._write_failed(bus, e)
             return
+        if self._capture_thread is not None and self._capture_thread == threading.get_ident():
+            self._keep_initial(bus, lambda: link.write(data))
         if self.tap is not None:
             self.tap.record_frame(_tap_bus(bus), "from_robot", t, data)
         if self.localisation is not None:
@@ -353,6 +479,8 @@ class SimulatedRobotSource:
                 transport.send(msg)
             except TransportError as e:
                 self._write_failed(name, e)
+            if self._capture_thread is not None and self._capture_thread == threading.get_ident():
+                self._keep_initial(name, lambda tr=transport: tr.send(msg))
         if self.tap is not None:
             self.tap.record_frame(
                 "can", "from_robot", t, bytes(msg.data), can_id=msg.arbitration_id,
@@ -363,6 +491,16 @@ class SimulatedRobotSource:
                 "can", "from_robot", t, bytes(msg.data), can_id=msg.arbitration_id,
                 extended=msg.is_extended_id,
             )
+
+    def _keep_initial(self, bus: str, write: Callable[[], object]) -> None:
+        def resend() -> None:
+            try:
+                write()
+            except TransportError as e:
+                self._write_failed(bus, e)
+
+        assert self._initial_frames is not None
+        self._initial_frames.append(resend)
 
     def _write_failed(self, bus: str, e: Exception) -> None:
         if bus not in self._write_errors:  # log once per bus, the loop goes on
@@ -407,10 +545,12 @@ class SimulatedRobotSource:
                 splitter.reset()
             if not data:
                 return
-            t = self.port.t
             if self.tap is not None:
-                self.tap.record_frame("serial/kteam", "to_robot", t, data)
+                self.tap.record_frame("serial/kteam", "to_robot", self.port.t, data)
             for line in splitter.feed(data):
+                # lockstep: every command acts at a cycle boundary, on the state simulated so far
+                if not self._at_cycle_boundary():
+                    return
                 cmd = line if isinstance(line, Reject) else parse_command(line, responder.specs)
                 if isinstance(cmd, Reject):
                     self.counters.rejected("kteam")
@@ -419,8 +559,12 @@ class SimulatedRobotSource:
                 else:
                     self.counters.received("kteam")
                     reply = responder.respond(cmd)
+                    if self.lockstep is not None and cmd.letter == self._cycle_letter:
+                        # the cycle message: its reply leaves once the period is simulated
+                        if self._cycle() is None:
+                            return
                 # one write per reply: libkoala reads the 7 bytes of Koala 2.5 'B' in one read()
-                self._send_bytes("kteam", link, dialect.format_reply(reply), t)
+                self._send_bytes("kteam", link, dialect.format_reply(reply), self.port.t)
 
         return step
 
@@ -491,8 +635,12 @@ class SimulatedRobotSource:
                 )
             frame = codec.decode(msg)
             if isinstance(frame, MotorCommandFrame):
+                if not self._at_cycle_boundary():   # lockstep: commands act at a boundary
+                    return
                 self.counters.received(name)
                 self.arbiter.set(frame.left_speed, frame.right_speed, name)
+                if self.lockstep is not None and msg.arbitration_id == self._cycle_can_id:
+                    self.lockstep.grant()           # the cycle message: one more period
             else:
                 # A Reject, or a frame only the robot sends (WheelOdometry, Gyro) coming from a
                 # client: either way the robot does not act on it.

@@ -256,6 +256,36 @@ class ZenohLink:
         self._queryable = self._session.declare_queryable(
             f"{self.prefix}/world", self._on_world_query
         )
+        self._commands: list[Any] = []
+
+    def command_queryable(
+        self, suffix: str, handler: Callable[[bytes], Mapping[str, Any]]
+    ) -> None:
+        """Answer queries on ``<prefix>/<suffix>`` with ``handler(payload)`` (JSON). A
+        ``ValueError`` from the handler is the error reply (bad input, counted as rejected);
+        anything else is logged and answered as an internal error. Only for
+        ``[zenoh] remote_commands = true``: the caller checks."""
+
+        def on_query(query: zenoh.Query) -> None:
+            payload = b"" if query.payload is None else bytes(query.payload.to_bytes())
+            try:
+                answer = encode(handler(payload))
+            except ValueError as e:
+                query.reply_err(str(e).encode())
+                self._counters.rejected(ZENOH_BUS)
+                return
+            except Exception:  # must not kill Zenoh's callback thread
+                log.exception("%s query failed", suffix)
+                query.reply_err(f"internal error answering {suffix}".encode())
+                self._counters.rejected(ZENOH_BUS)
+                return
+            query.reply(f"{self.prefix}/{suffix}", answer,
+                        encoding=zenoh.Encoding.APPLICATION_JSON)
+            self._counters.received(ZENOH_BUS)
+            self._counters.sent(ZENOH_BUS)
+
+        self._commands.append(self._session.declare_queryable(f"{self.prefix}/{suffix}",
+                                                              on_query))
 
     def _on_world_query(self, query: zenoh.Query) -> None:
         try:
@@ -303,6 +333,8 @@ class ZenohLink:
                 pub.undeclare()
             self._publishers.clear()
         self._queryable.undeclare()
+        for q in self._commands:
+            q.undeclare()
         self._session.close()
 
     def __enter__(self) -> ZenohLink:
