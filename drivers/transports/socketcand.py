@@ -118,7 +118,7 @@ def parse_send_element(words: list[str]) -> can.Message | str:
 
 class _Client:
     __slots__ = ("sock", "mode", "inbuf", "outbuf", "held", "hold_until", "in_garbage", "events",
-                 "open_deadline", "last_active", "frame_bytes", "closed")  # fmt: skip
+                 "open_deadline", "last_active", "frame_bytes", "closed", "blocked")  # fmt: skip
 
     def __init__(self, sock: socket.socket, now: float, handshake_timeout_s: float) -> None:
         self.sock = sock
@@ -134,6 +134,7 @@ class _Client:
         self.last_active = now
         self.frame_bytes = 0  # bytes of bus frames in outbuf (approximate order with replies)
         self.closed = False
+        self.blocked = False  # its socket refused the last send (it is not reading)
 
     @property
     def queued(self) -> int:
@@ -203,6 +204,7 @@ class SocketcandServer(CanTransport):
         self._sel.register(self._waker, selectors.EVENT_READ, self._waker)
         self._closed = False
         self._close_lock = threading.Lock()
+        self._stepped = threading.Condition()   # notified after every service-thread step
         self._thread = ServiceThread(f"socketcand:{self._port}", self._step, self._waker)
         self._thread.start()
 
@@ -243,6 +245,26 @@ class SocketcandServer(CanTransport):
         self._outbox.append((format_frame_element(msg, msg.timestamp), None))
         self._stats.add("sent")
         self._waker.wake()
+
+    def sync(self, timeout: float) -> bool:
+        """Block until every frame sent so far has been handed to the clients' sockets (or
+        could not be: a client that does not read keeps its queue); False on ``timeout``. In
+        lockstep the bridge calls this before it answers the firmware's cycle message, so that
+        every frame of the cycle is readable when the answer is."""
+        deadline = time.monotonic() + timeout
+        with self._stepped:
+            while True:
+                if self._closed:
+                    return False
+                clients = list(self._clients.values())
+                if not self._outbox and not any(
+                        c.outbuf and not c.blocked for c in clients if c.mode == "raw"):
+                    return True
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return False
+                self._waker.wake()
+                self._stepped.wait(min(remaining, 0.05))
 
     def recv(self, timeout: float | None = 0.0) -> can.Message | None:
         if self._closed:
@@ -286,6 +308,8 @@ class SocketcandServer(CanTransport):
         for client in list(self._clients.values()):
             self._flush(client)
             self._update_interest(client)
+        with self._stepped:
+            self._stepped.notify_all()
 
     def _timeout(self) -> float | None:
         deadlines = [
@@ -483,10 +507,12 @@ class SocketcandServer(CanTransport):
         try:
             sent = client.sock.send(client.outbuf)
         except BlockingIOError:
+            client.blocked = True       # its socket is full: it is not reading
             return
         except OSError:
             self._drop(client)
             return
+        client.blocked = False
         if sent and client.frame_bytes:
             client.last_active = time.monotonic()
             client.frame_bytes = max(0, client.frame_bytes - sent)
