@@ -133,12 +133,7 @@ class UdpTransport(ByteTransport):
             self._stats.add("dropped")
             return 0
         try:
-            try:
-                sent = sock.sendto(data, dest)
-            except ConnectionRefusedError:
-                # Linux reports an EARLIER datagram's ICMP "port unreachable" here (nobody was
-                # listening then) and sends nothing: this one may well have a reader now.
-                sent = sock.sendto(data, dest)
+            sent = sock.sendto(data, dest)
         except (BlockingIOError, ConnectionRefusedError):
             self._stats.add("dropped")
             return 0
