@@ -77,7 +77,8 @@ _ZERO_PORT = re.compile(r":0+(?:[?#].*)?$")
 #: The top-level tables of a configuration: sim/ reads the first four (sim/config.py), the bridge
 #: the others (``[real]``: runtime/real_source.py, for ``run --source real``; ``[localisation]``:
 #: bridge/runtime/localisation.py, the estimator node).
-SECTIONS = ("sim", "robot", "sensors", "world", "run", "buses", "zenoh", "real", "localisation")
+SECTIONS = ("sim", "robot", "sensors", "world", "run", "buses", "zenoh", "real", "localisation",
+            "faults")
 
 
 #: The keys that name an input file. A relative path in a config file is relative to that file's
@@ -689,5 +690,5 @@ def reject_unknown_sections(config: Mapping[str, Any]) -> None:
             near = difflib.get_close_matches(key, SECTIONS, n=1)
             hint = f"did you mean [{near[0]}]?" if near else f"valid: {', '.join(SECTIONS)}"
             raise ConfigError(f"unknown section [{key}]; {hint}")
-        if not isinstance(value, Mapping):
+        if not isinstance(value, Mapping) and key != "faults":  # [[faults]]: runtime/faults.py
             raise ConfigError(f"[{key}] must be a table, got {value!r}")
