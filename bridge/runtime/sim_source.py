@@ -183,6 +183,8 @@ class SimulatedRobotSource:
             self._initial = self.sim.reset(self.seed)
             self.buses = open_buses(self.settings.buses)
             self.zenoh = ZenohLink(self.settings.zenoh, self.world_answer, self.counters)
+            if self.lockstep is not None:
+                self._register_step_queryable()
             self._start_readers()
         except BaseException:
             self.close()
@@ -227,7 +229,6 @@ class SimulatedRobotSource:
         if lockstep is not None:
             self._initial_frames = []     # _send_bytes/_send_can keep step 0's frames
             self._capture_thread = threading.get_ident()
-            self._register_step_queryable()
         self._emit(r, 0)
         self._capture_thread = None
         if lockstep is not None:
