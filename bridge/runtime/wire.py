@@ -11,10 +11,12 @@ Pure bookkeeping on floats: every time here is a simulated second, never the wal
 docs/wire-timing.md explains the model, its sources and what it leaves out.
 
 Sources:
-    [ISO] ISO 11898-1:2015 "Road vehicles -- CAN -- Part 1", §10.4 (frame formats), §10.5 (frame
-        coding: bit stuffing from SOF to the end of the CRC sequence), §10.4.2.6 (CRC-15,
-        generator x^15+x^14+x^10+x^8+x^7+x^4+x^3+1 = 0x4599), §10.4.4 (error frame).
-        The same fields as Bosch "CAN Specification 2.0" (1991), part A §3.1 and part B §3.1.
+    [ISO] ISO 11898-1:2015 "Road vehicles -- Controller area network (CAN) -- Part 1", and
+        Bosch "CAN Specification 2.0" (1991), parts A (11-bit ids) and B (29-bit ids), cited by
+        clause name: "Data frame" / "Remote frame" (the fields), "CRC field" (CRC-15, generator
+        x^15+x^14+x^10+x^8+x^7+x^4+x^3+1 = 0x4599), "Frame coding" (bit stuffing from SOF to
+        the end of the CRC sequence), "Error frame", "Message validation" (valid for receivers
+        after the last but one EOF bit), "Bus arbitration".
     [Davis] R. I. Davis, A. Burns, R. J. Bril, J. J. Lukkien, "Controller Area Network (CAN)
         schedulability analysis: Refuted, revisited and revised", Real-Time Systems 35(3),
         2007, eq. (3): worst-case frame length with stuffing, ``g + 8s + 13 + floor((g + 8s -
@@ -130,8 +132,8 @@ class SerialWire:
 #: After the CRC sequence, never stuffed [ISO]: CRC delimiter 1, ACK slot 1, ACK delimiter 1,
 #: end of frame 7, intermission 3.
 _TRAILER_BITS = 1 + 1 + 1 + 7 + 3
-#: The receivers take the frame as valid after the last but one bit of EOF [ISO §10.7]: one EOF
-#: bit and the 3-bit intermission before the end of the frame's time on the bus.
+#: The receivers take the frame as valid after the last but one bit of EOF [ISO "Message
+#: validation"]: one EOF bit and the 3-bit intermission before the end of its time on the bus.
 _VALID_BEFORE_END_BITS = 1 + 3
 _STD_MAX_ID = 0x7FF
 _EXT_MAX_ID = 0x1FFFFFFF
@@ -153,7 +155,7 @@ _CRC15_TABLE = _crc15_table()
 
 
 def can_crc15(data: bytes, crc: int = 0) -> int:
-    """CRC-15/CAN of ``data`` (bits MSB first) [ISO §10.4.2.6, CRC]: ``can_crc15(b"123456789")
+    """CRC-15/CAN of ``data`` (bits MSB first) [ISO "CRC field"; CRC]: ``can_crc15(b"123456789")
     == 0x059E``. With the initial value 0, leading zero bits do not change the result, so a bit
     sequence is padded on the left to whole bytes."""
     table = _CRC15_TABLE
@@ -175,7 +177,7 @@ def _check_frame(arbitration_id: int, is_extended: bool, n_data: int, dlc: int) 
 
 def _frame_head(arbitration_id: int, is_extended: bool, data: bytes, is_remote: bool,
                 dlc: int) -> tuple[int, int]:
-    """The bits SOF .. end of data [ISO §10.4.2] as ``(value, n_bits)``, MSB first (SOF, a
+    """The bits SOF .. end of data [ISO "Data frame"] as ``(value, n_bits)``, MSB first (SOF, a
     dominant 0, is the value's implicit leading zero)."""
     rtr = 1 if is_remote else 0
     if is_extended:
@@ -187,7 +189,7 @@ def _frame_head(arbitration_id: int, is_extended: bool, data: bytes, is_remote: 
         # SOF, id (11), RTR, IDE = 0, r0 = 0, DLC (4)
         value = ((arbitration_id << 1 | rtr) << 2) << 4 | dlc
         n = 1 + 11 + 1 + 2 + 4
-    if data and not is_remote:   # a remote frame has no data field [ISO §10.4.3]
+    if data and not is_remote:   # a remote frame has no data field [ISO "Remote frame"]
         value = value << (8 * len(data)) | int.from_bytes(data, "big")
         n += 8 * len(data)
     return value, n
@@ -198,9 +200,9 @@ _RUNS = re.compile(r"0+|1+")
 
 
 def _stuff_bits(bits: str) -> int:
-    """How many stuff bits a transmitter inserts in ``bits`` (SOF .. CRC sequence) [ISO §10.5]:
-    after five consecutive equal bits, one of the opposite value, which itself counts in the
-    next run. Counted run by run: with ``carry`` equal bits already sent (0, or 1 when the
+    """How many stuff bits a transmitter inserts in ``bits`` (SOF .. CRC sequence) [ISO "Frame
+    coding"]: after five consecutive equal bits, one of the opposite value, which itself counts
+    in the next run. Counted run by run: with ``carry`` equal bits already sent (0, or 1 when the
     last bit sent was a stuff bit of this run's value), a run of ``L`` bits reaches five after
     ``5 - carry`` of them and then after every further five."""
     stuffed = 0
@@ -222,12 +224,12 @@ def can_frame_bits(arbitration_id: int, is_extended: bool, data: bytes,
     """The exact number of bit times a classical CAN 2.0A/2.0B data or remote frame occupies
     the bus, including its stuff bits and the 3-bit intermission that follows it.
 
-    Built as ISO 11898-1 §10.4 lays the frame out: SOF, identifier (11 bits; or 11 + SRR + IDE
-    + 18), RTR, IDE/r1, r0, DLC, data (none in a remote frame), CRC-15 over SOF .. data
-    (:func:`can_crc15`); stuffed from SOF to the end of the CRC sequence (§10.5); then CRC
-    delimiter, ACK slot, ACK delimiter, 7 EOF bits and 3 intermission bits, never stuffed.
-    Between :func:`can_unstuffed_bits` (47 + 8n, or 67 + 8n with a 29-bit id) and
-    :func:`can_worst_case_bits` [Davis eq. 3].
+    Built as ISO 11898-1 "Data frame" / "Remote frame" lay the frame out: SOF, identifier (11
+    bits; or 11 + SRR + IDE + 18), RTR, IDE/r1, r0, DLC, data (none in a remote frame), CRC-15
+    over SOF .. data (:func:`can_crc15`); stuffed from SOF to the end of the CRC sequence
+    ("Frame coding"); then CRC delimiter, ACK slot, ACK delimiter, 7 EOF bits and 3
+    intermission bits, never stuffed. Between :func:`can_unstuffed_bits` (47 + 8n, or 67 + 8n
+    with a 29-bit id) and :func:`can_worst_case_bits` [Davis eq. 3].
 
     ``dlc``: the DLC field, default ``len(data)``; a remote frame's DLC (the length it asks
     for) is its only use. Raises ValueError naming the field for an id out of range or more
@@ -245,7 +247,7 @@ def can_frame_bits(arbitration_id: int, is_extended: bool, data: bytes,
 
 
 def can_unstuffed_bits(is_extended: bool, n_data: int) -> int:
-    """A frame's length without stuff bits, intermission included [ISO §10.4; Davis]:
+    """A frame's length without stuff bits, intermission included [ISO; Davis]:
     ``g + 8 n + 13`` with g = 34 (11-bit id) or 54 (29-bit id): 111 / 131 bits for 8 bytes."""
     return (54 if is_extended else 34) + 8 * n_data + _TRAILER_BITS
 
@@ -261,8 +263,8 @@ def can_worst_case_bits(is_extended: bool, n_data: int) -> int:
 
 
 def can_error_frame_bits(echo_bits: int = 6) -> int:
-    """Bit times of an active error frame [ISO §10.4.4]: the 6 dominant bits of the error flag,
-    up to 6 more while the other nodes answer with their own flags (``echo_bits``, 0..6; 6 is
+    """Bit times of an active error frame [ISO "Error frame"]: the 6 dominant bits of the error
+    flag, up to 6 more while the other nodes answer with their own flags (``echo_bits``, 0..6; 6 is
     the worst case), the 8 recessive bits of the error delimiter and the 3-bit intermission:
     23 at most, 17 at least. The frame it destroyed is sent again after it (by the fault
     module; this module does not retransmit)."""
@@ -272,8 +274,8 @@ def can_error_frame_bits(echo_bits: int = 6) -> int:
 
 
 def arbitration_key(arbitration_id: int, is_extended: bool, is_remote: bool = False) -> int:
-    """The arbitration field as one 32-bit number; the lower key wins the bus [ISO §10.4.2.2,
-    §12.1.4.2]. The bits as sent, dominant 0 first: base id (11), then RTR and IDE (0 0 for a
+    """The arbitration field as one 32-bit number; the lower key wins the bus [ISO "Bus
+    arbitration"]. The bits as sent, dominant 0 first: base id (11), then RTR and IDE (0 0 for a
     standard data frame) or SRR and IDE (1 1, recessive) and the 18-bit extension and RTR. So an
     11-bit id ranks as ``id << 18`` among 29-bit ids, a standard frame beats an extended one of
     the same base id (its RTR/IDE against the recessive SRR/IDE), and a data frame beats a
@@ -362,7 +364,7 @@ class CanWire:
     def release(self, until: float) -> list[tuple[float, can.Message, Any]]:
         """The frames the receivers have by ``until``, as ``(time, msg, tag)`` in wire order;
         ``time`` is when the frame became valid for the receivers (after the last but one EOF
-        bit [ISO §10.7]: 4 bit times before the end of the frame's intermission)."""
+        bit [ISO "Message validation"]: 4 bit times before the end of the frame's intermission)."""
         out: list[tuple[float, can.Message, Any]] = []
         incoming, contending = self._incoming, self._contending
         tb = self.bit_time_s

@@ -49,7 +49,7 @@ def _bits(value: int, n: int) -> list[int]:
 
 
 def reference_crc15(bits: list[int]) -> int:
-    """Bosch CAN 2.0 part A §3.1.1.6 / part B §3.2.1: CRC_RG = 0; per bit CRCNXT = NXTBIT xor
+    """Bosch CAN Specification 2.0, "CRC field": CRC_RG = 0; per bit CRCNXT = NXTBIT xor
     CRC_RG(14); shift left by one; if CRCNXT, CRC_RG ^= 4599h."""
     crc = 0
     for bit in bits:
@@ -61,8 +61,8 @@ def reference_crc15(bits: list[int]) -> int:
 
 
 def reference_stuff(bits: list[int]) -> list[int]:
-    """ISO 11898-1 §10.5: after five consecutive equal bits, insert their complement (which
-    counts in the following run)."""
+    """ISO 11898-1 / Bosch CAN 2.0, "Frame coding": after five consecutive equal bits, insert
+    their complement (which counts in the following run)."""
     out: list[int] = []
     run, last = 0, None
     for bit in bits:
@@ -324,6 +324,20 @@ def test_idle_bus_starts_a_frame_when_written() -> None:
     assert wire.release(0.25) == []
     ((t, _, _),) = wire.release(0.5)
     assert t == pytest.approx(0.25 + (111 - 4) * TB)
+
+
+def test_worked_example_of_the_docs() -> None:
+    """docs/wire-timing.md "Worked example": 500 kbit/s, four 111-bit frames."""
+    payload = bytes.fromhex("a5cc335a96cc994b")
+    assert {can_frame_bits(i, False, payload) for i in (0x355, 0x155, 0x2AA, 0x0AA)} == {111}
+    wire = CanWire(BITRATE)
+    for can_id in (0x355, 0x155, 0x2AA):
+        wire.submit(0.0, msg(can_id, payload))
+    assert wire.release(100e-6) == []
+    wire.submit(100e-6, msg(0x0AA, payload))
+    out = wire.release(1.0)
+    assert ids(out) == [0x155, 0x0AA, 0x2AA, 0x355]
+    assert [round(t * 1e6, 6) for t, _, _ in out] == [214, 436, 658, 880]
 
 
 def test_identical_arbitration_fields_go_in_submission_order() -> None:
