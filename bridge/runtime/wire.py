@@ -195,27 +195,27 @@ def _frame_head(arbitration_id: int, is_extended: bool, data: bytes, is_remote: 
     return value, n
 
 
-#: Runs of equal bits in a bit string.
-_RUNS = re.compile(r"0+|1+")
+#: Runs of four or more equal bits: shorter runs are never stuffed (a run starts with at most
+#: one equal bit already sent, the stuff bit before it).
+_LONG_RUNS = re.compile(r"0{4,}|1{4,}")
 
 
 def _stuff_bits(bits: str) -> int:
     """How many stuff bits a transmitter inserts in ``bits`` (SOF .. CRC sequence) [ISO "Frame
     coding"]: after five consecutive equal bits, one of the opposite value, which itself counts
-    in the next run. Counted run by run: with ``carry`` equal bits already sent (0, or 1 when the
-    last bit sent was a stuff bit of this run's value), a run of ``L`` bits reaches five after
-    ``5 - carry`` of them and then after every further five."""
+    in the next run. Counted run by run: a run of ``L`` equal bits reaches five after its first
+    five bits -- four if the bit sent just before it was a stuff bit (of this run's value) --
+    and then after every further five; a run that ends on a stuff bit passes it on."""
     stuffed = 0
-    carry = 0
-    for run in _RUNS.findall(bits):
-        first = 5 - carry
-        length = len(run)
-        if length >= first:
-            rest = length - first
+    after_stuff = -1    # where a run that ended on a stuff bit ended
+    for m in _LONG_RUNS.finditer(bits):
+        start, end = m.span()
+        first = 4 if start == after_stuff else 5
+        if end - start >= first:
+            rest = end - start - first
             stuffed += 1 + rest // 5
-            carry = 1 if rest % 5 == 0 else 0   # ended on a stuff bit: opposite value
-        else:
-            carry = 0
+            if rest % 5 == 0:
+                after_stuff = end
     return stuffed
 
 

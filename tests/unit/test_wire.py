@@ -202,6 +202,16 @@ def test_frame_without_stuff_bits_against_all_zero_data() -> None:
     assert zeros >= 111 + 64 // 5
 
 
+def test_stuff_count_of_every_14_bit_sequence() -> None:
+    """The run-by-run count (wire._stuff_bits) equals bit-by-bit stuffing for every sequence of
+    14 bits: every way runs, stuff bits and the runs they open can meet."""
+    from koala_bridge.runtime.wire import _stuff_bits
+
+    for value in range(1 << 14):
+        bits = _bits(value, 14)
+        assert _stuff_bits("".join(map(str, bits))) == len(reference_stuff(bits)) - 14, value
+
+
 def test_remote_frame_has_no_data_field() -> None:
     # a remote frame asking for 8 bytes: RTR recessive, DLC 8, no data
     bits = can_frame_bits(0x123, False, b"", is_remote=True, dlc=8)
@@ -243,13 +253,19 @@ def test_frame_bits_match_the_reference_and_stay_within_the_bounds(
 
 @settings(max_examples=200, deadline=None, derandomize=True)
 @given(st.lists(st.sampled_from([0x00, 0xFF, 0x0F, 0xF0, 0x07, 0xE0, 0x83, 0x3E, 0x7C, 0xC1]),
-                min_size=8, max_size=8), st.integers(0, 0x7FF))
-def test_stuff_heavy_payloads_stay_within_the_worst_case(payload: list[int], can_id: int) -> None:
-    """Payloads of long runs (where stuff bits pile up) never exceed Davis et al.'s bound."""
+                min_size=8, max_size=8),
+       st.sampled_from([0x000, 0x7FF, 0x3E0, 0x01F, 0x783, 0x07C, 0x555, 0x421]),
+       st.booleans(), st.integers(0, 0x3FFFF))
+def test_stuff_heavy_payloads_stay_within_the_worst_case(
+    payload: list[int], base: int, extended: bool, extension: int
+) -> None:
+    """Payloads and ids of long runs (where stuff bits pile up, and a stuff bit starts the next
+    run) match the reference and never exceed Davis et al.'s bound."""
     data = bytes(payload)
-    bits = can_frame_bits(can_id, False, data)
-    assert bits == len(reference_frame(can_id, False, data))
-    assert bits <= can_worst_case_bits(False, 8) == 135
+    can_id = base << 18 | extension if extended else base
+    bits = can_frame_bits(can_id, extended, data)
+    assert bits == len(reference_frame(can_id, extended, data))
+    assert bits <= can_worst_case_bits(extended, 8) == (160 if extended else 135)
 
 
 # ---------------------------------------------------------------------------- CAN bus
