@@ -94,7 +94,8 @@ def test_held_at_zero_until_the_first_d_then_one_period_per_d() -> None:
             # 3 steps of 10 pulses per D; the reply comes from the boundary's state
             assert ask(port, "H") == f"h,{30 * k},{-30 * k}"
         status = source.status(source.port.t)
-        assert status["lockstep"] == {"engaged": True, "cycles": 10, "explicit": 0, "misses": 0}
+        assert status["lockstep"] == {"engaged": True, "cycles": 10, "explicit": 0, "misses": 0,
+                                      "unpaced_steps": 0}
 
 
 def test_the_run_ends_when_the_firmware_closes_the_cycle_bus() -> None:
