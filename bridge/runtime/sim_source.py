@@ -56,7 +56,7 @@ from koala_bridge.estimation.messages import KEY_CELL, KEY_GRID, KEY_OCCUPANCY, 
 from koala_bridge.runtime.buses import LockedByteLink, OpenBuses, open_buses
 from koala_bridge.runtime.clock import Clock, LockstepClock, make_clock
 from koala_bridge.runtime.counters import BusCounters
-from koala_bridge.runtime.endpoints import Endpoints, endpoints_of
+from koala_bridge.runtime.endpoints import Endpoints, endpoints_of, write_endpoints_file
 from koala_bridge.runtime.faults import FaultInjector, fault_spec, faults_from_config
 from koala_bridge.runtime.koala25_io import Koala25Responder
 from koala_bridge.runtime.localisation import LocalisationNode
@@ -255,6 +255,7 @@ class SimulatedRobotSource:
         faults = self.faults
         if faults.active:
             r = faults.on_readings(r)
+            self._fault_windows(r.t)
         if self.tap is not None:
             self.tap.declare(self._published_keys(r), self._tap_buses())
         self.clock.start()
@@ -295,6 +296,7 @@ class SimulatedRobotSource:
             r = self.sim.step(self.arbiter.command(self.sim.t))
             if faults.active:
                 r = faults.on_readings(r)                   # sensor faults
+                self._fault_windows(r.t)                    # disconnect, bus-off
             n += 1
             self._emit(r, n)
             self._after_step(r.t)
@@ -563,12 +565,6 @@ class SimulatedRobotSource:
             return
         faults = self.faults
         if faults.active:
-            for bus in self._fault_buses():
-                gone = faults.disconnected(bus, t)
-                if gone != (bus in self._offline):
-                    self._set_offline(bus, gone)
-            if self.buses.can:
-                self._bus_off = faults.bus_off("can", t)
             for msg in faults.can_error_frames(t):
                 self._write_can(msg, msg.timestamp, error=True)
         while self._pending and self._pending[0][0] <= t + 1e-12:
@@ -611,6 +607,16 @@ class SimulatedRobotSource:
         sensors = self.sim.config.sensors
         return {"ir": len(sensors.ir.poses), "sonar": len(sensors.sonar.poses), "encoders": 2}
 
+    def _fault_windows(self, t: float) -> None:
+        """Before step ``t``'s readings go out: the buses a fault takes away or gives back."""
+        faults = self.faults
+        for bus in self._fault_buses():
+            gone = faults.disconnected(bus, t)
+            if gone != (bus in self._offline):
+                self._set_offline(bus, gone)
+        if self.buses.can:
+            self._bus_off = faults.bus_off("can", t)
+
     def _fault_buses(self) -> list[str]:
         present = [name for name in ("kteam", "rangefinders", "mavlink")
                    if name in self.buses.byte_links()]
@@ -632,6 +638,15 @@ class SimulatedRobotSource:
             except (NotImplementedError, TransportError) as e:
                 self._write_failed(bus, e)
         log.info("fault: %s %s", bus, "offline" if offline else "back online")
+        if not offline and self.endpoints is not None:
+            # a pty comes back as a new device (like a USB serial adapter replugged): clients
+            # find its path in the endpoints, rewritten
+            self.endpoints = endpoints_of(self.buses, self.settings)
+            if self.settings.run.endpoints_file:
+                try:
+                    write_endpoints_file(self.settings.run.endpoints_file, self.endpoints)
+                except OSError as e:
+                    log.warning("cannot rewrite the endpoints file: %s", e)
 
     def _later(self, t_write: float, bus: str, write: Callable[[float], None]) -> None:
         heapq.heappush(self._pending, (t_write, self._pending_seq, bus, write))
@@ -713,6 +728,8 @@ class SimulatedRobotSource:
             deliveries = [
                 (d.t, msg if d.data == bytes(msg.data) else _with_data(msg, d.data))
                 for d in self.faults.on_frame("can", t, bytes(msg.data), msg.arbitration_id)]
+            for error in self.faults.can_error_frames(t):   # a corrupt frame's CRC error first
+                self._write_can(error, t, error=True)
         for t_ready, m in deliveries:
             if self._can_wire is not None:
                 self._can_wire.submit(t_ready, m)
