@@ -601,7 +601,10 @@ def test_add_at_run_time() -> None:
     with pytest.raises(ConfigError, match="'first' is already used"):
         inj.add(spec("drop:kteam:name=first"))
     inj.add(FaultSpec(kind="drop", target="kteam"))
-    assert list(inj.counts()) == ["first", "disconnect:mavlink#1", "drop:kteam#3"]
+    inj.add(spec("bias:gyro:end_s=2,bias=1"))         # its window is over: nothing happens
+    assert not inj.events()
+    assert list(inj.counts()) == ["first", "disconnect:mavlink#1", "drop:kteam#3",
+                                  "bias:gyro#1"]
 
 
 def test_seed_must_be_a_natural_number() -> None:
