@@ -525,6 +525,8 @@ class _Fault:
         self.rng = np.random.default_rng([seed, 0x0FA1, index])
         self.state = _PENDING
         self.begin = max(spec.start_s, now)   # added at run time: not before then
+        if self.begin >= spec.end_s:          # added after its window: nothing to do
+            self.state = _DONE
         self.held: Delivery | None = None     # reorder
         self.stuck: Any = None                # stuck: the reading repeated
         self.next_tick = 0                    # error_frames: the next period index

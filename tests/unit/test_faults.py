@@ -3,6 +3,7 @@ the seed, each kind's effect, events and counts, and the simulator's hooks (sim/
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import tomllib
 from pathlib import Path
@@ -10,6 +11,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import tomli_w
 from koala_bridge.core.schema import ConfigError
 from koala_bridge.drivers.mavlink_codec import CompassDecoder, CompassEncoder, MavlinkIdentity
 from koala_bridge.drivers.messages import CompassSample, RangeFrame, RangeKind, Reject
@@ -175,6 +177,19 @@ def test_shipped_configs_have_no_fault_and_a_valid_commented_example(path: Path)
     assert [s.kind for s in specs] == ["drop", "bias"]
     # with the example in, the configuration still loads ([[faults]] is a known table)
     BridgeSettings.from_config({**config, **example})
+
+
+def test_every_default_is_written_in_the_shipped_configs() -> None:
+    """The config policy's one-default rule for a table that is not there by default: the
+    commented [[faults]] block of default.toml states each key's default as ``key = value``."""
+    text = DEFAULT.read_text()
+    header = text[text.index("# Fault injection"):text.index("\n# [[faults]]\n")]
+    header = " ".join(line.removeprefix("#").strip() for line in header.splitlines())
+    for f in dataclasses.fields(FaultSpec):
+        if f.default is dataclasses.MISSING or f.default is None:
+            continue   # kind, target; the required parameters and theta_deg (absent: kept)
+        written = tomli_w.dumps({f.name: f.default}).strip()
+        assert written in header, f"{written!r} is not in default.toml's [[faults]] comment"
 
 
 def test_fault_spec_is_the_same_validation_for_runtime_tables() -> None:
@@ -601,7 +616,10 @@ def test_add_at_run_time() -> None:
     with pytest.raises(ConfigError, match="'first' is already used"):
         inj.add(spec("drop:kteam:name=first"))
     inj.add(FaultSpec(kind="drop", target="kteam"))
-    assert list(inj.counts()) == ["first", "disconnect:mavlink#1", "drop:kteam#3"]
+    inj.add(spec("bias:gyro:end_s=2,bias=1"))         # its window is over: nothing happens
+    assert not inj.events()
+    assert list(inj.counts()) == ["first", "disconnect:mavlink#1", "drop:kteam#3",
+                                  "bias:gyro#1"]
 
 
 def test_seed_must_be_a_natural_number() -> None:
