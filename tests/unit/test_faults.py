@@ -68,6 +68,10 @@ def spec(text: str) -> FaultSpec:
     ({"kind": "drop", "target": "can", "bits": 2},
      "'bits' does not apply to drop (a parameter of corrupt)"),
     ({"kind": "bias", "target": "gyro"}, "missing required key 'bias'"),
+    ({"kind": "glitch", "target": "ir"}, "missing required key 'magnitude'"),
+    ({"kind": "glitch", "target": "ir", "magnitude": 0}, "'magnitude' must be > 0"),
+    ({"kind": "glitch", "target": "encoders", "magnitude": 1},
+     "unknown target 'encoders' for glitch"),
     ({"kind": "magnetic_anomaly", "target": "compass", "x": 1, "y": 1},
      "missing required key 'strength_uT'"),
     ({"kind": "kidnap", "target": "robot", "x": 1, "y": 1, "end_s": 3},
@@ -133,6 +137,7 @@ def test_defaults_and_every_kind_validates() -> None:
         "disconnect": "disconnect:kteam:start_s=1,end_s=2", "error_frames": "error_frames:can",
         "bus_off": "bus_off:can:start_s=1,end_s=2", "stuck": "stuck:encoders:sensors=[1]",
         "stuck_max": "stuck_max:sonar", "bias": "bias:gyro:bias=-0.02",
+        "glitch": "glitch:sonar:magnitude=0.5",
         "magnetic_anomaly": "magnetic_anomaly:compass:x=1,y=2,strength_uT=30",
         "wheel_slip": "wheel_slip:left:traction=0.1", "kidnap": "kidnap:robot:x=1,y=2",
     }
@@ -448,6 +453,44 @@ def test_gyro_bias_step(readings: list[Readings]) -> None:
     (start,) = inj.events()
     assert start.to_json() == {"t": 1.0, "name": "bias:gyro#1", "kind": "bias", "target": "gyro",
                                "detail": {"phase": "start", "bias": 0.05}}
+
+
+def test_glitch_outliers(readings: list[Readings]) -> None:
+    """p = 0.2 per gyro reading: the number of outliers is Binomial(n, 0.2), each +-magnitude
+    with the sign a fair coin (bounds 5 sigma); IR: one sensor of those listed per outlier."""
+    inj = injector("glitch:gyro:probability=0.2,magnitude=0.5", "glitch:ir:magnitude=40,"
+                   "sensors=[3, 4]", "glitch:compass:magnitude=10,probability=0.5")
+    out = through(inj, readings)
+    deltas = [o.gyro.yaw_rate - r.gyro.yaw_rate for r, o in zip(readings, out, strict=True)
+              if r.gyro is not None]
+    n = len(deltas)
+    hits = [d for d in deltas if d != 0.0]
+    assert all(abs(abs(d) - 0.5) < 1e-12 for d in hits)
+    assert abs(len(hits) - 0.2 * n) <= 5 * math.sqrt(n * 0.2 * 0.8)
+    assert abs(sum(d > 0 for d in hits) - len(hits) / 2) <= 5 * math.sqrt(len(hits) / 4)
+    for r, o in zip(readings, out, strict=True):
+        if r.ir is not None:
+            changed = np.flatnonzero(o.ir.counts != r.ir.counts)
+            assert len(changed) <= 1 and set(changed) <= {3, 4}
+            for i in changed:
+                assert o.ir.counts[i] == max(0, r.ir.counts[i] + (40 if o.ir.counts[i] >
+                                                                   r.ir.counts[i] else -40))
+        if r.compass is not None:
+            axes = np.flatnonzero(o.compass.field_uT != r.compass.field_uT)
+            assert len(axes) <= 1
+            assert np.allclose(np.abs(o.compass.field_uT - r.compass.field_uT).sum(),
+                               10.0 * len(axes))
+    counts = inj.counts()
+    assert counts["glitch:gyro#1"] == len(hits)
+    assert counts["glitch:ir#2"] > 0 and counts["glitch:compass#3"] > 0
+
+
+def test_glitch_keeps_no_echo(readings: list[Readings]) -> None:
+    r = next(r for r in readings if r.sonar is not None)
+    blind = dataclasses.replace(r, sonar=dataclasses.replace(
+        r.sonar, ranges=np.full_like(r.sonar.ranges, np.nan)))
+    out = injector("glitch:sonar:magnitude=0.3").on_readings(blind)
+    assert np.isnan(out.sonar.ranges).all()
 
 
 def test_anomaly_field() -> None:
