@@ -197,6 +197,9 @@ class SocketcandServer(CanTransport):
         self._rx = FrameQueue(rx_queue, self._stats)
         self._outbox: deque[tuple[bytes, _Client | None]] = deque()
         self._clients: dict[socket.socket, _Client] = {}
+        # Whether any client is in raw mode (the service thread keeps it): without one a bus
+        # frame goes to nobody, so send() neither formats it nor wakes the thread.
+        self._any_raw = False
         self._waker = Waker()
         self._sel = selectors.DefaultSelector()
         self._sel.register(listener, selectors.EVENT_READ, None)
@@ -237,11 +240,13 @@ class SocketcandServer(CanTransport):
     def send(self, msg: can.Message) -> None:
         if self._closed:
             raise TransportClosedError("socketcand server is closed")
+        self._stats.add("sent")
+        if not self._any_raw:  # nobody receives bus frames (the thread would discard it)
+            return
         # The sender's time stamp as it is: the bridge's frames carry their sample's simulation
         # time, which is 0.0 at the first step (a wall-clock fallback for 0 made those frames
         # jump to the epoch time).
         self._outbox.append((format_frame_element(msg, msg.timestamp), None))
-        self._stats.add("sent")
         self._waker.wake()
 
     def recv(self, timeout: float | None = 0.0) -> can.Message | None:
@@ -391,11 +396,13 @@ class SocketcandServer(CanTransport):
         elif command == "rawmode" and len(words) == 1:
             client.mode = "raw"
             client.hold_until = time.monotonic() + self._grace
+            self._any_raw = True
             self._reply(client, b"< ok >")
         elif command == "bcmmode" and len(words) == 1:
             client.mode = "bcm"
             client.held.clear()
             client.hold_until = None
+            self._recount_raw()
             self._reply(client, b"< ok >")
         elif command == "echo" and len(words) == 1:
             self._reply(client, b"< echo >")
@@ -500,10 +507,14 @@ class SocketcandServer(CanTransport):
             self._sel.modify(client.sock, want, client)
             client.events = want
 
+    def _recount_raw(self) -> None:
+        self._any_raw = any(c.mode == "raw" for c in self._clients.values())
+
     def _drop(self, client: _Client) -> None:
         client.closed = True
         if self._clients.pop(client.sock, None) is not None:
             self._sel.unregister(client.sock)
+            self._recount_raw()
         client.sock.close()
         client.inbuf.clear()
         client.outbuf.clear()
