@@ -206,6 +206,9 @@ class SocketcandServer(CanTransport):
         self._sel.register(self._waker, selectors.EVENT_READ, self._waker)
         self._closed = False
         self._close_lock = threading.Lock()
+        # Client state (buffers, modes, the client table) is changed by the service thread and,
+        # for bus frames, by send(): one lock for both (never held while waiting in select).
+        self._io_lock = threading.Lock()
         self._thread = ServiceThread(f"socketcand:{self._port}", self._step, self._waker)
         self._thread.start()
 
@@ -246,8 +249,24 @@ class SocketcandServer(CanTransport):
         # The sender's time stamp as it is: the bridge's frames carry their sample's simulation
         # time, which is 0.0 at the first step (a wall-clock fallback for 0 made those frames
         # jump to the epoch time).
-        self._outbox.append((format_frame_element(msg, msg.timestamp), None))
-        self._waker.wake()
+        line = format_frame_element(msg, msg.timestamp)
+        # Straight onto the clients' sockets from the sender's thread: handing the frame to the
+        # service thread cost a thread switch, and the sender usually holds the GIL on (the
+        # bridge's loop goes on encoding), so the frame waited for it. What a socket does not
+        # take at once stays queued for the service thread, which is woken for it.
+        with self._io_lock:
+            if self._closed:
+                raise TransportClosedError("socketcand server is closed")
+            self._outbox.append((line, None))
+            self._distribute()
+            backlog = False
+            for client in list(self._clients.values()):
+                # A socket error is left to the service thread: it reads what the client sent
+                # before it went (a last < send >) and then drops it.
+                self._flush(client, drop_on_error=False)
+                backlog = backlog or bool(client.outbuf)
+        if backlog:
+            self._waker.wake()
 
     def recv(self, timeout: float | None = 0.0) -> can.Message | None:
         if self._closed:
@@ -260,9 +279,10 @@ class SocketcandServer(CanTransport):
                 return
             self._closed = True
         self._thread.stop()
-        for client in list(self._clients.values()):
-            client.sock.close()
-        self._clients.clear()
+        with self._io_lock:
+            for client in list(self._clients.values()):
+                client.sock.close()
+            self._clients.clear()
         self._sel.close()
         self._listener.close()
         self._waker.close()
@@ -270,7 +290,16 @@ class SocketcandServer(CanTransport):
     # ----------------------------------------------------------------- service thread
 
     def _step(self, stop: threading.Event) -> None:
-        for key, mask in self._sel.select(self._timeout()):
+        with self._io_lock:
+            timeout = self._timeout()
+        events = self._sel.select(timeout)
+        with self._io_lock:
+            if not self._closed:
+                self._handle(events, stop)
+
+    def _handle(self, events: list[tuple[selectors.SelectorKey, int]],
+                stop: threading.Event) -> None:
+        for key, mask in events:
             if stop.is_set():
                 return
             if key.fileobj is self._listener:
@@ -484,7 +513,7 @@ class SocketcandServer(CanTransport):
         self._stats.add("rejected")
         log.debug("socketcand client %s: rejected input (%s)", client.sock.fileno(), why)
 
-    def _flush(self, client: _Client) -> None:
+    def _flush(self, client: _Client, drop_on_error: bool = True) -> None:
         if not client.outbuf or client.sock not in self._clients:
             return
         try:
@@ -492,7 +521,8 @@ class SocketcandServer(CanTransport):
         except BlockingIOError:
             return
         except OSError:
-            self._drop(client)
+            if drop_on_error:
+                self._drop(client)
             return
         if sent and client.frame_bytes:
             client.last_active = time.monotonic()
