@@ -188,14 +188,22 @@ class KoalaCanCodec:
         raw = bytes(msg.data)
         if msg.is_error_frame or msg.is_remote_frame or msg.is_fd:
             return Reject(RejectReason.UNSUPPORTED, "error, remote or FD frame", raw)
-        message = self._by_id.get(msg.arbitration_id)
-        if message is None or message.is_extended_frame != msg.is_extended_id:
-            kind = "extended" if msg.is_extended_id else "standard"
-            return Reject(RejectReason.UNKNOWN_ID, f"{kind} id {msg.arbitration_id:#x}", raw)
-        if len(raw) != message.length or msg.dlc != message.length:
+        return self.decode_data(msg.arbitration_id, raw, msg.is_extended_id, msg.dlc)
+
+    def decode_data(self, can_id: int, raw: bytes, extended: bool = False,
+                    dlc: int | None = None) -> CanFrame | Reject:
+        """:meth:`decode` of a classic data frame given by its id and payload (``dlc``: as the
+        frame says; None = the payload's length), without building a :class:`can.Message`."""
+        if dlc is None:
+            dlc = len(raw)
+        message = self._by_id.get(can_id)
+        if message is None or message.is_extended_frame != extended:
+            kind = "extended" if extended else "standard"
+            return Reject(RejectReason.UNKNOWN_ID, f"{kind} id {can_id:#x}", raw)
+        if len(raw) != message.length or dlc != message.length:
             return Reject(
                 RejectReason.WRONG_DLC,
-                f"{message.name} needs DLC {message.length}, got {msg.dlc}",
+                f"{message.name} needs DLC {message.length}, got {dlc}",
                 raw,
             )
         layout = self._layouts[message.name]

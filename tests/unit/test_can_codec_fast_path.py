@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
+import can
 import cantools
 import pytest
 from hypothesis import given, settings
@@ -72,3 +73,10 @@ def test_decode_matches_cantools(name: str, data: st.DataObject) -> None:
     got = CODEC._layouts[name].decode(raw)  # type: ignore[union-attr]
     assert got == {k: float(v) for k, v in expected.items()}
     assert all(type(v) is float for v in got.values())
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.sampled_from([0x100, 0x110, 0x120, 0x121]), st.binary(max_size=9), st.booleans())
+def test_decode_data_is_decode_of_the_data_frame(can_id: int, raw: bytes, extended: bool) -> None:
+    msg = can.Message(arbitration_id=can_id, data=raw, is_extended_id=extended)
+    assert CODEC.decode_data(can_id, raw, extended) == CODEC.decode(msg)
