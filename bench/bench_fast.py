@@ -89,6 +89,48 @@ class Breakdown:
         setattr(owner, name, timed)
 
 
+class WriteOffsets:
+    """Per bus, the wall time from the end of ``Simulator.step`` to the first write of that
+    step's sample on the bus (the bridge's own share of a sample's latency, before the
+    transport and the client; bench/bench_latency.py measures the whole path)."""
+
+    def __init__(self, service: Any) -> None:
+        self.us: dict[str, list[float]] = collections.defaultdict(list)
+        self._stamp = 0
+        self._seen: set[str] = set()
+        step = service.sim.step
+
+        def stamped(command: Any) -> Any:
+            r = step(command)
+            self._seen.clear()
+            self._stamp = time.perf_counter_ns()
+            return r
+
+        service.sim.step = stamped
+        b = service.buses
+        if b.rangefinders is not None:
+            self._wrap(b.rangefinders, "write", "rangefinders (pty)")
+        if b.mavlink is not None:  # SCALED_IMU is message id 26 (bytes 7..9 of a v2 packet)
+            self._wrap(b.mavlink, "write", "mavlink SCALED_IMU",
+                       lambda data: bytes(data[7:10]) == b"\x1a\x00\x00")
+        for name, transport in b.can.items():
+            self._wrap(transport, "send", name)
+        self._wrap(service.zenoh, "publish_json", "zenoh sensors/odometry",
+                   lambda suffix, payload: suffix == "sensors/odometry")
+
+    def _wrap(self, owner: Any, name: str, label: str,
+              which: Callable[..., bool] | None = None) -> None:
+        inner = getattr(owner, name)
+
+        def timed(*args: Any, **kwargs: Any) -> Any:
+            if label not in self._seen and (which is None or which(*args)):
+                self._seen.add(label)
+                self.us[label].append((time.perf_counter_ns() - self._stamp) / 1e3)
+            return inner(*args, **kwargs)
+
+        setattr(owner, name, timed)
+
+
 def instrument(service: Any) -> Breakdown:
     """Wrap the components of one loop step of ``service`` (instance attributes and the module
     functions the loop calls)."""
@@ -173,6 +215,9 @@ def main(argv: list[str] | None = None) -> int:
             w, c = floor_window()
             wall["floor"].append(w)
             cpu["floor"].append(c)
+        offsets = WriteOffsets(service)
+        for _ in range(args.breakdown_windows):
+            service.run(stop, duration_s=args.window)
         breakdown = instrument(service)
         best: tuple[float, dict[str, int]] | None = None
         for _ in range(args.breakdown_windows):
@@ -201,6 +246,10 @@ def main(argv: list[str] | None = None) -> int:
     print(f"  target {TARGET_RTF:g} x real time = {dt * 1e6 / TARGET_RTF:.1f} us/step: "
           f"{'met' if dt * 1e6 / us['loop'] >= TARGET_RTF else 'NOT met'} "
           f"(best window {dt * 1e6 / us['loop'] / TARGET_RTF:.2f} of it)")
+    print("sample -> first write on the bus, fast clock (the bridge's share of latency; "
+          "p50 / p95 over the windows):")
+    for label, values in offsets.us.items():
+        print(f"  {label:34s} {np.median(values):7.1f} us  {np.percentile(values, 95):7.1f} us")
     total = sum(parts.values())
     print(f"breakdown: the least disturbed of {args.breakdown_windows} instrumented windows "
           f"({1e6 * wrapped / steps:.1f} us/step loop CPU; exclusive CPU times, us per step):")
