@@ -12,7 +12,7 @@ simulated seconds: :meth:`koala_bridge.sim.simulator.Simulator.step` alone on th
 command, the part of a step no bus or estimator work can remove. Each figure is the best window
 (the least disturbed on a shared machine, the ``timeit`` convention) with the median beside it,
 plus the loop thread's CPU time per step (``time.thread_time``), which other processes on the
-machine do not inflate.
+machine inflate far less than wall time.
 
 Prints steps per wall second and the real-time factor of the loop and of the floor, the ratio
 loop / floor, the issue-14 target (150x real time: <= 66.7 us per step), and then a breakdown:
@@ -20,23 +20,40 @@ more windows with each component wrapped in ``time.thread_time_ns`` (exclusive C
 least disturbed window; the wrappers add ~0.5 us per call, so the sum exceeds the unwrapped
 step).
 
-Breakdown on this 2-core machine (Python 3.11, loaded by other jobs; us per step, loop thread
-CPU; before = 3862ed7, after = this branch):
+Measured on the 2-core build machine (Python 3.11), 2026-11-25, with other jobs loading it
+(load average ~9, so wall figures are pessimistic; CPU figures are the robust ones), before =
+3862ed7, after = branch wt-perf. Exclusive loop-thread CPU, us per step, least disturbed of 5
+instrumented windows (the wrappers' own cost lands mostly in "rest of the step"):
 
-    component                              before   after
-    localisation node (decode + EKF + grid)   69      48   frames decoded at their rates
-    Zenoh: topic messages + JSON + put        40      33   C JSON scanner built once
-    simulator: robot, battery, sensors        39      39   (the floor; untouched)
-    CAN: socketcand server                    30       1   no format/wake without a raw client
-    CAN: encode (DBC)                         18       6   struct instead of cantools' bitstruct
-    range frames: encode (CRC)                 9       3   binascii.crc_hqx instead of crccheck
-    MAVLink SCALED_IMU: encode + UDP send     12      12   pymavlink; a sendto per sample
-    rest of the step (emit, port, status)     ~25     ~25
-    loop total, CPU per step                 235     ~165  (RTF ~40x -> ~60x)
+    component                             before  after  what changed
+    localisation node                       80.8   66.5  CAN decode via struct; CRC in C
+    Zenoh: JSON + put                       35.3   30.2  C JSON scanner built once
+    simulator: sensor models                26.6   25.3  (untouched: the floor)
+    CAN: encode (DBC)                       20.8    9.9  struct for byte-aligned DBC messages
+    simulator: robot + battery              20.7   20.3  (untouched)
+    rest of the step (+ wrapper overhead)   20.0   23.9
+    CAN: socketcand server                  15.3    2.9  no format / wake without a raw client
+    Zenoh: to_json                          14.1   14.1
+    CAN: frame + tap                        12.3    9.6
+    Zenoh: topic messages                   10.3    9.9
+    range frames: encode (CRC-16)            9.8    3.1  binascii.crc_hqx, not crccheck's loop
+    MAVLink: encode (pymavlink)              8.8    7.5
+    MAVLink: UDP sendto                      7.8    7.2
+    port state, virtual, slcan, pty, status 15.4   15.9
+    instrumented total                     303.6  252.0
+    loop CPU per step, unwrapped           227.7  174.2  (~40x -> ~57x real time unloaded)
 
-The target (150x, 66.7 us) is below the simulator floor plus the localisation node alone; see
-the report of issue 14 for what would be needed (a compiled loop or the estimator in another
-process).
+    sample -> first write (p50, us)        before  after
+    rangefinders (pty)                      69.1   41.1
+    can.socketcand                          20.5   14.6  (before: only queued here; the
+                                                          service thread wrote it later)
+    can.slcan / can.virtual              39 / 42  17 / 19
+    mavlink SCALED_IMU                     163.7   49.1
+    zenoh sensors/odometry                 196.8   74.6
+
+The target (150x, 66.7 us per step) is below the localisation node plus the simulator alone
+(~66 + ~46 us of CPU), before any bus or Zenoh work: it needs the estimator off the loop thread
+(another process) or a compiled loop; see the issue-14 report.
 """
 
 from __future__ import annotations
