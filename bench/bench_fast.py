@@ -20,40 +20,49 @@ more windows with each component wrapped in ``time.thread_time_ns`` (exclusive C
 least disturbed window; the wrappers add ~0.5 us per call, so the sum exceeds the unwrapped
 step).
 
-Measured on the 2-core build machine (Python 3.11), 2026-11-25, with other jobs loading it
-(load average ~9, so wall figures are pessimistic; CPU figures are the robust ones), before =
-3862ed7, after = branch wt-perf. Exclusive loop-thread CPU, us per step, least disturbed of 5
-instrumented windows (the wrappers' own cost lands mostly in "rest of the step"):
+Measured on the 2-core build machine (Python 3.11), 2026-11-25, other jobs loading it (load
+average ~3.7: wall figures are pessimistic, CPU figures the robust ones); before = 3862ed7,
+after = branch wt-perf; ``python -m bench.bench_fast --seconds 10``:
+
+                                          before   after
+    whole loop, best window, us/step       243.0   168.6
+      = real-time factor                   41.2x   59.3x   (target 150x)
+    loop thread CPU, us/step               223.7   166.4
+    simulator alone (floor), us/step        21.0    20.6
+    loop / floor                           11.55    8.16
+
+Exclusive loop-thread CPU, us per step, least disturbed of 5 instrumented windows (the
+wrappers' own cost, ~0.5 us a call, lands mostly in "rest of the step"):
 
     component                             before  after  what changed
-    localisation node                       80.8   66.5  CAN decode via struct; CRC in C
-    Zenoh: JSON + put                       35.3   30.2  C JSON scanner built once
-    simulator: sensor models                26.6   25.3  (untouched: the floor)
-    CAN: encode (DBC)                       20.8    9.9  struct for byte-aligned DBC messages
-    simulator: robot + battery              20.7   20.3  (untouched)
-    rest of the step (+ wrapper overhead)   20.0   23.9
-    CAN: socketcand server                  15.3    2.9  no format / wake without a raw client
-    Zenoh: to_json                          14.1   14.1
-    CAN: frame + tap                        12.3    9.6
-    Zenoh: topic messages                   10.3    9.9
-    range frames: encode (CRC-16)            9.8    3.1  binascii.crc_hqx, not crccheck's loop
-    MAVLink: encode (pymavlink)              8.8    7.5
-    MAVLink: UDP sendto                      7.8    7.2
-    port state, virtual, slcan, pty, status 15.4   15.9
-    instrumented total                     303.6  252.0
-    loop CPU per step, unwrapped           227.7  174.2  (~40x -> ~57x real time unloaded)
+    localisation node                       70.9   54.5  CAN decode via struct, no can.Message
+    Zenoh: JSON + put                       32.3   24.0  C JSON scanner built once
+    simulator: sensor models                23.8   20.0  (untouched: the floor)
+    CAN: encode (DBC)                       19.2    8.3  struct for byte-aligned DBC messages
+    rest of the step (+ wrapper overhead)   18.6   19.8
+    simulator: robot + battery              18.3   17.5  (untouched)
+    CAN: socketcand server                  13.3    2.6  no format / wake without a raw client
+    Zenoh: to_json                          12.8   11.6
+    CAN: frame + tap                        10.7    8.6
+    Zenoh: topic messages                    9.1    7.9
+    range frames: encode (CRC-16)            8.9    2.4  binascii.crc_hqx, not crccheck's loop
+    MAVLink: encode (pymavlink)              7.3    6.0
+    MAVLink: UDP sendto                      6.4    5.2
+    virtual, port, slcan, pty, drains, status 14.4  12.8
+    instrumented total                     270.1  205.5
 
-    sample -> first write (p50, us)        before  after
-    rangefinders (pty)                      69.1   41.1
-    can.socketcand                          20.5   14.6  (before: only queued here; the
-                                                          service thread wrote it later)
-    can.slcan / can.virtual              39 / 42  17 / 19
-    mavlink SCALED_IMU                     163.7   49.1
-    zenoh sensors/odometry                 196.8   74.6
+    sample -> first write on the bus (p50, us)   before  after
+    rangefinders (pty)                             63.7   37.3
+    can.socketcand                                 19.4   14.4  (before: only queued here;
+                                                                 a thread hop to the wire)
+    can.slcan / can.virtual                     36 / 38  17 / 19
+    mavlink SCALED_IMU                            140.5   48.2
+    zenoh sensors/odometry                        173.3   72.9  (the localisation node now
+                                                                 reads the frames after Zenoh)
 
-The target (150x, 66.7 us per step) is below the localisation node plus the simulator alone
-(~66 + ~46 us of CPU), before any bus or Zenoh work: it needs the estimator off the loop thread
-(another process) or a compiled loop; see the issue-14 report.
+The target (150x, 66.7 us per step) is below the localisation node plus the simulator as it
+runs in the loop (~55 + ~38 us of CPU), before any bus or Zenoh work: it needs the estimator off
+the loop thread (another process) or a compiled loop.
 """
 
 from __future__ import annotations
