@@ -12,6 +12,7 @@ import struct
 from collections.abc import Mapping
 from pathlib import Path
 from types import MappingProxyType
+from typing import TypeAlias
 
 import can
 import cantools
@@ -35,7 +36,7 @@ __all__ = [
     "wrap_int32",
 ]
 
-CanFrame = WheelOdometryFrame | GyroFrame | MotorCommandFrame
+CanFrame: TypeAlias = WheelOdometryFrame | GyroFrame | MotorCommandFrame
 """Any typed frame of the Koala bus."""
 
 DEFAULT_DBC_PATH = default_dbc_path()
