@@ -41,6 +41,7 @@ from typing import Any, TypeVar
 from koala_bridge.core.topics import (
     CameraMessage,
     CompassMessage,
+    FaultEventMessage,
     GyroMessage,
     IrMessage,
     OdometryMessage,
@@ -55,6 +56,7 @@ from koala_bridge.recording.mcap_file import (
     Recording,
     RecordingError,
     open_recording,
+    topic_name,
 )
 
 log = logging.getLogger(__name__)
@@ -278,6 +280,15 @@ def _write_bundle(rec: Recording, mcap_path: str | os.PathLike[str], out: Path) 
             out / "landmark_map.csv", ("id", "x", "y", "colour"), rows
         )
 
-    if not set(counts) - {"landmark_map.csv"}:  # the world's map alone is no reading
+    # Injected faults (docs/faults.md): an analyst must see that a reading was faulted on
+    # purpose (a kidnap is not an odometry error). Not a bundle file calibrate reads.
+    faults = rec.topic(topic_name(FaultEventMessage.TOPIC))
+    if faults:
+        rows = ((m.json()["t"], m.json()["name"], m.json()["kind"], m.json()["target"],
+                 json.dumps(m.json()["detail"], separators=(",", ":"))) for m in faults)
+        counts["faults.csv"] = _write_csv(out / "faults.csv",
+                                          ("t", "name", "kind", "target", "detail"), rows)
+
+    if not set(counts) - {"landmark_map.csv", "faults.csv"}:  # the map alone is no reading
         raise RecordingError(f"{mcap_path} holds no reading to export")
     (out / "meta.json").write_text(json.dumps(_meta(rec, counts), indent=2) + "\n", "utf-8")

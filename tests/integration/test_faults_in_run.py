@@ -5,9 +5,11 @@ period's frames to socketcand before it answers)."""
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 import os
+from pathlib import Path
 
 import can
 import pytest
@@ -188,3 +190,24 @@ def test_faults_can_be_scheduled_over_zenoh_only_with_remote_commands() -> None:
         replies = list(z.get(f"{source.settings.zenoh.prefix}/faults/schedule",
                              payload=json.dumps(fault), timeout=2.0))
         assert replies == []
+
+
+def test_fault_events_are_in_the_recording_and_its_export(tmp_path: Path) -> None:
+    from koala_bridge.recording.export import export_bundle
+    from koala_bridge.recording.mcap_file import Recorder, open_recording, run_metadata
+
+    faults = [{"kind": "kidnap", "target": "robot", "start_s": 0.03, "x": 1.0, "y": 1.0},
+              {"kind": "drop", "target": "can", "start_s": 0.05, "end_s": 0.07}]
+    path = tmp_path / "run.mcap"
+    recorder = Recorder(path, metadata=run_metadata("sim", {"sim": {"seed": 1}}, None))
+    with bridge(faults=faults, tap=recorder) as source, kteam(source) as port:
+        cycles(port, 10)
+    recorder.close()
+    events = [m.json() for m in open_recording(path).topic("/events/fault")]
+    assert [(e["t"], e["kind"]) for e in events] == [
+        (0.03, "kidnap"), (0.05, "drop"), (0.05, "drop"), (0.06, "drop"), (0.06, "drop")]
+    bundle = export_bundle(path, tmp_path / "bundle")
+    with open(bundle / "faults.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["kind"] for r in rows] == ["kidnap", "drop", "drop", "drop", "drop"]
+    assert json.loads(rows[1]["detail"]) == {"can_id": 0x110}
