@@ -445,6 +445,8 @@ class SimulatedRobotSource:
         keys = [TruthPose.TOPIC, *sensor_topics(r), StatusMessage.TOPIC]
         if self.localisation is not None:
             keys += [KEY_POSE, KEY_CELL, KEY_GRID, KEY_OCCUPANCY]
+        if self.faults.active or self.settings.zenoh.remote_commands:
+            keys.append(FaultEventMessage.TOPIC)
         return keys
 
     def _tap_buses(self) -> list[str]:
