@@ -16,6 +16,12 @@ uniforms drawn in blocks from two child streams), which is what ``measure`` rece
 
 Error models plug in through ``error_models`` (see :mod:`koala_bridge.sim.sensors.base`).
 
+Fault hooks (bridge/runtime/faults.py, docs/faults.md), outside the step and drawing nothing from
+the simulator's streams: :meth:`Simulator.teleport` moves the truth pose (a kidnapped robot: the
+encoders do not count the jump) and :meth:`Simulator.set_wheel_traction` makes wheels slip (the
+body moves as if each wheel's surface speed were scaled by its traction, while the encoders count
+the whole wheel turn).
+
 The rays of all range sensors due at a step go through one compiled cast
 (:func:`sim.raycast.cast_fan_arrays`); each range sensor then reads its slice of it in one
 compiled call (truth and error model fused). The camera tests its lines of sight in its own
@@ -24,18 +30,21 @@ compiled call.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
+import math
 from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
+from koala_bridge.core.geometry import wrap_angle
 from koala_bridge.core.schema import ConfigError
 from koala_bridge.sim import robot as kin
 from koala_bridge.sim.battery import Battery
 from koala_bridge.sim.config import SENSOR_NAMES, SimConfig, load_sim_config
-from koala_bridge.sim.noise import BlockStream
+from koala_bridge.sim.noise import BlockStream, Variates
 from koala_bridge.sim.raycast import SegmentSet, cast_fan_arrays
-from koala_bridge.sim.robot import RobotState
+from koala_bridge.sim.robot import DriveErrorSeam, Motion, RobotState
 from koala_bridge.sim.sections import poses_to_list
 from koala_bridge.sim.sensors.base import ErrorModelFactory
 from koala_bridge.sim.sensors.camera import CameraSensor
@@ -74,6 +83,7 @@ class Simulator:
         self._state: RobotState | None = None
         self._rngs: dict[str, np.random.Generator] = {}
         self._streams: dict[str, BlockStream] = {}
+        self._traction = (1.0, 1.0)
 
     # ------------------------------------------------------------------ public API
     @property
@@ -100,6 +110,7 @@ class Simulator:
         else:
             self._state = RobotState.at(start.x, start.y, start.theta)
         self._k = 0
+        self._traction = (1.0, 1.0)
         self.battery = Battery(self.config.robot.battery, self.config.robot.max_wheel_speed_mps)
         return self._readings(self._state)
 
@@ -108,9 +119,12 @@ class Simulator:
         if self._state is None:
             raise RuntimeError("call reset() before step()")
         before = self._state
+        drive: DriveErrorSeam | None = self._drive_error
+        if self._traction != (1.0, 1.0):
+            drive = _WheelSlip(self._traction, self.config.robot.wheel_base_m, self.dt, drive)
         self._state = kin.step(
             self._state, command.left, command.right, self.dt, self.config.robot, self.walls,
-            self._streams["drive"], self._drive_error,
+            self._streams["drive"], drive,
         )
         self._k += 1
         st = self._state
@@ -118,6 +132,46 @@ class Simulator:
                           _ground_speeds(before, st, self.dt, self.config.robot.wheel_base_m)
                           if st.collided else None)
         return self._readings(st)
+
+    @property
+    def pose(self) -> Pose:
+        """The truth pose after the last step (or reset, or teleport)."""
+        st = self._require_state()
+        return Pose(st.x, st.y, st.theta)
+
+    @property
+    def wheel_traction(self) -> tuple[float, float]:
+        """The traction of the left and right wheel set by :meth:`set_wheel_traction`."""
+        return self._traction
+
+    def teleport(self, x: float, y: float, theta: float) -> None:
+        """Move the robot to ``(x, y)`` m heading ``theta`` rad between two steps, as a robot
+        picked up and put down (a "kidnapped robot"): the truth pose jumps, the encoders count
+        nothing (wheel travel is kept), no collision is tested for the jump itself and no
+        random number is drawn. The next step starts from the new pose; the next readings see
+        it. A pose overlapping a wall is allowed: the robot can then only move away from it
+        (sim/robot.py, "Collisions")."""
+        st = self._require_state()
+        if not all(math.isfinite(v) for v in (x, y, theta)):
+            raise ValueError(f"teleport needs finite x, y, theta, got {(x, y, theta)}")
+        turn = wrap_angle(theta - st.theta)
+        self._state = dataclasses.replace(
+            st, x=float(x), y=float(y), theta=wrap_angle(theta), heading=st.heading + turn,
+            collided=False, clearance=-math.inf,   # the wall distance bound is void after a jump
+        )
+
+    def set_wheel_traction(self, left: float, right: float) -> None:
+        """Wheel slip: from the next step the body moves as if each wheel's surface speed were
+        multiplied by its traction (0 = spinning in place, 1 = no slip), while the encoders
+        count the whole wheel turn -- the odometry over-reads, as on a wheel slipping on a
+        smooth floor. ``(1, 1)`` is off (the default; :meth:`reset` restores it). Applied
+        before the drive-error model (issue 3), which then perturbs the slipped wheel steps;
+        it draws nothing itself. With slip on, wheels against a wall keep turning (the encoders
+        count) as they do with a drive-error model."""
+        for name, v in (("left", left), ("right", right)):
+            if not (math.isfinite(v) and 0.0 <= v <= 1.0):
+                raise ValueError(f"wheel traction '{name}' must be in [0, 1], got {v!r}")
+        self._traction = (float(left), float(right))
 
     def robot_description(self) -> dict[str, Any]:
         """The robot's parameters, JSON-ready (the ``robot`` part of the Zenoh ``world`` answer)."""
@@ -160,6 +214,11 @@ class Simulator:
         }
 
     # ------------------------------------------------------------------ internals
+    def _require_state(self) -> RobotState:
+        if self._state is None:
+            raise RuntimeError("call reset() first")
+        return self._state
+
     def _resolve_error_models(
         self, given: Mapping[str, ErrorModelFactory] | None
     ) -> Mapping[str, ErrorModelFactory]:
@@ -250,6 +309,31 @@ class Simulator:
             st.collided,
             battery=self.battery.reading,
         )
+
+
+class _WheelSlip:
+    """The drive seam with wheel traction (:meth:`Simulator.set_wheel_traction`): the body moves
+    by the arc of the scaled wheel steps (sim/robot.py's exact arc), the drive-error model (if
+    any) perturbs those, and the wheel travel the encoders count stays the commanded one."""
+
+    __slots__ = ("traction", "wheel_base", "dt", "inner")
+
+    def __init__(self, traction: tuple[float, float], wheel_base: float, dt: float,
+                 inner: DriveErrorSeam | None) -> None:
+        self.traction = traction
+        self.wheel_base = wheel_base
+        self.dt = dt
+        self.inner = inner
+
+    def perturb(self, ideal: Motion, state: RobotState, rng: Variates) -> Motion:
+        left = ideal.left_m * self.traction[0]
+        right = ideal.right_m * self.traction[1]
+        dx, dy, dth = kin.arc_displacement(left / self.dt, right / self.dt, self.wheel_base,
+                                           self.dt)
+        slipped = Motion(dx, dy, dth, left, right)
+        if self.inner is not None:
+            slipped = self.inner.perturb(slipped, state, rng)
+        return Motion(slipped.dx_b, slipped.dy_b, slipped.dtheta, ideal.left_m, ideal.right_m)
 
 
 def _ground_speeds(before: RobotState, after: RobotState, dt: float,

@@ -525,6 +525,28 @@ class StatusMessage(TopicMessage):
     leds: tuple[int, ...] | None = _opt("[lateral, frontal], 0 off / 1 on")
     source: str | None = _opt("\"real\" for a real robot")
     localisation: dict[str, Any] | None = _opt("the estimator node's counters")
+    lockstep: dict[str, Any] | None = _opt(
+        "--clock lockstep: engaged (false while held at t = 0), cycles (granted by the "
+        "firmware's cycle message), explicit (by lockstep/step), misses (stepped after a "
+        "quiet timeout)")
+    faults: dict[str, int] | None = _opt("injected faults so far, per fault name")
+    bus_load: dict[str, float] | None = _opt(
+        "wire timing: busy fraction of each paced bus over the last status period")
+
+
+@dataclass(frozen=True)
+class FaultEventMessage(TopicMessage):
+    """``events/fault``: one injected fault (docs/faults.md): a frame dropped, corrupted,
+    delayed, ..., a window opening or closing, a kidnap."""
+
+    TOPIC: ClassVar[str] = "events/fault"
+    TITLE: ClassVar[str] = "koala.events.Fault"
+
+    t: float = _t()
+    name: str = _doc("the fault's name ([[faults]] name, or kind:target#index)")
+    kind: str = _doc("drop, corrupt, delay, duplicate, reorder, stuck, ... (docs/faults.md)")
+    target: str = _doc("the bus or stream")
+    detail: dict[str, Any] = _doc("what happened, kind-specific")
 
 
 # -- estimates (the localisation node) -----------------------------------------------------------
@@ -728,7 +750,7 @@ TOPICS: dict[str, type[TopicMessage]] = {
     for cls in (
         TruthPose, IrMessage, SonarMessage, OdometryMessage, GyroMessage, CompassMessage,
         CameraMessage, StatusMessage, EstimatePose, EstimateCell, EstimateGrid, OccupancyMap,
-        WorldMessage,
+        FaultEventMessage, WorldMessage,
     )
 }
 

@@ -101,6 +101,12 @@ class LockedByteLink:
         with self._lock:
             return self.transport.stats
 
+    def set_offline(self, offline: bool) -> None:
+        """The transport's ``set_offline`` (fault ``disconnect``, runtime/faults.py), under the
+        lock. A pty keeps its descriptor number, so the poll above stays valid."""
+        with self._lock:
+            self.transport.set_offline(offline)
+
     def close(self) -> None:
         with self._lock:
             self.transport.close()

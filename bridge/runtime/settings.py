@@ -43,10 +43,12 @@ from koala_bridge.core.schema import (
 )
 from koala_bridge.drivers.dialects import DIALECTS
 from koala_bridge.runtime.clock import CLOCK_NAMES
+from koala_bridge.runtime.wire import FRAMING_RULE, serial_bits_per_byte
 from pydantic import AfterValidator, BeforeValidator, Field, Strict
 
 if TYPE_CHECKING:
     from koala_bridge.drivers.can_codec import KoalaCanCodec
+    from koala_bridge.drivers.kteam import SerialLine
     from koala_bridge.drivers.mavlink_codec import MavlinkSigning
 
 log = logging.getLogger(__name__)
@@ -256,6 +258,30 @@ def _port(value: int) -> int:
 _PortKey = Annotated[int, Strict(), AfterValidator(_port)]
 
 
+def _framing(value: str) -> str:
+    try:
+        serial_bits_per_byte(value)
+    except ValueError:
+        raise ValueError(f"must be {FRAMING_RULE}, got {value!r}") from None
+    return value
+
+
+#: A UART's character framing, "8N1" style (runtime/wire.py serial_bits_per_byte).
+_Framing = Annotated[Str, AfterValidator(_framing)]
+
+
+def _can_bitrate(value: int) -> int:
+    if not 1 <= value <= 1_000_000:
+        raise ValueError(f"must be a classical CAN bit rate 1..1000000 bit/s, got {value}")
+    return value
+
+
+_CanBitrate = Annotated[int, Strict(), AfterValidator(_can_bitrate)]
+
+# The wire-timing keys (docs/wire-timing.md) have defaults, default.toml's: configurations and
+# recordings from before they existed still load.
+
+
 # -- exposure: what listens where ---------------------------------------------------------------
 
 def is_loopback_host(host: str) -> bool:
@@ -385,10 +411,13 @@ class CanSettings:
     socketcan_channel: Annotated[Str, _channel_name("network interface", 15)]
     # The CAN database: a path (relative to the working directory), or "" for the DBC shipped
     # with koala-bridge (koala_bridge.core.resources.default_dbc_path). Read only when a CAN
-    # bus is served, so a missing file does not matter with every CAN bus off. The one key of
-    # the bridge's tables with a default (default.toml's ""): configs and recordings from
-    # before it existed still load.
+    # bus is served, so a missing file does not matter with every CAN bus off. A default
+    # (default.toml's ""): configs and recordings from before the key existed still load.
     dbc: Str = ""
+    # --clock lockstep: frames reach clients after their time on the bus, stuffed bits and
+    # arbitration by id included (runtime/wire.py CanWire; docs/wire-timing.md)
+    wire_timing: Bool = False
+    bitrate: _CanBitrate = 500_000   # bit/s of the simulated bus
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> CanSettings:
@@ -457,6 +486,11 @@ class MavlinkSettings:
     # with signing on, accept unsigned messages from clients (counted as received) instead of
     # rejecting them; signed messages with a bad signature are always rejected
     signing_accept_unsigned: Bool = False
+    # --clock lockstep: messages reach the ground station after their time on a serial telemetry
+    # radio link of baud / framing (runtime/wire.py SerialWire; docs/wire-timing.md)
+    wire_timing: Bool = False
+    baud: PositiveInt = 57600
+    framing: _Framing = "8N1"
 
     def __post_init__(self) -> None:
         if self.transport == "udp" and self.port == 0:
@@ -532,6 +566,9 @@ class KteamSettings:
     enabled: Bool
     max_speed: PositiveInt      # largest |speed| K-Team D accepts, pulses per speed unit
     dialect: Annotated[Str, one_of(KTEAM_DIALECTS)]  # koala1 (classic Koala) | koala25
+    # --clock lockstep: replies reach the client after their time on the dialect's serial line
+    # (Dialect.line: koala1 38400 8N2, koala25 115200 8N1); docs/wire-timing.md
+    wire_timing: Bool = False
 
 
 @section
@@ -539,6 +576,10 @@ class RangefindersSettings:
     """``[buses.rangefinders]``: binary IR / sonar frames on a pty."""
 
     enabled: Bool
+    # --clock lockstep: frames reach the client after their time on a baud / framing line
+    wire_timing: Bool = False
+    baud: PositiveInt = 115200
+    framing: _Framing = "8N1"
 
 
 @dataclass(frozen=True)
@@ -552,6 +593,18 @@ class BusesSettings:
     rangefinders: bool
     can: CanSettings
     mavlink: MavlinkSettings
+    # the wire-timing keys of [buses.kteam] and [buses.rangefinders] (docs/wire-timing.md);
+    # [buses.can] and [buses.mavlink] keep theirs in can / mavlink
+    kteam_wire_timing: bool
+    rangefinders_wire_timing: bool
+    rangefinders_baud: int      # bit/s
+    rangefinders_framing: str   # "8N1" style
+
+    @property
+    def kteam_line(self) -> SerialLine:
+        """The serial line settings of the K-Team dialect's port (its wire timing's baud and
+        framing): koala1 38400 8N2, koala25 115200 8N1."""
+        return DIALECTS[self.kteam_dialect].line
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> BusesSettings:
@@ -569,6 +622,10 @@ class BusesSettings:
             rangefinders=ranges.enabled,
             can=CanSettings.from_dict(_section(d, "can", s)),
             mavlink=MavlinkSettings.from_dict(_section(d, "mavlink", s)),
+            kteam_wire_timing=kteam.wire_timing,
+            rangefinders_wire_timing=ranges.wire_timing,
+            rangefinders_baud=ranges.baud,
+            rangefinders_framing=ranges.framing,
         )
 
     def exposure(self) -> list[str]:

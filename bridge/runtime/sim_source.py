@@ -67,6 +67,7 @@ log = logging.getLogger(__name__)
 
 DRAIN_PERIOD_S = 0.02       # wall time between reads of the output links' input
 GYRO_LIMIT = 20.0           # rad/s: the DBC range of Gyro.yaw_rate
+SYNC_TIMEOUT_S = 1.0        # lockstep: longest wait for socketcand to hand a cycle's frames over
 
 
 class SimulatedRobotSource:
@@ -133,7 +134,8 @@ class SimulatedRobotSource:
             self._cycle_can_id = ids[ls.cycle_message]
         # Step 0's bus frames, re-sent while lockstep holds at t = 0 (before the first command),
         # kept by the loop's thread (_capture_thread) while it emits step 0
-        self._initial_frames: list[Callable[[], None]] | None = None
+        self._initial_frames: list[tuple[str, Callable[[], None]]] | None = None
+        self._client_marks: dict[str, object] = {}
         self._capture_thread: int | None = None
         mav = settings.buses.mavlink
         # [buses.mavlink] signing_key_file: None = unsigned (a bad key file: ConfigError here)
@@ -181,6 +183,8 @@ class SimulatedRobotSource:
             self._initial = self.sim.reset(self.seed)
             self.buses = open_buses(self.settings.buses)
             self.zenoh = ZenohLink(self.settings.zenoh, self.world_answer, self.counters)
+            if self.lockstep is not None:
+                self._register_step_queryable()
             self._start_readers()
         except BaseException:
             self.close()
@@ -225,9 +229,11 @@ class SimulatedRobotSource:
         if lockstep is not None:
             self._initial_frames = []     # _send_bytes/_send_can keep step 0's frames
             self._capture_thread = threading.get_ident()
-            self._register_step_queryable()
         self._emit(r, 0)
         self._capture_thread = None
+        if lockstep is not None:
+            for bus, _ in self._initial_frames or ():
+                self._client_marks[bus] = self._client_mark(bus)   # who has step 0 already
         n = 0
         wait = READ_TIMEOUT_S
         if lockstep is not None:
@@ -243,6 +249,9 @@ class SimulatedRobotSource:
                                  "the run ends", r.t)
                         break
                 continue
+            if lockstep is not None and n == 0:
+                # engaged: a client that came since the last re-send gets step 0 before step 1
+                self._resend_initial()
             r = self.sim.step(self.arbiter.command(self.sim.t))
             n += 1
             self._emit(r, n)
@@ -271,11 +280,31 @@ class SimulatedRobotSource:
     # -- lockstep ----------------------------------------------------------------------------
 
     def _resend_initial(self) -> None:
-        """Holding at t = 0: put step 0's frames on the buses again (not recorded: the
-        recording holds each sample once), for a firmware that waits for data before its
-        first command."""
-        for resend in self._initial_frames or ():
-            resend()
+        """Holding at t = 0: put step 0's frames again on each bus where a client has come
+        since they were last sent (for a firmware that waits for data before its first
+        command; a client there before sees them again), and on every MAVLink poll where
+        clients cannot be seen (UDP). Not recorded: the recording holds each sample once."""
+        due: dict[str, bool] = {}
+        for bus, resend in self._initial_frames or ():
+            if bus not in due:
+                mark = self._client_mark(bus)
+                due[bus] = mark is None or (mark != self._client_marks.get(bus) and bool(mark))
+                self._client_marks[bus] = mark
+            if due[bus]:
+                resend()
+
+    def _client_mark(self, bus: str) -> object:
+        """What changes when a new client comes on ``bus`` (falsy: none there), or None where
+        the transport cannot tell (UDP: re-sent every poll)."""
+        link = self.buses.byte_links().get(bus)
+        if link is not None:
+            if link.is_datagram:
+                return None
+            return (link.client_session, True) if link.has_client() else 0
+        transport = self.buses.can.get(bus)
+        if isinstance(transport, SocketcandServer):
+            return transport.stats.clients
+        return 0    # python-can interfaces (virtual, slcan): clients that were there all along
 
     def _firmware_connected(self) -> bool:
         """Whether a client is on the cycle bus (unknown for python-can interfaces: True)."""
@@ -299,6 +328,11 @@ class SimulatedRobotSource:
         target = self.lockstep.grant()
         if not self._wait_lockstep(lambda timeout: self.lockstep.wait_done(target, timeout)):
             return None
+        # Every frame of the period is on its way before the reply: socketcand's service
+        # thread writes to the clients' sockets; wait for it (the other transports write at once).
+        for transport in self.buses.can.values():
+            if isinstance(transport, SocketcandServer):
+                transport.sync(SYNC_TIMEOUT_S)
         return self.port.t
 
     def _at_cycle_boundary(self) -> bool:
@@ -426,6 +460,10 @@ class SimulatedRobotSource:
             motor_command_source=self.arbiter.source,
             leds=tuple(self.port.led_states()),  # K-Team L: [lateral, frontal], 0 off / 1 on
             localisation=None if self.localisation is None else self.localisation.snapshot(),
+            lockstep=None if self.lockstep is None else {
+                "engaged": self.lockstep.engaged, "cycles": self.lockstep.cycles,
+                "explicit": self.lockstep.explicit, "misses": self.lockstep.misses,
+            },
         ).to_json()
 
     def _publish_status(self, t: float) -> None:
@@ -500,7 +538,7 @@ class SimulatedRobotSource:
                 self._write_failed(bus, e)
 
         assert self._initial_frames is not None
-        self._initial_frames.append(resend)
+        self._initial_frames.append((bus, resend))
 
     def _write_failed(self, bus: str, e: Exception) -> None:
         if bus not in self._write_errors:  # log once per bus, the loop goes on

@@ -121,6 +121,20 @@ class Endpoint:
 
 
 class _Closable(ABC):
+    #: Whether :meth:`set_offline` is implemented (fault ``disconnect``, docs/faults.md).
+    supports_offline: bool = False
+
+    def set_offline(self, offline: bool) -> None:
+        """Take the bus away (``True``) or give it back (``False``), as a cable pulled and
+        plugged in again: the fault ``disconnect`` (bridge/runtime/faults.py, docs/faults.md).
+        While offline nothing is sent or received and writes are counted ``dropped``; what a
+        client sees depends on the backend (its docstring). Idempotent.
+
+        The default raises :class:`NotImplementedError`: a backend that cannot model a
+        disconnect says so (:attr:`supports_offline` is False) rather than ignoring the fault
+        and letting a firmware test pass that should not."""
+        raise NotImplementedError(f"{type(self).__name__} cannot go offline")
+
     @classmethod
     def from_url(cls, url: str, **options: Any) -> Self:
         """Open the backend named by ``url`` (its own URL syntax, see the module docstring of

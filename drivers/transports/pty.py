@@ -17,6 +17,16 @@ The hang-up is seen by :meth:`~PtyTransport.read`, :meth:`~PtyTransport.write`,
 :meth:`~PtyTransport.wait`, :meth:`~PtyTransport.has_client` and :attr:`~PtyTransport.stats`;
 a client that reopens the port before any of them runs (a reader waiting on the port runs
 within milliseconds) is taken for the same client: the kernel keeps no trace of the gap.
+
+Offline (:meth:`PtyTransport.set_offline`, the fault ``disconnect``): the master is closed, so the
+client sees a hang-up (a read returns EOF / EIO, pyserial raises ``SerialException``) as when a
+USB-serial adapter is unplugged; the symlink, if any, is removed meanwhile, and nothing is read
+or written (writes are counted ``dropped``). Back online, the port is a **new** pty (a new
+``/dev/pts/N``) and the symlink points to it: the client reopens the same path. Without a
+symlink the path changes (:attr:`PtyTransport.endpoint`). The master's file descriptor number
+stays the same throughout (a pipe stands in for it while offline), so whoever polls
+:meth:`PtyTransport.fileno` keeps polling the right descriptor; a poll already blocked on the
+old master holds it open until that poll returns (the hang-up is seen then).
 """
 
 from __future__ import annotations
@@ -84,6 +94,7 @@ class PtyTransport(ByteTransport):
         self._last_read_data = False
         self._boundary = False
         self._sessions = 0
+        self._offline_pipe: int | None = None   # write end of the stand-in while offline
         self._stats = StatsCounter()
         self._link: Path | None = None
         if link is not None:
@@ -115,6 +126,56 @@ class PtyTransport(ByteTransport):
             clients=1 if self._master is not None and self.has_client() else 0
         )
 
+    supports_offline = True
+
+    @property
+    def offline(self) -> bool:
+        """True between :meth:`set_offline` ``(True)`` and ``(False)``."""
+        return self._offline_pipe is not None
+
+    def set_offline(self, offline: bool) -> None:
+        """Close the port under the client (``True``) or open a new one at the same symlink
+        (``False``); see the module docstring. The client's session ends at once:
+        :attr:`client_session` grows, what it left unread or unanswered is dropped."""
+        fd = self._fd()
+        if offline == self.offline:
+            return
+        if offline:
+            r, w = os.pipe()
+            os.dup2(r, fd, inheritable=False)  # closes the master: the client sees a hang-up
+            os.close(r)
+            self._offline_pipe = w
+            if self._link is not None:
+                self._unlink_if_mine()
+            if self._pending:
+                self._pending.clear()
+                self._stats.add("dropped")
+            self._in_session = self._answering_gone = self._last_read_data = False
+            self._boundary = False
+            self._stale.clear()
+            self._sessions += 1
+            log.debug("%s: offline", self._slave_name)
+            return
+        try:
+            master, slave = os.openpty()
+        except OSError as e:
+            raise TransportError(f"cannot open a pty: {e}") from e
+        try:
+            tty.setraw(slave)
+            name = os.ttyname(slave)
+        finally:
+            os.close(slave)
+        os.set_blocking(master, False)
+        os.dup2(master, fd, inheritable=False)  # the same fd number, now the new master
+        os.close(master)
+        stand_in, self._offline_pipe = self._offline_pipe, None
+        if stand_in is not None:
+            os.close(stand_in)
+        self._slave_name = name
+        if self._link is not None:
+            self._make_link(self._link)
+        log.debug("%s: online again", self._slave_name)
+
     def fileno(self) -> int:
         """The master fd, readable when the client has written something."""
         return self._fd()
@@ -129,6 +190,8 @@ class PtyTransport(ByteTransport):
         """True while some process has the slave open (the master reports no hang-up). Seeing
         the hang-up ends the client's session; seeing a client begins one, unless what the
         bridge is answering is still the last client's input."""
+        if self.offline:
+            return False
         present = self._slave_open()
         if not present and self._in_session:
             self._end_session()
@@ -138,6 +201,8 @@ class PtyTransport(ByteTransport):
 
     def read(self, max_bytes: int = 65536) -> bytes:
         self._fd()
+        if self.offline:
+            return b""
         self._answering_gone = self._last_read_data = False
         self.has_client()
         if self._stale:  # the last input of a client that has gone
@@ -161,7 +226,7 @@ class PtyTransport(ByteTransport):
     def write(self, data: bytes) -> int:
         self._fd()
         self.has_client()
-        if not self._in_session:
+        if not self._in_session:  # (never while offline)
             self._stats.add("dropped")
             return 0
         self._flush()
@@ -180,7 +245,8 @@ class PtyTransport(ByteTransport):
     def flush(self) -> None:
         """Push data held back by a slow client; called by :meth:`read` and :meth:`write` too."""
         self._fd()
-        self._flush()
+        if not self.offline:
+            self._flush()
 
     @property
     def pending(self) -> int:
@@ -193,6 +259,9 @@ class PtyTransport(ByteTransport):
         while True:
             if self._stale:  # a gone client's last input, taken from the kernel
                 return True
+            if self.offline:  # the stand-in pipe never becomes readable
+                self._poll.poll(None if timeout is None else int(max(0.0, timeout) * 1000))
+                return False
             remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
             events = self._poll.poll(None if remaining is None else int(remaining * 1000))
             if any(ev & select.POLLIN for _, ev in events):
@@ -209,12 +278,11 @@ class PtyTransport(ByteTransport):
             return
         fd, self._master = self._master, None
         os.close(fd)
+        if self._offline_pipe is not None:
+            os.close(self._offline_pipe)
+            self._offline_pipe = None
         if self._link is not None:
-            try:
-                if os.readlink(self._link) == self._slave_name:
-                    self._link.unlink()
-            except OSError:
-                pass
+            self._unlink_if_mine()
 
     # ----------------------------------------------------------------- internals
 
@@ -222,6 +290,14 @@ class PtyTransport(ByteTransport):
         if self._master is None:
             raise TransportClosedError("pty transport is closed")
         return self._master
+
+    def _unlink_if_mine(self) -> None:
+        assert self._link is not None
+        try:
+            if os.readlink(self._link) == self._slave_name:
+                self._link.unlink()
+        except OSError:
+            pass
 
     def _slave_open(self) -> bool:
         # Its own poll object: ``wait`` may be blocked in ``self._poll`` on another thread, and

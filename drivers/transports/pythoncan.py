@@ -8,6 +8,7 @@ nodes on a real bus.
 
 from __future__ import annotations
 
+import time
 from typing import Any, Self
 from urllib.parse import quote
 
@@ -22,6 +23,8 @@ from koala_bridge.drivers.transports.base import (
 )
 
 __all__ = ["PythonCanTransport", "VirtualCanTransport", "python_can_url"]
+
+_OFFLINE_POLL_S = 0.05
 
 
 def python_can_url(interface: str, channel: str) -> str:
@@ -45,6 +48,7 @@ class PythonCanTransport(CanTransport):
             raise TransportError(f"cannot open python-can {interface}:{channel}: {e}") from e
         self._interface = interface
         self._channel = channel
+        self._offline = False
         self._stats = StatsCounter()
 
     @classmethod
@@ -67,7 +71,21 @@ class PythonCanTransport(CanTransport):
     def stats(self) -> TransportStats:
         return self._stats.snapshot()
 
+    supports_offline = True
+
+    @property
+    def offline(self) -> bool:
+        return self._offline
+
+    def set_offline(self, offline: bool) -> None:
+        self._b()
+        self._offline = bool(offline)
+
     def send(self, msg: can.Message) -> None:
+        if self._offline:
+            self._b()
+            self._stats.add("dropped")
+            return
         try:
             self._b().send(msg, timeout=0.0)
         except can.CanOperationError:
@@ -76,6 +94,16 @@ class PythonCanTransport(CanTransport):
         self._stats.add("sent")
 
     def recv(self, timeout: float | None = 0.0) -> can.Message | None:
+        if self._offline:
+            deadline = None if timeout is None else time.monotonic() + timeout
+            while self._offline:  # what the other nodes send is lost; look again every 50 ms
+                while self._b().recv(0.0) is not None:
+                    pass
+                left = None if deadline is None else deadline - time.monotonic()
+                if left is not None and left <= 0:
+                    return None
+                self._b().recv(_OFFLINE_POLL_S if left is None else min(left, _OFFLINE_POLL_S))
+            timeout = None if deadline is None else max(0.0, deadline - time.monotonic())
         msg = self._b().recv(timeout)
         if msg is not None:
             self._stats.add("received")

@@ -18,7 +18,11 @@ Frames on the bus reach the client as ``tIIILDD..`` / ``TIIIIIIIILDD..`` (+ 4 he
 milliseconds when time stamps are on) and CR, only while the channel is open. CAN FD commands
 (``d``, ``D``, ``b``, ``B``) and anything else are refused with BELL and counted as rejected.
 Output a client does not read (frames and replies alike) is dropped whole past the pty's 64 KiB
-and counted as dropped.
+and counted as dropped. The LAWICEL protocol has no error frames: :meth:`SlcanAdapter.send`
+skips a python-can error frame (``is_error_frame``), counted neither sent nor dropped (the fault
+injector counts the faults, docs/faults.md). :meth:`SlcanAdapter.set_offline` is the pty's
+(:class:`PtyTransport`): the port hangs up and comes back as a new pty at the same symlink,
+with the channel closed, as a re-plugged adapter.
 """
 
 from __future__ import annotations
@@ -153,9 +157,22 @@ class SlcanAdapter(CanTransport):
         """True while the client has the CAN channel open (after ``O`` or ``L``)."""
         return self._open
 
+    supports_offline = True
+
+    def set_offline(self, offline: bool) -> None:
+        if self._closed:
+            raise TransportClosedError("slcan adapter is closed")
+        with self._lock:
+            self._pty.set_offline(offline)
+            self._client_gone()
+            self._session = self._pty.client_session
+        self._waker.wake()
+
     def send(self, msg: can.Message) -> None:
         if self._closed:
             raise TransportClosedError("slcan adapter is closed")
+        if msg.is_error_frame:  # LAWICEL has none (module docstring)
+            return
         with self._lock:
             if not self._open:
                 self._stats.add("dropped")

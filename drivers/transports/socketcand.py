@@ -46,6 +46,17 @@ Limits, so that no client can hold memory or slots the others need:
 python-can reads the handshake replies with one ``recv`` each, so after ``< ok >`` to
 ``rawmode`` frames for that client are held back for ``handshake_grace_s`` lest they arrive in
 the same segment as the ``< ok >``.
+
+Error frames: a python-can message with ``is_error_frame`` given to :meth:`SocketcandServer.send`
+reaches raw-mode clients as ``< error CLASS SECS.USECS >`` -- what the daemon sends for a
+SocketCAN error frame (src/state_raw.c: ``CLASS`` = ``can_id & CAN_EFF_MASK`` in hex, at least 3
+digits, no data) and what python-can's socketcand client (4.6) turns back into a message with
+``is_error_frame`` and the class in ``arbitration_id``. The error's data bytes do not travel.
+
+Offline (:meth:`SocketcandServer.set_offline`, the fault ``disconnect``): every connection is
+closed and the listening socket too, so a client sees its connection drop and a reconnect
+refused (python-can's client retries connecting for 10 s) until the server is back online on
+the same port.
 """
 
 from __future__ import annotations
@@ -70,7 +81,8 @@ from koala_bridge.drivers.transports.base import (
     split_url,
 )
 
-__all__ = ["SocketcandServer", "format_frame_element", "parse_send_element"]
+__all__ = ["SocketcandServer", "format_error_element", "format_frame_element",
+           "parse_send_element"]
 
 log = logging.getLogger(__name__)
 
@@ -87,12 +99,24 @@ def format_frame_element(msg: can.Message, timestamp: float) -> bytes:
         can_id = f"{msg.arbitration_id & 0x1FFFFFFF:08X}"
     else:
         can_id = f"{msg.arbitration_id & 0x7FF:03X}"
+    secs, usecs = _secs_usecs(timestamp)
+    data = bytes(msg.data[: msg.dlc]).hex().upper()
+    return f"< frame {can_id} {secs}.{usecs:06d} {data} >".encode("ascii")
+
+
+def format_error_element(msg: can.Message, timestamp: float) -> bytes:
+    """``< error CLASS SECS.USECS >`` for an error frame (``msg.is_error_frame``; the SocketCAN
+    error class in ``arbitration_id``), as socketcand's raw mode sends it (module docstring)."""
+    secs, usecs = _secs_usecs(timestamp)
+    return f"< error {msg.arbitration_id & 0x1FFFFFFF:03X} {secs}.{usecs:06d} >".encode("ascii")
+
+
+def _secs_usecs(timestamp: float) -> tuple[int, int]:
     secs = int(timestamp)
     usecs = int(round((timestamp - secs) * 1e6))
     if usecs >= 1_000_000:
         secs, usecs = secs + 1, usecs - 1_000_000
-    data = bytes(msg.data[: msg.dlc]).hex().upper()
-    return f"< frame {can_id} {secs}.{usecs:06d} {data} >".encode("ascii")
+    return secs, usecs
 
 
 def parse_send_element(words: list[str]) -> can.Message | str:
@@ -118,7 +142,7 @@ def parse_send_element(words: list[str]) -> can.Message | str:
 
 class _Client:
     __slots__ = ("sock", "mode", "inbuf", "outbuf", "held", "hold_until", "in_garbage", "events",
-                 "open_deadline", "last_active", "frame_bytes", "closed")  # fmt: skip
+                 "open_deadline", "last_active", "frame_bytes", "closed", "blocked")  # fmt: skip
 
     def __init__(self, sock: socket.socket, now: float, handshake_timeout_s: float) -> None:
         self.sock = sock
@@ -134,6 +158,7 @@ class _Client:
         self.last_active = now
         self.frame_bytes = 0  # bytes of bus frames in outbuf (approximate order with replies)
         self.closed = False
+        self.blocked = False  # its socket refused the last send (it is not reading)
 
     @property
     def queued(self) -> int:
@@ -203,6 +228,11 @@ class SocketcandServer(CanTransport):
         self._sel.register(self._waker, selectors.EVENT_READ, self._waker)
         self._closed = False
         self._close_lock = threading.Lock()
+        self._stepped = threading.Condition()   # notified after every service-thread step
+        self._max_backlog = max_clients
+        self._offline = False           # applied by the service thread (_apply_offline)
+        self._want_offline = False
+        self._offline_done = threading.Event()
         self._thread = ServiceThread(f"socketcand:{self._port}", self._step, self._waker)
         self._thread.start()
 
@@ -234,15 +264,63 @@ class SocketcandServer(CanTransport):
         """The most bytes ever queued for one client at once; never above ``max_pending``."""
         return self._peak_pending
 
+    supports_offline = True
+
+    @property
+    def offline(self) -> bool:
+        return self._offline
+
+    def set_offline(self, offline: bool) -> None:
+        """Drop every client and stop listening (``True``), or listen again on the same port
+        (``False``); returns once the service thread has done it. :class:`TransportError` if
+        the port cannot be bound again."""
+        if self._closed:
+            raise TransportClosedError("socketcand server is closed")
+        self._want_offline = offline
+        deadline = time.monotonic() + 5.0
+        while self._offline != offline and self._want_offline == offline:
+            self._offline_done.clear()
+            self._waker.wake()
+            if not self._offline_done.wait(max(0.0, deadline - time.monotonic())):
+                break
+        if self._offline != offline:
+            raise TransportError(f"socketcand: cannot listen on {self._host}:{self._port} "
+                                 "again")
+
     def send(self, msg: can.Message) -> None:
         if self._closed:
             raise TransportClosedError("socketcand server is closed")
+        if self._offline or self._want_offline:
+            self._stats.add("dropped")
+            return
         # The sender's time stamp as it is: the bridge's frames carry their sample's simulation
         # time, which is 0.0 at the first step (a wall-clock fallback for 0 made those frames
         # jump to the epoch time).
-        self._outbox.append((format_frame_element(msg, msg.timestamp), None))
+        element = (format_error_element if msg.is_error_frame else format_frame_element)(
+            msg, msg.timestamp)
+        self._outbox.append((element, None))
         self._stats.add("sent")
         self._waker.wake()
+
+    def sync(self, timeout: float) -> bool:
+        """Block until every frame sent so far has been handed to the clients' sockets (or
+        could not be: a client that does not read keeps its queue); False on ``timeout``. In
+        lockstep the bridge calls this before it answers the firmware's cycle message, so that
+        every frame of the cycle is readable when the answer is."""
+        deadline = time.monotonic() + timeout
+        with self._stepped:
+            while True:
+                if self._closed:
+                    return False
+                clients = list(self._clients.values())
+                if not self._outbox and not any(
+                        c.outbuf and not c.blocked for c in clients if c.mode == "raw"):
+                    return True
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return False
+                self._waker.wake()
+                self._stepped.wait(min(remaining, 0.05))
 
     def recv(self, timeout: float | None = 0.0) -> can.Message | None:
         if self._closed:
@@ -286,6 +364,37 @@ class SocketcandServer(CanTransport):
         for client in list(self._clients.values()):
             self._flush(client)
             self._update_interest(client)
+        if self._want_offline != self._offline:
+            self._apply_offline(self._want_offline)
+        self._offline_done.set()
+        with self._stepped:
+            self._stepped.notify_all()
+
+    def _apply_offline(self, offline: bool) -> None:
+        if offline:
+            for client in list(self._clients.values()):
+                self._drop(client)
+            self._outbox.clear()
+            self._sel.unregister(self._listener)
+            self._listener.close()
+            self._offline = True
+            log.info("socketcand %s:%d: offline", self._host, self._port)
+            return
+        listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        try:
+            listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            listener.bind((self._host, self._port))
+            listener.listen(self._max_backlog)
+            listener.setblocking(False)
+        except OSError as e:
+            listener.close()
+            self._want_offline = True  # stays offline; set_offline reports it
+            log.error("socketcand: cannot listen on %s:%d again: %s", self._host, self._port, e)
+            return
+        self._listener = listener
+        self._sel.register(listener, selectors.EVENT_READ, None)
+        self._offline = False
+        log.info("socketcand %s:%d: online again", self._host, self._port)
 
     def _timeout(self) -> float | None:
         deadlines = [
@@ -483,10 +592,12 @@ class SocketcandServer(CanTransport):
         try:
             sent = client.sock.send(client.outbuf)
         except BlockingIOError:
+            client.blocked = True       # its socket is full: it is not reading
             return
         except OSError:
             self._drop(client)
             return
+        client.blocked = False
         if sent and client.frame_bytes:
             client.last_active = time.monotonic()
             client.frame_bytes = max(0, client.frame_bytes - sent)

@@ -9,6 +9,10 @@ Limits (docs/security.md): at most ``max_clients`` connections; each client has 
 whole and counted (``dropped``) -- the others are not slowed. A client whose queue overflowed is
 *stalled* until it has read its queue empty; when all places are taken, a new connection replaces
 the longest-stalled client (closed), or is closed at once (``rejected``) if none is stalled.
+
+Offline (:meth:`TcpServerTransport.set_offline`, the fault ``disconnect``): every connection is
+closed and so is the listening socket, so a reconnect is refused, until the server listens again
+on the same port. Meanwhile reads return nothing and writes are dropped (counted).
 """
 
 from __future__ import annotations
@@ -68,6 +72,7 @@ class TcpServerTransport(ByteTransport):
             self._listener.close()
             raise TransportError(f"cannot listen on {host}:{port}: {e}") from e
         self._host, self._port = self._listener.getsockname()[:2]
+        self._offline = False
         self._clients: list[_Client] = []
         self._max_clients = max_clients
         self._max_pending = max_pending
@@ -98,7 +103,39 @@ class TcpServerTransport(ByteTransport):
         ``max_clients * max_pending``)."""
         return sum(len(c.pending) for c in self._clients)
 
+    supports_offline = True
+
+    @property
+    def offline(self) -> bool:
+        return self._offline
+
+    def set_offline(self, offline: bool) -> None:
+        """Drop every client and stop listening (``True``), or listen again on the same port
+        (``False``; :class:`TransportError` if it cannot be bound again)."""
+        listener = self._sock()
+        if offline == self._offline:
+            return
+        if offline:
+            for client in list(self._clients):
+                self._drop_client(client)
+            listener.close()
+            self._offline = True
+            return
+        new = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        try:
+            new.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            new.bind((self._host, self._port))
+            new.listen(self._max_clients)
+            new.setblocking(False)
+        except OSError as e:
+            new.close()
+            raise TransportError(f"cannot listen on {self._host}:{self._port} again: {e}") from e
+        self._listener = new
+        self._offline = False
+
     def read(self, max_bytes: int = 65536) -> bytes:
+        if self._offline_now():
+            return b""
         self._service()
         # Round-robin so one chatty client cannot starve the others.
         for _ in range(len(self._clients)):
@@ -118,6 +155,9 @@ class TcpServerTransport(ByteTransport):
         return b""
 
     def write(self, data: bytes) -> int:
+        if self._offline_now():
+            self._stats.add("dropped")
+            return 0
         self._service()
         if not self._clients:
             self._stats.add("dropped")
@@ -139,6 +179,9 @@ class TcpServerTransport(ByteTransport):
         return len(data)
 
     def wait(self, timeout: float | None) -> bool:
+        if self._offline_now():  # nothing can arrive: wait out the timeout, no spin
+            select.select([], [], [], timeout)
+            return False
         listener = self._sock()
         self._service()
         readable, _, _ = select.select(
@@ -163,6 +206,11 @@ class TcpServerTransport(ByteTransport):
         if self._listener is None:
             raise TransportClosedError("tcp transport is closed")
         return self._listener
+
+    def _offline_now(self) -> bool:
+        """Whether offline (raises if closed)."""
+        self._sock()
+        return self._offline
 
     def _service(self) -> None:
         """Accept waiting connections and flush pending output."""

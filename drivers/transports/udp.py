@@ -16,6 +16,10 @@ reports it (each sender has its own source port), so two bridges sending MAVLink
 ground-station port would otherwise interleave their streams silently. The claim is a name
 bound in Linux's abstract socket namespace (a lock file's ``flock`` elsewhere): the kernel
 releases it when the process ends, even by ``kill -9``.
+
+Offline (:meth:`UdpTransport.set_offline`, the fault ``disconnect``): UDP has no connection to
+drop, so the link drops everything: writes are counted ``dropped``, datagrams that arrive are
+read and thrown away (not counted ``received``), as on an unplugged radio link.
 """
 
 from __future__ import annotations
@@ -75,6 +79,7 @@ class UdpTransport(ByteTransport):
         self._sock.setblocking(False)
         self._dest = None if host is None else (host, port)
         self._stats = StatsCounter()
+        self._offline = False
         self.last_peer: tuple[str, int] | None = None
 
     @classmethod
@@ -115,8 +120,22 @@ class UdpTransport(ByteTransport):
     def stats(self) -> TransportStats:
         return self._stats.snapshot()
 
+    supports_offline = True
+
+    @property
+    def offline(self) -> bool:
+        return self._offline
+
+    def set_offline(self, offline: bool) -> None:
+        """Drop everything (``True``) or nothing any more (``False``); see the module docstring."""
+        self._s()
+        self._offline = bool(offline)
+
     def read(self, max_bytes: int = 65536) -> bytes:
         sock = self._s()
+        if self._offline:
+            self._discard(sock)
+            return b""
         try:
             data, peer = sock.recvfrom(max_bytes)
         except (BlockingIOError, ConnectionRefusedError):
@@ -128,6 +147,9 @@ class UdpTransport(ByteTransport):
 
     def write(self, data: bytes) -> int:
         sock = self._s()
+        if self._offline:
+            self._stats.add("dropped")
+            return 0
         dest = self._dest or self.last_peer
         if dest is None:  # udpin before anyone has sent: nobody to answer
             self._stats.add("dropped")
@@ -143,8 +165,24 @@ class UdpTransport(ByteTransport):
         return sent
 
     def wait(self, timeout: float | None) -> bool:
+        if self._offline:  # what arrives is thrown away: wait out the timeout, no spin
+            self._discard(self._s())
+            select.select([], [], [], timeout)
+            self._discard(self._s())
+            return False
         readable, _, _ = select.select([self._s()], [], [], timeout)
         return bool(readable)
+
+    @staticmethod
+    def _discard(sock: socket.socket) -> None:
+        """Read and throw away every datagram waiting (offline)."""
+        while True:
+            try:
+                sock.recvfrom(65536)
+            except (BlockingIOError, ConnectionRefusedError):
+                return
+            except OSError:
+                return
 
     def close(self) -> None:
         if self._sock is not None:

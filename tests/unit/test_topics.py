@@ -160,6 +160,12 @@ def every_message() -> list[tuple[str, dict[str, Any]]]:
         3.0, 0.99, {"can.virtual": {"sent": 4, "received": 0, "rejected": 0, "dropped": 1}},
         motor_command_source="", leds=(0, 1), localisation={"frames": {"ir": 3}},
     ).to_json()))
+    out.append(("status", StatusMessage(
+        4.0, None, {}, lockstep={"engaged": True, "cycles": 5, "explicit": 0, "misses": 1},
+        faults={"drop:can#0": 3}, bus_load={"can": 0.25},
+    ).to_json()))
+    out.append(("events/fault", topics.FaultEventMessage(
+        5.0, "drop:can#0", "drop", "can", {"can_id": 0x101}).to_json()))
     rng = np.random.default_rng(3)
     out.append(("estimate/pose", estimation.pose_message(1.0, 0.5, 0.25, -0.1, np.eye(3))))
     out.append(("estimate/cell", estimation.cell_message(1.0, (2, 3), 0.5)))
