@@ -132,6 +132,11 @@ class WatchdogTimeout(TimeoutError):
     """The wall-clock liveness watchdog (``--timeout-s``) ran out: the robot stopped answering."""
 
 
+class RobotTimeBudget(Exception):
+    """``--max-sim-s`` of robot time have passed: the run ends with what it has (the report
+    says ``"ended": "robot-time budget"``)."""
+
+
 # --------------------------------------------------------------------------- parameters
 
 
@@ -375,6 +380,10 @@ class CoverageFirmware:
         self.ir: tuple[int, ...] | None = None
         self.units: tuple[int, int] = (0, 0)  # the wheel command of the next cycle
         self.resyncs = 0
+        self.localised: tuple[int, int] | None = None
+        self.localised_at: float | None = None  # robot time since T_0, s
+        self.localisation_moves: int | None = None
+        self.order: list[tuple[int, int]] = []
         self.last_counts: tuple[int, ...] | None = None
         self.wall_fixes = 0
         self.compass_rejects = 0  # consecutive
@@ -421,7 +430,7 @@ class CoverageFirmware:
         for s in clock.take():
             self.on_sample(s)
         if self.t - clock.origin > self.args.max_sim_s:  # type: ignore[operator]
-            raise TimeoutError("robot-time budget exhausted")
+            raise RobotTimeBudget(f"{self.args.max_sim_s:g} s of robot time have passed")
 
     def on_sample(self, s: Sample) -> None:
         """Feed one sample to the pose tracker (and the calibration)."""
@@ -707,7 +716,8 @@ class CoverageFirmware:
         cell = start
         reachable = _reachable(w, start)
         visited = {cell}
-        order = [cell]
+        order = self.order  # kept on the firmware: a run cut short reports what it visited
+        order.append(cell)
         history: list[str] = []
         doubt = 0
         self.correct_from_walls(w.cell_centre(*cell), self.map_walls(cell))
@@ -755,24 +765,38 @@ class CoverageFirmware:
                 doubt = 0
 
     def run(self) -> dict[str, Any]:
+        """Calibrate, localise, cover; the report (also when ``--max-sim-s`` ran out)."""
         self.start()
-        wall0 = time.monotonic()  # for the report only: the run's cost, never a decision
-        self.calibrate()
-        start, moves = self.localise()
-        log.info("localised in %s after %d moves", start, moves)
-        order = self.cover(start)
-        self.stop()
-        wall = time.monotonic() - wall0
-        reachable = _reachable(self.world, start)
-        x, y, th = self.tracker.pose
         assert self.clock.origin is not None
+        wall0 = time.monotonic()  # for the report only: the run's cost, never a decision
+        ended = "covered"
+        try:
+            self.calibrate()
+            start, moves = self.localise()
+            self.localised, self.localisation_moves = start, moves
+            self.localised_at = self.t - self.clock.origin
+            log.info("localised in %s after %d moves, t = %.1f s", start, moves,
+                     self.localised_at)
+            self.cover(start)
+            self.stop()
+        except RobotTimeBudget as e:
+            log.warning("%s: the run ends here", e)
+            ended = "robot-time budget"
+        wall = time.monotonic() - wall0
+        order = self.order
+        reachable = (set() if self.localised is None
+                     else _reachable(self.world, self.localised))
+        x, y, th = self.tracker.pose
         return {
-            "localised_cell": list(start),
-            "localisation_moves": moves,
+            "ended": ended,
+            "localised_cell": None if self.localised is None else list(self.localised),
+            "localisation_moves": self.localisation_moves,
+            "localised_at_s": (None if self.localised_at is None
+                               else round(self.localised_at, 6)),
             "visited": [list(c) for c in order],
             "reachable": len(reachable),
-            "complete": reachable <= set(order),
-            "robot_time_s": round(self.t - self.clock.origin, 2),
+            "complete": bool(reachable) and reachable <= set(order),
+            "robot_time_s": round(self.t - self.clock.origin, 6),
             # the final estimate, in the world frame, at robot time t (the robot's own clock)
             "estimate": {"t": round(self.t, 6), "x": x, "y": y, "theta": th},
             "period_s": self.robot.period_s,
