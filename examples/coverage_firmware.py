@@ -331,14 +331,16 @@ class RobotClock:
             self.skipped += k - self.index
             self.index = k
 
-    def reached(self) -> bool:
-        """Every stream has delivered its last sample at or before ``T_k``."""
+    def behind(self) -> list[int]:
+        """The streams that have not yet delivered their last sample at or before ``T_k`` (a
+        stream of rate ``r`` samples at multiples of ``1/r``)."""
         end = self.end
-        for rate, newest in zip(self.rates_hz, self.newest, strict=True):
+        out = []
+        for stream, (rate, newest) in enumerate(zip(self.rates_hz, self.newest, strict=True)):
             last_due = math.floor(end * rate + 1e-6) / rate
             if newest < last_due - TIME_EPS_S / 2:
-                return False
-        return True
+                out.append(stream)
+        return out
 
     def take(self) -> list[Sample]:
         """The pending samples up to ``T_k`` in processing order (time, then stream)."""
@@ -374,6 +376,8 @@ class CoverageFirmware:
         self.t = 0.0  # the end of the last cycle, robot seconds
         self.cycles = 0
         self.ir_requests = 0
+        self.silent: set[int] = set()  # streams not waited for (see cycle())
+        self.silent_streams = 0        # times a stream was found silent
         self.hard_iron: np.ndarray | None = None
         self.spin_fields: list[tuple[float, np.ndarray]] = []
         self.collect_fields = False
@@ -411,18 +415,36 @@ class CoverageFirmware:
 
     def cycle(self) -> None:
         """One control cycle: send ``D`` with :attr:`units` and read its ``d``; wait until every
-        stream reached the cycle's end; process its samples in (time, stream) order."""
+        stream reached the cycle's end; process its samples in (time, stream) order.
+
+        A stream that has not reached the cycle's end ``--stream-grace-s`` wall seconds after
+        the others is taken as silent (a fault, a dead link) and not waited for until it
+        speaks again. In lockstep this changes no decision: after ``d`` everything sampled up
+        to the boundary is already readable, so waiting longer would bring nothing more."""
         self.links.request(KteamCommand("D", self.units), "d")
         self.cycles += 1
         clock = self.clock
         clock.next_cycle()
+        waiting_since: float | None = None
         while True:
             clock.add(self.links.samples())
             clock.catch_up()
-            if clock.reached():
+            behind = clock.behind()
+            self.silent.intersection_update(behind)  # a stream that spoke is silent no more
+            behind = [s for s in behind if s not in self.silent]
+            if not behind:
                 break
             self.links.check_watchdog()
-            if clock.newest[ODOMETRY] < clock.end - TIME_EPS_S / 2:
+            now = time.monotonic()
+            if waiting_since is None:
+                waiting_since = now
+            elif now - waiting_since > self.args.stream_grace_s:
+                log.warning("t = %.2f s: no %s data up to the cycle's end; not waiting for it",
+                            clock.end, ", ".join(STREAM_NAMES[s] for s in behind))
+                self.silent.update(behind)
+                self.silent_streams += len(behind)
+                break
+            if GYRO in behind or ODOMETRY in behind:
                 clock.add(self.links.samples(wait_s=0.01))  # blocks on the CAN socket
             else:
                 self.links.wait_compass(0.01)
@@ -803,6 +825,7 @@ class CoverageFirmware:
             "cycles": self.cycles,
             "skipped_periods": self.clock.skipped,
             "ir_requests": self.ir_requests,
+            "silent_streams": self.silent_streams,
             "wall_s": round(wall, 3),
             "cycles_per_wall_s": round(self.cycles / wall, 1) if wall > 0 else None,
             "resyncs": self.resyncs,
@@ -879,6 +902,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-localise-moves", type=int, default=40, help="(default 40)")
     ap.add_argument("--max-sim-s", type=float, default=1500.0,
                     help="robot-time budget, s (default 1500)")
+    ap.add_argument("--stream-grace-s", type=float, default=0.5,
+                    help="wall seconds to wait for a stream that lags the others before taking "
+                         "it as silent (default 0.5; no effect on decisions in lockstep)")
     ap.add_argument("--timeout-s", type=float, default=300.0,
                     help="liveness watchdog: abort after this many wall seconds (default 300)")
     ap.add_argument("--ir-echo-counts", type=float, default=10.0,
