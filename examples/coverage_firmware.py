@@ -470,8 +470,8 @@ class CoverageFirmware:
             if self.hard_iron is not None:
                 heading = heading_from_field(field, self.north, self.hard_iron)
                 ok = self.tracker.on_compass(s.t, heading)
-                # Turning, the compass is gated out anyway (soft iron, motor currents): count
-                # only otherwise.
+                # Count disagreement only outside turns (where the field is bent least by the
+                # motor currents, docs/models.md "Compass").
                 turning = self.units[0] != self.units[1]
                 if ok:
                     self.compass_rejects = 0
