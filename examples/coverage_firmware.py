@@ -37,7 +37,8 @@ both read one file) -- and does exactly this every cycle ``k``:
    MAVLink stream has delivered its last sample at or before ``T_k`` (each sample carries its
    sampling time: the socketcand frame's time stamp, MAVLink's ``time_boot_ms``; a stream of rate
    ``r`` samples at multiples of ``1/r``). ``T_0`` is the newest ``WheelOdometry`` time seen before
-   the first ``D``;
+   the first ``D``. A stream still short of ``T_k`` ``--stream-grace-s`` wall seconds after the
+   others is taken as silent (a fault, a dead link) and not waited for until it speaks again;
 3. drain every link and process *all* the samples up to ``T_k`` in one fixed order -- by sample
    time, then gyro, odometry, compass (the gyro integral closes at the odometry sample of the
    same time) -- not in arrival order across links; a repeated or older sample of a stream is
@@ -45,8 +46,10 @@ both read one file) -- and does exactly this every cycle ``k``:
 4. decide the next command; an IR reading is a K-Team ``N`` sent and answered within the cycle.
 
 Every decision depends on robot data and the seed only; the wall clock is a liveness watchdog
-(``--timeout-s`` aborts the run) and a sleep that avoids busy-waiting, so the same bridge config,
-seed and arguments give the same commands.
+(``--timeout-s`` aborts the run), the bound on waiting for a silent stream (in lockstep all data
+up to the boundary is readable once ``d`` has come: waiting longer would bring nothing) and a
+sleep that avoids busy-waiting, so the same bridge config, seed and arguments give the same
+commands.
 
 With ``koala-bridge run --clock lockstep`` (docs/protocols.md "Lockstep"; ``[lockstep] cycle_bus =
 "kteam"``, ``cycle_message = "D"``) the bridge simulates the period when the ``D`` arrives and
@@ -57,8 +60,9 @@ cycle ends at the period boundary at or after the newest ``WheelOdometry`` sampl
 the report as ``skipped_periods`` (always 0 in lockstep).
 
 It prints a JSON report (``--report`` also writes it to a file) and exits 0 when every reachable
-cell was visited, 1 otherwise. The report carries the run's cost: control cycles, wall seconds
-and cycles per wall second.
+cell was visited, 1 otherwise -- also when ``--max-sim-s`` of robot time ran out (the report then
+says ``"ended": "robot-time budget"``). The report carries the final pose estimate with its robot
+time, and the run's cost: control cycles, wall seconds and cycles per wall second.
 
 example::
 
