@@ -1,13 +1,20 @@
-"""examples/coverage_firmware.py against a real bridge subprocess (``--clock fast``).
+"""examples/coverage_firmware.py against a real bridge subprocess (``--clock lockstep``).
 
 The bridge runs a lab world with every seed error model on and records what happened; the
 firmware, another process, sees only the K-Team serial pty, the socketcand CAN server and the
 MAVLink UDP stream. Success is judged on the *truth* recorded by the bridge (``/truth/pose``):
 the robot must have stopped near the centre of every reachable cell -- not on the firmware's word.
 
+Lockstep: simulated time advances one ``[lockstep] period_s`` per K-Team ``D`` of the firmware,
+so the run is the same however loaded the machine is. ``PERIOD_S`` = 0.02 s: the wall time is
+set by the bridge's cost per 10 ms simulation step (every error model, the recorder, Zenoh), not
+by the number of cycles -- 0.01 s runs at ~600 control cycles per wall second (~6x real time),
+0.02 s at ~400-550 (~8-11x), 0.05 s at ~130-170 (no faster) on a 2-core machine.
+
 ``python tests/e2e/test_coverage_firmware.py --seeds 20 --random-start`` runs every lab wall world
 with seeds 0..19 (random start cell and heading per seed) and prints a table
-(docs/localisation.md, "Coverage firmware").
+(docs/localisation.md, "Coverage firmware"); ``--clock fast`` / ``realtime`` and ``--period-s``
+run the same firmware against the other clocks or another period.
 """
 
 from __future__ import annotations
