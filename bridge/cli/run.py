@@ -14,6 +14,9 @@ examples:
   koala-bridge run --source real --config robot.toml --record /tmp/real.mcap
   koala-bridge run --set localisation.enabled=false     # no estimate/* (docs/localisation.md)
   koala-bridge run --set localisation.grid_prior=uniform  # no known start: the grid filter finds it
+  koala-bridge run --clock lockstep --endpoints-file ep.json  # paced by the firmware (protocols.md)
+  koala-bridge run --clock lockstep --fault drop:can:start_s=5,end_s=10,probability=0.3
+  koala-bridge run --fault kidnap:robot:start_s=20,x=1.0,y=0.5   # docs/faults.md
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from typing import Any
 from koala_bridge.cli.main import seconds
 from koala_bridge.core.resources import default_config_path
 from koala_bridge.runtime.clock import CLOCK_NAMES
+from koala_bridge.runtime.faults import FAULT_HELP, faults_from_config, parse_fault_option
 from koala_bridge.runtime.settings import (
     BridgeSettings,
     apply_override,
@@ -44,8 +48,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--clock", choices=CLOCK_NAMES,
-        help="realtime: one simulation second per wall second; fast: as fast as possible "
-        "(default: [run] clock)",
+        help="realtime: one simulation second per wall second; fast: as fast as possible; "
+        "lockstep: one [lockstep] period per cycle message of the firmware, held at t = 0 "
+        "until its first (docs/protocols.md §6) (default: [run] clock)",
     )
     parser.add_argument(
         "--duration", type=seconds, metavar="S",
@@ -60,6 +65,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--set", action="append", default=[], metavar="KEY=VALUE", dest="overrides",
         help="override a config key, e.g. --set buses.mavlink.port=14551 (repeatable; "
         "VALUE is TOML)",
+    )
+    parser.add_argument(
+        "--fault", action="append", default=[], metavar="KIND:TARGET[:K=V,...]", dest="faults",
+        help=FAULT_HELP.replace("%", "%%"),
     )
     parser.add_argument(
         "--source", choices=("sim", "real"), default="sim",
@@ -88,6 +97,11 @@ def resolve_config(args: argparse.Namespace) -> dict[str, Any]:
     for key, value in flags.items():
         if value is not None:
             config = apply_override(config, list(key), value)
+    if args.faults:
+        # validated here, so that an error names the --fault option; then [[faults]] tables
+        faults_from_config(config, args.faults)
+        config = {**config, "faults": [*config.get("faults", []),
+                                       *(parse_fault_option(text) for text in args.faults)]}
     return config
 
 

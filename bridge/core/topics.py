@@ -528,7 +528,8 @@ class StatusMessage(TopicMessage):
     lockstep: dict[str, Any] | None = _opt(
         "--clock lockstep: engaged (false while held at t = 0), cycles (granted by the "
         "firmware's cycle message), explicit (by lockstep/step), misses (stepped after a "
-        "quiet timeout)")
+        "quiet timeout), unpaced_steps (stepped while a disconnect fault cut the firmware's "
+        "command bus)")
     faults: dict[str, int] | None = _opt("injected faults so far, per fault name")
     bus_load: dict[str, float] | None = _opt(
         "wire timing: busy fraction of each paced bus over the last status period")

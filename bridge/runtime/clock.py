@@ -153,7 +153,9 @@ class LockstepClock(_MonotonicClock):
         if cycles < 1:
             raise ValueError(f"cycles must be >= 1, got {cycles!r}")
         with self._cond:
-            self._granted += cycles * self.steps_per_cycle
+            # (the loop may have run ahead of every grant: steps taken while a fault cut the
+            # firmware's line, docs/protocols.md §6)
+            self._granted = max(self._granted, self._done) + cycles * self.steps_per_cycle
             self.engaged = True
             if explicit:
                 self.explicit += cycles

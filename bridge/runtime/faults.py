@@ -19,7 +19,8 @@ options, then faults added at run time) draws from its own
 its own calls only -- not on the other faults, nor on the simulator's streams (which this module
 never touches). Frame faults draw one uniform per frame on their bus inside their window (the
 frame is hit when it is below ``probability``) plus what the hit needs (bit positions, jitter);
-windowed faults (``disconnect``, ``bus_off``, ``stuck``, ``stuck_max``, ``bias``,
+``glitch`` likewise per reading of its stream (plus the sign and the sensor of a hit); windowed
+faults (``disconnect``, ``bus_off``, ``stuck``, ``stuck_max``, ``bias``,
 ``magnetic_anomaly``, ``wheel_slip``) draw once, when their window opens, whether they happen at
 all; ``error_frames`` draws once per period; ``kidnap`` once. Draws are made in call order, in
 simulated time, so the same config, seed and call sequence give the same faults.
@@ -124,12 +125,12 @@ _BUS_ERRORS: dict[str, tuple[int, int, int]] = {
 }
 
 #: How a fault's probability is used (module docstring).
-_FRAME, _WINDOW, _PERIODIC, _ONCE = "frame", "window", "periodic", "once"
+_FRAME, _SAMPLE, _WINDOW, _PERIODIC, _ONCE = "frame", "sample", "window", "periodic", "once"
 
 
 @dataclass(frozen=True)
 class _KindInfo:
-    mode: str                   # _FRAME | _WINDOW | _PERIODIC | _ONCE
+    mode: str                   # _FRAME | _SAMPLE | _WINDOW | _PERIODIC | _ONCE
     targets: tuple[str, ...]
     params: tuple[str, ...] = ()      # its own keys besides the common ones
     required: tuple[str, ...] = ()    # of params, the keys that have no default
@@ -146,6 +147,8 @@ _KINDS: dict[str, _KindInfo] = {
     "bus_off": _KindInfo(_WINDOW, ("can",)),
     "stuck": _KindInfo(_WINDOW, SENSOR_STREAMS, ("sensors",)),
     "stuck_max": _KindInfo(_WINDOW, ("ir", "sonar"), ("sensors",)),
+    "glitch": _KindInfo(_SAMPLE, ("ir", "sonar", "gyro", "compass"), ("magnitude", "sensors"),
+                        ("magnitude",)),
     "bias": _KindInfo(_WINDOW, ("gyro",), ("bias",), ("bias",)),
     "magnetic_anomaly": _KindInfo(_WINDOW, ("compass",), ("x", "y", "strength_uT", "radius_m"),
                                   ("x", "y", "strength_uT")),
@@ -207,11 +210,14 @@ class FaultSpec:
     # error_frames: one opportunity every period_s from start_s; the bus error signalled
     period_s: Positive = 0.1
     error: Annotated[Str, one_of(CAN_ERRORS)] = "crc"
-    # stuck, stuck_max: sensor indices (IR / sonar: 0-based sensor; encoders: 0 left, 1 right);
-    # empty = every sensor of the stream
+    # stuck, stuck_max, glitch: sensor indices (IR / sonar: 0-based sensor; encoders: 0 left,
+    # 1 right; compass (glitch): axis 0 x, 1 y, 2 z); empty = every sensor of the stream
     sensors: Annotated[tuple[NonNegativeInt, ...], BeforeValidator(tuples)] = ()
     # bias: gyro yaw-rate step, rad/s
     bias: Finite | None = None
+    # glitch: the size of one outlier, in the stream's unit (IR counts, sonar m, gyro rad/s,
+    # compass uT), added with a random sign
+    magnitude: Annotated[Finite, Field(gt=0)] | None = None
     # magnetic_anomaly: centre (x, y) m in the world frame, peak strength_uT, radius_m;
     # kidnap: where the robot is put, x, y m and theta_deg (no theta_deg: keeps its heading)
     x: Finite | None = None
@@ -285,7 +291,8 @@ inject a fault (repeatable; docs/faults.md): KIND:TARGET[:key=value,key=value...
 values (a bare word is a string). Kinds and targets: drop, corrupt (bits), delay (delay_s,
 jitter_s), duplicate, reorder, disconnect -- on kteam, rangefinders, can, mavlink; error_frames
 (period_s, error), bus_off -- on can; stuck (sensors) on ir, sonar, gyro, compass, encoders;
-stuck_max (sensors) on ir, sonar; bias (bias) on gyro; magnetic_anomaly (x, y, strength_uT,
+stuck_max (sensors) on ir, sonar; glitch (magnitude, sensors) on ir, sonar, gyro, compass; bias
+(bias) on gyro; magnetic_anomaly (x, y, strength_uT,
 radius_m) on compass; wheel_slip (traction) on left, right, both; kidnap (x, y, theta_deg) on
 robot. Every fault takes start_s, end_s, probability, name. E.g.
 --fault drop:can:start_s=5,end_s=10,probability=0.3
@@ -525,6 +532,8 @@ class _Fault:
         self.rng = np.random.default_rng([seed, 0x0FA1, index])
         self.state = _PENDING
         self.begin = max(spec.start_s, now)   # added at run time: not before then
+        if self.begin >= spec.end_s:          # added after its window: nothing to do
+            self.state = _DONE
         self.held: Delivery | None = None     # reorder
         self.stuck: Any = None                # stuck: the reading repeated
         self.next_tick = 0                    # error_frames: the next period index
@@ -710,14 +719,18 @@ class FaultInjector:
         truth fields stay true): ``stuck`` repeats the stream's last reading before the window
         (for ``sensors`` only, if given), ``stuck_max`` reads nothing in range (IR 0 counts,
         the response table's value beyond its last range; sonar no echo, nan -> 0xFFFF on the
-        wire), ``bias`` adds a yaw-rate step to the gyro, ``magnetic_anomaly`` adds its field
+        wire), ``glitch`` puts a single outlier into a reading now and then (:meth:`_glitch`),
+        ``bias`` adds a yaw-rate step to the gyro, ``magnetic_anomaly`` adds its field
         (:func:`anomaly_field_world`, at the truth pose, rotated into the body frame)."""
         with self._lock:
             self._advance(r.t)
             raw = {s: getattr(r, _FIELD[s]) for s in SENSOR_STREAMS}
             out = r
             for f in self._faults:
-                if f.state != _ACTIVE or f.spec.mode != _WINDOW:
+                if f.spec.mode == _SAMPLE:
+                    if not f.in_window(r.t):
+                        continue
+                elif f.state != _ACTIVE or f.spec.mode != _WINDOW:
                     continue
                 stream = f.spec.target
                 if stream not in SENSOR_STREAMS:
@@ -731,6 +744,8 @@ class FaultInjector:
                     new = _stuck(stream, reading, f.stuck, f.spec.sensors)
                 elif f.spec.kind == "stuck_max":
                     new = _stuck_max(stream, reading, f.spec.sensors)
+                elif f.spec.kind == "glitch":
+                    new = self._glitch(f, reading, r.t)
                 elif f.spec.kind == "bias":
                     assert isinstance(reading, GyroReading) and f.spec.bias is not None
                     new = dataclasses.replace(reading, yaw_rate=reading.yaw_rate + f.spec.bias)
@@ -741,6 +756,34 @@ class FaultInjector:
                 if reading is not None:
                     self._last_raw[s] = reading
             return out
+
+    def _glitch(self, f: _Fault, reading: Any, t: float) -> Any:
+        """One reading of a ``glitch`` fault: with ``probability``, one sensor (IR / sonar:
+        among ``sensors``; compass: one axis) is off by ``magnitude`` with a random sign."""
+        spec = f.spec
+        if not f.rng.random() < spec.probability:
+            return reading
+        assert spec.magnitude is not None
+        delta = spec.magnitude if f.rng.random() < 0.5 else -spec.magnitude
+        if isinstance(reading, GyroReading):
+            self._record(FaultEvent(t, spec.name, spec.kind, spec.target, {"delta": delta}))
+            return dataclasses.replace(reading, yaw_rate=reading.yaw_rate + delta)
+        values = _values(reading)
+        candidates = [i for i in (spec.sensors or range(len(values))) if i < len(values)]
+        if not candidates:
+            return reading
+        i = candidates[int(f.rng.integers(len(candidates)))]
+        self._record(FaultEvent(t, spec.name, spec.kind, spec.target,
+                                {"sensor": i, "delta": delta}))
+        if isinstance(reading, IrReading):    # counts are >= 0 (the bus clips to 0..1023)
+            values[i] = max(0, int(values[i]) + round(delta))
+            return dataclasses.replace(reading, counts=values)
+        if isinstance(reading, SonarReading):  # no echo (nan) stays no echo
+            if math.isfinite(values[i]):
+                values[i] = max(0.0, float(values[i]) + delta)
+            return dataclasses.replace(reading, ranges=values)
+        values[i] += delta
+        return dataclasses.replace(reading, field_uT=values)
 
     def apply_to_sim(self, sim: Simulator, t: float) -> None:
         """Act on the simulator before its step at ``t``: a ``kidnap`` teleports the robot once
@@ -798,7 +841,7 @@ class FaultInjector:
         self._now = t
         for f in self._faults:
             mode = f.spec.mode
-            if mode in (_FRAME, _PERIODIC):
+            if mode in (_FRAME, _SAMPLE, _PERIODIC):
                 continue
             if f.state == _PENDING and t >= f.begin:
                 happens = bool(f.rng.random() < f.spec.probability)
@@ -860,6 +903,15 @@ def _stuck(stream: str, reading: Any, held: Any, sensors: tuple[int, ...]) -> An
         return dataclasses.replace(reading, yaw_rate=held.yaw_rate)
     assert isinstance(reading, CompassReading), stream
     return dataclasses.replace(reading, field_uT=np.array(held.field_uT, copy=True))
+
+
+def _values(reading: IrReading | SonarReading | CompassReading) -> np.ndarray:
+    """The measured array of a reading (a copy)."""
+    if isinstance(reading, IrReading):
+        return np.array(reading.counts, copy=True)
+    if isinstance(reading, SonarReading):
+        return np.array(reading.ranges, dtype=float, copy=True)
+    return np.array(reading.field_uT, dtype=float, copy=True)
 
 
 def _stuck_max(stream: str, reading: Any, sensors: tuple[int, ...]) -> Any:

@@ -32,7 +32,7 @@ from typing import Any, TextIO
 from koala_bridge.drivers.messages import DriverError
 from koala_bridge.runtime.endpoints import write_endpoints_file
 from koala_bridge.runtime.progress import run_progress
-from koala_bridge.runtime.settings import BridgeSettings
+from koala_bridge.runtime.settings import BridgeSettings, ConfigError
 from koala_bridge.runtime.source import SOURCE_KINDS, RobotSource, Source
 
 __all__ = ["make_source", "run_session", "stop_on_signals"]
@@ -138,6 +138,13 @@ def make_source(kind: str, config: Mapping[str, Any], settings: BridgeSettings) 
 
         return SimulatedRobotSource(config, settings)
     if kind == "real":
+        if config.get("faults"):
+            raise ConfigError("faults ([[faults]], --fault) are injected into the simulated "
+                              "robot; a real robot's faults are its own (drop them for "
+                              "--source real)")
+        if settings.run.clock == "lockstep":
+            raise ConfigError("--clock lockstep paces the simulation by the firmware; a real "
+                              "robot runs on its own time (use realtime for --source real)")
         from koala_bridge.core.topics import WorldMessage
         from koala_bridge.runtime.real_source import RealRobotSource
         from koala_bridge.sim.simulator import Simulator

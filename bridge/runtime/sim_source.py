@@ -25,16 +25,19 @@ no client was connected or a client could not keep up).
 
 from __future__ import annotations
 
+import heapq
 import json
 import logging
 import math
 import threading
 import time
 from collections.abc import Callable, Mapping
+from functools import partial
 from typing import Any
 
+import can
 import numpy as np
-from koala_bridge.core.topics import StatusMessage, TruthPose, WorldMessage
+from koala_bridge.core.topics import FaultEventMessage, StatusMessage, TruthPose, WorldMessage
 from koala_bridge.drivers.kteam import KteamLimits, LineSplitter, parse_command
 from koala_bridge.drivers.mavlink_codec import CompassDecoder, CompassEncoder, MavlinkIdentity
 from koala_bridge.drivers.messages import (
@@ -53,12 +56,14 @@ from koala_bridge.estimation.messages import KEY_CELL, KEY_GRID, KEY_OCCUPANCY, 
 from koala_bridge.runtime.buses import LockedByteLink, OpenBuses, open_buses
 from koala_bridge.runtime.clock import Clock, LockstepClock, make_clock
 from koala_bridge.runtime.counters import BusCounters
-from koala_bridge.runtime.endpoints import Endpoints, endpoints_of
+from koala_bridge.runtime.endpoints import Endpoints, endpoints_of, write_endpoints_file
+from koala_bridge.runtime.faults import FaultInjector, fault_spec, faults_from_config
 from koala_bridge.runtime.koala25_io import Koala25Responder
 from koala_bridge.runtime.localisation import LocalisationNode
 from koala_bridge.runtime.robot_io import KteamResponder, MotorArbiter, RobotPort, RobotUnits
 from koala_bridge.runtime.settings import BridgeSettings, ConfigError
 from koala_bridge.runtime.source import READ_TIMEOUT_S, Tap, start_reader, until_text
+from koala_bridge.runtime.wire import CanWire, SerialWire, serial_time_s
 from koala_bridge.runtime.zenoh_io import ZENOH_BUS, ZenohLink, sensor_topics, truth_pose
 from koala_bridge.sim.simulator import Simulator
 from koala_bridge.sim.types import Readings
@@ -132,10 +137,34 @@ class SimulatedRobotSource:
                     f"DBC; its messages: {', '.join(sorted(ids))}"
                 )
             self._cycle_can_id = ids[ls.cycle_message]
+        # [[faults]] and --fault (docs/faults.md): drawn from the run's seed
+        self.faults = FaultInjector(faults_from_config(config),
+                                    self.sim.config.sim.seed if seed is None else seed)
+        self.faults.check(self._sensor_counts())
+        self._offline: set[str] = set()      # buses a 'disconnect' fault has taken away
+        self._bus_off = False                # a 'bus_off' fault: the robot's CAN controller is off
+        # Wire timing (docs/wire-timing.md): frames leave when their bits have crossed the line
+        b = settings.buses
+        self._serial_wires: dict[str, SerialWire] = {}
+        if b.kteam_wire_timing:
+            line = self.kteam.dialect.line
+            self._serial_wires["kteam"] = SerialWire.from_line(line)
+        if b.rangefinders_wire_timing:
+            self._serial_wires["rangefinders"] = SerialWire(b.rangefinders_baud,
+                                                            b.rangefinders_framing)
+        if b.mavlink.wire_timing:
+            self._serial_wires["mavlink"] = SerialWire(b.mavlink.baud, b.mavlink.framing)
+        self._can_wire = CanWire(b.can.bitrate) if b.can.wire_timing else None
+        # frames waiting for their time: (t_write, seq, bus, write)
+        self._pending: list[tuple[float, int, str, Callable[[float], None]]] = []
+        self._pending_seq = 0
+        self._shaped = self.faults.active or bool(self._serial_wires) or self._can_wire is not None
         # Step 0's bus frames, re-sent while lockstep holds at t = 0 (before the first command),
         # kept by the loop's thread (_capture_thread) while it emits step 0
         self._initial_frames: list[tuple[str, Callable[[], None]]] | None = None
         self._client_marks: dict[str, object] = {}
+        self._unpaced_steps = 0             # lockstep steps taken while a fault cut the firmware
+        self._awaiting_reconnect = False    # the cycle bus came back: the firmware may reconnect
         self._capture_thread: int | None = None
         mav = settings.buses.mavlink
         # [buses.mavlink] signing_key_file: None = unsigned (a bad key file: ConfigError here)
@@ -185,6 +214,7 @@ class SimulatedRobotSource:
             self.zenoh = ZenohLink(self.settings.zenoh, self.world_answer, self.counters)
             if self.lockstep is not None:
                 self._register_step_queryable()
+            self._register_fault_queryable()
             self._start_readers()
         except BaseException:
             self.close()
@@ -222,6 +252,10 @@ class SimulatedRobotSource:
         last_step = round(duration / self.dt) if duration > 0 else None
         r = self._initial if self._initial is not None else self.sim.reset(self.seed)
         self._initial = None
+        faults = self.faults
+        if faults.active:
+            r = faults.on_readings(r)
+            self._fault_windows(r.t)
         if self.tap is not None:
             self.tap.declare(self._published_keys(r), self._tap_buses())
         self.clock.start()
@@ -230,6 +264,7 @@ class SimulatedRobotSource:
             self._initial_frames = []     # _send_bytes/_send_can keep step 0's frames
             self._capture_thread = threading.get_ident()
         self._emit(r, 0)
+        self._after_step(r.t)
         self._capture_thread = None
         if lockstep is not None:
             for bus, _ in self._initial_frames or ():
@@ -240,7 +275,11 @@ class SimulatedRobotSource:
             # holding at t = 0: re-send step 0's frames every period of wall time
             wait = min(READ_TIMEOUT_S, max(self.settings.lockstep.period_s, 0.005))
         while not stop.is_set() and (last_step is None or n < last_step):
-            if not self.clock.wait_for_step(n + 1, timeout=wait):
+            if lockstep is not None and lockstep.engaged and self._cycle_bus_cut():
+                # A fault has cut the firmware's command line: it cannot pace the run, so time
+                # goes on without it until the line is back (docs/protocols.md §6).
+                self._unpaced_steps += 1
+            elif not self.clock.wait_for_step(n + 1, timeout=wait):
                 if lockstep is not None:
                     if not lockstep.engaged:
                         self._resend_initial()
@@ -252,9 +291,15 @@ class SimulatedRobotSource:
             if lockstep is not None and n == 0:
                 # engaged: a client that came since the last re-send gets step 0 before step 1
                 self._resend_initial()
+            if faults.active:       # (faults may be added at run time: faults/schedule)
+                faults.apply_to_sim(self.sim, self.sim.t)   # kidnap, wheel slip
             r = self.sim.step(self.arbiter.command(self.sim.t))
+            if faults.active:
+                r = faults.on_readings(r)                   # sensor faults
+                self._fault_windows(r.t)                    # disconnect, bus-off
             n += 1
             self._emit(r, n)
+            self._after_step(r.t)
             if lockstep is not None:
                 lockstep.step_done(n)
         if lockstep is not None:
@@ -307,12 +352,22 @@ class SimulatedRobotSource:
         return 0    # python-can interfaces (virtual, slcan): clients that were there all along
 
     def _firmware_connected(self) -> bool:
-        """Whether a client is on the cycle bus (unknown for python-can interfaces: True)."""
+        """Whether a client is on the cycle bus (unknown for python-can interfaces: True).
+        After a fault cut the line, True until the firmware has come back."""
         if self.settings.lockstep.cycle_bus == "kteam":
             link = self.buses.kteam
-            return link is None or link.has_client()
-        servers = [t for t in self.buses.can.values() if isinstance(t, SocketcandServer)]
-        return not servers or any(t.stats.clients > 0 for t in servers)
+            present = link is None or link.has_client()
+        else:
+            servers = [t for t in self.buses.can.values() if isinstance(t, SocketcandServer)]
+            present = not servers or any(t.stats.clients > 0 for t in servers)
+        if self._awaiting_reconnect:
+            self._awaiting_reconnect = not present
+            return True
+        return present
+
+    def _cycle_bus_cut(self) -> bool:
+        """A ``disconnect`` fault has taken the firmware's command bus away."""
+        return bool(self._offline) and self.settings.lockstep.cycle_bus in self._offline
 
     def _wait_lockstep(self, wait: Callable[[float], bool]) -> bool:
         """Run a lockstep wait in slices so that close() is not held up; False if stopping."""
@@ -324,9 +379,10 @@ class SimulatedRobotSource:
     def _cycle(self) -> float | None:
         """The firmware's cycle message was acted on: grant one period, wait until it has been
         simulated; the simulated time then (None: shutting down)."""
-        assert self.lockstep is not None
-        target = self.lockstep.grant()
-        if not self._wait_lockstep(lambda timeout: self.lockstep.wait_done(target, timeout)):
+        lockstep = self.lockstep
+        assert lockstep is not None
+        target = lockstep.grant()
+        if not self._wait_lockstep(lambda timeout: lockstep.wait_done(target, timeout)):
             return None
         # Every frame of the period is on its way before the reply: socketcand's service
         # thread writes to the clients' sockets; wait for it (the other transports write at once).
@@ -460,11 +516,25 @@ class SimulatedRobotSource:
             motor_command_source=self.arbiter.source,
             leds=tuple(self.port.led_states()),  # K-Team L: [lateral, frontal], 0 off / 1 on
             localisation=None if self.localisation is None else self.localisation.snapshot(),
+            faults=self.faults.counts() if self.faults.active else None,
+            bus_load=self._bus_load(t),
             lockstep=None if self.lockstep is None else {
                 "engaged": self.lockstep.engaged, "cycles": self.lockstep.cycles,
                 "explicit": self.lockstep.explicit, "misses": self.lockstep.misses,
+                "unpaced_steps": self._unpaced_steps,
             },
         ).to_json()
+
+    def _bus_load(self, t: float) -> dict[str, float] | None:
+        """Wire timing: each paced bus's busy fraction over the last status period."""
+        window = 1.0 / self.settings.zenoh.status_rate_hz
+        load: dict[str, float] = {}
+        if self._can_wire is not None and t > 0:
+            load["can"] = round(self._can_wire.load(min(window, t, self._can_wire.history_s),
+                                                    t), 6)
+        for bus, wire in self._serial_wires.items():
+            load[bus] = round(wire.load(min(window, t), t), 6) if t > 0 else 0.0
+        return load or None
 
     def _publish_status(self, t: float) -> None:
         if self.zenoh is None:
@@ -486,6 +556,135 @@ class SimulatedRobotSource:
         if self.tap is not None:
             self.tap.record(suffix, t, msg)
 
+    # -- faults and wire timing --------------------------------------------------------------
+
+    def _after_step(self, t: float) -> None:
+        """After step ``t``'s readings went out: buses a fault takes away or gives back, CAN
+        error frames, the frames whose time has come, and the fault events."""
+        if not self._shaped:
+            return
+        faults = self.faults
+        if faults.active:
+            for msg in faults.can_error_frames(t):
+                self._write_can(msg, msg.timestamp, error=True)
+        while self._pending and self._pending[0][0] <= t + 1e-12:
+            _, _, _, write = heapq.heappop(self._pending)
+            write(t)
+        if self._can_wire is not None:
+            for _t_valid, msg, _tag in self._can_wire.release(t):
+                self._write_can(msg, t)
+        if faults.active:
+            for event in faults.events():
+                self._put(FaultEventMessage.TOPIC, event.t, event.to_json())
+
+    def _register_fault_queryable(self) -> None:
+        """``<prefix>/faults/schedule`` (``[zenoh] remote_commands``): add a fault at run time.
+        The payload is one ``[[faults]]`` table as JSON; the answer names the fault."""
+        if self.zenoh is None or not self.settings.zenoh.remote_commands:
+            return
+
+        def schedule(payload: bytes) -> dict[str, Any]:
+            try:
+                table = json.loads(payload or b"null")
+            except ValueError as e:
+                raise ValueError(f"faults/schedule: payload is not JSON: {e}") from None
+            try:
+                spec = fault_spec(table, "faults/schedule", len(self.faults.specs) + 1)
+                FaultInjector([spec], 0).check(self._sensor_counts())
+                if not self._at_cycle_boundary():
+                    raise ValueError("faults/schedule: the bridge is stopping")
+                self.faults.add(spec)
+            except ConfigError as e:
+                raise ValueError(str(e)) from None
+            self._shaped = True
+            name = self.faults.specs[-1].name
+            log.info("fault scheduled over Zenoh: %s", name)
+            return {"name": name, "t": self.port.t}
+
+        self.zenoh.command_queryable("faults/schedule", schedule)
+
+    def _sensor_counts(self) -> dict[str, int]:
+        sensors = self.sim.config.sensors
+        return {"ir": len(sensors.ir.poses), "sonar": len(sensors.sonar.poses), "encoders": 2}
+
+    def _fault_windows(self, t: float) -> None:
+        """Before step ``t``'s readings go out: the buses a fault takes away or gives back."""
+        faults = self.faults
+        for bus in self._fault_buses():
+            gone = faults.disconnected(bus, t)
+            if gone != (bus in self._offline):
+                self._set_offline(bus, gone)
+        if self.buses.can:
+            self._bus_off = faults.bus_off("can", t)
+
+    def _fault_buses(self) -> list[str]:
+        present = [name for name in ("kteam", "rangefinders", "mavlink")
+                   if name in self.buses.byte_links()]
+        return present + (["can"] if self.buses.can else [])
+
+    def _set_offline(self, bus: str, offline: bool) -> None:
+        """Take ``bus`` away (fault ``disconnect``) or give it back."""
+        if offline:
+            self._offline.add(bus)
+            if self.lockstep is not None and bus == self.settings.lockstep.cycle_bus:
+                self._awaiting_reconnect = True
+        else:
+            self._offline.discard(bus)
+        links = (list(self.buses.can.values()) if bus == "can"
+                 else [self.buses.byte_links()[bus]])
+        for link in links:
+            try:
+                link.set_offline(offline)
+            except (NotImplementedError, TransportError) as e:
+                self._write_failed(bus, e)
+        log.info("fault: %s %s", bus, "offline" if offline else "back online")
+        if not offline and self.endpoints is not None:
+            # a pty comes back as a new device (like a USB serial adapter replugged): clients
+            # find its path in the endpoints, rewritten
+            self.endpoints = endpoints_of(self.buses, self.settings)
+            if self.settings.run.endpoints_file:
+                try:
+                    write_endpoints_file(self.settings.run.endpoints_file, self.endpoints)
+                except OSError as e:
+                    log.warning("cannot rewrite the endpoints file: %s", e)
+
+    def _later(self, t_write: float, bus: str, write: Callable[[float], None]) -> None:
+        heapq.heappush(self._pending, (t_write, self._pending_seq, bus, write))
+        self._pending_seq += 1
+
+    def _shape_bytes(self, bus: str, link: LockedByteLink, data: bytes, t: float) -> None:
+        """A frame the robot pushes (loop thread) through the faults and the wire."""
+        deliveries = [(t, data)]
+        if self.faults.active:
+            if bus in self._offline:
+                return
+            deliveries = [(d.t, d.data) for d in self.faults.on_frame(bus, t, data)]
+        wire = self._serial_wires.get(bus)
+        for t_ready, payload in deliveries:
+            t_write = t_ready if wire is None else wire.submit(t_ready, len(payload))
+            if t_write <= t + 1e-12:
+                self._write_bytes(bus, link, payload, t)
+            else:
+                self._later(t_write, bus, partial(self._write_bytes, bus, link, payload))
+
+    def _send_reply(self, link: LockedByteLink, data: bytes, t: float) -> None:
+        """A K-Team reply (reader thread): faults drop, corrupt or duplicate it, but never
+        hold it back (a firmware waiting for it holds simulated time in lockstep); with wire
+        timing it takes its time on the line in real time, and occupies the line in simulated
+        time in the other clocks."""
+        deliveries = [data]
+        if self.faults.active:
+            if "kteam" in self._offline:
+                return
+            deliveries = [d.data for d in self.faults.on_frame("kteam", t, data)]
+        wire = self._serial_wires.get("kteam")
+        for payload in deliveries:
+            if wire is not None:
+                wire.submit(t, len(payload))
+                if self.settings.run.clock == "realtime":
+                    time.sleep(serial_time_s(len(payload), wire.baud, wire.framing))
+            self._write_bytes("kteam", link, payload, t)
+
     # -- output helpers ----------------------------------------------------------------------
 
     def _send_range(self, kind: RangeKind, t: float, readings: tuple[int, ...]) -> None:
@@ -497,6 +696,13 @@ class SimulatedRobotSource:
         self._send_bytes("rangefinders", self.buses.rangefinders, data, t)
 
     def _send_bytes(self, bus: str, link: LockedByteLink, data: bytes, t: float) -> None:
+        """A frame the robot pushes at ``t`` (loop thread)."""
+        if self._shaped:
+            self._shape_bytes(bus, link, data, t)
+        else:
+            self._write_bytes(bus, link, data, t)
+
+    def _write_bytes(self, bus: str, link: LockedByteLink, data: bytes, t: float) -> None:
         try:
             link.write(data)
         except TransportError as e:
@@ -512,13 +718,38 @@ class SimulatedRobotSource:
     def _send_can(self, frame: WheelOdometryFrame | GyroFrame, t: float) -> None:
         msg = self.can_codec.encode(frame)
         msg.timestamp = t
+        if not self._shaped:
+            self._write_can(msg, t)
+            return
+        deliveries = [(t, msg)]
+        if self.faults.active:
+            if "can" in self._offline or self._bus_off:
+                return
+            deliveries = [
+                (d.t, msg if d.data == bytes(msg.data) else _with_data(msg, d.data))
+                for d in self.faults.on_frame("can", t, bytes(msg.data), msg.arbitration_id)]
+            for error in self.faults.can_error_frames(t):   # a corrupt frame's CRC error first
+                self._write_can(error, t, error=True)
+        for t_ready, m in deliveries:
+            if self._can_wire is not None:
+                self._can_wire.submit(t_ready, m)
+            elif t_ready <= t + 1e-12:
+                self._write_can(m, t)
+            else:
+                self._later(t_ready, "can", partial(self._write_can, m))
+
+    def _write_can(self, msg: can.Message, t: float, error: bool = False) -> None:
+        """Put ``msg`` on every CAN interface now (simulated time ``t``); record it and feed the
+        estimator (not an error frame)."""
         for name, transport in self.buses.can.items():
             try:
                 transport.send(msg)
             except TransportError as e:
                 self._write_failed(name, e)
             if self._capture_thread is not None and self._capture_thread == threading.get_ident():
-                self._keep_initial(name, lambda tr=transport: tr.send(msg))
+                self._keep_initial(name, partial(transport.send, msg))
+        if error:   # an error frame is in the recording as its fault event
+            return
         if self.tap is not None:
             self.tap.record_frame(
                 "can", "from_robot", t, bytes(msg.data), can_id=msg.arbitration_id,
@@ -602,7 +833,11 @@ class SimulatedRobotSource:
                         if self._cycle() is None:
                             return
                 # one write per reply: libkoala reads the 7 bytes of Koala 2.5 'B' in one read()
-                self._send_bytes("kteam", link, dialect.format_reply(reply), self.port.t)
+                reply_bytes = dialect.format_reply(reply)
+                if self._shaped:
+                    self._send_reply(link, reply_bytes, self.port.t)
+                else:
+                    self._write_bytes("kteam", link, reply_bytes, self.port.t)
 
         return step
 
@@ -676,9 +911,11 @@ class SimulatedRobotSource:
                 if not self._at_cycle_boundary():   # lockstep: commands act at a boundary
                     return
                 self.counters.received(name)
-                self.arbiter.set(frame.left_speed, frame.right_speed, name)
+                if not self._bus_off:               # bus-off: the robot hears nothing
+                    self.arbiter.set(frame.left_speed, frame.right_speed, name)
                 if self.lockstep is not None and msg.arbitration_id == self._cycle_can_id:
-                    self.lockstep.grant()           # the cycle message: one more period
+                    # the cycle message: one more period (even when a fault ate its command)
+                    self.lockstep.grant()
             else:
                 # A Reject, or a frame only the robot sends (WheelOdometry, Gyro) coming from a
                 # client: either way the robot does not act on it.
@@ -694,6 +931,12 @@ def _sonar_mm(ranges: Any) -> tuple[int, ...]:
     for r in np.asarray(ranges, dtype=float):
         out.append(NO_ECHO if not math.isfinite(r) else int(min(max(round(r * 1000), 0), 0xFFFE)))
     return tuple(out)
+
+
+def _with_data(msg: can.Message, data: bytes) -> can.Message:
+    """``msg`` with another payload (a fault's copy)."""
+    return can.Message(arbitration_id=msg.arbitration_id, is_extended_id=msg.is_extended_id,
+                       data=data, timestamp=msg.timestamp)
 
 
 def _tap_bus(bus: str) -> str:

@@ -35,6 +35,7 @@ import heapq
 import math
 import re
 from bisect import bisect_left, bisect_right
+from collections import deque
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -99,7 +100,7 @@ class SerialWire:
     the method returns the time their last stop bit ends -- when the reader has every byte.
     """
 
-    __slots__ = ("baud", "framing", "byte_time_s", "busy_until")
+    __slots__ = ("baud", "framing", "byte_time_s", "busy_until", "_spans")
 
     def __init__(self, baud: int, framing: str = "8N1") -> None:
         self.baud = baud
@@ -108,6 +109,7 @@ class SerialWire:
         self.byte_time_s = serial_bits_per_byte(framing) / _positive_rate("baud", baud)
         #: when the last submitted character's stop bit ends (-inf: never used)
         self.busy_until = -math.inf
+        self._spans: deque[tuple[float, float]] = deque()   # (start, end) of recent writes
 
     @classmethod
     def from_line(cls, line: SerialLine) -> SerialWire:
@@ -121,7 +123,22 @@ class SerialWire:
             raise ValueError(f"n_bytes must be >= 0, got {n_bytes}")
         start = t if t > self.busy_until else self.busy_until
         self.busy_until = end = start + n_bytes * self.byte_time_s
+        if n_bytes:
+            self._spans.append((start, end))
+            while len(self._spans) > 4096:      # load() looks back one status period at most
+                self._spans.popleft()
         return end
+
+    def load(self, window_s: float, now: float) -> float:
+        """The fraction of ``[now - window_s, now]`` the line carried characters (1.0:
+        saturated), from the writes submitted so far (at most the last 4096)."""
+        if not (math.isfinite(window_s) and window_s > 0):
+            raise ValueError(f"window_s must be a finite number of seconds > 0, got {window_s}")
+        lo = now - window_s
+        while self._spans and self._spans[0][1] <= lo:
+            self._spans.popleft()
+        busy = sum(min(e, now) - max(s, lo) for s, e in self._spans if s < now)
+        return min(1.0, max(0.0, busy / window_s))
 
     def __repr__(self) -> str:
         return f"SerialWire({self.baud}, {self.framing!r}, busy_until={self.busy_until})"

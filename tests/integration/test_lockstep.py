@@ -9,76 +9,16 @@ from __future__ import annotations
 
 import json
 import threading
-from collections.abc import Iterator
-from contextlib import contextmanager
-from pathlib import Path
 from typing import Any
 
-import can
 import pytest
-import serial
 import zenoh
-from conftest import free_port
+from _inproc import WAIT_S, ask, bridge, kteam, lockstep_config, socketcand, zenoh_session
 from koala_bridge.core.errors import ConfigError
 from koala_bridge.drivers.can_codec import KoalaCanCodec
 from koala_bridge.drivers.messages import MotorCommandFrame, WheelOdometryFrame
-from koala_bridge.runtime.settings import (
-    BridgeSettings,
-    apply_override,
-    load_config,
-    parse_override,
-)
+from koala_bridge.runtime.settings import BridgeSettings
 from koala_bridge.runtime.sim_source import SimulatedRobotSource
-
-REPO = Path(__file__).resolve().parents[2]
-WAIT_S = 10.0
-
-
-def lockstep_config(*overrides: str) -> dict[str, Any]:
-    config = load_config(REPO / "config" / "default.toml")
-    for text in ("run.clock=\"lockstep\"", "buses.can.socketcand_port=0",
-                 "buses.can.slcan=false", "buses.rangefinders.enabled=false",
-                 f"buses.mavlink.port={free_port('udp')}",
-                 f'zenoh.listen=["tcp/127.0.0.1:{free_port()}"]', *overrides):
-        config = apply_override(config, *parse_override(text))
-    return config
-
-
-@contextmanager
-def bridge(*overrides: str, duration_s: float = 0.0) -> Iterator[SimulatedRobotSource]:
-    """The bridge in lockstep, its loop in a thread; stopped and closed on exit."""
-    config = lockstep_config(*overrides)
-    source = SimulatedRobotSource(config, BridgeSettings.from_config(config))
-    source.open()
-    stop = threading.Event()
-    loop = threading.Thread(target=source.run, args=(stop, duration_s), daemon=True)
-    loop.start()
-    try:
-        yield source
-    finally:
-        stop.set()
-        source.close()
-        loop.join(WAIT_S)
-        assert not loop.is_alive()
-
-
-def kteam(source: SimulatedRobotSource) -> serial.Serial:
-    assert source.endpoints is not None
-    return serial.Serial(source.endpoints.kteam, 115200, timeout=WAIT_S)
-
-
-def ask(port: serial.Serial, command: str) -> str:
-    port.write(command.encode() + b"\n")
-    line = port.readline().decode().strip()
-    assert line, f"no reply to {command!r}"
-    return line
-
-
-def socketcand(source: SimulatedRobotSource) -> can.BusABC:
-    assert source.endpoints is not None
-    sc = source.endpoints.socketcand
-    assert sc is not None
-    return can.Bus(interface="socketcand", host=sc.host, port=sc.port, channel=sc.channel)
 
 
 def test_held_at_zero_until_the_first_d_then_one_period_per_d() -> None:
@@ -94,7 +34,8 @@ def test_held_at_zero_until_the_first_d_then_one_period_per_d() -> None:
             # 3 steps of 10 pulses per D; the reply comes from the boundary's state
             assert ask(port, "H") == f"h,{30 * k},{-30 * k}"
         status = source.status(source.port.t)
-        assert status["lockstep"] == {"engaged": True, "cycles": 10, "explicit": 0, "misses": 0}
+        assert status["lockstep"] == {"engaged": True, "cycles": 10, "explicit": 0, "misses": 0,
+                                      "unpaced_steps": 0}
 
 
 def test_the_run_ends_when_the_firmware_closes_the_cycle_bus() -> None:
@@ -165,14 +106,6 @@ def test_the_default_waits_for_ever_for_a_quiet_firmware() -> None:
         # nothing comes: however long we wait, no step runs
         assert not source.lockstep.wait_done(2, timeout=0.5)
         assert source.port.t == pytest.approx(0.01) and source.lockstep.misses == 0
-
-
-def zenoh_session(source: SimulatedRobotSource) -> zenoh.Session:
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"client"')
-    conf.insert_json5("connect/endpoints", json.dumps(list(source.settings.zenoh.listen)))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    return zenoh.open(conf)
 
 
 def step_query(session: zenoh.Session, prefix: str, payload: str | None) -> list[Any]:

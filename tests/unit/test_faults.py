@@ -3,6 +3,7 @@ the seed, each kind's effect, events and counts, and the simulator's hooks (sim/
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import tomllib
 from pathlib import Path
@@ -10,6 +11,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import tomli_w
 from koala_bridge.core.schema import ConfigError
 from koala_bridge.drivers.mavlink_codec import CompassDecoder, CompassEncoder, MavlinkIdentity
 from koala_bridge.drivers.messages import CompassSample, RangeFrame, RangeKind, Reject
@@ -66,6 +68,10 @@ def spec(text: str) -> FaultSpec:
     ({"kind": "drop", "target": "can", "bits": 2},
      "'bits' does not apply to drop (a parameter of corrupt)"),
     ({"kind": "bias", "target": "gyro"}, "missing required key 'bias'"),
+    ({"kind": "glitch", "target": "ir"}, "missing required key 'magnitude'"),
+    ({"kind": "glitch", "target": "ir", "magnitude": 0}, "'magnitude' must be > 0"),
+    ({"kind": "glitch", "target": "encoders", "magnitude": 1},
+     "unknown target 'encoders' for glitch"),
     ({"kind": "magnetic_anomaly", "target": "compass", "x": 1, "y": 1},
      "missing required key 'strength_uT'"),
     ({"kind": "kidnap", "target": "robot", "x": 1, "y": 1, "end_s": 3},
@@ -131,6 +137,7 @@ def test_defaults_and_every_kind_validates() -> None:
         "disconnect": "disconnect:kteam:start_s=1,end_s=2", "error_frames": "error_frames:can",
         "bus_off": "bus_off:can:start_s=1,end_s=2", "stuck": "stuck:encoders:sensors=[1]",
         "stuck_max": "stuck_max:sonar", "bias": "bias:gyro:bias=-0.02",
+        "glitch": "glitch:sonar:magnitude=0.5",
         "magnetic_anomaly": "magnetic_anomaly:compass:x=1,y=2,strength_uT=30",
         "wheel_slip": "wheel_slip:left:traction=0.1", "kidnap": "kidnap:robot:x=1,y=2",
     }
@@ -175,6 +182,19 @@ def test_shipped_configs_have_no_fault_and_a_valid_commented_example(path: Path)
     assert [s.kind for s in specs] == ["drop", "bias"]
     # with the example in, the configuration still loads ([[faults]] is a known table)
     BridgeSettings.from_config({**config, **example})
+
+
+def test_every_default_is_written_in_the_shipped_configs() -> None:
+    """The config policy's one-default rule for a table that is not there by default: the
+    commented [[faults]] block of default.toml states each key's default as ``key = value``."""
+    text = DEFAULT.read_text()
+    header = text[text.index("# Fault injection"):text.index("\n# [[faults]]\n")]
+    header = " ".join(line.removeprefix("#").strip() for line in header.splitlines())
+    for f in dataclasses.fields(FaultSpec):
+        if f.default is dataclasses.MISSING or f.default is None:
+            continue   # kind, target; the required parameters and theta_deg (absent: kept)
+        written = tomli_w.dumps({f.name: f.default}).strip()
+        assert written in header, f"{written!r} is not in default.toml's [[faults]] comment"
 
 
 def test_fault_spec_is_the_same_validation_for_runtime_tables() -> None:
@@ -435,6 +455,44 @@ def test_gyro_bias_step(readings: list[Readings]) -> None:
                                "detail": {"phase": "start", "bias": 0.05}}
 
 
+def test_glitch_outliers(readings: list[Readings]) -> None:
+    """p = 0.2 per gyro reading: the number of outliers is Binomial(n, 0.2), each +-magnitude
+    with the sign a fair coin (bounds 5 sigma); IR: one sensor of those listed per outlier."""
+    inj = injector("glitch:gyro:probability=0.2,magnitude=0.5", "glitch:ir:magnitude=40,"
+                   "sensors=[3, 4]", "glitch:compass:magnitude=10,probability=0.5")
+    out = through(inj, readings)
+    deltas = [o.gyro.yaw_rate - r.gyro.yaw_rate for r, o in zip(readings, out, strict=True)
+              if r.gyro is not None]
+    n = len(deltas)
+    hits = [d for d in deltas if d != 0.0]
+    assert all(abs(abs(d) - 0.5) < 1e-12 for d in hits)
+    assert abs(len(hits) - 0.2 * n) <= 5 * math.sqrt(n * 0.2 * 0.8)
+    assert abs(sum(d > 0 for d in hits) - len(hits) / 2) <= 5 * math.sqrt(len(hits) / 4)
+    for r, o in zip(readings, out, strict=True):
+        if r.ir is not None:
+            changed = np.flatnonzero(o.ir.counts != r.ir.counts)
+            assert len(changed) <= 1 and set(changed) <= {3, 4}
+            for i in changed:
+                assert o.ir.counts[i] == max(0, r.ir.counts[i] + (40 if o.ir.counts[i] >
+                                                                   r.ir.counts[i] else -40))
+        if r.compass is not None:
+            axes = np.flatnonzero(o.compass.field_uT != r.compass.field_uT)
+            assert len(axes) <= 1
+            assert np.allclose(np.abs(o.compass.field_uT - r.compass.field_uT).sum(),
+                               10.0 * len(axes))
+    counts = inj.counts()
+    assert counts["glitch:gyro#1"] == len(hits)
+    assert counts["glitch:ir#2"] > 0 and counts["glitch:compass#3"] > 0
+
+
+def test_glitch_keeps_no_echo(readings: list[Readings]) -> None:
+    r = next(r for r in readings if r.sonar is not None)
+    blind = dataclasses.replace(r, sonar=dataclasses.replace(
+        r.sonar, ranges=np.full_like(r.sonar.ranges, np.nan)))
+    out = injector("glitch:sonar:magnitude=0.3").on_readings(blind)
+    assert np.isnan(out.sonar.ranges).all()
+
+
 def test_anomaly_field() -> None:
     # zero at and beyond the radius, at the centre; peak strength near the centre; towards it
     assert anomaly_field_world(1.0, 0.0, 0.0, 0.0, 50.0, 1.0) == (0.0, 0.0, 0.0)
@@ -601,7 +659,10 @@ def test_add_at_run_time() -> None:
     with pytest.raises(ConfigError, match="'first' is already used"):
         inj.add(spec("drop:kteam:name=first"))
     inj.add(FaultSpec(kind="drop", target="kteam"))
-    assert list(inj.counts()) == ["first", "disconnect:mavlink#1", "drop:kteam#3"]
+    inj.add(spec("bias:gyro:end_s=2,bias=1"))         # its window is over: nothing happens
+    assert not inj.events()
+    assert list(inj.counts()) == ["first", "disconnect:mavlink#1", "drop:kteam#3",
+                                  "bias:gyro#1"]
 
 
 def test_seed_must_be_a_natural_number() -> None:
