@@ -5,16 +5,18 @@ Two child processes, clients in this one:
 
 - ``--serve``: a bridge (`koala_bridge.runtime.sim_source.SimulatedRobotSource`, real-time
   clock, the robot driving so that every encoder sample is distinct) that logs, for every step,
-  ``time.monotonic()`` right after the simulator produced the step's readings. CLOCK_MONOTONIC is system-wide on Linux, so
-  the client's decode time minus that is the sample's latency.
-- ``--bare``: the bare transports: the same kinds of link (a pty, a TCP server, UDP datagrams, a
-  Zenoh publisher) carrying raw payloads of the same size at the same rates, each stamped with
-  ``time.monotonic()`` just before it is written.
+  ``time.monotonic()`` right after the simulator produced the step's readings. CLOCK_MONOTONIC is
+  system-wide on Linux, so the client's decode time minus that is the sample's latency.
+- ``--bare``: the bare transports: the same kinds of link (a pty, a minimal socketcand server on
+  TCP, a pty carrying slcan lines, UDP datagrams, a Zenoh publisher) carrying the bridge's own
+  frames (range frames, socketcand ``< frame >`` elements, slcan lines, MAVLink ``SCALED_IMU``,
+  the ``sensors/odometry`` JSON) at the same rates, one writer thread per link, each frame
+  stamped with ``time.monotonic()`` just before it is written.
 
 Clients: pyserial + RangeFrameDecoder (range frames, keyed by sample time), python-can
 socketcand and slcan (WheelOdometry, keyed by encoder count), pymavlink (SCALED_IMU, keyed by
 time_boot_ms), Zenoh (sensors/odometry, keyed by t); K-Team is request/response, so its figure is
-the round trip of ``H`` against a raw echo over a pty.
+the round trip of ``H`` against a pty that echoes each line back (CR -> CR LF).
 
     .venv/bin/python -m bench.bench_latency --seconds 10
 """
@@ -26,7 +28,6 @@ import json
 import os
 import signal
 import socket
-import struct
 import subprocess
 import sys
 import tempfile
@@ -39,7 +40,6 @@ from typing import Any
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-STAMP = struct.Struct("<d")
 
 
 # -- child: the bridge ---------------------------------------------------------------------------
@@ -80,14 +80,28 @@ def serve(config_overrides: list[str], ready_file: Path, log_file: Path) -> int:
 
 # -- child: the bare transports ------------------------------------------------------------------
 
-def bare(udp_port: int, zenoh_endpoint: str, ready_file: Path) -> int:
+def bare(udp_port: int, zenoh_endpoint: str, ready_file: Path, log_file: Path) -> int:
+    """The same frames as the bridge's (bytes, sizes, rates), written by one thread per link with
+    nothing else to do: the floor. Each thread logs ``time.monotonic()`` just before its write,
+    keyed as the clients key the bridge's samples."""
     import pty as ptymod
     import tty
 
+    import can
     import zenoh
+    from koala_bridge.core.topics import OdometryMessage, OdometryTruth
+    from koala_bridge.drivers.can_codec import KoalaCanCodec
+    from koala_bridge.drivers.mavlink_codec import CompassEncoder, MavlinkIdentity
+    from koala_bridge.drivers.messages import CompassSample, RangeFrame, RangeKind
+    from koala_bridge.drivers.messages import WheelOdometryFrame as Odo
+    from koala_bridge.drivers.rangeframes import encode_range_frame
+    from koala_bridge.drivers.transports.slcan import format_slcan_frame
+    from koala_bridge.drivers.transports.socketcand import format_frame_element
 
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    log: dict[str, list[tuple[str, Any, float]]] = {}
+    codec = KoalaCanCodec()
 
     def open_pty() -> tuple[int, str]:
         master, slave = ptymod.openpty()
@@ -107,25 +121,61 @@ def bare(udp_port: int, zenoh_endpoint: str, ready_file: Path) -> int:
     zc.insert_json5("scouting/multicast/enabled", "false")
     zc.insert_json5("listen/endpoints", json.dumps([zenoh_endpoint]))
     session = zenoh.open(zc)
-    publisher = session.declare_publisher("bench/bare")
+    publisher = session.declare_publisher("bench/sensors/odometry")
+    mav = CompassEncoder(MavlinkIdentity(1, 1))
 
-    def paced(rate_hz: float, size: int, write: Callable[[bytes], object]) -> Callable[[], None]:
+    def paced(name: str, rate_hz: float, frame: Callable[[int], tuple[str, Any, bytes]],
+              write: Callable[[bytes], object],
+              ready: threading.Event | None = None) -> Callable[[], None]:
+        """Every 1/rate_hz: build frame k, stamp, write (what the bridge's loop does, minus the
+        simulation and everything else); nothing until ``ready`` is set, if given."""
+        events = log.setdefault(name, [])
+
         def loop() -> None:
             t0 = time.monotonic()
-            n = 0
+            k = 0
             while not stop.is_set():
-                n += 1
-                delay = t0 + n / rate_hz - time.monotonic()
+                k += 1
+                delay = t0 + k / rate_hz - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
-                payload = STAMP.pack(time.monotonic()).ljust(size, b"\x55")
+                if ready is not None and not ready.is_set():
+                    continue
+                kind, key, data = frame(k)
+                events.append((kind, key, time.monotonic()))
                 try:
-                    write(payload)
+                    write(data)
                 except OSError:
                     pass  # no reader yet
         return loop
 
-    def tcp_loop() -> None:
+    def range_frame(k: int) -> tuple[str, Any, bytes]:
+        t_us = (k * 50_000) & 0xFFFFFFFF  # 20 Hz
+        return "t_us", t_us, encode_range_frame(RangeFrame(RangeKind.IR, k & 0xFFFF, t_us,
+                                                           (512,) * 16))
+
+    def odometry_msg(k: int) -> can.Message:
+        msg = codec.encode(Odo(k, k))
+        msg.timestamp = k * 0.01
+        return msg
+
+    def slcan_frame(k: int) -> tuple[str, Any, bytes]:
+        return "ticks", k, format_slcan_frame(odometry_msg(k))
+
+    def socketcand_frame(k: int) -> tuple[str, Any, bytes]:
+        msg = odometry_msg(k)
+        return "ticks", k, format_frame_element(msg, msg.timestamp)
+
+    def mavlink_frame(k: int) -> tuple[str, Any, bytes]:
+        return "ms", k * 20, mav.scaled_imu(CompassSample(k * 20, 20.0, -5.0, -40.0))  # 50 Hz
+
+    def zenoh_frame(k: int) -> tuple[str, Any, bytes]:
+        t = round(k * 0.01, 6)
+        msg = OdometryMessage(t, k, k, OdometryTruth(k, k))
+        return "t", t, msg.to_bytes()
+
+    def socketcand_server() -> None:
+        """socketcand's handshake (hi, open, rawmode), then the frames, one client at a time."""
         listener.settimeout(0.5)
         while not stop.is_set():
             try:
@@ -133,7 +183,19 @@ def bare(udp_port: int, zenoh_endpoint: str, ready_file: Path) -> int:
             except TimeoutError:
                 continue
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            paced(100, 30, conn.sendall)()
+            conn.settimeout(5)
+            try:
+                conn.sendall(b"< hi >")
+                buf = b""
+                for _ in range(2):  # < open CHANNEL >, < rawmode >
+                    while b">" not in buf:
+                        buf += conn.recv(256)
+                    buf = buf[buf.index(b">") + 1:]
+                    conn.sendall(b"< ok >")
+                time.sleep(0.05)  # the bridge's handshake grace
+                paced("can.socketcand (TCP)", 100, socketcand_frame, conn.sendall)()
+            except OSError:
+                pass
             conn.close()
 
     def echo_loop() -> None:
@@ -142,27 +204,52 @@ def bare(udp_port: int, zenoh_endpoint: str, ready_file: Path) -> int:
         while not stop.is_set():
             r, _, _ = select.select([echo_master], [], [], 0.2)
             if r:
+                try:  # "H\r" -> "H\r\n": a reply line as the K-Team client reads it
+                    os.write(echo_master, os.read(echo_master, 256).replace(b"\r", b"\r\n"))
+                except OSError:
+                    time.sleep(0.05)
+
+    slcan_open = threading.Event()
+
+    def slcan_commands(fd: int) -> None:
+        """What the slcan client sends: its ``O`` (open) starts the frames, as on the bridge's
+        adapter (python-can sleeps 2 s after opening the port: frames queued meanwhile would be
+        stale); the rest is read and ignored."""
+        import select
+
+        while not stop.is_set():
+            if select.select([fd], [], [], 0.2)[0]:
                 try:
-                    os.write(echo_master, os.read(echo_master, 256))
+                    if b"O\r" in os.read(fd, 4096):
+                        slcan_open.set()
                 except OSError:
                     time.sleep(0.05)
 
     threads = [
-        threading.Thread(target=paced(20, 45, lambda b: os.write(frame_master, b))),  # IR frame
-        threading.Thread(target=paced(100, 23, lambda b: os.write(slcan_master, b))),  # slcan
-        threading.Thread(target=paced(50, 37, lambda b: udp.sendto(b, ("127.0.0.1", udp_port)))),
-        threading.Thread(target=paced(100, 90, publisher.put)),  # odometry JSON size
-        threading.Thread(target=tcp_loop),
+        threading.Thread(target=paced("rangefinders (pty)", 20, range_frame,
+                                      lambda b: os.write(frame_master, b))),
+        threading.Thread(target=paced("can.slcan (pty)", 100, slcan_frame,
+                                      lambda b: os.write(slcan_master, b), slcan_open)),
+        threading.Thread(target=paced("mavlink (UDP)", 50, mavlink_frame,
+                                      lambda b: udp.sendto(b, ("127.0.0.1", udp_port)))),
+        threading.Thread(target=paced("zenoh (TCP)", 100, zenoh_frame, publisher.put)),
+        threading.Thread(target=socketcand_server),
         threading.Thread(target=echo_loop),
+        threading.Thread(target=slcan_commands, args=(slcan_master,)),
     ]
     for t in threads:
         t.start()
-    ready_file.write_text(json.dumps({"pty": frame_path, "slcan_pty": slcan_path,
-                                      "echo_pty": echo_path, "tcp_port": tcp_port}))
+    ready_file.write_text(json.dumps({
+        "serial": {"rangefinders": frame_path, "kteam": echo_path},
+        "can": {"socketcand": {"host": "127.0.0.1", "port": tcp_port, "channel": "koala0"},
+                "slcan": slcan_path},
+        "zenoh": {"endpoints": [zenoh_endpoint], "prefix": "bench"},
+    }))
     while not stop.is_set():
         stop.wait(0.2)
     for t in threads:
         t.join(5)
+    log_file.write_text(json.dumps(log))
     publisher.undeclare()
     session.close()
     for fd in (frame_master, slcan_master, echo_master):
@@ -301,74 +388,6 @@ def bridge_clients(ep: dict[str, Any], mav_port: int, c: Collector) -> None:
     c.add("kteam (pty, round trip)", kteam)
 
 
-def bare_clients(info: dict[str, Any], udp_port: int, zenoh_endpoint: str, c: Collector) -> None:
-    import serial
-    import zenoh
-
-    def stamped(record: Callable[[Any], None], data: bytes) -> None:
-        record(("stamp", STAMP.unpack_from(data)[0]))
-
-    def pty_reader(path: str, size: int) -> Callable[[Callable[[Any], None]], None]:
-        def loop(record: Callable[[Any], None]) -> None:
-            with serial.Serial(path, timeout=0.2) as port:
-                while not c.stop.is_set():
-                    data = port.read(size)
-                    if len(data) == size:
-                        stamped(record, data)
-        return loop
-
-    def tcp(record: Callable[[Any], None]) -> None:
-        with socket.create_connection(("127.0.0.1", info["tcp_port"])) as s:
-            s.settimeout(0.2)
-            buf = b""
-            while not c.stop.is_set():
-                try:
-                    buf += s.recv(4096)
-                except TimeoutError:
-                    continue
-                while len(buf) >= 30:
-                    stamped(record, buf[:30])
-                    buf = buf[30:]
-
-    def udp(record: Callable[[Any], None]) -> None:
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-            sock.bind(("127.0.0.1", udp_port))
-            sock.settimeout(0.2)
-            while not c.stop.is_set():
-                try:
-                    stamped(record, sock.recv(2048))
-                except TimeoutError:
-                    continue
-
-    def zenoh_client(record: Callable[[Any], None]) -> None:
-        zc = zenoh.Config()
-        zc.insert_json5("mode", '"peer"')
-        zc.insert_json5("scouting/multicast/enabled", "false")
-        zc.insert_json5("connect/endpoints", json.dumps([zenoh_endpoint]))
-        session = zenoh.open(zc)
-        sub = session.declare_subscriber("bench/bare", lambda s: stamped(record,
-                                                                         s.payload.to_bytes()))
-        c.stop.wait()
-        sub.undeclare()
-        session.close()
-
-    def echo(record: Callable[[Any], None]) -> None:
-        with serial.Serial(info["echo_pty"], timeout=1) as port:
-            while not c.stop.is_set():
-                t0 = time.monotonic()
-                port.write(b"H\r")
-                port.read_until(b"\r")
-                record(("rtt", time.monotonic() - t0))
-                time.sleep(0.01)
-
-    c.add("rangefinders (pty)", pty_reader(info["pty"], 45))
-    c.add("can.socketcand (TCP)", tcp)
-    c.add("can.slcan (pty)", pty_reader(info["slcan_pty"], 23))
-    c.add("mavlink (UDP)", udp)
-    c.add("zenoh (TCP)", zenoh_client)
-    c.add("kteam (pty, round trip)", echo)
-
-
 def bridge_latencies(events: dict[str, list[tuple[Any, float]]],
                      steps: list[list[float]]) -> dict[str, list[float]]:
     by_t_us = {int(round(t * 1e6)) & 0xFFFFFFFF: w for t, w, _ in steps}
@@ -393,18 +412,37 @@ def bridge_latencies(events: dict[str, list[tuple[Any, float]]],
     return out
 
 
+def bare_latencies(events: dict[str, list[tuple[Any, float]]],
+                   log: dict[str, list[list[Any]]]) -> dict[str, list[float]]:
+    """Decode time minus the bare writer's stamp of the same frame, per link."""
+    out: dict[str, list[float]] = {}
+    for name, evs in events.items():
+        stamps = {(kind, round(key, 6) if kind == "t" else key): w
+                  for kind, key, w in log.get(name, [])}
+        lat = []
+        for (kind, key), when in evs:
+            if kind == "rtt":
+                lat.append(key)
+                continue
+            w = stamps.get((kind, round(key, 6) if kind == "t" else key))
+            if w is not None:
+                lat.append(when - w)
+        out[name] = lat
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=8.0, help="measuring time per phase")
     parser.add_argument("--serve", nargs=2, metavar=("READY", "LOG"), help=argparse.SUPPRESS)
-    parser.add_argument("--bare", nargs=3, metavar=("UDP", "ZENOH", "READY"),
+    parser.add_argument("--bare", nargs=4, metavar=("UDP", "ZENOH", "READY", "LOG"),
                         help=argparse.SUPPRESS)
     parser.add_argument("--set", action="append", default=[], help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.serve:
         return serve(args.set, Path(args.serve[0]), Path(args.serve[1]))
     if args.bare:
-        return bare(int(args.bare[0]), args.bare[1], Path(args.bare[2]))
+        return bare(int(args.bare[0]), args.bare[1], Path(args.bare[2]), Path(args.bare[3]))
 
     with tempfile.TemporaryDirectory() as tmp:
         tmpdir = Path(tmp)
@@ -427,23 +465,23 @@ def main(argv: list[str] | None = None) -> int:
             proc.send_signal(signal.SIGTERM)
             proc.wait(30)
         bridge_lat = bridge_latencies(c.events, json.loads((tmpdir / "steps.json").read_text()))
-        # Phase 2: the bare transports, same kinds, sizes and rates.
+        # Phase 2: the bare transports: the same frames at the same rates, read by the same
+        # clients (same decoders, same threads), so the ratio is what the bridge adds.
         udp_port = free_port(socket.SOCK_DGRAM)
         zenoh_ep = f"tcp/127.0.0.1:{free_port()}"
         proc = subprocess.Popen([*me, "--bare", str(udp_port), zenoh_ep,
-                                 str(tmpdir / "bare.json")], cwd=REPO)
+                                 str(tmpdir / "bare.json"), str(tmpdir / "bare-log.json")],
+                                cwd=REPO)
         try:
             info = wait_file(tmpdir / "bare.json", proc)
             c2 = Collector()
-            bare_clients(info, udp_port, zenoh_ep, c2)
+            bridge_clients(info, udp_port, c2)
             c2.run_for(args.seconds)
         finally:
             proc.send_signal(signal.SIGTERM)
             proc.wait(30)
-        bare_lat = {
-            name: [key if kind == "rtt" else when - key for (kind, key), when in evs]
-            for name, evs in c2.events.items()
-        }
+        bare_lat = bare_latencies(c2.events,
+                                  json.loads((tmpdir / "bare-log.json").read_text()))
 
     print(f"{'bus':<26}{'bridge p50':>12}{'p95':>9}{'bare p50':>11}{'p95':>9}"
           f"{'ratio p50':>11}{'n':>7}")

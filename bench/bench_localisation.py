@@ -4,7 +4,8 @@
 
 What is timed: one :class:`koala_bridge.runtime.sim_source.SimulatedRobotSource` on
 ``config/default.toml`` (every error model on, every bus open on free loopback ports, Zenoh
-publishing), fast clock, the robot driving an arc -- alternately *with* its :class:`koala_bridge.runtime.localisation.LocalisationNode` and *without*
+publishing), fast clock, the robot driving an arc -- alternately *with* its
+:class:`koala_bridge.runtime.localisation.LocalisationNode` and *without*
 (the node detached), in windows of ``W`` simulated seconds, in the same process and the same run.
 Each figure is the best window (the least disturbed on a shared machine, the ``timeit``
 convention) with the median beside it. The algorithms alone are in bench/bench_estimation.py.

@@ -8,9 +8,11 @@ error / FD frames). It performs no bus I/O: transports live in :mod:`drivers.tra
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Mapping
 from pathlib import Path
 from types import MappingProxyType
+from typing import TypeAlias
 
 import can
 import cantools
@@ -34,7 +36,7 @@ __all__ = [
     "wrap_int32",
 ]
 
-CanFrame = WheelOdometryFrame | GyroFrame | MotorCommandFrame
+CanFrame: TypeAlias = WheelOdometryFrame | GyroFrame | MotorCommandFrame
 """Any typed frame of the Koala bus."""
 
 DEFAULT_DBC_PATH = default_dbc_path()
@@ -61,6 +63,77 @@ def wrap_int32(value: int) -> int:
     return (int(value) + 2**31) % 2**32 - 2**31
 
 
+_INT_CODES = {8: "b", 16: "h", 32: "i", 64: "q"}
+
+
+class _ByteAlignedLayout:
+    """A DBC message whose signals are all whole little-endian integers of 8/16/32/64 bits on
+    byte boundaries, without value tables or multiplexing (every message of ``koala.dbc``):
+    packed and unpacked with one :class:`struct.Struct` instead of cantools' bit-level codec.
+
+    Same results as cantools (45): the raw value is ``conversion.numeric_scaled_to_raw`` and the
+    scaled one ``raw * scale + offset`` (cantools' ``LinearConversion.raw_to_scaled``); the
+    range check is ``Message._assert_signal_values_valid``'s, tolerance included. Anything this
+    path does not accept is handed to cantools, which then raises its own error.
+    """
+
+    __slots__ = ("names", "_struct", "_signals", "_scaling")
+
+    def __init__(self, names: tuple[str, ...], fmt: str, message: DbcMessage) -> None:
+        self.names = names
+        self._struct = struct.Struct(fmt)
+        self._signals = tuple(message.get_signal_by_name(n) for n in names)
+        self._scaling = tuple(
+            None if (s.conversion.scale == 1 and s.conversion.offset == 0)
+            else (s.conversion.scale, s.conversion.offset)
+            for s in self._signals
+        )
+
+    @classmethod
+    def of(cls, message: DbcMessage) -> _ByteAlignedLayout | None:
+        """The layout of ``message``, or None when it is not that simple."""
+        if message.is_container or message.is_multiplexed() or not message.signals:
+            return None
+        signals = sorted(message.signals, key=lambda s: s.start)
+        fmt, pos = "<", 0
+        for s in signals:
+            code = _INT_CODES.get(s.length)
+            if (code is None or s.byte_order != "little_endian" or s.start % 8
+                    or s.start < 8 * pos or s.conversion.is_float or s.conversion.choices
+                    or s.multiplexer_ids):
+                return None
+            fmt += "x" * (s.start // 8 - pos) + (code if s.is_signed else code.upper())
+            pos = s.start // 8 + s.length // 8
+        if pos > message.length:
+            return None
+        fmt += "x" * (message.length - pos)
+        return cls(tuple(s.name for s in signals), fmt, message)
+
+    def encode(self, values: Mapping[str, float]) -> bytes | None:
+        """The payload of ``values`` (one per signal), or None to let cantools decide."""
+        raws = []
+        try:
+            for s in self._signals:
+                value = values[s.name]
+                raw = s.conversion.numeric_scaled_to_raw(value)
+                tol = abs(s.conversion.scale) * 1e-6
+                if (s.minimum is not None and value < s.minimum - tol) or \
+                        (s.maximum is not None and value > s.maximum + tol):
+                    return None
+                raws.append(raw)
+            return self._struct.pack(*raws)
+        except (KeyError, TypeError, ValueError, OverflowError, struct.error):
+            return None
+
+    def decode(self, data: bytes) -> dict[str, float]:
+        """The scaled value of every signal of a payload of the message's length."""
+        out = {}
+        for name, raw, scaling in zip(self.names, self._struct.unpack(data), self._scaling,
+                                      strict=True):
+            out[name] = float(raw if scaling is None else raw * scaling[0] + scaling[1])
+        return out
+
+
 class KoalaCanCodec:
     """Typed frames <-> :class:`can.Message` using the Koala DBC.
 
@@ -74,6 +147,10 @@ class KoalaCanCodec:
             t: self.db.get_message_by_name(name) for t, name in _NAMES.items()
         }
         self._by_id: dict[int, DbcMessage] = {m.frame_id: m for m in self._by_type.values()}
+        # The hot path (a frame per sensor sample): struct instead of cantools' bit codec.
+        self._layouts: dict[str, _ByteAlignedLayout | None] = {
+            m.name: _ByteAlignedLayout.of(m) for m in self._by_type.values()
+        }
 
     @property
     def frame_ids(self) -> Mapping[str, int]:
@@ -97,8 +174,10 @@ class KoalaCanCodec:
             values = {"yaw_rate": frame.yaw_rate}
         else:
             values = {"left_speed": frame.left_speed, "right_speed": frame.right_speed}
+        layout = self._layouts[message.name]
+        fast = None if layout is None else layout.encode(values)
         try:
-            data = message.encode(values, strict=True)
+            data = fast if fast is not None else message.encode(values, strict=True)
         except (cantools.database.EncodeError, ValueError, OverflowError) as e:
             raise FrameError(f"cannot encode {frame}: {e}") from e
         return can.Message(
@@ -110,20 +189,33 @@ class KoalaCanCodec:
         raw = bytes(msg.data)
         if msg.is_error_frame or msg.is_remote_frame or msg.is_fd:
             return Reject(RejectReason.UNSUPPORTED, "error, remote or FD frame", raw)
-        message = self._by_id.get(msg.arbitration_id)
-        if message is None or message.is_extended_frame != msg.is_extended_id:
-            kind = "extended" if msg.is_extended_id else "standard"
-            return Reject(RejectReason.UNKNOWN_ID, f"{kind} id {msg.arbitration_id:#x}", raw)
-        if len(raw) != message.length or msg.dlc != message.length:
+        return self.decode_data(msg.arbitration_id, raw, msg.is_extended_id, msg.dlc)
+
+    def decode_data(self, can_id: int, raw: bytes, extended: bool = False,
+                    dlc: int | None = None) -> CanFrame | Reject:
+        """:meth:`decode` of a classic data frame given by its id and payload (``dlc``: as the
+        frame says; None = the payload's length), without building a :class:`can.Message`."""
+        if dlc is None:
+            dlc = len(raw)
+        message = self._by_id.get(can_id)
+        if message is None or message.is_extended_frame != extended:
+            kind = "extended" if extended else "standard"
+            return Reject(RejectReason.UNKNOWN_ID, f"{kind} id {can_id:#x}", raw)
+        if len(raw) != message.length or dlc != message.length:
             return Reject(
                 RejectReason.WRONG_DLC,
-                f"{message.name} needs DLC {message.length}, got {msg.dlc}",
+                f"{message.name} needs DLC {message.length}, got {dlc}",
                 raw,
             )
-        decoded = message.decode(raw, decode_choices=False, scaling=True)
-        if not isinstance(decoded, Mapping):  # container messages are not used on this bus
-            return Reject(RejectReason.UNSUPPORTED, f"{message.name} is a container", raw)
-        values = {name: float(v) for name, v in decoded.items() if isinstance(v, int | float)}
+        layout = self._layouts[message.name]
+        if layout is not None:
+            values = layout.decode(raw)
+        else:
+            decoded = message.decode(raw, decode_choices=False, scaling=True)
+            if not isinstance(decoded, Mapping):  # container messages are not used on this bus
+                return Reject(RejectReason.UNSUPPORTED, f"{message.name} is a container", raw)
+            values = {name: float(v) for name, v in decoded.items()
+                      if isinstance(v, int | float)}
         for signal in message.signals:
             value = values[signal.name]
             low, high = signal.minimum, signal.maximum

@@ -61,7 +61,6 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Annotated, Any
 
-import can
 import numpy as np
 from koala_bridge.core.geometry import circle_centre
 from koala_bridge.core.schema import (
@@ -511,9 +510,7 @@ class LocalisationNode:
         if can_id == self._odometry_id and self._odo_t is not None \
                 and t - self._odo_t < self._predict_period - 1e-9:
             return
-        msg = can.Message(arbitration_id=can_id, data=data,
-                          is_extended_id=bool(fields.get("extended", False)))
-        frame = self._can.decode(msg)
+        frame = self._can.decode_data(can_id, bytes(data), bool(fields.get("extended", False)))
         if isinstance(frame, WheelOdometryFrame):
             self._streamed.add("odometry")
             self._odometry(t, frame.left_ticks, frame.right_ticks)

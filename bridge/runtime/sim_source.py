@@ -31,6 +31,7 @@ import logging
 import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Mapping
 from functools import partial
 from typing import Any
@@ -184,6 +185,9 @@ class SimulatedRobotSource:
         self._write_errors: set[str] = set()
         self._drains: list[Callable[[], None]] = []
         self._last_drain = 0.0
+        # Frames put on the buses, for the localisation node: it reads them after the step's
+        # every bus and Zenoh message is out (its work would delay the buses written after it).
+        self._to_localise: deque[tuple[str, float, bytes, dict[str, Any]]] = deque()
         zs = settings.zenoh
         self._pose_period = max(1, round(1.0 / (zs.pose_rate_hz * self.dt)))
         self._status_period = max(1, round(1.0 / (zs.status_rate_hz * self.dt)))
@@ -304,6 +308,7 @@ class SimulatedRobotSource:
                 lockstep.step_done(n)
         if lockstep is not None:
             lockstep.wake()
+        self._localise()  # K-Team replies since the last step
         # The final counters, unless the last step just published them (one status per t).
         if n == 0 or n % self._status_period != 0:
             self._publish_status(r.t)
@@ -480,10 +485,23 @@ class SimulatedRobotSource:
             for line in self.kteam.auto_lines(r.t):     # what the robot pushes unasked
                 self._send_bytes("kteam", self.buses.kteam, self.kteam.dialect.format_reply(line),
                                  r.t)
-        if self.localisation is not None and r.camera is not None:
-            self.localisation.on_camera(r.t, r.camera.observations)
         self._publish(r, n)
+        self._localise(r.camera.observations if r.camera is not None else None, r.t)
         self._drain_output_links()
+
+    def _localise(self, camera: Any = None, t: float = 0.0) -> None:
+        """Feed the localisation node what went on the buses since the last call, in order, then
+        the camera's observations of ``t`` (the camera has no bus)."""
+        node = self.localisation
+        queue = self._to_localise
+        if node is None:
+            queue.clear()
+            return
+        while queue:  # popleft: a K-Team reply may be appended by its reader meanwhile
+            bus, frame_t, data, fields = queue.popleft()
+            node.on_frame(bus, "from_robot", frame_t, data, **fields)
+        if camera is not None:
+            node.on_camera(t, camera)
 
     def _publish(self, r: Readings, n: int) -> None:
         assert self.zenoh is not None
@@ -713,7 +731,7 @@ class SimulatedRobotSource:
         if self.tap is not None:
             self.tap.record_frame(_tap_bus(bus), "from_robot", t, data)
         if self.localisation is not None:
-            self.localisation.on_frame(_tap_bus(bus), "from_robot", t, data)
+            self._to_localise.append((_tap_bus(bus), t, data, {}))
 
     def _send_can(self, frame: WheelOdometryFrame | GyroFrame, t: float) -> None:
         msg = self.can_codec.encode(frame)
@@ -756,9 +774,9 @@ class SimulatedRobotSource:
                 extended=msg.is_extended_id,
             )
         if self.localisation is not None:
-            self.localisation.on_frame(
-                "can", "from_robot", t, bytes(msg.data), can_id=msg.arbitration_id,
-                extended=msg.is_extended_id,
+            self._to_localise.append(
+                ("can", t, bytes(msg.data),
+                 {"can_id": msg.arbitration_id, "extended": msg.is_extended_id})
             )
 
     def _keep_initial(self, bus: str, write: Callable[[], object]) -> None:

@@ -18,23 +18,33 @@ log = logging.getLogger(__name__)
 
 
 class Waker:
-    """A socketpair whose read end wakes a ``select`` loop from another thread."""
+    """A socketpair whose read end wakes a ``select`` loop from another thread.
+
+    Wakes are coalesced: while one is pending (written, not yet drained) another costs no system
+    call. The loop must :meth:`drain` *before* it looks at the work it was woken for: work queued
+    after the drain sets the flag again and wakes the loop once more.
+    """
 
     def __init__(self) -> None:
         self._r, self._w = socket.socketpair()
         self._r.setblocking(False)
         self._w.setblocking(False)
+        self._pending = False
 
     def fileno(self) -> int:
         return self._r.fileno()
 
     def wake(self) -> None:
+        if self._pending:  # the loop has not drained the last wake yet: it will see this work
+            return
+        self._pending = True
         try:
             self._w.send(b"\0")
         except (BlockingIOError, OSError):
             pass  # already pending, or closing: either way the loop will wake
 
     def drain(self) -> None:
+        self._pending = False  # first: a wake from now on writes again
         try:
             while self._r.recv(4096):
                 pass

@@ -222,6 +222,9 @@ class SocketcandServer(CanTransport):
         self._rx = FrameQueue(rx_queue, self._stats)
         self._outbox: deque[tuple[bytes, _Client | None]] = deque()
         self._clients: dict[socket.socket, _Client] = {}
+        # Whether any client is in raw mode (the service thread keeps it): without one a bus
+        # frame goes to nobody, so send() neither formats it nor wakes the thread.
+        self._any_raw = False
         self._waker = Waker()
         self._sel = selectors.DefaultSelector()
         self._sel.register(listener, selectors.EVENT_READ, None)
@@ -233,6 +236,9 @@ class SocketcandServer(CanTransport):
         self._offline = False           # applied by the service thread (_apply_offline)
         self._want_offline = False
         self._offline_done = threading.Event()
+        # Client state (buffers, modes, the client table) is changed by the service thread and,
+        # for bus frames, by send(): one lock for both (never held while waiting in select).
+        self._io_lock = threading.Lock()
         self._thread = ServiceThread(f"socketcand:{self._port}", self._step, self._waker)
         self._thread.start()
 
@@ -293,14 +299,31 @@ class SocketcandServer(CanTransport):
         if self._offline or self._want_offline:
             self._stats.add("dropped")
             return
+        self._stats.add("sent")
+        if not self._any_raw:  # nobody receives bus frames (the thread would discard it)
+            return
         # The sender's time stamp as it is: the bridge's frames carry their sample's simulation
         # time, which is 0.0 at the first step (a wall-clock fallback for 0 made those frames
         # jump to the epoch time).
-        element = (format_error_element if msg.is_error_frame else format_frame_element)(
+        line = (format_error_element if msg.is_error_frame else format_frame_element)(
             msg, msg.timestamp)
-        self._outbox.append((element, None))
-        self._stats.add("sent")
-        self._waker.wake()
+        # Straight onto the clients' sockets from the sender's thread: handing the frame to the
+        # service thread cost a thread switch, and the sender usually holds the GIL on (the
+        # bridge's loop goes on encoding), so the frame waited for it. What a socket does not
+        # take at once stays queued for the service thread, which is woken for it.
+        with self._io_lock:
+            if self._closed:
+                raise TransportClosedError("socketcand server is closed")
+            self._outbox.append((line, None))
+            self._distribute()
+            backlog = False
+            for client in list(self._clients.values()):
+                # A socket error is left to the service thread: it reads what the client sent
+                # before it went (a last < send >) and then drops it.
+                self._flush(client, drop_on_error=False)
+                backlog = backlog or bool(client.outbuf)
+        if backlog:
+            self._waker.wake()
 
     def sync(self, timeout: float) -> bool:
         """Block until every frame sent so far has been handed to the clients' sockets (or
@@ -333,9 +356,10 @@ class SocketcandServer(CanTransport):
                 return
             self._closed = True
         self._thread.stop()
-        for client in list(self._clients.values()):
-            client.sock.close()
-        self._clients.clear()
+        with self._io_lock:
+            for client in list(self._clients.values()):
+                client.sock.close()
+            self._clients.clear()
         self._sel.close()
         self._listener.close()
         self._waker.close()
@@ -343,7 +367,16 @@ class SocketcandServer(CanTransport):
     # ----------------------------------------------------------------- service thread
 
     def _step(self, stop: threading.Event) -> None:
-        for key, mask in self._sel.select(self._timeout()):
+        with self._io_lock:
+            timeout = self._timeout()
+        events = self._sel.select(timeout)
+        with self._io_lock:
+            if not self._closed:
+                self._handle(events, stop)
+
+    def _handle(self, events: list[tuple[selectors.SelectorKey, int]],
+                stop: threading.Event) -> None:
+        for key, mask in events:
             if stop.is_set():
                 return
             if key.fileobj is self._listener:
@@ -500,11 +533,13 @@ class SocketcandServer(CanTransport):
         elif command == "rawmode" and len(words) == 1:
             client.mode = "raw"
             client.hold_until = time.monotonic() + self._grace
+            self._any_raw = True
             self._reply(client, b"< ok >")
         elif command == "bcmmode" and len(words) == 1:
             client.mode = "bcm"
             client.held.clear()
             client.hold_until = None
+            self._recount_raw()
             self._reply(client, b"< ok >")
         elif command == "echo" and len(words) == 1:
             self._reply(client, b"< echo >")
@@ -586,7 +621,7 @@ class SocketcandServer(CanTransport):
         self._stats.add("rejected")
         log.debug("socketcand client %s: rejected input (%s)", client.sock.fileno(), why)
 
-    def _flush(self, client: _Client) -> None:
+    def _flush(self, client: _Client, drop_on_error: bool = True) -> None:
         if not client.outbuf or client.sock not in self._clients:
             return
         try:
@@ -595,7 +630,8 @@ class SocketcandServer(CanTransport):
             client.blocked = True       # its socket is full: it is not reading
             return
         except OSError:
-            self._drop(client)
+            if drop_on_error:
+                self._drop(client)
             return
         client.blocked = False
         if sent and client.frame_bytes:
@@ -611,10 +647,14 @@ class SocketcandServer(CanTransport):
             self._sel.modify(client.sock, want, client)
             client.events = want
 
+    def _recount_raw(self) -> None:
+        self._any_raw = any(c.mode == "raw" for c in self._clients.values())
+
     def _drop(self, client: _Client) -> None:
         client.closed = True
         if self._clients.pop(client.sock, None) is not None:
             self._sel.unregister(client.sock)
+            self._recount_raw()
         client.sock.close()
         client.inbuf.clear()
         client.outbuf.clear()

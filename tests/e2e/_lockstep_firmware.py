@@ -117,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     bus.shutdown()
     mav.close()
     print(json.dumps({"cycles": args.cycles, "heading_deg": math.degrees(heading),
-                      "t_gyro": t_gyro, "turns": sum(1 for a, b in zip(path, path[1:])
+                      "t_gyro": t_gyro, "turns": sum(1 for a, b in zip(path, path[1:], strict=False)
                                                       if a[0] != a[1] and b[0] == b[1])}))
     return 0
 

@@ -379,6 +379,17 @@ class Koala25:
         t0 = self.sim_time()
         return self.watch.after("truth/pose", t0 + seconds, timeout=DEADLINE_S)
 
+    def wait_rest(self) -> dict[str, Any]:
+        """The first truth/pose equal to the one 0.1 s of simulated time before it: the robot
+        has stopped (a pose received over Zenoh may lag the simulation on a loaded machine, so
+        "0.1 s after the latest pose received" may still be before the stop)."""
+        p = self.wait_sim(0.0)
+        while True:
+            q = self.watch.after("truth/pose", p["t"] + 0.1, timeout=DEADLINE_S)
+            if (q["x"], q["y"], q["theta"]) == (p["x"], p["y"], p["theta"]):
+                return q
+            p = q
+
     def world(self) -> dict[str, Any]:
         return self.watch.query("world")
 
@@ -514,7 +525,7 @@ def test_d_speed_and_p_pulses_are_the_koala25_units(koala: Koala25) -> None:
     p1 = watch.after("truth/pose", p0["t"] + 2.0, timeout=DEADLINE_S)
     lib.set_motor_speed(0, 0)
     wait_until(lib.read_motor_speed, lambda s: s == (0, 0), "E after D,0,0")
-    rest1 = koala.wait_sim(0.1)
+    rest1 = koala.wait_rest()
     pulses = lib.read_motor_position()
     speed_mm_s = 1000.0 * math.hypot(p1["x"] - p0["x"], p1["y"] - p0["y"]) / (p1["t"] - p0["t"])
     lo = 100 * min(1.10, KOALA_SPEED_TO_MM_S) * 0.99           # 110 mm/s (manual), 110.8 (lib)
