@@ -10,9 +10,10 @@ would on a real Koala, with the project's codecs (the same ones that read a real
 * MAVLink 2 (UDP): ``SCALED_IMU`` magnetometer (the compass).
 
 Where to connect comes from the bridge's ``--endpoints-file``; what the robot is (wheel base,
-ticks per metre, IR poses, sensor rates) from the config file the robot was built with; what the
-world is (the grid, its walls, magnetic north) from a world file -- the lab's "Key values"
-(seeds/003 A-D) are the program's parameters. Nothing is read from Zenoh or from the simulator.
+ticks per metre, IR poses, sensor rates, the control period) from the config file the robot was
+built with; what the world is (the grid, its walls, magnetic north) from a world file -- the
+lab's "Key values" (seeds/003 A-D) are the program's parameters. Nothing is read from Zenoh or
+from the simulator.
 
 What it does (seeds/003, Lab 4):
 
@@ -26,12 +27,46 @@ What it does (seeds/003, Lab 4):
    way it came -- until every reachable cell is visited. Moves are closed-loop on an EKF
    (odometry + gyro + compass) to the next cell centre; the grid filter keeps running.
 
+*The control cycle.* The firmware runs a fixed control period ``P`` -- the config file's
+``[lockstep] period_s`` (a firmware chooses its period; the bridge's config must say the same, so
+both read one file) -- and does exactly this every cycle ``k``:
+
+1. send one K-Team ``D`` (the wheel speeds for the period ``(T_k-1, T_k]``; sent even when they
+   did not change, which also feeds a motor watchdog) and read its ``d``;
+2. wait until the robot's data has reached the cycle's end ``T_k = T_0 + k P``: every CAN and
+   MAVLink stream has delivered its last sample at or before ``T_k`` (each sample carries its
+   sampling time: the socketcand frame's time stamp, MAVLink's ``time_boot_ms``; a stream of rate
+   ``r`` samples at multiples of ``1/r``). ``T_0`` is the newest ``WheelOdometry`` time seen before
+   the first ``D``. A stream still short of ``T_k`` ``--stream-grace-s`` wall seconds after the
+   others is taken as silent (a fault, a dead link) and not waited for until it speaks again;
+3. drain every link and process *all* the samples up to ``T_k`` in one fixed order -- by sample
+   time, then gyro, odometry, compass (the gyro integral closes at the odometry sample of the
+   same time) -- not in arrival order across links; a repeated or older sample of a stream is
+   dropped (while the bridge holds at t = 0 it re-sends step 0's frames);
+4. decide the next command; an IR reading is a K-Team ``N`` sent and answered within the cycle.
+
+Every decision depends on robot data and the seed only; the wall clock is a liveness watchdog
+(``--timeout-s`` aborts the run), the bound on waiting for a silent stream (in lockstep all data
+up to the boundary is readable once ``d`` has come: waiting longer would bring nothing) and a
+sleep that avoids busy-waiting, so the same bridge config, seed and arguments give the same
+commands.
+
+With ``koala-bridge run --clock lockstep`` (docs/protocols.md "Lockstep"; ``[lockstep] cycle_bus =
+"kteam"``, ``cycle_message = "D"``) the bridge simulates the period when the ``D`` arrives and
+answers ``d`` afterwards, so step 2 never waits and a run is reproducible bit for bit, however
+slow the machine. With ``--clock fast`` or ``realtime`` the robot does not wait for the firmware:
+step 2 waits for the data to arrive, and if the robot ran ahead (a slow or stopped firmware) the
+cycle ends at the period boundary at or after the newest ``WheelOdometry`` sample, counted in
+the report as ``skipped_periods`` (always 0 in lockstep).
+
 It prints a JSON report (``--report`` also writes it to a file) and exits 0 when every reachable
-cell was visited, 1 otherwise.
+cell was visited, 1 otherwise -- also when ``--max-sim-s`` of robot time ran out (the report then
+says ``"ended": "robot-time budget"``). The report carries the final pose estimate with its robot
+time, and the run's cost: control cycles, wall seconds and cycles per wall second.
 
 example::
 
-    koala-bridge run --clock fast --endpoints-file /tmp/koala.json --config my.toml &
+    koala-bridge run --clock lockstep --endpoints-file /tmp/koala.json --config my.toml &
     python examples/coverage_firmware.py --endpoints-file /tmp/koala.json --config my.toml \\
         --world config/worlds/lab_walls_1.toml
 """
@@ -42,11 +77,12 @@ import argparse
 import json
 import logging
 import math
+import select
 import socket
 import sys
 import time
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -85,6 +121,24 @@ log = logging.getLogger("coverage_firmware")
 
 OPPOSITE = {"N": "S", "S": "N", "E": "W", "W": "E"}
 LAB_ORDER = ("W", "N", "S", "E")  # seeds/003 "Full grid navigation": left, up, down, right
+#: the bridge's [lockstep] period_s default (config/default.toml), for a config without [lockstep]
+DEFAULT_PERIOD_S = 0.01
+#: sample times are exact multiples of the simulation step, carried to the microsecond
+#: (socketcand SECS.USECS) or millisecond (MAVLink time_boot_ms): compare them this loosely
+TIME_EPS_S = 2e-3
+
+# The streams, in the order samples of the same time are processed.
+GYRO, ODOMETRY, COMPASS = 0, 1, 2
+STREAM_NAMES = ("gyro", "odometry", "compass")
+
+
+class WatchdogTimeout(TimeoutError):
+    """The wall-clock liveness watchdog (``--timeout-s``) ran out: the robot stopped answering."""
+
+
+class RobotTimeBudget(Exception):
+    """``--max-sim-s`` of robot time have passed: the run ends with what it has (the report
+    says ``"ended": "robot-time budget"``)."""
 
 
 # --------------------------------------------------------------------------- parameters
@@ -103,11 +157,16 @@ class RobotParams:
     ir_aperture_rad: float
     encoders_rate_hz: float
     gyro_rate_hz: float
+    compass_rate_hz: float
+    period_s: float  # the control period: [lockstep] period_s
 
     @classmethod
     def from_config(cls, d: Mapping[str, Any]) -> RobotParams:
         ir = np.array(d["sensors"]["ir"]["poses"], dtype=float)
         ir[:, 2] = np.radians(ir[:, 2])
+        period = float(d.get("lockstep", {}).get("period_s", DEFAULT_PERIOD_S))
+        if not (math.isfinite(period) and period > 0):
+            raise SystemExit(f"[lockstep] period_s must be > 0, got {period!r}")
         return cls(
             ticks_per_metre=float(d["robot"]["ticks_per_metre"]),
             wheel_base_m=float(d["robot"]["wheel_base_m"]),
@@ -118,21 +177,38 @@ class RobotParams:
             ir_aperture_rad=math.radians(float(d["sensors"]["ir"]["aperture_deg"])),
             encoders_rate_hz=float(d["sensors"]["encoders"]["rate_hz"]),
             gyro_rate_hz=float(d["sensors"]["gyro"]["rate_hz"]),
+            compass_rate_hz=float(d["sensors"]["compass"]["rate_hz"]),
+            period_s=period,
         )
+
+    def stream_rates_hz(self) -> tuple[float, float, float]:
+        """Sample rates of the streams GYRO, ODOMETRY, COMPASS."""
+        return (self.gyro_rate_hz, self.encoders_rate_hz, self.compass_rate_hz)
 
 
 # --------------------------------------------------------------------------- the buses
 
 
+@dataclass(frozen=True, slots=True)
+class Sample:
+    """One sample of a stream, stamped with its sampling time (robot seconds)."""
+
+    t: float
+    stream: int  # GYRO, ODOMETRY or COMPASS
+    value: GyroFrame | WheelOdometryFrame | CompassSample
+
+
 class Links:
     """The robot's three links, opened from the endpoints file as on a real Koala."""
 
-    def __init__(self, endpoints: Mapping[str, Any]) -> None:
+    def __init__(self, endpoints: Mapping[str, Any], watchdog_s: float) -> None:
         kteam = endpoints["serial"]["kteam"]
         sc = endpoints["can"]["socketcand"]
         mav_url = endpoints["mavlink"]["url"]
         if not (kteam and sc and mav_url):
             raise SystemExit("the firmware needs the K-Team serial, socketcand and MAVLink buses")
+        self.watchdog_s = watchdog_s
+        self.wall_deadline = time.monotonic() + watchdog_s
         self.serial = serial.Serial(kteam, 115200, timeout=0)
         self.lines = LineSplitter()
         self.can = can.Bus(
@@ -151,43 +227,61 @@ class Links:
         self.mav_datagrams = kind == "udpin"
         self.mav.setblocking(False)
 
-    def can_frames(self) -> list[WheelOdometryFrame | GyroFrame]:
-        out: list[WheelOdometryFrame | GyroFrame] = []
-        while (msg := self.can.recv(0.0)) is not None:
-            frame = self.codec.decode(msg)
-            if isinstance(frame, WheelOdometryFrame | GyroFrame):
-                out.append(frame)
-        return out
+    def check_watchdog(self) -> None:
+        """Liveness only: abort when the run has taken ``--timeout-s`` wall seconds."""
+        if time.monotonic() > self.wall_deadline:
+            raise WatchdogTimeout(f"wall-clock watchdog: no result within {self.watchdog_s:g} s")
 
-    def compass_samples(self) -> list[CompassSample]:
-        out: list[CompassSample] = []
+    def samples(self, wait_s: float = 0.0) -> list[Sample]:
+        """Every CAN and MAVLink sample received so far, each with its sampling time; with
+        ``wait_s`` > 0, first wait that long at most for the CAN link to have data."""
+        out: list[Sample] = []
+        timeout = wait_s
+        while (msg := self.can.recv(timeout)) is not None:
+            timeout = 0.0
+            frame = self.codec.decode(msg)
+            if isinstance(frame, GyroFrame):
+                out.append(Sample(float(msg.timestamp), GYRO, frame))
+            elif isinstance(frame, WheelOdometryFrame):
+                out.append(Sample(float(msg.timestamp), ODOMETRY, frame))
         while True:
             try:
                 data = self.mav.recv(65536)
             except BlockingIOError:
-                return out
+                break
             if not data:
-                return out
+                break
             parsed = (self.compass.feed_datagram(data) if self.mav_datagrams
                       else self.compass.feed(data))
-            out += [s for s in parsed if isinstance(s, CompassSample)]
-
-    def kteam_replies(self) -> list[KteamReply]:
-        data = self.serial.read(self.serial.in_waiting or 1)
-        out: list[KteamReply] = []
-        for line in self.lines.feed(data):
-            if isinstance(line, bytes):
-                reply = parse_reply(line)
-                if isinstance(reply, KteamReply):
-                    out.append(reply)
+            out += [Sample(s.time_boot_ms / 1000.0, COMPASS, s) for s in parsed
+                    if isinstance(s, CompassSample)]
         return out
 
-    def send(self, command: KteamCommand) -> None:
+    def wait_compass(self, timeout_s: float) -> None:
+        """Sleep until the MAVLink socket is readable or ``timeout_s`` passed (no busy-wait)."""
+        select.select([self.mav], [], [], timeout_s)
+
+    def request(self, command: KteamCommand, answer: str) -> KteamReply:
+        """Send a K-Team command and return its reply (the first with letter ``answer``; lines
+        the robot pushes unasked are skipped). An error reply is fatal: the firmware only sends
+        what it knows the robot takes."""
         self.serial.write(format_command(command))
+        while True:
+            self.check_watchdog()
+            if not self.serial.in_waiting:
+                select.select([self.serial.fileno()], [], [], 0.05)
+            data = self.serial.read(self.serial.in_waiting or 1)
+            for line in self.lines.feed(data):
+                reply = parse_reply(line) if isinstance(line, bytes) else line
+                if isinstance(reply, KteamReply):
+                    if reply.letter == answer:
+                        return reply
+                    if reply.letter == "z":
+                        raise RuntimeError(f"the robot refused {command}: {reply}")
 
     def close(self) -> None:
         try:
-            self.send(KteamCommand("D", (0, 0)))
+            self.serial.write(format_command(KteamCommand("D", (0, 0))))
             self.serial.flush()
         finally:
             self.serial.close()
@@ -195,11 +289,78 @@ class Links:
             self.mav.close()
 
 
+class RobotClock:
+    """The firmware's time: the robot's sample times, cut into control periods.
+
+    ``T_0`` is the newest odometry time before the first cycle; cycle ``k`` ends at
+    ``T_0 + k P``. Samples are kept per cycle; a stream's sample at or before its newest one is a
+    repeat and dropped. Pure bookkeeping, no I/O: :class:`CoverageFirmware` feeds it.
+    """
+
+    def __init__(self, period_s: float, rates_hz: Iterable[float]) -> None:
+        self.period_s = period_s
+        self.rates_hz = tuple(rates_hz)
+        self.newest = [-math.inf] * len(self.rates_hz)  # per stream, newest sample time
+        self.pending: list[Sample] = []
+        self.origin: float | None = None                  # T_0
+        self.index = 0                                     # k: T_k = T_0 + k P
+        self.skipped = 0                                   # periods the robot ran ahead
+
+    def add(self, samples: Iterable[Sample]) -> None:
+        for s in samples:
+            if s.t > self.newest[s.stream]:
+                self.newest[s.stream] = s.t
+                self.pending.append(s)
+
+    @property
+    def end(self) -> float:
+        """``T_k``, the end of the current cycle (robot seconds)."""
+        assert self.origin is not None
+        return self.origin + self.index * self.period_s
+
+    def start(self) -> None:
+        """Fix ``T_0`` at the newest odometry sample (the robot has been heard from)."""
+        self.origin = self.newest[ODOMETRY]
+
+    def next_cycle(self) -> None:
+        self.index += 1
+
+    def catch_up(self) -> None:
+        """If odometry is already past ``T_k`` (the robot did not wait: fast or realtime clock),
+        end the cycle at the first period boundary at or after the newest odometry sample."""
+        assert self.origin is not None
+        ahead = (self.newest[ODOMETRY] - self.origin) / self.period_s
+        if ahead > self.index + TIME_EPS_S / self.period_s:
+            k = math.ceil(ahead - TIME_EPS_S / self.period_s)
+            self.skipped += k - self.index
+            self.index = k
+
+    def behind(self) -> list[int]:
+        """The streams that have not yet delivered their last sample at or before ``T_k`` (a
+        stream of rate ``r`` samples at multiples of ``1/r``)."""
+        end = self.end
+        out = []
+        for stream, (rate, newest) in enumerate(zip(self.rates_hz, self.newest, strict=True)):
+            last_due = math.floor(end * rate + 1e-6) / rate
+            if newest < last_due - TIME_EPS_S / 2:
+                out.append(stream)
+        return out
+
+    def take(self) -> list[Sample]:
+        """The pending samples up to ``T_k`` in processing order (time, then stream)."""
+        end = self.end + TIME_EPS_S / 2
+        due = [s for s in self.pending if s.t <= end]
+        self.pending = [s for s in self.pending if s.t > end]
+        due.sort(key=lambda s: (s.t, s.stream))
+        return due
+
+
 # --------------------------------------------------------------------------- the firmware
 
 
 class CoverageFirmware:
-    """Calibrate, localise, cover. Time is *robot* time: encoder frames / their rate."""
+    """Calibrate, localise, cover, one control cycle at a time (:meth:`cycle`). Time is *robot*
+    time: the sampling times the robot's frames carry."""
 
     def __init__(self, links: Links, robot: RobotParams, world: Grid, args: argparse.Namespace):
         self.links = links
@@ -215,17 +376,22 @@ class CoverageFirmware:
         self.tracker.reset(0.0, 0.0, 0.0, np.diag([1e-6, 1e-6, math.pi**2]))
         self.grid = GridLocaliser(world, GridParams(p_move=args.p_move, p_hit=0.9, p_clear=0.7))
         self.north = math.radians(world.earth_field.north_deg)
-        self.t = 0.0
-        self.n_odo = 0
-        self.n_gyro = 0
+        self.clock = RobotClock(robot.period_s, robot.stream_rates_hz())
+        self.t = 0.0  # the end of the last cycle, robot seconds
+        self.cycles = 0
+        self.ir_requests = 0
+        self.silent: set[int] = set()  # streams not waited for (see cycle())
+        self.silent_streams = 0        # times a stream was found silent
         self.hard_iron: np.ndarray | None = None
         self.spin_fields: list[tuple[float, np.ndarray]] = []
         self.collect_fields = False
         self.ir: tuple[int, ...] | None = None
-        self.last_units: tuple[int, int] | None = None
-        self.last_send_t = -math.inf
-        self.wall_deadline = time.monotonic() + args.timeout_s
+        self.units: tuple[int, int] = (0, 0)  # the wheel command of the next cycle
         self.resyncs = 0
+        self.localised: tuple[int, int] | None = None
+        self.localised_at: float | None = None  # robot time since T_0, s
+        self.localisation_moves: int | None = None
+        self.order: list[tuple[int, int]] = []
         self.last_counts: tuple[int, ...] | None = None
         self.wall_fixes = 0
         self.compass_rejects = 0  # consecutive
@@ -238,65 +404,100 @@ class CoverageFirmware:
         self.ir_beam = BeamModel(robot.ir_aperture_rad, 0.03,
                                  max_range_m=float(robot.ir_response_m[-1]))
 
-    # -- plumbing ------------------------------------------------------------------------
-    def poll(self) -> None:
-        """Drain every link; feed the pose tracker in arrival order."""
-        for frame in self.links.can_frames():
-            if isinstance(frame, GyroFrame):
-                self.n_gyro += 1
-                self.tracker.on_gyro(self.n_gyro / self.robot.gyro_rate_hz, frame.yaw_rate)
+    # -- the control cycle -----------------------------------------------------------------
+    def start(self) -> None:
+        """Before the first cycle: wait until the robot is heard from (an odometry sample),
+        which fixes ``T_0``."""
+        while self.clock.newest[ODOMETRY] == -math.inf:
+            self.links.check_watchdog()
+            self.clock.add(self.links.samples(wait_s=0.05))
+        self.clock.add(self.links.samples())
+        self.clock.start()
+        self.t = self.clock.end
+        log.info("robot time starts at %.3f s; control period %g s", self.t,
+                 self.robot.period_s)
+
+    def cycle(self) -> None:
+        """One control cycle: send ``D`` with :attr:`units` and read its ``d``; wait until every
+        stream reached the cycle's end; process its samples in (time, stream) order.
+
+        A stream that has not reached the cycle's end ``--stream-grace-s`` wall seconds after
+        the others is taken as silent (a fault, a dead link) and not waited for until it
+        speaks again. In lockstep this changes no decision: after ``d`` everything sampled up
+        to the boundary is already readable, so waiting longer would bring nothing more."""
+        self.links.request(KteamCommand("D", self.units), "d")
+        self.cycles += 1
+        clock = self.clock
+        clock.next_cycle()
+        waiting_since: float | None = None
+        while True:
+            clock.add(self.links.samples())
+            clock.catch_up()
+            behind = clock.behind()
+            self.silent.intersection_update(behind)  # a stream that spoke is silent no more
+            behind = [s for s in behind if s not in self.silent]
+            if not behind:
+                break
+            self.links.check_watchdog()
+            now = time.monotonic()
+            if waiting_since is None:
+                waiting_since = now
+            elif now - waiting_since > self.args.stream_grace_s:
+                log.warning("t = %.2f s: no %s data up to the cycle's end; not waiting for it",
+                            clock.end, ", ".join(STREAM_NAMES[s] for s in behind))
+                self.silent.update(behind)
+                self.silent_streams += len(behind)
+                break
+            if GYRO in behind or ODOMETRY in behind:
+                clock.add(self.links.samples(wait_s=0.01))  # blocks on the CAN socket
             else:
-                self.n_odo += 1
-                self.t = self.n_odo / self.robot.encoders_rate_hz
-                self.tracker.on_odometry(self.t, frame.left_ticks, frame.right_ticks)
-        for s in self.links.compass_samples():
-            field = np.array([s.x_ut, s.y_ut, s.z_ut])
+                self.links.wait_compass(0.01)
+        self.t = clock.end
+        for s in clock.take():
+            self.on_sample(s)
+        if self.t - clock.origin > self.args.max_sim_s:  # type: ignore[operator]
+            raise RobotTimeBudget(f"{self.args.max_sim_s:g} s of robot time have passed")
+
+    def on_sample(self, s: Sample) -> None:
+        """Feed one sample to the pose tracker (and the calibration)."""
+        if s.stream == GYRO:
+            assert isinstance(s.value, GyroFrame)
+            self.tracker.on_gyro(s.t, s.value.yaw_rate)
+        elif s.stream == ODOMETRY:
+            assert isinstance(s.value, WheelOdometryFrame)
+            self.tracker.on_odometry(s.t, s.value.left_ticks, s.value.right_ticks)
+        else:
+            assert isinstance(s.value, CompassSample)
+            field = np.array([s.value.x_ut, s.value.y_ut, s.value.z_ut])
             if self.collect_fields:
                 self.spin_fields.append((self.tracker.pose[2], field))
             if self.hard_iron is not None:
                 heading = heading_from_field(field, self.north, self.hard_iron)
-                ok = self.tracker.on_compass(self.t, heading)
-                # Turning, the compass is gated out anyway (stream lag): count only otherwise.
-                turning = self.last_units is not None and self.last_units[0] != self.last_units[1]
+                ok = self.tracker.on_compass(s.t, heading)
+                # Count disagreement only outside turns (where the field is bent least by the
+                # motor currents, docs/models.md "Compass").
+                turning = self.units[0] != self.units[1]
                 if ok:
                     self.compass_rejects = 0
                 elif not turning:
                     self.compass_rejects += 1
-        for reply in self.links.kteam_replies():
-            if reply.letter == "n":
-                self.ir = reply.ints
-        if time.monotonic() > self.wall_deadline:
-            raise TimeoutError("wall-clock timeout")
-        if self.t > self.args.max_sim_s:
-            raise TimeoutError("robot-time budget exhausted")
 
     def drive(self, v: float, w: float) -> None:
-        """Wheel speeds for forward speed ``v`` (m/s) and turn rate ``w`` (rad/s), via K-Team D;
-        re-sent every 0.2 s of robot time so a motor watchdog stays fed."""
+        """Wheel speeds for forward speed ``v`` (m/s) and turn rate ``w`` (rad/s), sent as
+        K-Team ``D`` by the next :meth:`cycle`."""
         b = self.robot.wheel_base_m
         scale = self.robot.ticks_per_metre / 100.0  # m/s -> pulse / 10 ms
         lim = self.robot.max_speed_units
-        units = tuple(
+        left, right = (
             max(-lim, min(lim, round(s * scale))) for s in (v - w * b / 2, v + w * b / 2)
         )
-        if units != self.last_units or self.t - self.last_send_t > 0.2:
-            self.links.send(KteamCommand("D", units))
-            self.last_units = units  # type: ignore[assignment]
-            self.last_send_t = self.t
+        self.units = (left, right)
 
     def wait(self, seconds: float) -> None:
-        """Poll for ``seconds`` of robot time, keeping the current wheel command."""
+        """Run cycles for ``seconds`` of robot time, keeping the current wheel command."""
         end = self.t + seconds
-        while self.t < end:
-            self.poll()
-            if self.last_units is not None:
-                self.drive_units_keepalive()
-            time.sleep(0.0005)
-
-    def drive_units_keepalive(self) -> None:
-        if self.t - self.last_send_t > 0.2 and self.last_units is not None:
-            self.links.send(KteamCommand("D", self.last_units))
-            self.last_send_t = self.t
+        while self.t < end - TIME_EPS_S / 2:
+            self.cycle()
 
     def stop(self) -> None:
         """Stop the wheels and let them settle. Standing still is also when a heading that the
@@ -317,30 +518,26 @@ class CoverageFirmware:
             self.heading_resets += 1
 
     def read_ir(self) -> tuple[int, ...]:
-        """One fresh ``N`` reading."""
-        self.ir = None
-        self.links.send(KteamCommand("N"))
-        while self.ir is None:
-            self.poll()
-            time.sleep(0.0005)
+        """One ``N`` reading, asked for and answered within the cycle (at its boundary)."""
+        self.ir = self.links.request(KteamCommand("N"), "n").ints
+        self.ir_requests += 1
         return self.ir
 
     # -- motion primitives ---------------------------------------------------------------
     def turn_to(self, heading: float, tolerance: float = 0.03) -> None:
         """Turn on the spot to ``heading``: proportionally while far, then in timed pulses with
-        a stop between them. The firmware sees the robot through a lag (with ``--clock fast`` a
-        busy machine delays the CAN stream by up to a second of robot time); proportional
-        control through a lag overshoots and can oscillate for ever, whereas a pulse timed on
-        the (equally lagging) robot clock has the right length, and deciding only when the
-        robot stands still removes the lag from the decision."""
+        a stop between them. A command acts one cycle after the data it was decided on (and,
+        with ``--clock fast`` on a busy machine, the robot may run ahead of the firmware by many
+        periods); proportional control through such a lag overshoots, whereas a pulse timed on
+        the robot clock has the right length, and deciding only when the robot stands still
+        removes the lag from the decision."""
         end = self.t + 30.0
         while self.t < end:
-            self.poll()
             err = wrap(heading - self.tracker.pose[2])
             if abs(err) < 0.25:
                 break
             self.drive(0.0, math.copysign(min(0.8, 2.0 * abs(err)), err))
-            time.sleep(0.0005)
+            self.cycle()
         self.stop()
         for _ in range(8):
             err = wrap(heading - self.tracker.pose[2])
@@ -367,12 +564,10 @@ class CoverageFirmware:
             self.turn_to(math.atan2(y - py, x - px))
         end = self.t + d0 / 0.02 + 10.0
         vmax = self.args.speed_mps
-        self.ir = None
         next_ir = self.t
         while self.t < end:
-            self.poll()
-            if self.t >= next_ir:  # ask for IR; the reply lands in self.ir via poll()
-                self.links.send(KteamCommand("N"))
+            if self.t >= next_ir - TIME_EPS_S / 2:  # IR every 0.1 s of robot time
+                self.read_ir()
                 next_ir = self.t + 0.1
             if self.blocked_ahead():
                 log.warning("IR bumper: obstacle ahead at t=%.1f", self.t)
@@ -389,7 +584,7 @@ class CoverageFirmware:
                 self.turn_to(math.atan2(dy, dx))
                 continue
             self.drive(min(vmax, max(0.02, 0.8 * along)), max(-0.4, min(0.4, 2.0 * err)))
-            time.sleep(0.0005)
+            self.cycle()
         self.stop()
         return False
 
@@ -404,12 +599,11 @@ class CoverageFirmware:
         self.collect_fields = True
         end = self.t + 40.0
         while turned < 2 * math.pi + 0.3 and self.t < end:
-            self.poll()
+            self.drive(0.0, 0.6)
+            self.cycle()
             th = self.tracker.pose[2]
             turned += abs(wrap(th - last))
             last = th
-            self.drive(0.0, 0.6)
-            time.sleep(0.0005)
         self.collect_fields = False
         self.stop()
         xy = np.array([f[:2] for _, f in self.spin_fields])
@@ -548,7 +742,8 @@ class CoverageFirmware:
         cell = start
         reachable = _reachable(w, start)
         visited = {cell}
-        order = [cell]
+        order = self.order  # kept on the firmware: a run cut short reports what it visited
+        order.append(cell)
         history: list[str] = []
         doubt = 0
         self.correct_from_walls(w.cell_centre(*cell), self.map_walls(cell))
@@ -596,19 +791,47 @@ class CoverageFirmware:
                 doubt = 0
 
     def run(self) -> dict[str, Any]:
-        self.calibrate()
-        start, moves = self.localise()
-        log.info("localised in %s after %d moves", start, moves)
-        order = self.cover(start)
-        self.stop()
-        reachable = _reachable(self.world, start)
+        """Calibrate, localise, cover; the report (also when ``--max-sim-s`` ran out)."""
+        self.start()
+        assert self.clock.origin is not None
+        wall0 = time.monotonic()  # for the report only: the run's cost, never a decision
+        ended = "covered"
+        try:
+            self.calibrate()
+            start, moves = self.localise()
+            self.localised, self.localisation_moves = start, moves
+            self.localised_at = self.t - self.clock.origin
+            log.info("localised in %s after %d moves, t = %.1f s", start, moves,
+                     self.localised_at)
+            self.cover(start)
+            self.stop()
+        except RobotTimeBudget as e:
+            log.warning("%s: the run ends here", e)
+            ended = "robot-time budget"
+        wall = time.monotonic() - wall0
+        order = self.order
+        reachable = (set() if self.localised is None
+                     else _reachable(self.world, self.localised))
+        x, y, th = self.tracker.pose
         return {
-            "localised_cell": list(start),
-            "localisation_moves": moves,
+            "ended": ended,
+            "localised_cell": None if self.localised is None else list(self.localised),
+            "localisation_moves": self.localisation_moves,
+            "localised_at_s": (None if self.localised_at is None
+                               else round(self.localised_at, 6)),
             "visited": [list(c) for c in order],
             "reachable": len(reachable),
-            "complete": reachable <= set(order),
-            "robot_time_s": round(self.t, 2),
+            "complete": bool(reachable) and reachable <= set(order),
+            "robot_time_s": round(self.t - self.clock.origin, 6),
+            # the final estimate, in the world frame, at robot time t (the robot's own clock)
+            "estimate": {"t": round(self.t, 6), "x": x, "y": y, "theta": th},
+            "period_s": self.robot.period_s,
+            "cycles": self.cycles,
+            "skipped_periods": self.clock.skipped,
+            "ir_requests": self.ir_requests,
+            "silent_streams": self.silent_streams,
+            "wall_s": round(wall, 3),
+            "cycles_per_wall_s": round(self.cycles / wall, 1) if wall > 0 else None,
             "resyncs": self.resyncs,
             "wall_fixes": self.wall_fixes,
             "heading_resets": self.heading_resets,
@@ -683,8 +906,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-localise-moves", type=int, default=40, help="(default 40)")
     ap.add_argument("--max-sim-s", type=float, default=1500.0,
                     help="robot-time budget, s (default 1500)")
+    ap.add_argument("--stream-grace-s", type=float, default=0.5,
+                    help="wall seconds to wait for a stream that lags the others before taking "
+                         "it as silent (default 0.5; no effect on decisions in lockstep)")
     ap.add_argument("--timeout-s", type=float, default=300.0,
-                    help="wall-clock budget, s (default 300)")
+                    help="liveness watchdog: abort after this many wall seconds (default 300)")
     ap.add_argument("--ir-echo-counts", type=float, default=10.0,
                     help="IR counts below this are noise, not an echo (default 10)")
     ap.add_argument("--map-resolution-m", type=float, default=0.05,
@@ -699,7 +925,7 @@ def main(argv: list[str] | None = None) -> int:
     endpoints = json.loads(args.endpoints_file.read_text())
     robot = RobotParams.from_config(tomllib.loads(args.config.read_text()))
     world = Grid.from_dict(tomllib.loads(args.world.read_text())["world"])
-    links = Links(endpoints)
+    links = Links(endpoints, args.timeout_s)
     try:
         report = CoverageFirmware(links, robot, world, args).run()
     finally:

@@ -1,13 +1,20 @@
-"""examples/coverage_firmware.py against a real bridge subprocess (``--clock fast``).
+"""examples/coverage_firmware.py against a real bridge subprocess (``--clock lockstep``).
 
 The bridge runs a lab world with every seed error model on and records what happened; the
 firmware, another process, sees only the K-Team serial pty, the socketcand CAN server and the
 MAVLink UDP stream. Success is judged on the *truth* recorded by the bridge (``/truth/pose``):
 the robot must have stopped near the centre of every reachable cell -- not on the firmware's word.
 
+Lockstep: simulated time advances one ``[lockstep] period_s`` per K-Team ``D`` of the firmware,
+so the run is the same however loaded the machine is. ``PERIOD_S`` = 0.02 s: the wall time is
+set by the bridge's cost per 10 ms simulation step (every error model, the recorder, Zenoh), not
+by the number of cycles -- 0.01 s runs at ~600 control cycles per wall second (~6x real time),
+0.02 s at ~400-550 (~8-11x), 0.05 s at ~130-170 (no faster) on a 2-core machine.
+
 ``python tests/e2e/test_coverage_firmware.py --seeds 20 --random-start`` runs every lab wall world
 with seeds 0..19 (random start cell and heading per seed) and prints a table
-(docs/localisation.md, "Coverage firmware").
+(docs/localisation.md, "Coverage firmware"); ``--clock fast`` / ``realtime`` and ``--period-s``
+run the same firmware against the other clocks or another period.
 """
 
 from __future__ import annotations
@@ -36,6 +43,7 @@ from koala_bridge.sim.world import World
 ROOT = Path(__file__).resolve().parents[2]
 FIRMWARE = ROOT / "examples" / "coverage_firmware.py"
 CENTRE_TOLERANCE_M = 0.1  # the truth passed this close to a cell's centre: the cell was visited
+PERIOD_S = 0.02  # [lockstep] period_s: the firmware's control period
 
 
 def free_port(kind: int = socket.SOCK_STREAM) -> int:
@@ -46,7 +54,7 @@ def free_port(kind: int = socket.SOCK_STREAM) -> int:
 
 def write_config(
     tmp: Path, world: str, zenoh_port: int, mav_port: int,
-    start: tuple[float, float, float] | None = None,
+    start: tuple[float, float, float] | None = None, period_s: float = PERIOD_S,
 ) -> Path:
     d = tomllib.loads((ROOT / "config" / "default.toml").read_text())
     d["world"] = tomllib.loads((ROOT / "config" / "worlds" / f"{world}.toml").read_text())["world"]
@@ -61,6 +69,7 @@ def write_config(
     d["buses"]["can"].update(socketcand_port=0, slcan=False, virtual=False)
     d["buses"]["mavlink"]["port"] = mav_port
     d["zenoh"]["listen"] = [f"tcp/127.0.0.1:{zenoh_port}"]
+    d["lockstep"]["period_s"] = period_s   # the bridge's and the firmware's control period
     path = tmp / f"{world}.toml"
     path.write_bytes(tomli_w.dumps(d).encode())
     return path
@@ -95,11 +104,13 @@ def occupancy_accuracy(msg: dict[str, Any], world: World) -> tuple[float, int]:
 
 
 def run_once(
-    tmp: Path, world_name: str, seed: int, timeout_s: float = 240.0, random_start: bool = False
+    tmp: Path, world_name: str, seed: int, timeout_s: float = 240.0, random_start: bool = False,
+    clock: str = "lockstep", period_s: float = PERIOD_S,
 ) -> dict[str, Any]:
     """One bridge + firmware run; returns the firmware's report plus truth-based results. With
     ``random_start`` the robot starts at a seeded random free cell's centre, facing a random
-    cardinal direction."""
+    cardinal direction. In lockstep the bridge ends the run itself when the firmware closes the
+    K-Team port; with another ``clock`` it is stopped with SIGTERM."""
     start = None
     if random_start:
         rng = random.Random(seed)
@@ -108,12 +119,13 @@ def run_once(
         )
         x, y = w.cell_centre(*rng.choice(w.free_cells()))
         start = (x, y, float(rng.choice([0, 90, 180, 270])))
-    cfg = write_config(tmp, world_name, free_port(), free_port(socket.SOCK_DGRAM), start)
+    cfg = write_config(tmp, world_name, free_port(), free_port(socket.SOCK_DGRAM), start,
+                       period_s)
     endpoints = tmp / f"endpoints_{world_name}_{seed}.json"
     mcap = tmp / f"run_{world_name}_{seed}.mcap"
     report = tmp / f"report_{world_name}_{seed}.json"
     bridge = subprocess.Popen(
-        [sys.executable, "-m", "koala_bridge", "run", "--config", str(cfg), "--clock", "fast",
+        [sys.executable, "-m", "koala_bridge", "run", "--config", str(cfg), "--clock", clock,
          "--seed", str(seed), "--endpoints-file", str(endpoints), "--record", str(mcap),
          "--log-level", "WARNING"],
         cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
@@ -133,7 +145,13 @@ def run_once(
             cwd=ROOT, capture_output=True, text=True, timeout=timeout_s + 30,
         )
     finally:
-        bridge.send_signal(signal.SIGTERM)
+        try:
+            if clock == "lockstep":  # the firmware has closed its port: the bridge stops itself
+                bridge.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            pass
+        if bridge.poll() is None:
+            bridge.send_signal(signal.SIGTERM)
         try:
             bridge.wait(timeout=30)
         except subprocess.TimeoutExpired:
@@ -174,13 +192,17 @@ def main() -> None:
     ap.add_argument("--worlds", nargs="*", default=["lab_walls_1", "lab_walls_2", "lab_walls_3"])
     ap.add_argument("--random-start", action="store_true",
                     help="start each run in a seeded random cell and cardinal heading")
+    ap.add_argument("--clock", default="lockstep", choices=["lockstep", "fast", "realtime"])
+    ap.add_argument("--period-s", type=float, default=PERIOD_S,
+                    help=f"[lockstep] period_s, the firmware's control period (default {PERIOD_S})")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         for world in args.worlds:
             for seed in range(args.seeds):
                 t0 = time.monotonic()
                 try:
-                    r = run_once(Path(tmp), world, seed, random_start=args.random_start)
+                    r = run_once(Path(tmp), world, seed, random_start=args.random_start,
+                                 clock=args.clock, period_s=args.period_s)
                     ok = r["complete"] and set(map(tuple, r["truth_visited"])) == set(
                         r["free_cells"])
                     print(f"{world} seed {seed}: {'ok' if ok else 'INCOMPLETE'} "
@@ -188,7 +210,9 @@ def main() -> None:
                           f"moves, {len(r['truth_visited'])}/{len(r['free_cells'])} cells, "
                           f"robot time {r['robot_time_s']} s, resyncs {r['resyncs']}, "
                           f"wall fixes {r['wall_fixes']}, map {r['map_accuracy']:.3f} of "
-                          f"{r['map_observed']}, wall {time.monotonic() - t0:.0f} s",
+                          f"{r['map_observed']}, {r['cycles']} cycles, "
+                          f"{r['cycles_per_wall_s']} cycles/s, skipped {r['skipped_periods']}, "
+                          f"wall {time.monotonic() - t0:.0f} s",
                           flush=True)
                     if not ok:
                         print(r["firmware_log"], flush=True)
