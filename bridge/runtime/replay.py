@@ -9,7 +9,8 @@ leaves within a fraction of a millisecond of its time (docs/recording.md has the
 
 K-Team ASCII is request/response, so its replies are not replayed as a stream: a command from
 the client is answered with the latest recorded reply to the same letter at the current replay
-time (``h,...`` for ``H``; Koala 2.5 ``@,...`` for ``&``), or with the dialect's error reply
+time (``h,...`` for ``H``; Koala 2.5 ``@,...`` for ``&``; ``B``, the version, with the first
+recorded one even when asked earlier than in the recording), or with the dialect's error reply
 ``Not recorded`` if the recording has none (Koala 2.5 ``B``: a bare ``#``, shorter than the 7
 bytes libkoala reads, so that it stays in step). Commands are parsed, replies ended and errors
 lettered in the recording's dialect (metadata ``kteam_dialect``, :func:`recorded_dialect`):
@@ -392,6 +393,10 @@ class Replayer:
             return d.format_reply(d.reply("A"))
         times, lines = self.plan.kteam_replies.get(d.reply_letter(cmd.letter), ([], []))
         i = bisect.bisect_right(times, self.replay_time()) - 1
+        if i < 0 and cmd.letter == "B" and lines:
+            # the version does not change: asked earlier than in the recording (a client that
+            # started faster), it is still the recorded one
+            i = 0
         if i < 0:
             if d.name == "koala25" and cmd.letter == "B":
                 # libkoala reads B's reply as one 7-byte read(): a longer error reply would leave

@@ -177,6 +177,7 @@ class SimulatedRobotSource:
         self.zenoh: ZenohLink | None = None
         self.endpoints: Endpoints | None = None
         self._stop_readers = threading.Event()
+        self._kteam_lock = threading.Lock()     # a K-Team command and its reply vs pushed lines
         self._readers: list[threading.Thread] = []
         self._range_seq = {RangeKind.IR: 0, RangeKind.SONAR: 0}
         self._last_readings: Readings | None = None
@@ -484,9 +485,12 @@ class SimulatedRobotSource:
                     "mavlink", self.buses.mavlink, self.mav_encoder.scaled_imu(sample), r.t
                 )
         if self.buses.kteam is not None:
-            for line in self.kteam.auto_lines(r.t):     # what the robot pushes unasked
-                self._send_bytes("kteam", self.buses.kteam, self.kteam.dialect.format_reply(line),
-                                 r.t)
+            # What the robot pushes unasked, never between a command and its reply (after the
+            # reply to A,0 nothing more is pushed): one lock with the K-Team reader.
+            with self._kteam_lock:
+                for line in self.kteam.auto_lines(r.t):
+                    self._send_bytes("kteam", self.buses.kteam,
+                                     self.kteam.dialect.format_reply(line), r.t)
         self._publish(r, n)
         self._localise(r.camera.observations if r.camera is not None else None, r.t)
         self._drain_output_links()
@@ -840,26 +844,37 @@ class SimulatedRobotSource:
                 # lockstep: every command acts at a cycle boundary, on the state simulated so far
                 if not self._at_cycle_boundary():
                     return
-                cmd = line if isinstance(line, Reject) else parse_command(line, responder.specs)
-                if isinstance(cmd, Reject):
-                    self.counters.rejected("kteam")
-                    log.debug("kteam: rejected %s (%s)", cmd.raw, cmd.detail)
-                    reply = responder.reject(cmd)
-                else:
-                    self.counters.received("kteam")
-                    reply = responder.respond(cmd)
-                    if self.lockstep is not None and cmd.letter == self._cycle_letter:
-                        # the cycle message: its reply leaves once the period is simulated
-                        if self._cycle() is None:
-                            return
-                # one write per reply: libkoala reads the 7 bytes of Koala 2.5 'B' in one read()
-                reply_bytes = dialect.format_reply(reply)
-                if self._shaped:
-                    self._send_reply(link, reply_bytes, self.port.t)
-                else:
-                    self._write_bytes("kteam", link, reply_bytes, self.port.t)
+                with self._kteam_lock:
+                    cycle = False
+                    cmd = (line if isinstance(line, Reject)
+                           else parse_command(line, responder.specs))
+                    if isinstance(cmd, Reject):
+                        self.counters.rejected("kteam")
+                        log.debug("kteam: rejected %s (%s)", cmd.raw, cmd.detail)
+                        reply = responder.reject(cmd)
+                    else:
+                        self.counters.received("kteam")
+                        reply = responder.respond(cmd)
+                        cycle = self.lockstep is not None and cmd.letter == self._cycle_letter
+                    if not cycle:
+                        self._reply(link, dialect.format_reply(reply))
+                if cycle:
+                    # the cycle message: its reply leaves once the period is simulated (what
+                    # the robot pushed meanwhile before it)
+                    if self._cycle() is None:
+                        return
+                    with self._kteam_lock:
+                        self._reply(link, dialect.format_reply(reply))
 
         return step
+
+    def _reply(self, link: LockedByteLink, data: bytes) -> None:
+        """One K-Team reply, in one write (libkoala reads the 7 bytes of Koala 2.5 'B' in one
+        read())."""
+        if self._shaped:
+            self._send_reply(link, data, self.port.t)
+        else:
+            self._write_bytes("kteam", link, data, self.port.t)
 
     def _drain_output_links(self) -> None:
         """Read what clients sent on the links the loop writes (at most every DRAIN_PERIOD_S)."""
