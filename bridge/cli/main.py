@@ -196,7 +196,9 @@ def error_line(e: KoalaBridgeError) -> str:
     if not isinstance(e, ConfigError):
         return str(e)
     hint = ""
-    if "missing required key" in str(e):
+    # (a fault's required key is the fault's, not the config file's)
+    if "missing required key" in str(e) and not str(e).startswith(
+            ("--fault", "[[faults]]", "faults/")):
         hint = (" (a bridge config sets every key: start from a copy of config/default.toml,"
                 " e.g. `koala-bridge config init DIR`)")
     return f"configuration error: {e}{hint}"

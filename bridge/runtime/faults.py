@@ -584,18 +584,18 @@ class FaultInjector:
         """Raise :class:`ConfigError` if a ``sensors`` index is out of range for the robot,
         e.g. ``check({"ir": 16, "sonar": 8, "encoders": 2})``. (Out-of-range indices are
         otherwise ignored.)"""
-        for i, f in enumerate(self._faults, 1):
+        for f in self._faults:
             n = sensor_counts.get(f.spec.target)
             bad = [s for s in f.spec.sensors if n is not None and s >= n]
             if bad and n is not None:
-                raise ConfigError(f"fault #{i} ({f.spec.name}) 'sensors' index {bad[0]} is out "
+                raise ConfigError(f"fault {f.spec.name!r}: 'sensors' index {bad[0]} is out "
                                   f"of range: the robot has {n} {f.spec.target} sensors "
                                   f"(0..{n - 1})")
 
     # ----------------------------------------------------------------- frames
 
-    def on_frame(self, bus: str, t: float, data: bytes, can_id: int | None = None
-                 ) -> list[Delivery]:
+    def on_frame(self, bus: str, t: float, data: bytes, can_id: int | None = None,
+                 reply: bool = False) -> list[Delivery]:
         """The deliveries of one outbound frame on ``bus`` produced at ``t``: ``[]`` = dropped
         (or held by a reorder), else ``(t_write, bytes)`` pairs in order (:class:`Delivery`).
 
@@ -606,6 +606,10 @@ class FaultInjector:
         frames first); ``delay`` by ``delay_s + U(0, jitter_s)``; ``duplicate``; ``reorder``
         holds the frame and delivers it right after the next frame that reaches this fault.
         This does not look at :meth:`disconnected` or :meth:`bus_off`: ask those first.
+
+        ``reply``: the frame answers a request (a K-Team reply). A firmware waiting for it holds
+        simulated time in lockstep, so ``delay`` and ``reorder`` pass it untouched (no draw, no
+        event): only ``drop``, ``corrupt`` and ``duplicate`` apply.
         """
         _check_bus(bus)
         with self._lock:
@@ -613,6 +617,8 @@ class FaultInjector:
             out = [Delivery(t, bytes(data), can_id)]
             for f in self._faults:
                 if f.spec.target != bus or f.spec.mode != _FRAME:
+                    continue
+                if reply and f.spec.kind in ("delay", "reorder"):
                     continue
                 if f.spec.kind == "reorder" and f.held is not None:
                     out = self._release(f, out)
@@ -686,7 +692,7 @@ class FaultInjector:
         spec = f.spec
         cls, kind_bits, loc = _BUS_ERRORS[spec.error]
         while True:
-            tick = f.begin + f.next_tick * spec.period_s
+            tick = round(f.begin + f.next_tick * spec.period_s, 9)   # no float noise in t
             if tick > t or tick >= spec.end_s:
                 return
             f.next_tick += 1

@@ -130,14 +130,25 @@ class SimulatedRobotSource:
         # [lockstep] cycle_bus/cycle_message: what closes a control cycle
         self._cycle_letter = ls.cycle_message if ls.cycle_bus == "kteam" else None
         self._cycle_can_id: int | None = None
+        if self.lockstep is not None and ls.cycle_bus == "kteam":
+            if ls.cycle_message not in self.kteam.specs:
+                raise ConfigError(
+                    f"[lockstep] 'cycle_message' {ls.cycle_message!r} is not a command of the "
+                    f"{settings.buses.kteam_dialect} dialect ([buses.kteam] dialect); its "
+                    f"commands: {' '.join(sorted(self.kteam.specs))} (the wheel command is D)"
+                )
         if self.lockstep is not None and ls.cycle_bus == "can":
             ids = self.can_codec.frame_ids
-            if ls.cycle_message not in ids:
+            # the robot acts on one CAN message: the wheel command the firmware sends
+            command = ids.get("MotorCommand")
+            if ids.get(ls.cycle_message) != command:
+                what = ("a message the robot sends, not one the firmware sends"
+                        if ls.cycle_message in ids else "not a message of the DBC")
                 raise ConfigError(
-                    f"[lockstep] 'cycle_message' {ls.cycle_message!r} is not a message of the "
-                    f"DBC; its messages: {', '.join(sorted(ids))}"
+                    f"[lockstep] 'cycle_message' {ls.cycle_message!r} is {what}; the firmware's "
+                    f"message in the DBC is 'MotorCommand'"
                 )
-            self._cycle_can_id = ids[ls.cycle_message]
+            self._cycle_can_id = command
         # [[faults]] and --fault (docs/faults.md): drawn from the run's seed
         self.faults = FaultInjector(faults_from_config(config),
                                     self.sim.config.sim.seed if seed is None else seed)
@@ -166,6 +177,7 @@ class SimulatedRobotSource:
         self._client_marks: dict[str, object] = {}
         self._unpaced_steps = 0             # lockstep steps taken while a fault cut the firmware
         self._awaiting_reconnect = False    # the cycle bus came back: the firmware may reconnect
+        self._firmware_seen = False         # a client has been on the cycle bus
         self._capture_thread: int | None = None
         mav = settings.buses.mavlink
         # [buses.mavlink] signing_key_file: None = unsigned (a bad key file: ConfigError here)
@@ -217,8 +229,7 @@ class SimulatedRobotSource:
             self._initial = self.sim.reset(self.seed)
             self.buses = open_buses(self.settings.buses)
             self.zenoh = ZenohLink(self.settings.zenoh, self.world_answer, self.counters)
-            if self.lockstep is not None:
-                self._register_step_queryable()
+            self._register_step_queryable()
             self._register_fault_queryable()
             self._start_readers()
         except BaseException:
@@ -270,6 +281,11 @@ class SimulatedRobotSource:
             self._capture_thread = threading.get_ident()
         self._emit(r, 0)
         self._after_step(r.t)
+        if lockstep is not None:
+            # Held at t = 0 while the firmware starts: step 0's frames have time to cross their
+            # wires (wire timing), those that need less than a step are there before its first
+            # command (docs/protocols.md §6 rule 1).
+            self._release_until(r.t, self.dt * 0.999)
         self._capture_thread = None
         if lockstep is not None:
             for bus, _ in self._initial_frames or ():
@@ -288,7 +304,7 @@ class SimulatedRobotSource:
                 if lockstep is not None:
                     if not lockstep.engaged:
                         self._resend_initial()
-                    elif not self._firmware_connected():
+                    if self._firmware_left():
                         log.info("lockstep: the firmware has disconnected at t = %.3f s; "
                                  "the run ends", r.t)
                         break
@@ -357,19 +373,22 @@ class SimulatedRobotSource:
             return transport.stats.clients
         return 0    # python-can interfaces (virtual, slcan): clients that were there all along
 
-    def _firmware_connected(self) -> bool:
-        """Whether a client is on the cycle bus (unknown for python-can interfaces: True).
-        After a fault cut the line, True until the firmware has come back."""
+    def _firmware_left(self) -> bool:
+        """Whether the firmware has gone: a client was on the cycle bus and is no more (before
+        or after its first command). Never for a run nobody's client has joined (a harness
+        stepping over Zenoh) or where clients cannot be seen (python-can interfaces); after a
+        fault cut the line, only once the firmware has come back and left again."""
         if self.settings.lockstep.cycle_bus == "kteam":
             link = self.buses.kteam
-            present = link is None or link.has_client()
+            present = link is not None and link.has_client()
         else:
             servers = [t for t in self.buses.can.values() if isinstance(t, SocketcandServer)]
-            present = not servers or any(t.stats.clients > 0 for t in servers)
-        if self._awaiting_reconnect:
-            self._awaiting_reconnect = not present
-            return True
-        return present
+            present = any(t.stats.clients > 0 for t in servers)
+        if present:
+            self._firmware_seen = True
+            self._awaiting_reconnect = False
+            return False
+        return self._firmware_seen and not self._awaiting_reconnect
 
     def _cycle_bus_cut(self) -> bool:
         """A ``disconnect`` fault has taken the firmware's command bus away."""
@@ -408,10 +427,12 @@ class SimulatedRobotSource:
         """``<prefix>/lockstep/step`` (``[zenoh] remote_commands``): grant cycles from outside."""
         if self.zenoh is None or not self.settings.zenoh.remote_commands:
             return
-        assert self.lockstep is not None
         lockstep = self.lockstep
 
         def step(payload: bytes) -> dict[str, Any]:
+            if lockstep is None:
+                raise ValueError(f"lockstep/step: the bridge runs the {self.settings.run.clock} "
+                                 "clock; only --clock lockstep is stepped")
             cycles = 1
             if payload.strip():
                 try:
@@ -591,15 +612,20 @@ class SimulatedRobotSource:
         if faults.active:
             for msg in faults.can_error_frames(t):
                 self._write_can(msg, msg.timestamp, error=True)
-        while self._pending and self._pending[0][0] <= t + 1e-12:
-            _, _, _, write = heapq.heappop(self._pending)
-            write(t)
-        if self._can_wire is not None:
-            for _t_valid, msg, _tag in self._can_wire.release(t):
-                self._write_can(msg, t)
+        self._release_until(t, t)
         if faults.active:
             for event in faults.events():
                 self._put(FaultEventMessage.TOPIC, event.t, event.to_json())
+
+    def _release_until(self, t: float, until: float) -> None:
+        """Write (at simulated time ``t``) the queued frames whose time is at or before
+        ``until``: delayed by a fault or still on their wire."""
+        while self._pending and self._pending[0][0] <= until + 1e-12:
+            _, _, _, write = heapq.heappop(self._pending)
+            write(t)
+        if self._can_wire is not None:
+            for _t_valid, msg, _tag in self._can_wire.release(until):
+                self._write_can(msg, t)
 
     def _register_fault_queryable(self) -> None:
         """``<prefix>/faults/schedule`` (``[zenoh] remote_commands``): add a fault at run time.
@@ -700,7 +726,7 @@ class SimulatedRobotSource:
         if self.faults.active:
             if "kteam" in self._offline:
                 return
-            deliveries = [d.data for d in self.faults.on_frame("kteam", t, data)]
+            deliveries = [d.data for d in self.faults.on_frame("kteam", t, data, reply=True)]
         wire = self._serial_wires.get("kteam")
         for payload in deliveries:
             if wire is not None:

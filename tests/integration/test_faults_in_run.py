@@ -211,3 +211,17 @@ def test_fault_events_are_in_the_recording_and_its_export(tmp_path: Path) -> Non
         rows = list(csv.DictReader(f))
     assert [r["kind"] for r in rows] == ["kidnap", "drop", "drop", "drop", "drop"]
     assert json.loads(rows[1]["detail"]) == {"can_id": 0x110}
+
+
+def test_delay_and_reorder_never_hold_a_kteam_reply_in_lockstep() -> None:
+    """A firmware waiting for the reply to D holds simulated time: a held reply would stall
+    the run for ever. Replies are only dropped, corrupted or duplicated; nothing is counted
+    for the kinds that pass them."""
+    faults = [{"kind": "reorder", "target": "kteam", "end_s": 0.1, "name": "swap"},
+              {"kind": "delay", "target": "kteam", "end_s": 0.1, "delay_s": 0.05,
+               "name": "late"}]
+    with bridge(faults=faults) as source, kteam(source, timeout=2.0) as port:
+        for k in range(1, 6):
+            assert ask(port, "D,10,10") == "d"
+            assert ask(port, "H") == f"h,{10 * k},{10 * k}"
+        assert source.status(source.port.t)["faults"] == {"swap": 0, "late": 0}

@@ -8,6 +8,7 @@ thread; nothing here measures wall time except to give up."""
 from __future__ import annotations
 
 import json
+import re
 import threading
 from typing import Any
 
@@ -149,8 +150,49 @@ def test_bad_lockstep_settings_are_one_clear_error(override: str, message: str) 
         SimulatedRobotSource(config, BridgeSettings.from_config(config))
 
 
-def test_a_can_cycle_message_must_be_a_message_of_the_dbc() -> None:
-    config = lockstep_config('lockstep.cycle_bus="can"', 'lockstep.cycle_message="Motor"')
-    with pytest.raises(ConfigError, match="not a message of the DBC; its messages: Gyro, "
-                                          "MotorCommand, WheelOdometry"):
+@pytest.mark.parametrize("overrides, message", [
+    (['lockstep.cycle_bus="can"', 'lockstep.cycle_message="Motor"'],
+     "'Motor' is not a message of the DBC; the firmware's message in the DBC is 'MotorCommand'"),
+    (['lockstep.cycle_bus="can"', 'lockstep.cycle_message="Gyro"'],
+     "'Gyro' is a message the robot sends, not one the firmware sends"),
+    (['lockstep.cycle_message="X"'], "'X' is not a command of the koala1 dialect"),
+])
+def test_the_cycle_message_must_be_one_the_firmware_sends(overrides: list[str],
+                                                          message: str) -> None:
+    config = lockstep_config(*overrides)
+    with pytest.raises(ConfigError, match=re.escape(message)):
         SimulatedRobotSource(config, BridgeSettings.from_config(config))
+
+
+def test_a_firmware_that_leaves_before_its_first_command_ends_the_run() -> None:
+    config = lockstep_config()
+    source = SimulatedRobotSource(config, BridgeSettings.from_config(config))
+    source.open()
+    try:
+        loop = threading.Thread(target=source.run, args=(threading.Event(), 0), daemon=True)
+        loop.start()
+        with kteam(source) as port:
+            assert ask(port, "B").startswith("b,")       # it starts, asks, and crashes
+        loop.join(WAIT_S)
+        assert not loop.is_alive(), "the run waited for ever for a firmware that had gone"
+        assert source.port.t == 0.0
+    finally:
+        source.close()
+
+
+def test_explicit_steps_with_no_firmware_on_the_cycle_bus_do_not_end_the_run() -> None:
+    with bridge("zenoh.remote_commands=true") as source, zenoh_session(source) as z:
+        prefix = source.settings.zenoh.prefix
+        for k in range(1, 4):
+            assert step_query(z, prefix, None)[0]["t"] == pytest.approx(0.01 * k)
+            assert source.lockstep is not None
+            # the loop's wait for the next grant has timed out a few times meanwhile
+            assert not source.lockstep.wait_done(k + 1, timeout=0.3)
+
+
+def test_the_step_queryable_says_so_in_another_clock() -> None:
+    with bridge('run.clock="fast"', "zenoh.remote_commands=true", duration_s=0.1) as source, \
+            zenoh_session(source) as z:
+        (error,) = step_query(z, source.settings.zenoh.prefix, None)
+        assert error == ("error", "lockstep/step: the bridge runs the fast clock; only "
+                                  "--clock lockstep is stepped")

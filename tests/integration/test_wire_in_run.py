@@ -7,7 +7,7 @@ from __future__ import annotations
 import can
 import pytest
 import serial
-from _inproc import ask, bridge, kteam, socketcand
+from _inproc import WAIT_S, ask, bridge, kteam, socketcand
 from koala_bridge.drivers.can_codec import KoalaCanCodec
 from koala_bridge.drivers.messages import GyroFrame, RangeKind, WheelOdometryFrame
 from koala_bridge.drivers.rangeframes import RangeFrameDecoder
@@ -82,3 +82,13 @@ def test_range_frames_leave_at_the_baud_rate() -> None:
     assert [ts for ts, _ in ir] == sorted(ts for ts, _ in ir)      # in order, none lost
     assert len(ir) >= 9
     assert status["bus_load"]["rangefinders"] > 0.9           # 20 Hz x 46.9 ms + the sonar
+
+
+def test_step_zero_crosses_the_wire_while_lockstep_holds() -> None:
+    """Held at t = 0 the firmware may wait for a sample before its first command: step 0's
+    frames, on a wire that takes less than a step, are there before it."""
+    with bridge("buses.can.wire_timing=true", "buses.can.bitrate=125000") as source, \
+            socketcand(source) as bus:
+        first = bus.recv(WAIT_S)
+        assert first is not None and first.timestamp == 0.0
+        assert source.port.t == 0.0
