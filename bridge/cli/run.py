@@ -17,6 +17,12 @@ examples:
   koala-bridge run --clock lockstep --endpoints-file ep.json  # paced by the firmware (protocols.md)
   koala-bridge run --clock lockstep --fault drop:can:start_s=5,end_s=10,probability=0.3
   koala-bridge run --fault kidnap:robot:start_s=20,x=1.0,y=0.5   # docs/faults.md
+  koala-bridge run --set buses.can.wire_timing=true --set buses.can.bitrate=125000
+
+lockstep is set in the config's [lockstep] table (cycle_bus, cycle_message, period_s, on_quiet,
+quiet_timeout_s); --set zenoh.remote_commands=true adds the lockstep/step and faults/schedule
+queryables; each bus's wire_timing key paces its frames (docs/wire-timing.md). The docs/ files
+named here are in the source repository (README.md "Documentation").
 """
 
 from __future__ import annotations
