@@ -69,25 +69,19 @@ from __future__ import annotations
 
 import argparse
 import collections
-import socket
 import sys
 import threading
 import time
-import tomllib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from bench._common import fast_bridge_config
+
 REPO = Path(__file__).resolve().parents[1]
 TARGET_RTF = 150.0
-
-
-def _free_port(kind: int) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 class Breakdown:
@@ -198,20 +192,12 @@ def main(argv: list[str] | None = None) -> int:
                     help="instrumented windows; the least disturbed one is shown (default 5)")
     args = ap.parse_args(argv)
 
-    from koala_bridge.runtime.settings import BridgeSettings, apply_override
+    from koala_bridge.runtime.settings import BridgeSettings
     from koala_bridge.runtime.sim_source import SimulatedRobotSource
     from koala_bridge.sim.simulator import Simulator
     from koala_bridge.sim.types import WheelCommand
 
-    config = tomllib.loads((REPO / "config" / "default.toml").read_text())
-    for key, value in (
-        (["run", "clock"], "fast"),
-        (["zenoh", "listen"], [f"tcp/127.0.0.1:{_free_port(socket.SOCK_STREAM)}"]),
-        (["buses", "mavlink", "port"], _free_port(socket.SOCK_DGRAM)),
-        (["buses", "can", "socketcand_port"], 0),
-        (["localisation", "enabled"], True),
-    ):
-        config = apply_override(config, key, value)
+    config = fast_bridge_config()
     service = SimulatedRobotSource(config, BridgeSettings.from_config(config))
     floor_sim = Simulator(config)
     command = WheelCommand(0.10, 0.14)  # an arc through the arena

@@ -19,22 +19,16 @@ fast-mode factor with the node falls to 1.
 from __future__ import annotations
 
 import argparse
-import socket
 import sys
 import threading
 import time
-import tomllib
 from pathlib import Path
 
 import numpy as np
 
+from bench._common import fast_bridge_config
+
 REPO = Path(__file__).resolve().parents[1]
-
-
-def _free_port(kind: int) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -45,18 +39,10 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     sys.path.insert(0, str(REPO))
-    from koala_bridge.runtime.settings import BridgeSettings, apply_override
+    from koala_bridge.runtime.settings import BridgeSettings
     from koala_bridge.runtime.sim_source import SimulatedRobotSource
 
-    config = tomllib.loads((REPO / "config" / "default.toml").read_text())
-    for key, value in (
-        (["run", "clock"], "fast"),
-        (["zenoh", "listen"], [f"tcp/127.0.0.1:{_free_port(socket.SOCK_STREAM)}"]),
-        (["buses", "mavlink", "port"], _free_port(socket.SOCK_DGRAM)),
-        (["buses", "can", "socketcand_port"], 0),
-        (["localisation", "enabled"], True),
-    ):
-        config = apply_override(config, key, value)
+    config = fast_bridge_config()
     service = SimulatedRobotSource(config, BridgeSettings.from_config(config))
     node = service.localisation
     assert node is not None

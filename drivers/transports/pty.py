@@ -58,6 +58,22 @@ _HUP_POLL_S = 0.02
 _MAX_STALE = 65536  # bytes of a gone client's input still returned by read (the kernel holds 4 KiB)
 
 
+def _open_raw_pty() -> tuple[int, str]:
+    """A new pty pair: its master (non-blocking) and the slave's path, the slave in raw mode
+    (and closed here: the client opens it by its path)."""
+    try:
+        master, slave = os.openpty()
+    except OSError as e:
+        raise TransportError(f"cannot open a pty: {e}") from e
+    try:
+        tty.setraw(slave)
+        name = os.ttyname(slave)
+    finally:
+        os.close(slave)
+    os.set_blocking(master, False)
+    return master, name
+
+
 class PtyTransport(ByteTransport):
     """A pty pair; the slave path (or a stable symlink to it) is the client's serial port.
 
@@ -69,16 +85,7 @@ class PtyTransport(ByteTransport):
     """
 
     def __init__(self, link: str | Path | None = None, *, max_pending: int = 65536) -> None:
-        try:
-            master, slave = os.openpty()
-        except OSError as e:
-            raise TransportError(f"cannot open a pty: {e}") from e
-        try:
-            tty.setraw(slave)
-            self._slave_name = os.ttyname(slave)
-        finally:
-            os.close(slave)
-        os.set_blocking(master, False)
+        master, self._slave_name = _open_raw_pty()
         self._master: int | None = master
         self._poll = select.poll()
         self._poll.register(master, select.POLLIN)
@@ -156,16 +163,7 @@ class PtyTransport(ByteTransport):
             self._sessions += 1
             log.debug("%s: offline", self._slave_name)
             return
-        try:
-            master, slave = os.openpty()
-        except OSError as e:
-            raise TransportError(f"cannot open a pty: {e}") from e
-        try:
-            tty.setraw(slave)
-            name = os.ttyname(slave)
-        finally:
-            os.close(slave)
-        os.set_blocking(master, False)
+        master, name = _open_raw_pty()
         os.dup2(master, fd, inheritable=False)  # the same fd number, now the new master
         os.close(master)
         stand_in, self._offline_pipe = self._offline_pipe, None
