@@ -80,3 +80,62 @@ def test_make_clock_rejects_unknown_names() -> None:
         make_clock("slow", 0.01)
     with pytest.raises(ValueError):
         RealtimeClock(0.0)
+
+
+# -- lockstep ----------------------------------------------------------------------------------
+
+def test_lockstep_holds_until_a_grant_then_runs_exactly_the_granted_steps() -> None:
+    from koala_bridge.runtime.clock import LockstepClock
+
+    clock = LockstepClock(0.01, steps_per_cycle=3)
+    clock.start()
+    assert not clock.wait_for_step(1, timeout=0.0) and not clock.engaged
+    assert clock.grant() == 3 and clock.engaged
+    for n in (1, 2, 3):
+        assert clock.wait_for_step(n, timeout=0.0)
+        clock.step_done(n)
+    assert not clock.wait_for_step(4, timeout=0.0)        # the firmware has not asked for more
+    assert clock.wait_idle(timeout=0.0) and clock.wait_done(3, timeout=0.0)
+    assert clock.grant(2) == 9 and clock.cycles == 3
+    assert not clock.wait_idle(timeout=0.0)
+
+
+def test_lockstep_grants_from_where_the_loop_is_after_it_ran_ahead() -> None:
+    """Steps taken without a grant (a fault cut the firmware's line): the next cycle is one
+    period from where the loop is, not from the last grant."""
+    from koala_bridge.runtime.clock import LockstepClock
+
+    clock = LockstepClock(0.01, steps_per_cycle=2)
+    clock.start()
+    clock.grant()
+    for n in range(1, 8):
+        clock.step_done(n)
+    assert clock.grant() == 9
+
+
+def test_lockstep_quiet_policy_step_grants_a_miss_after_the_timeout() -> None:
+    from koala_bridge.runtime.clock import LockstepClock
+
+    fake = FakeTime(overshoot=0.0)
+    clock = LockstepClock(0.01, 1, on_quiet="step", quiet_timeout_s=0.5,
+                          monotonic=fake.monotonic)
+    clock.start()
+    assert not clock.wait_for_step(1, timeout=0.0)        # held: no miss before the first grant
+    clock.grant()
+    assert clock.wait_for_step(1, timeout=0.0)
+    clock.step_done(1)
+    fake.now += 0.4
+    assert not clock.wait_for_step(2, timeout=0.0) and clock.misses == 0
+    fake.now += 0.2
+    assert clock.wait_for_step(2, timeout=0.0) and clock.misses == 1
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"steps_per_cycle": 0}, "steps_per_cycle must be >= 1"),
+    ({"on_quiet": "sleep"}, "on_quiet must be 'wait' or 'step'"),
+])
+def test_lockstep_rejects_bad_arguments(kwargs: dict[str, object], message: str) -> None:
+    from koala_bridge.runtime.clock import LockstepClock
+
+    with pytest.raises(ValueError, match=message):
+        LockstepClock(0.01, **kwargs)  # type: ignore[arg-type]
