@@ -9,9 +9,18 @@ Two child processes, clients in this one:
   system-wide on Linux, so the client's decode time minus that is the sample's latency.
 - ``--bare``: the bare transports: the same kinds of link (a pty, a minimal socketcand server on
   TCP, a pty carrying slcan lines, UDP datagrams, a Zenoh publisher) carrying the bridge's own
-  frames (range frames, socketcand ``< frame >`` elements, slcan lines, MAVLink ``SCALED_IMU``,
-  the ``sensors/odometry`` JSON) at the same rates, one writer thread per link, each frame
-  stamped with ``time.monotonic()`` just before it is written.
+  frames (range frames IR and sonar, socketcand ``< frame >`` elements and slcan lines for the
+  odometry and the gyro, MAVLink ``SCALED_IMU``, the ``sensors/odometry`` JSON) at the same
+  rates, in the bridge's order, all of a step's frames in one burst every 10 ms from one writer
+  thread, each frame stamped with ``time.monotonic()`` just before it is written.
+
+Why one burst per step: the clients share one interpreter here, so clients woken together queue
+for it. The bridge wakes them together (a step writes every bus within ~0.3 ms); a floor with
+one writer thread per link, each on its own phase, woke them one at a time and measured a floor
+the bridge could not reach by construction (2026-11-25, one client at a time: bare mavlink p50
+0.035 ms, socketcand 0.025 ms; with all six clients: 0.085 ms and 0.039 ms). The floor also
+writes what the bridge writes besides the measured frames (the gyro frame after each odometry
+frame, the sonar frames): the clients read and parse those too.
 
 Clients: pyserial + RangeFrameDecoder (range frames, keyed by sample time), python-can
 socketcand and slcan (WheelOdometry, keyed by encoder count), pymavlink (SCALED_IMU, keyed by
@@ -81,9 +90,9 @@ def serve(config_overrides: list[str], ready_file: Path, log_file: Path) -> int:
 # -- child: the bare transports ------------------------------------------------------------------
 
 def bare(udp_port: int, zenoh_endpoint: str, ready_file: Path, log_file: Path) -> int:
-    """The same frames as the bridge's (bytes, sizes, rates), written by one thread per link with
-    nothing else to do: the floor. Each thread logs ``time.monotonic()`` just before its write,
-    keyed as the clients key the bridge's samples."""
+    """The same frames as the bridge's (bytes, sizes, rates, order within a step), written by one
+    thread with nothing else to do: the floor. It logs ``time.monotonic()`` just before each
+    write, keyed as the clients key the bridge's samples."""
     import pty as ptymod
     import tty
 
@@ -92,7 +101,7 @@ def bare(udp_port: int, zenoh_endpoint: str, ready_file: Path, log_file: Path) -
     from koala_bridge.core.topics import OdometryMessage, OdometryTruth
     from koala_bridge.drivers.can_codec import KoalaCanCodec
     from koala_bridge.drivers.mavlink_codec import CompassEncoder, MavlinkIdentity
-    from koala_bridge.drivers.messages import CompassSample, RangeFrame, RangeKind
+    from koala_bridge.drivers.messages import CompassSample, GyroFrame, RangeFrame, RangeKind
     from koala_bridge.drivers.messages import WheelOdometryFrame as Odo
     from koala_bridge.drivers.rangeframes import encode_range_frame
     from koala_bridge.drivers.transports.slcan import format_slcan_frame
@@ -124,47 +133,72 @@ def bare(udp_port: int, zenoh_endpoint: str, ready_file: Path, log_file: Path) -
     publisher = session.declare_publisher("bench/sensors/odometry")
     mav = CompassEncoder(MavlinkIdentity(1, 1))
 
-    def paced(name: str, rate_hz: float, frame: Callable[[int], tuple[str, Any, bytes]],
-              write: Callable[[bytes], object],
-              ready: threading.Event | None = None) -> Callable[[], None]:
-        """Every 1/rate_hz: build frame k, stamp, write (what the bridge's loop does, minus the
-        simulation and everything else); nothing until ``ready`` is set, if given."""
-        events = log.setdefault(name, [])
+    # The socketcand connection the stepper writes to once its handshake is done (one client).
+    socketcand_conn: list[socket.socket] = []
 
-        def loop() -> None:
-            t0 = time.monotonic()
-            k = 0
-            while not stop.is_set():
-                k += 1
-                delay = t0 + k / rate_hz - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
-                if ready is not None and not ready.is_set():
-                    continue
-                kind, key, data = frame(k)
-                events.append((kind, key, time.monotonic()))
-                try:
-                    write(data)
-                except OSError:
-                    pass  # no reader yet
-        return loop
+    def log_write(name: str, frame: tuple[str, Any, bytes],
+                  write: Callable[[bytes], object]) -> None:
+        """Stamp ``frame`` (the key the client will decode) just before it is written."""
+        kind, key, data = frame
+        log.setdefault(name, []).append((kind, key, time.monotonic()))
+        try:
+            write(data)
+        except OSError:
+            pass  # no reader yet, or it has gone
+
+    def stepper() -> None:
+        """The bridge's step, minus everything but the writes: every 10 ms, the frames of that
+        step on every link, in the order the bridge's loop writes them (range frames, CAN
+        odometry then gyro on socketcand then slcan, MAVLink, Zenoh), each stamped just before
+        its write. One burst per step as the bridge's, so the clients are woken together as by
+        the bridge (with one writer thread per link they were woken one at a time, and the
+        clients, sharing one interpreter, did not queue for it)."""
+        t0 = time.monotonic()
+        k = 0
+        while not stop.is_set():
+            k += 1
+            delay = t0 + k * 0.01 - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            if k % 5 == 0:  # IR at 20 Hz
+                log_write("rangefinders (pty)", range_frame(k // 5),
+                          lambda b: os.write(frame_master, b))
+            if k % 20 == 0:  # sonar at 5 Hz: written, not measured
+                log_write("-", ("t_us", 0, sonar_frame(k // 20)),
+                          lambda b: os.write(frame_master, b))
+            conn = socketcand_conn[0] if socketcand_conn else None
+            for msg, measured in ((odometry_msg(k), True), (gyro_msg(k), False)):
+                if conn is not None:
+                    element = format_frame_element(msg, msg.timestamp)
+                    log_write("can.socketcand (TCP)" if measured else "-", ("ticks", k, element),
+                              conn.sendall)
+                if slcan_open.is_set():
+                    log_write("can.slcan (pty)" if measured else "-",
+                              ("ticks", k, format_slcan_frame(msg)),
+                              lambda b: os.write(slcan_master, b))
+            if k % 2 == 0:  # SCALED_IMU at 50 Hz
+                log_write("mavlink (UDP)", mavlink_frame(k // 2),
+                          lambda b: udp.sendto(b, ("127.0.0.1", udp_port)))
+            log_write("zenoh (TCP)", zenoh_frame(k), publisher.put)
 
     def range_frame(k: int) -> tuple[str, Any, bytes]:
         t_us = (k * 50_000) & 0xFFFFFFFF  # 20 Hz
         return "t_us", t_us, encode_range_frame(RangeFrame(RangeKind.IR, k & 0xFFFF, t_us,
                                                            (512,) * 16))
 
+    def sonar_frame(k: int) -> bytes:
+        t_us = (k * 200_000) & 0xFFFFFFFF
+        return encode_range_frame(RangeFrame(RangeKind.SONAR, k & 0xFFFF, t_us, (1000,) * 9))
+
+    def gyro_msg(k: int) -> can.Message:
+        msg = codec.encode(GyroFrame(0.1))
+        msg.timestamp = k * 0.01
+        return msg
+
     def odometry_msg(k: int) -> can.Message:
         msg = codec.encode(Odo(k, k))
         msg.timestamp = k * 0.01
         return msg
-
-    def slcan_frame(k: int) -> tuple[str, Any, bytes]:
-        return "ticks", k, format_slcan_frame(odometry_msg(k))
-
-    def socketcand_frame(k: int) -> tuple[str, Any, bytes]:
-        msg = odometry_msg(k)
-        return "ticks", k, format_frame_element(msg, msg.timestamp)
 
     def mavlink_frame(k: int) -> tuple[str, Any, bytes]:
         return "ms", k * 20, mav.scaled_imu(CompassSample(k * 20, 20.0, -5.0, -40.0))  # 50 Hz
@@ -193,9 +227,17 @@ def bare(udp_port: int, zenoh_endpoint: str, ready_file: Path, log_file: Path) -
                     buf = buf[buf.index(b">") + 1:]
                     conn.sendall(b"< ok >")
                 time.sleep(0.05)  # the bridge's handshake grace
-                paced("can.socketcand (TCP)", 100, socketcand_frame, conn.sendall)()
+                socketcand_conn.append(conn)   # the stepper writes the frames from now on
+                conn.settimeout(0.2)
+                while not stop.is_set():   # what the client sends is ignored, until it goes
+                    try:
+                        if not conn.recv(256):
+                            break
+                    except TimeoutError:
+                        continue
             except OSError:
                 pass
+            socketcand_conn.clear()
             conn.close()
 
     def echo_loop() -> None:
@@ -226,13 +268,7 @@ def bare(udp_port: int, zenoh_endpoint: str, ready_file: Path, log_file: Path) -
                     time.sleep(0.05)
 
     threads = [
-        threading.Thread(target=paced("rangefinders (pty)", 20, range_frame,
-                                      lambda b: os.write(frame_master, b))),
-        threading.Thread(target=paced("can.slcan (pty)", 100, slcan_frame,
-                                      lambda b: os.write(slcan_master, b), slcan_open)),
-        threading.Thread(target=paced("mavlink (UDP)", 50, mavlink_frame,
-                                      lambda b: udp.sendto(b, ("127.0.0.1", udp_port)))),
-        threading.Thread(target=paced("zenoh (TCP)", 100, zenoh_frame, publisher.put)),
+        threading.Thread(target=stepper),
         threading.Thread(target=socketcand_server),
         threading.Thread(target=echo_loop),
         threading.Thread(target=slcan_commands, args=(slcan_master,)),
