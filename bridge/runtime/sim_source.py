@@ -269,9 +269,7 @@ class SimulatedRobotSource:
         r = self._initial if self._initial is not None else self.sim.reset(self.seed)
         self._initial = None
         faults = self.faults
-        if faults.active:
-            r = faults.on_readings(r)
-            self._fault_windows(r.t)
+        r = self._faulted(r)
         if self.tap is not None:
             self.tap.declare(self._published_keys(r), self._tap_buses())
         self.clock.start()
@@ -312,12 +310,9 @@ class SimulatedRobotSource:
             if lockstep is not None and n == 0:
                 # engaged: a client that came since the last re-send gets step 0 before step 1
                 self._resend_initial()
-            if faults.active:       # (faults may be added at run time: faults/schedule)
-                faults.apply_to_sim(self.sim, self.sim.t)   # kidnap, wheel slip
-            r = self.sim.step(self.arbiter.command(self.sim.t))
             if faults.active:
-                r = faults.on_readings(r)                   # sensor faults
-                self._fault_windows(r.t)                    # disconnect, bus-off
+                faults.apply_to_sim(self.sim, self.sim.t)   # kidnap, wheel slip
+            r = self._faulted(self.sim.step(self.arbiter.command(self.sim.t)))
             n += 1
             self._emit(r, n)
             self._after_step(r.t)
@@ -401,20 +396,21 @@ class SimulatedRobotSource:
                 return True
         return False
 
-    def _cycle(self) -> float | None:
-        """The firmware's cycle message was acted on: grant one period, wait until it has been
-        simulated; the simulated time then (None: shutting down)."""
+    def _run_cycles(self, cycles: int = 1, explicit: bool = False) -> bool:
+        """Grant ``cycles`` periods (the firmware's cycle message, or an explicit step) and wait
+        until they have been simulated and their frames handed to every transport; False if
+        the bridge is stopping meanwhile."""
         lockstep = self.lockstep
         assert lockstep is not None
-        target = lockstep.grant()
+        target = lockstep.grant(cycles, explicit=explicit)
         if not self._wait_lockstep(lambda timeout: lockstep.wait_done(target, timeout)):
-            return None
-        # Every frame of the period is on its way before the reply: socketcand's service
-        # thread writes to the clients' sockets; wait for it (the other transports write at once).
+            return False
+        # socketcand keeps what a client's socket did not take at once for its service thread:
+        # wait for it (the other transports have written everything already)
         for transport in self.buses.can.values():
             if isinstance(transport, SocketcandServer):
                 transport.sync(SYNC_TIMEOUT_S)
-        return self.port.t
+        return True
 
     def _at_cycle_boundary(self) -> bool:
         """Lockstep: wait until every granted step ran, so that a command takes effect (and a
@@ -446,12 +442,8 @@ class SimulatedRobotSource:
                         1 <= cycles <= 1_000_000):
                     raise ValueError(f"lockstep/step: 'cycles' must be an integer 1..1000000, "
                                      f"got {cycles!r}")
-            if not self._at_cycle_boundary():
+            if not (self._at_cycle_boundary() and self._run_cycles(cycles, explicit=True)):
                 raise ValueError("lockstep/step: the bridge is stopping")
-            target = lockstep.grant(cycles, explicit=True)
-            while not lockstep.wait_done(target, READ_TIMEOUT_S):
-                if self._stop_readers.is_set():
-                    raise ValueError("lockstep/step: the bridge is stopping")
             return {"t": self.port.t, "step": lockstep.done, "cycles": cycles}
 
         self.zenoh.command_queryable("lockstep/step", step)
@@ -656,15 +648,20 @@ class SimulatedRobotSource:
         sensors = self.sim.config.sensors
         return {"ir": len(sensors.ir.poses), "sonar": len(sensors.sonar.poses), "encoders": 2}
 
-    def _fault_windows(self, t: float) -> None:
-        """Before step ``t``'s readings go out: the buses a fault takes away or gives back."""
+    def _faulted(self, r: Readings) -> Readings:
+        """A step's readings with the sensor faults applied, and the buses a fault takes away
+        or gives back (disconnect, bus-off) set for their frames to go out."""
         faults = self.faults
+        if not faults.active:       # (faults may be added at run time: faults/schedule)
+            return r
+        r = faults.on_readings(r)
         for bus in self._fault_buses():
-            gone = faults.disconnected(bus, t)
+            gone = faults.disconnected(bus, r.t)
             if gone != (bus in self._offline):
                 self._set_offline(bus, gone)
         if self.buses.can:
-            self._bus_off = faults.bus_off("can", t)
+            self._bus_off = faults.bus_off("can", r.t)
+        return r
 
     def _fault_buses(self) -> list[str]:
         present = [name for name in ("kteam", "rangefinders", "mavlink")
@@ -886,7 +883,7 @@ class SimulatedRobotSource:
                 if cycle:
                     # the cycle message: its reply leaves once the period is simulated (what
                     # the robot pushed meanwhile before it)
-                    if self._cycle() is None:
+                    if not self._run_cycles():
                         return
                     with self._kteam_lock:
                         self._reply(link, dialect.format_reply(reply))
