@@ -383,7 +383,9 @@ class SimulatedRobotSource:
             self._firmware_seen = True
             self._awaiting_reconnect = False
             return False
-        return self._firmware_seen and not self._awaiting_reconnect
+        # a firmware that sent cycle messages was there, even if no poll caught it connected
+        seen = self._firmware_seen or (self.lockstep is not None and self.lockstep.cycles > 0)
+        return seen and not self._awaiting_reconnect
 
     def _cycle_bus_cut(self) -> bool:
         """A ``disconnect`` fault has taken the firmware's command bus away."""
