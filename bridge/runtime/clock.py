@@ -133,7 +133,6 @@ class LockstepClock(_MonotonicClock):
         self._granted = 0           # the last step index that may run
         self._done = 0              # the last step index the loop finished (step 0 = reset)
         self._last_grant_wall: float | None = None
-        self.engaged = False
         self.cycles = 0             # cycles granted by the firmware (cycle messages)
         self.explicit = 0           # cycles granted by an explicit step (Zenoh queryable)
         self.misses = 0             # cycles granted by on_quiet = "step"
@@ -143,7 +142,16 @@ class LockstepClock(_MonotonicClock):
         return self._done
 
     @property
-    def granted(self) -> int:
+    def engaged(self) -> bool:
+        """False while held at t = 0 (nothing granted yet)."""
+        return self._granted > 0
+
+    def _extend(self, cycles: int) -> int:
+        """Grant ``cycles`` more periods from where the loop is (it may have run ahead of every
+        grant: steps taken while a fault cut the firmware's line, docs/protocols.md §6)."""
+        self._granted = max(self._granted, self._done) + cycles * self.steps_per_cycle
+        self._last_grant_wall = self._monotonic()
+        self._cond.notify_all()
         return self._granted
 
     def grant(self, cycles: int = 1, explicit: bool = False) -> int:
@@ -153,26 +161,19 @@ class LockstepClock(_MonotonicClock):
         if cycles < 1:
             raise ValueError(f"cycles must be >= 1, got {cycles!r}")
         with self._cond:
-            # (the loop may have run ahead of every grant: steps taken while a fault cut the
-            # firmware's line, docs/protocols.md §6)
-            self._granted = max(self._granted, self._done) + cycles * self.steps_per_cycle
-            self.engaged = True
             if explicit:
                 self.explicit += cycles
             else:
                 self.cycles += cycles
-            self._last_grant_wall = self._monotonic()
-            self._cond.notify_all()
-            return self._granted
+            return self._extend(cycles)
 
     def wait_for_step(self, n: int, timeout: float | None = None) -> bool:
         with self._cond:
             deadline = None if timeout is None else self._monotonic() + timeout
             while self._granted < n:
                 if self._quiet_expired():
-                    self._granted += self.steps_per_cycle
                     self.misses += 1
-                    self._last_grant_wall = self._monotonic()
+                    self._extend(1)
                     break
                 remaining = None if deadline is None else deadline - self._monotonic()
                 if remaining is not None and remaining <= 0:
