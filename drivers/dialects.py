@@ -10,23 +10,20 @@ from collections.abc import Mapping
 from types import MappingProxyType
 
 from koala_bridge.drivers.koala25 import KOALA25
-from koala_bridge.drivers.kteam import KOALA1, Dialect, KteamLimits, command_specs
+from koala_bridge.drivers.kteam import KOALA1, Dialect
 
 __all__ = ["DIALECTS", "dialect"]
 
 DIALECTS: Mapping[str, Dialect] = MappingProxyType({"koala1": KOALA1, "koala25": KOALA25})
 
 
-def dialect(name: str, limits: KteamLimits | None = None) -> Dialect:
-    """The dialect called ``name``; ``limits`` (``koala1`` only: the koala25 ranges are the
-    manual's) sets the ranges of :func:`~koala_bridge.drivers.kteam.command_specs`.
+def dialect(name: str) -> Dialect:
+    """The dialect called ``name`` (the classic Koala's with other ranges, ``[buses.kteam]
+    max_speed`` and the IR count: :func:`~koala_bridge.drivers.kteam.command_specs`).
 
     Raises:
         ValueError: ``name`` is not one of :data:`DIALECTS`.
     """
     if name not in DIALECTS:
         raise ValueError(f"unknown K-Team dialect {name!r} (one of {', '.join(DIALECTS)})")
-    if name == "koala1" and limits is not None:
-        return Dialect(KOALA1.name, command_specs(limits), KOALA1.line, KOALA1.reply_terminator,
-                       KOALA1.command_terminator, KOALA1.error_letter)
     return DIALECTS[name]

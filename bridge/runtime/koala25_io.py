@@ -84,6 +84,12 @@ class AutoRates:
     motors: float = 0.100
 
 
+_AUTO_RATE = {"sonar": "sonar_per_sensor", "speed": "motors", "position": "motors",
+              "current": "motors", "accel": "accel", "gyro": "gyro",
+              "magnetometer": "magnetometer"}
+"""The :class:`AutoRates` field of each auto-mode stream (``AUTO_COMMANDS``)."""
+
+
 class Koala25Responder:
     """Acts on one parsed Koala 2.5 command and returns the reply; produces auto-mode lines."""
 
@@ -309,29 +315,28 @@ class Koala25Responder:
     def auto_lines(self, t: float) -> list[KteamReply]:
         """The lines auto mode pushes at simulation time ``t`` (call once per step)."""
         with self._lock:
-            bits = self.auto_bits
-            n_sonar = bin(self.us_mask & 0x1FF).count("1")
-        if not bits:
-            return []
-        r = self.rates
-        periods = {"sonar": r.sonar_per_sensor * n_sonar, "speed": r.motors,
-                   "position": r.motors, "current": r.motors, "accel": r.accel, "gyro": r.gyro,
-                   "magnetometer": r.magnetometer}
-        out = []
-        for name, letter in AUTO_COMMANDS.items():
-            period = periods[name]
-            if not bits & AUTO_BITS[name] or period <= 0:
-                continue
-            with self._lock:
-                due = self._next_due.get(name)
-                if due is None:
-                    due = self._next_due[name] = self._auto_t0 + period
-                if t + 1e-9 < due:
-                    continue
-                # on the grid from A; a late call (a stalled loop) skips the missed pushes
-                self._next_due[name] = due + period if t < due + period else t + period
-            out.append(KOALA25.reply(letter, self._read(letter, ())))
-        return out
+            if not self.auto_bits:
+                return []
+            letters = [letter for name, letter in AUTO_COMMANDS.items()
+                       if self.auto_bits & AUTO_BITS[name] and self._due(name, t)]
+        return [KOALA25.reply(letter, self._read(letter, ())) for letter in letters]
+
+    def _due(self, name: str, t: float) -> bool:
+        """Whether auto-mode stream ``name`` pushes at ``t`` (and schedules its next push);
+        the caller holds the lock."""
+        period = getattr(self.rates, _AUTO_RATE[name])
+        if name == "sonar":
+            period *= bin(self.us_mask & 0x1FF).count("1")
+        if period <= 0:
+            return False
+        due = self._next_due.get(name)
+        if due is None:
+            due = self._next_due[name] = self._auto_t0 + period
+        if t + 1e-9 < due:
+            return False
+        # on the grid from A; a late call (a stalled loop) skips the missed pushes
+        self._next_due[name] = due + period if t < due + period else t + period
+        return True
 
     # -- helpers -----------------------------------------------------------------------------
 

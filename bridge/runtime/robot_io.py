@@ -154,11 +154,6 @@ class MotorArbiter:
             return cmd
         return self._command
 
-    def ramping(self) -> bool:
-        """True while a :meth:`set_ramp` set-point is not reached yet."""
-        with self._lock:
-            return self._ramp is not None
-
     def command_in_force(self) -> WheelCommand:
         """The last speed command, without advancing the watchdog's clock."""
         with self._lock:
@@ -208,8 +203,7 @@ class RobotPort:
 
     Written by the simulation loop (:meth:`update`), read by bus handlers on other threads.
     Besides the latest reading of each sensor it keeps the last :data:`HISTORY` gyro and
-    accelerometer samples (the Koala 2.5 reports 10 at a time), counted in ``gyro_samples`` /
-    ``accel_samples``.
+    accelerometer samples (the Koala 2.5 reports 10 at a time).
 
     The accelerometer is not a simulated sensor of its own: its samples are the specific force of
     the planar robot at the body centre, from the truth pose of each step (``v`` forward speed,
@@ -230,8 +224,6 @@ class RobotPort:
         self._battery: BatteryReading | None = None
         self._gyro: deque[float] = deque(maxlen=HISTORY)
         self._accel: deque[tuple[float, float, float]] = deque(maxlen=HISTORY)
-        self.gyro_samples = 0
-        self.accel_samples = 0
         self.leds = [0, 0]
         self.t = 0.0
         self._t_prev: float | None = None
@@ -242,7 +234,6 @@ class RobotPort:
         with self._lock:
             if self._t_prev is not None and r.t > self._t_prev:
                 self._accel.append(self._specific_force(r.pose, r.t - self._t_prev))
-                self.accel_samples += 1
             self._t_prev = r.t
             self._pose = r.pose
             self.t = r.t
@@ -256,7 +247,6 @@ class RobotPort:
                 self._sonar = tuple(float(v) for v in r.sonar.ranges)
             if r.gyro is not None:
                 self._gyro.append(float(r.gyro.yaw_rate))
-                self.gyro_samples += 1
             if r.compass is not None:
                 f = r.compass.field_uT
                 self._compass = (float(f[0]), float(f[1]), float(f[2]))
