@@ -78,6 +78,7 @@ from koala_bridge.drivers.transports.base import (
     Endpoint,
     StatsCounter,
     TransportStats,
+    listen_tcp,
     split_url,
 )
 
@@ -199,14 +200,9 @@ class SocketcandServer(CanTransport):
     ) -> None:
         if not channel or any(c.isspace() or c in "<>" for c in channel):
             raise ValueError(f"invalid channel name {channel!r}")
-        listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         try:
-            listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            listener.bind((host, port))
-            listener.listen(max_clients)
-            listener.setblocking(False)
+            listener = listen_tcp(host, port, max_clients)
         except OSError as e:
-            listener.close()
             raise TransportError(f"cannot listen on {host}:{port}: {e}") from e
         self._listener = listener
         self._host, self._port = listener.getsockname()[:2]
@@ -232,7 +228,6 @@ class SocketcandServer(CanTransport):
         self._closed = False
         self._close_lock = threading.Lock()
         self._stepped = threading.Condition()   # notified after every service-thread step
-        self._max_backlog = max_clients
         self._offline = False           # applied by the service thread (_apply_offline)
         self._want_offline = False
         self._offline_done = threading.Event()
@@ -413,14 +408,9 @@ class SocketcandServer(CanTransport):
             self._offline = True
             log.info("socketcand %s:%d: offline", self._host, self._port)
             return
-        listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         try:
-            listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            listener.bind((self._host, self._port))
-            listener.listen(self._max_backlog)
-            listener.setblocking(False)
+            listener = listen_tcp(self._host, self._port, self._max_clients)
         except OSError as e:
-            listener.close()
             self._want_offline = True  # stays offline; set_offline reports it
             log.error("socketcand: cannot listen on %s:%d again: %s", self._host, self._port, e)
             return
