@@ -141,6 +141,13 @@ class Endpoint:
 class _Closable(ABC):
     #: Whether :meth:`set_offline` is implemented (fault ``disconnect``, docs/faults.md).
     supports_offline: bool = False
+    _offline: bool = False  # a backend's set_offline keeps it (or it overrides :attr:`offline`)
+
+    @property
+    def offline(self) -> bool:
+        """True between :meth:`set_offline` ``(True)`` and ``(False)``; always False for a
+        backend that cannot go offline."""
+        return self._offline
 
     def set_offline(self, offline: bool) -> None:
         """Take the bus away (``True``) or give it back (``False``), as a cable pulled and

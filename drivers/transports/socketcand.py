@@ -267,10 +267,6 @@ class SocketcandServer(CanTransport):
 
     supports_offline = True
 
-    @property
-    def offline(self) -> bool:
-        return self._offline
-
     def set_offline(self, offline: bool) -> None:
         """Drop every client and stop listening (``True``), or listen again on the same port
         (``False``); returns once the service thread has done it. :class:`TransportError` if

@@ -101,10 +101,6 @@ class TcpServerTransport(ByteTransport):
 
     supports_offline = True
 
-    @property
-    def offline(self) -> bool:
-        return self._offline
-
     def set_offline(self, offline: bool) -> None:
         """Drop every client and stop listening (``True``), or listen again on the same port
         (``False``; :class:`TransportError` if it cannot be bound again)."""
