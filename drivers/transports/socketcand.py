@@ -230,7 +230,6 @@ class SocketcandServer(CanTransport):
         self._stepped = threading.Condition()   # notified after every service-thread step
         self._offline = False           # applied by the service thread (_apply_offline)
         self._want_offline = False
-        self._offline_done = threading.Event()
         # Client state (buffers, modes, the client table) is changed by the service thread and,
         # for bus frames, by send(): one lock for both (never held while waiting in select).
         self._io_lock = threading.Lock()
@@ -275,11 +274,13 @@ class SocketcandServer(CanTransport):
             raise TransportClosedError("socketcand server is closed")
         self._want_offline = offline
         deadline = time.monotonic() + 5.0
-        while self._offline != offline and self._want_offline == offline:
-            self._offline_done.clear()
-            self._waker.wake()
-            if not self._offline_done.wait(max(0.0, deadline - time.monotonic())):
-                break
+        with self._stepped:  # held from the check to the wait: no step's notify is missed
+            while self._offline != offline and self._want_offline == offline:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    break
+                self._waker.wake()
+                self._stepped.wait(remaining)
         if self._offline != offline:
             raise TransportError(f"socketcand: cannot listen on {self._host}:{self._port} "
                                  "again")
@@ -390,7 +391,6 @@ class SocketcandServer(CanTransport):
             self._update_interest(client)
         if self._want_offline != self._offline:
             self._apply_offline(self._want_offline)
-        self._offline_done.set()
         with self._stepped:
             self._stepped.notify_all()
 
