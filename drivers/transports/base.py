@@ -10,6 +10,7 @@ opened from its URL by its own :meth:`from_url` (through the registry,
 
 from __future__ import annotations
 
+import socket
 import threading
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
@@ -20,6 +21,7 @@ from urllib.parse import unquote, urlsplit
 import can
 
 __all__ = [
+    "listen_tcp",
     "ByteTransport",
     "CanTransport",
     "Endpoint",
@@ -54,6 +56,22 @@ def split_url(url: str) -> UrlParts:
     except ValueError as e:
         raise ValueError(f"{url!r}: {e}") from e
     return UrlParts(parts.scheme.lower(), parts.hostname, port, unquote(parts.path), rest)
+
+
+def listen_tcp(host: str, port: int, backlog: int) -> socket.socket:
+    """A non-blocking IPv4 socket listening on ``host:port`` (``SO_REUSEADDR``, so that a port
+    just given up -- the fault ``disconnect`` going back online -- binds again at once).
+    :class:`OSError` if it cannot listen; nothing is left open then."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind((host, port))
+        sock.listen(backlog)
+        sock.setblocking(False)
+    except OSError:
+        sock.close()
+        raise
+    return sock
 
 
 @dataclass(frozen=True, slots=True)
@@ -123,6 +141,13 @@ class Endpoint:
 class _Closable(ABC):
     #: Whether :meth:`set_offline` is implemented (fault ``disconnect``, docs/faults.md).
     supports_offline: bool = False
+    _offline: bool = False  # a backend's set_offline keeps it (or it overrides :attr:`offline`)
+
+    @property
+    def offline(self) -> bool:
+        """True between :meth:`set_offline` ``(True)`` and ``(False)``; always False for a
+        backend that cannot go offline."""
+        return self._offline
 
     def set_offline(self, offline: bool) -> None:
         """Take the bus away (``True``) or give it back (``False``), as a cable pulled and

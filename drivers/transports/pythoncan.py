@@ -73,10 +73,6 @@ class PythonCanTransport(CanTransport):
 
     supports_offline = True
 
-    @property
-    def offline(self) -> bool:
-        return self._offline
-
     def set_offline(self, offline: bool) -> None:
         self._b()
         self._offline = bool(offline)

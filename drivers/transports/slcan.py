@@ -159,6 +159,10 @@ class SlcanAdapter(CanTransport):
 
     supports_offline = True
 
+    @property
+    def offline(self) -> bool:
+        return self._pty.offline
+
     def set_offline(self, offline: bool) -> None:
         if self._closed:
             raise TransportClosedError("slcan adapter is closed")

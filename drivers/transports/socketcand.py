@@ -78,6 +78,7 @@ from koala_bridge.drivers.transports.base import (
     Endpoint,
     StatsCounter,
     TransportStats,
+    listen_tcp,
     split_url,
 )
 
@@ -199,14 +200,9 @@ class SocketcandServer(CanTransport):
     ) -> None:
         if not channel or any(c.isspace() or c in "<>" for c in channel):
             raise ValueError(f"invalid channel name {channel!r}")
-        listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         try:
-            listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            listener.bind((host, port))
-            listener.listen(max_clients)
-            listener.setblocking(False)
+            listener = listen_tcp(host, port, max_clients)
         except OSError as e:
-            listener.close()
             raise TransportError(f"cannot listen on {host}:{port}: {e}") from e
         self._listener = listener
         self._host, self._port = listener.getsockname()[:2]
@@ -232,10 +228,8 @@ class SocketcandServer(CanTransport):
         self._closed = False
         self._close_lock = threading.Lock()
         self._stepped = threading.Condition()   # notified after every service-thread step
-        self._max_backlog = max_clients
         self._offline = False           # applied by the service thread (_apply_offline)
         self._want_offline = False
-        self._offline_done = threading.Event()
         # Client state (buffers, modes, the client table) is changed by the service thread and,
         # for bus frames, by send(): one lock for both (never held while waiting in select).
         self._io_lock = threading.Lock()
@@ -272,10 +266,6 @@ class SocketcandServer(CanTransport):
 
     supports_offline = True
 
-    @property
-    def offline(self) -> bool:
-        return self._offline
-
     def set_offline(self, offline: bool) -> None:
         """Drop every client and stop listening (``True``), or listen again on the same port
         (``False``); returns once the service thread has done it. :class:`TransportError` if
@@ -284,11 +274,13 @@ class SocketcandServer(CanTransport):
             raise TransportClosedError("socketcand server is closed")
         self._want_offline = offline
         deadline = time.monotonic() + 5.0
-        while self._offline != offline and self._want_offline == offline:
-            self._offline_done.clear()
-            self._waker.wake()
-            if not self._offline_done.wait(max(0.0, deadline - time.monotonic())):
-                break
+        with self._stepped:  # held from the check to the wait: no step's notify is missed
+            while self._offline != offline and self._want_offline == offline:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    break
+                self._waker.wake()
+                self._stepped.wait(remaining)
         if self._offline != offline:
             raise TransportError(f"socketcand: cannot listen on {self._host}:{self._port} "
                                  "again")
@@ -399,7 +391,6 @@ class SocketcandServer(CanTransport):
             self._update_interest(client)
         if self._want_offline != self._offline:
             self._apply_offline(self._want_offline)
-        self._offline_done.set()
         with self._stepped:
             self._stepped.notify_all()
 
@@ -413,14 +404,9 @@ class SocketcandServer(CanTransport):
             self._offline = True
             log.info("socketcand %s:%d: offline", self._host, self._port)
             return
-        listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         try:
-            listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            listener.bind((self._host, self._port))
-            listener.listen(self._max_backlog)
-            listener.setblocking(False)
+            listener = listen_tcp(self._host, self._port, self._max_clients)
         except OSError as e:
-            listener.close()
             self._want_offline = True  # stays offline; set_offline reports it
             log.error("socketcand: cannot listen on %s:%d again: %s", self._host, self._port, e)
             return

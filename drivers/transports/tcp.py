@@ -27,6 +27,7 @@ from koala_bridge.drivers.transports.base import (
     Endpoint,
     StatsCounter,
     TransportStats,
+    listen_tcp,
     split_url,
 )
 
@@ -62,14 +63,9 @@ class TcpServerTransport(ByteTransport):
         max_clients: int = 8,
         max_pending: int = 65536,
     ) -> None:
-        self._listener: socket.socket | None = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         try:
-            self._listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            self._listener.bind((host, port))
-            self._listener.listen(max_clients)
-            self._listener.setblocking(False)
+            self._listener: socket.socket | None = listen_tcp(host, port, max_clients)
         except OSError as e:
-            self._listener.close()
             raise TransportError(f"cannot listen on {host}:{port}: {e}") from e
         self._host, self._port = self._listener.getsockname()[:2]
         self._offline = False
@@ -105,10 +101,6 @@ class TcpServerTransport(ByteTransport):
 
     supports_offline = True
 
-    @property
-    def offline(self) -> bool:
-        return self._offline
-
     def set_offline(self, offline: bool) -> None:
         """Drop every client and stop listening (``True``), or listen again on the same port
         (``False``; :class:`TransportError` if it cannot be bound again)."""
@@ -121,16 +113,10 @@ class TcpServerTransport(ByteTransport):
             listener.close()
             self._offline = True
             return
-        new = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         try:
-            new.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            new.bind((self._host, self._port))
-            new.listen(self._max_clients)
-            new.setblocking(False)
+            self._listener = listen_tcp(self._host, self._port, self._max_clients)
         except OSError as e:
-            new.close()
             raise TransportError(f"cannot listen on {self._host}:{self._port} again: {e}") from e
-        self._listener = new
         self._offline = False
 
     def read(self, max_bytes: int = 65536) -> bytes:

@@ -122,10 +122,6 @@ class UdpTransport(ByteTransport):
 
     supports_offline = True
 
-    @property
-    def offline(self) -> bool:
-        return self._offline
-
     def set_offline(self, offline: bool) -> None:
         """Drop everything (``True``) or nothing any more (``False``); see the module docstring."""
         self._s()

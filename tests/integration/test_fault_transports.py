@@ -53,6 +53,7 @@ def test_pty_offline_hangs_up_and_a_new_pty_returns_at_the_same_path(tmp_path: P
             session = port.client_session
             port.set_offline(True)
             port.set_offline(True)              # idempotent
+            assert port.offline
             assert client_read_fails(client)
             assert not link.exists()            # nobody opens a stale or reused /dev/pts/N
             assert port.write(b"lost") == 0 and port.stats.dropped == 1
@@ -62,6 +63,7 @@ def test_pty_offline_hangs_up_and_a_new_pty_returns_at_the_same_path(tmp_path: P
         finally:
             client.close()
         port.set_offline(False)
+        assert not port.offline
         assert os.readlink(link) == port.slave_path
         assert port.fileno() == fd              # whoever polls it polls the new master
         client = serial.Serial(str(link), timeout=1.0)
@@ -108,11 +110,13 @@ def test_slcan_goes_offline_and_sends_no_error_frames(tmp_path: Path) -> None:
             assert client.read_until(b"\r") == b"t101101\r"
             assert adapter.stats.sent == 1
             adapter.set_offline(True)
+            assert adapter.offline
             assert client_read_fails(client)
             assert not adapter.is_open
         finally:
             client.close()
         adapter.set_offline(False)
+        assert not adapter.offline
         with serial.Serial(str(path), timeout=1.0) as client:
             client.write(b"V\r")
             assert client.read_until(b"\r") == b"V1013\r"
@@ -175,6 +179,7 @@ def test_socketcand_offline_drops_clients_and_refuses_new_ones(server: Socketcan
         raw.sendall(b"< open " + ep.channel.encode() + b" >")
         assert read_element(raw) == b"< ok >"
         server.set_offline(True)
+        assert server.offline
         assert raw.recv(100) == b""                      # the connection dropped
     finally:
         raw.close()
@@ -185,6 +190,7 @@ def test_socketcand_offline_drops_clients_and_refuses_new_ones(server: Socketcan
     assert server.stats.dropped == 1 and server.stats.clients == 0
     server.set_offline(False)
     server.set_offline(False)                            # idempotent
+    assert not server.offline
     bus = python_can_client(server)                      # the same port again
     try:
         server.send(can.Message(arbitration_id=0x102, data=b"\x03", is_extended_id=False,
@@ -204,12 +210,14 @@ def test_tcp_server_offline_drops_clients_and_refuses_new_ones() -> None:
             wait_for(lambda: srv.read() == b"" and srv.stats.clients == 1)
             assert srv.write(b"hi") == 2 and client.recv(2) == b"hi"
             srv.set_offline(True)
+            assert srv.offline
             assert client.recv(10) == b""
         with pytest.raises(ConnectionRefusedError), socket.create_connection(
                 (ep.host, ep.port), timeout=5.0):
             pass
         assert srv.write(b"lost") == 0 and srv.read() == b"" and not srv.wait(0.01)
         srv.set_offline(False)
+        assert not srv.offline
         with socket.create_connection((ep.host, ep.port), timeout=5.0) as client:
             client.sendall(b"up")
             assert srv.wait(5.0) and srv.read() == b"up"
@@ -222,10 +230,12 @@ def test_udp_offline_drops_everything() -> None:
         host, port = ground.getsockname()
         with UdpTransport(host, port) as link:
             link.set_offline(True)
+            assert link.offline
             assert link.write(b"lost") == 0 and link.stats.dropped == 1
             ground.sendto(b"ignored", link.local_address)   # loopback: queued at once
             assert not link.wait(0.05) and link.read() == b""
             link.set_offline(False)
+            assert not link.offline
             assert link.write(b"up") == 2 and ground.recv(10) == b"up"
             ground.sendto(b"heard", link.local_address)
             assert link.wait(5.0) and link.read() == b"heard"  # not the one sent offline
@@ -236,11 +246,13 @@ def test_virtual_can_offline_drops_both_ways() -> None:
         other = can.Bus(interface="virtual", channel="faults-test")
         try:
             node.set_offline(True)
+            assert node.offline
             node.send(can.Message(arbitration_id=1, data=b"\x01", is_extended_id=False))
             assert other.recv(0.05) is None and node.stats.dropped == 1
             other.send(can.Message(arbitration_id=2, data=b"\x02", is_extended_id=False))
             assert node.recv(0.1) is None
             node.set_offline(False)
+            assert not node.offline
             assert node.recv(0.05) is None                 # lost while offline
             other.send(can.Message(arbitration_id=3, data=b"\x03", is_extended_id=False))
             assert recv(node).arbitration_id == 3
@@ -251,7 +263,7 @@ def test_virtual_can_offline_drops_both_ways() -> None:
 def test_a_backend_without_offline_says_so() -> None:
     a, b = LoopbackTransport.pair()
     try:
-        assert not a.supports_offline
+        assert not a.supports_offline and not a.offline
         with pytest.raises(NotImplementedError, match="LoopbackTransport cannot go offline"):
             a.set_offline(True)
     finally:
