@@ -15,7 +15,7 @@ import math
 
 import numba
 import numpy as np
-from koala_bridge.sim.raycast import first_hit, wrap_angle_compiled
+from koala_bridge.core.raycast import first_hit, wrap_angle_compiled
 
 
 @numba.njit(cache=True, nogil=True)
@@ -196,7 +196,7 @@ def sonar_ring_kernel(seg: np.ndarray, rays: np.ndarray, index: np.ndarray, star
                       cycle: np.ndarray, u: np.ndarray, z: np.ndarray, out: np.ndarray
                       ) -> None:  # pragma: no cover - compiled
     """The sonar ring from the simulator's cast, in one call: ``rays`` (6, R) rows origin x, y,
-    direction x, y, range, incidence (:func:`sim.raycast.cast_fan_arrays`), ``index`` (R,) wall
+    direction x, y, range, incidence (:func:`core.raycast.cast_fan_arrays`), ``index`` (R,) wall
     hit; the ring's rays start at ``start``. Computes the specular second legs and the crosstalk
     geometry when needed and runs :func:`sonar_kernel`; readings nearer than ``min_reading``
     become 0 (the Koala's "too close"). Writes ``out`` (3, n): ranges, truth ranges, truth

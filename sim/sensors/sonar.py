@@ -10,7 +10,7 @@ Ideal reading, as the Koala 2.5 reports (User Manual rev 1.1 section 4.1): neare
 Koala returns 1000); otherwise the true range.
 
 Seam: ``SonarSensor.measure(rays, index, start, variates)`` takes the simulator's cast of this
-step (:func:`sim.raycast.cast_fan_arrays`); with ``ideal = false`` the error model (distance
+step (:func:`core.raycast.cast_fan_arrays`); with ``ideal = false`` the error model (distance
 error table +-6.6 %, specular reflection beyond a critical incidence angle, late echoes via a
 second wall, crosstalk, glitches; ``sim/models/sonar.py``) gets the :class:`SonarTruth`: every
 ray's world geometry, range, incidence and wall index, and the walls.
@@ -32,7 +32,7 @@ import numba
 import numpy as np
 from koala_bridge.core.schema import Bool, NonNegative, Positive, section
 from koala_bridge.sim.noise import Variates
-from koala_bridge.sim.raycast import SegmentSet
+from koala_bridge.core.raycast import SegmentSet
 from koala_bridge.sim.sections import Poses, Rays, empty_errors, range_limits, sensor_section
 from koala_bridge.sim.sensors.base import ErrorModel
 from koala_bridge.sim.sensors.fan import RayFan
@@ -154,7 +154,7 @@ class SonarSensor:
     def measure(
         self, rays: np.ndarray, index: np.ndarray, start: int, variates: Variates
     ) -> SonarReading:
-        """Reading from this step's cast (:func:`sim.raycast.cast_fan_arrays` of a fan whose rays
+        """Reading from this step's cast (:func:`core.raycast.cast_fan_arrays` of a fan whose rays
         ``start..`` are :attr:`fan`'s)."""
         p = self.params
         if self.error_model is None:

@@ -24,7 +24,7 @@ from koala_bridge.estimation import (
     walls_from_ir,
 )
 from koala_bridge.estimation.grid_localisation import wall_log_likelihood
-from koala_bridge.sim.raycast import SegmentSet, cast_rays
+from koala_bridge.core.raycast import SegmentSet, cast_rays
 
 ROOT = Path(__file__).resolve().parents[2]
 WALL_WORLDS = ["lab_walls_1", "lab_walls_2", "lab_walls_3"]
