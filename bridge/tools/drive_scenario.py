@@ -231,6 +231,7 @@ class ScenarioResult:
         fault_events: the ``events/fault`` payloads.
         contact: wall-contact intervals of the truth ``[(t0, t1), ...]``.
         walls: ``(M, 4)`` wall segments ``[x0, y0, x1, y1]`` of the world (for plots).
+        landmarks: ``(K, 3)`` the world's camera landmarks ``[id, x, y]``.
         kidnap: the kidnap scripted, or None; ``kidnap_from``: where the robot was taken from.
         estimator_cpu_s: loop-thread CPU time spent in the localisation node.
         sim_s, wall_s: simulated and wall seconds of the run.
@@ -253,7 +254,7 @@ class ScenarioResult:
     estimator_cpu_s: float
     sim_s: float
     wall_s: float
-    extra: dict[str, Any] = field(default_factory=dict)
+    landmarks: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
 
     @property
     def kidnap_distance_m(self) -> float | None:
@@ -342,6 +343,8 @@ def run_scenario(segments: Sequence[Segment] = HOSTILE, *, seed: int = 1,
     service.localisation = timer  # type: ignore[assignment]
     walls = np.asarray(service.sim.walls.segments, dtype=float).copy()
     radius = float(service.sim.config.robot.body_radius_m)
+    landmarks = np.array([[m.id, m.x, m.y] for m in service.sim.world.landmarks],
+                         dtype=float).reshape(-1, 3)
     service.open()
     try:
         if on_service is not None:
@@ -372,7 +375,7 @@ def run_scenario(segments: Sequence[Segment] = HOSTILE, *, seed: int = 1,
         contact=contact_intervals(truth_t, truth, walls, radius),
         walls=walls, body_radius_m=radius,
         kidnap=kidnap if kidnap_from is not None else None, kidnap_from=kidnap_from,
-        estimator_cpu_s=timer.cpu_s, sim_s=float(last.t), wall_s=wall_s,
+        estimator_cpu_s=timer.cpu_s, sim_s=float(last.t), wall_s=wall_s, landmarks=landmarks,
     )
 
 

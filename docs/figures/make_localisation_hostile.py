@@ -6,7 +6,8 @@ Runs :func:`koala_bridge.tools.drive_scenario.run_scenario` (the bridge's simula
 config/default.toml, fast clock, the estimator fed from its buses; the "hostile" script with the
 ~4 s wall push and, unless ``--no-kidnap``, the kidnap at 40 s) and draws:
 
-* the map (walls), the true path and the estimated path, the wall contact and the kidnap;
+* the map (walls, camera landmarks), the true and the estimated path, the wall contact and
+  the kidnap;
 * the position error over time with the 0.2 m recovery threshold, the heading error, and the
   NEES of ``(x, y, theta)`` (log scale) with the 95 % chi-square band of 3 dof;
 * shaded bands: wall contact (grey) and, if the node publishes ``estimate/health``, its state.
@@ -27,7 +28,7 @@ from typing import Any
 import numpy as np
 
 OUT = Path(__file__).resolve().parent / "localisation_hostile.png"
-HEALTH_COLOURS = {"tracking": "#d8f0d8", "uncertain": "#fff2b3", "lost": "#f7c6c6",
+HEALTH_COLOURS = {"tracking": "#ffffff", "uncertain": "#fff2b3", "lost": "#f7c6c6",
                   "relocalising": "#cfd8f7"}
 
 
@@ -70,6 +71,11 @@ def draw(result: Any, out: Path) -> None:
 
     for x0, y0, x1, y1 in result.walls:
         ax_map.plot([x0, x1], [y0, y1], color="k", lw=2.5, solid_capstyle="butt")
+    for i, (lid, lx, ly) in enumerate(result.landmarks):
+        ax_map.plot(lx, ly, "*", color="tab:orange", ms=11, mec="k", mew=0.5,
+                    label="camera landmark" if i == 0 else None)
+        ax_map.annotate(f"{lid:.0f}", (lx, ly), textcoords="offset points", xytext=(-9, -12),
+                        fontsize=8)
     tt, truth = result.truth_t, result.truth
     k_t = result.kidnap.t_s if result.kidnap is not None else math.inf
     for part in (tt <= k_t, tt > k_t):
@@ -95,7 +101,7 @@ def draw(result: Any, out: Path) -> None:
     ax_map.set_aspect("equal")
     ax_map.set_xlabel("x (m)")
     ax_map.set_ylabel("y (m)")
-    ax_map.legend(loc="upper left", fontsize=8, framealpha=0.9)
+    ax_map.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=2, fontsize=8)
     ax_map.set_title(f"hostile drive, seed {result.seed}: map, truth and estimate")
 
     spans = health_spans(result.estimates.get("estimate/health", []), result.sim_s)
@@ -118,6 +124,13 @@ def draw(result: Any, out: Path) -> None:
     ax_err.set_title(text, fontsize=10)
     ax_err.set_ylabel("position error (m)")
     ax_err.legend(loc="upper left", fontsize=8)
+    if spans:
+        from matplotlib.patches import Patch
+
+        states = list(dict.fromkeys(state for _, _, state in spans))
+        ax_hdg.legend(handles=[Patch(color=HEALTH_COLOURS.get(s, "#eeeeee"), label=s)
+                               for s in states], loc="upper left", fontsize=8,
+                      title="estimate/health", title_fontsize=8)
 
     ax_hdg.plot(a.t, np.degrees(e[:, 2]), color="tab:blue", lw=1)
     ax_hdg.axhline(5, color="tab:orange", ls=":", lw=1)
