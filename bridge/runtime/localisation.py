@@ -132,7 +132,7 @@ from koala_bridge.estimation.messages import (
 from koala_bridge.estimation.relocaliser import Relocaliser, RelocaliserParams
 from koala_bridge.runtime.real_kteam import KteamReplyDecoder
 from koala_bridge.sim.config import SimConfig
-from koala_bridge.sim.world import SIDE_STEP, SIDES, World
+from koala_bridge.sim.world import SIDE_STEP, World
 from pydantic import AfterValidator, Field
 
 log = logging.getLogger(__name__)

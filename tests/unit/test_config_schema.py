@@ -27,8 +27,8 @@ from koala_bridge.runtime.localisation import (
     GridSettings,
     LocalisationSettings,
     OccupancySettings,
-    RobustSettings,
     PoseSettings,
+    RobustSettings,
 )
 from koala_bridge.runtime.real_source import RealPorts
 from koala_bridge.runtime.settings import (
