@@ -8,8 +8,12 @@ States, worst first (the published ``state``), with the ``reasons`` that led to 
 * ``lost`` -- the evidence contradicts the estimate and no relocalisation runs (it is off, or the
   moment it is detected). Reasons: ``innovations_rejected`` -- in the last ``window_s`` at least
   ``lost_min_rejections`` informative readings (landmarks, map ranges) were gated out and they
-  were at least ``lost_reject_ratio`` of all; ``estimate_in_wall`` -- the estimated body has
-  overlapped a wall for ``in_wall_s`` (the robot cannot be there).
+  were at least ``lost_reject_ratio`` of all; ``absolute_references_rejected`` -- the same test
+  over the longer ``absolute_window_s`` on the absolute references alone (landmarks and the
+  compass, which no symmetry of the map can fool: a relocalisation onto a look-alike place that
+  the walls confirm is caught by them), with ``absolute_min_rejections``;
+  ``estimate_in_wall`` -- the estimated body has overlapped a wall for ``in_wall_s`` (the robot
+  cannot be there).
 * ``uncertain`` -- the estimate is consistent but not tight, or the robot is in a situation its
   model handles by widening the covariance. Reasons: ``wheel_slip`` (encoders disagree with the
   gyro), ``wall_contact`` (an IR sensor facing the direction of travel touches a wall),
@@ -37,6 +41,8 @@ class HealthParams:
     lost_min_rejections: int = 8
     lost_reject_ratio: float = 0.7
     in_wall_s: float = 0.5
+    absolute_window_s: float = 10.0
+    absolute_min_rejections: int = 4
     uncertain_sigma_xy_m: float = 0.1
     uncertain_sigma_theta: float = math.radians(10.0)
     no_fix_timeout_s: float = 10.0
@@ -52,10 +58,12 @@ class HealthMonitor:
         self._rejected = 0
         self.last_fix_t = 0.0
         self._in_wall_since: float | None = None
+        self._absolute: collections.deque[tuple[float, bool]] = collections.deque()
 
     def reset(self, t: float) -> None:
         """Forget the evidence (after a relocalisation: the old rejections are explained)."""
         self._window.clear()
+        self._absolute.clear()
         self._accepted = self._rejected = 0
         self.last_fix_t = t
         self._in_wall_since = None
@@ -68,6 +76,11 @@ class HealthMonitor:
             self._window.append((t, accepted, rejected))
             self._accepted += accepted
             self._rejected += rejected
+        self._expire(t)
+
+    def absolute(self, t: float, accepted: bool) -> None:
+        """One absolute reference (a landmark, a compass heading) accepted or gated out."""
+        self._absolute.append((t, accepted))
         self._expire(t)
 
     def body_in_wall(self, t: float, inside: bool) -> None:
@@ -83,6 +96,9 @@ class HealthMonitor:
             _, a, r = w.popleft()
             self._accepted -= a
             self._rejected -= r
+        ab = self._absolute
+        while ab and ab[0][0] < t - self.params.absolute_window_s:
+            ab.popleft()
 
     def inconsistent(self, t: float) -> list[str]:
         """Reasons the evidence contradicts the estimate (empty: it does not)."""
@@ -91,6 +107,9 @@ class HealthMonitor:
         total = self._accepted + self._rejected
         if self._rejected >= p.lost_min_rejections and self._rejected >= p.lost_reject_ratio * total:
             out.append("innovations_rejected")
+        bad = sum(1 for _, ok in self._absolute if not ok)
+        if bad >= p.absolute_min_rejections and bad >= p.lost_reject_ratio * len(self._absolute):
+            out.append("absolute_references_rejected")
         if self._in_wall_since is not None and t - self._in_wall_since >= p.in_wall_s:
             out.append("estimate_in_wall")
         return out

@@ -19,7 +19,10 @@ estimator knows the map, never the robot's true pose.
 small change of pose, and no linearisation holds. A sensor with a beam (the sonar's 22.9 deg) is
 modelled as the seed does it (seeds/004 "Sensor Models": Webots' sonar reading is the nearest hit
 of ``rays`` rays spread over the aperture, rays beyond the critical incidence being lost): the
-expected range is the nearest direct hit among the beam's rays, its Jacobian that ray's.
+nearest direct hit among the beam's rays names the wall, and when that wall's normal lies
+inside the beam the expected range is the perpendicular distance to it (the continuous cone's
+first echo; the rays are its samples), whose derivative with respect to the heading comes only
+from the sensor's offset from the robot's centre; a wall seen only obliquely is not used.
 
 **Likelihood field** (Thrun et al. §6.4): a reading ``r`` of a sensor puts an obstacle at the end
 point of its ray; the field is the distance from each point of the map to the nearest wall (a
@@ -130,10 +133,44 @@ class MapModel:
                 continue
             bx, by = body[0, best], body[1, best]
             do_x, do_y = -(s * bx + c * by), c * bx - s * by
+            if beams > 1:
+                hits.append(self._beam_hit(i, m, ox, oy, do_x, do_y, th, body,
+                                           range(i * beams, (i + 1) * beams)))
+                continue
             dd_x, dd_y = -dy, dx
             h_th = -(nx * do_x + ny * do_y + r * (nx * dd_x + ny * dd_y)) / nd
             hits.append(RangeHit(i, r, (-nx / nd, -ny / nd, h_th)))
         return hits
+
+    def _beam_hit(self, i: int, m: int, ox: float, oy: float, do_x: float, do_y: float,
+                  th: float, body: FloatArray, cols: range) -> RangeHit | None:
+        """A beam's first echo off wall ``m``: when the wall's normal lies inside the beam, the
+        echo comes from the foot of the perpendicular, so the range is the distance to the
+        wall's line and does not depend on the heading except through the sensor's offset
+        (the continuous cone of which the rays are samples; the nearest of a few rays would
+        turn every sweep of the beam across the wall into false heading information)."""
+        nx, ny = self._normal[m]
+        a, b = self.walls.segments[m, :2]
+        dist = (ox - a) * nx + (oy - b) * ny          # signed, + on the normal's side
+        if dist < 0:
+            nx, ny, dist = -nx, -ny, -dist
+        # direction from the sensor to the wall: -n; is it inside the beam?
+        angles = body[2, cols.start:cols.stop]
+        axis = th + 0.5 * (float(angles[0]) + float(angles[-1]))
+        half = 0.5 * (float(angles[-1]) - float(angles[0]))
+        off = math.atan2(-ny, -nx) - axis
+        off = math.atan2(math.sin(off), math.cos(off))
+        if abs(off) > half:
+            return None
+        # the foot of the perpendicular must lie on the wall, away from its ends
+        seg = self.walls.segments[m]
+        fx, fy = ox - dist * nx, oy - dist * ny
+        ex, ey = seg[2] - seg[0], seg[3] - seg[1]
+        u = ((fx - seg[0]) * ex + (fy - seg[1]) * ey) / (ex * ex + ey * ey)
+        mu = self._margin_u[m]
+        if u < mu or u > 1.0 - mu:
+            return None
+        return RangeHit(i, dist, (nx, ny, nx * do_x + ny * do_y))
 
     # -- the likelihood field -------------------------------------------------------------
 

@@ -216,8 +216,9 @@ class PoseTrackerParams:
         gyro_timeout_s: after this long without a gyro sample, heading comes from the encoders.
         compass_sigma_rad: standard deviation of a compass heading, rad.
         gate_probability: NIS gate; a measurement beyond this chi-square quantile is rejected.
-        process_noise_xy: random walk of x and y, m^2/s (unmodelled effects).
-        process_noise_theta: random walk of the heading, rad^2/s.
+        process_noise_xy: random walk of x and y per metre the wheels travel, m^2/m
+            (unmodelled effects; a wheel's travel is ``|ds| + wheel_base / 2 * |dtheta|``).
+        process_noise_theta: random walk of the heading per metre the wheels travel, rad^2/m.
     """
 
     wheel_base_m: float
@@ -353,12 +354,15 @@ class PoseTracker:
             self.x, self.P, ds, dth, cov_u, bias_time, p.gyroscope_random_walk**2 * dt
         )
         # Unmodelled effects (map and range-model errors that are not white, soft iron, floor
-        # unevenness): a random walk of the pose, so that time-correlated errors averaged as if
-        # independent cannot shrink the covariance below what the data support.
+        # unevenness): a random walk of the pose with the wheels' travel, so that errors that
+        # stay the same while the geometry does, averaged as if independent, cannot shrink the
+        # covariance below what the data support. (Per metre, not per second: a robot at rest
+        # sees the same scene, and its estimate does not get worse by waiting.)
         if p.process_noise_xy or p.process_noise_theta:
-            self.P[0, 0] += p.process_noise_xy * dt
-            self.P[1, 1] += p.process_noise_xy * dt
-            self.P[2, 2] += p.process_noise_theta * dt
+            travel = abs(ds) + 0.5 * p.wheel_base_m * abs(dth)
+            self.P[0, 0] += p.process_noise_xy * travel
+            self.P[1, 1] += p.process_noise_xy * travel
+            self.P[2, 2] += p.process_noise_theta * travel
         self.t = t
 
     # -- correction ------------------------------------------------------------------------

@@ -80,9 +80,9 @@ class Relocaliser:
 
     def start(self, x: float, y: float, theta: float, heading: float | None = None) -> None:
         """Spread the particles (module docstring): around ``(x, y, theta)`` and over the map,
-        headings around ``heading`` (default ``theta``)."""
+        headings around ``heading`` (an absolute heading, the compass's), or uniform when it is
+        None."""
         p, rng, n = self.params, self._rng, self.params.particles
-        heading = theta if heading is None else heading
         n_local = int(round(p.share_local * n))
         self.xy[0, :n_local] = x + p.local_sigma_xy_m * rng.standard_normal(n_local)
         self.xy[1, :n_local] = y + p.local_sigma_xy_m * rng.standard_normal(n_local)
@@ -96,18 +96,18 @@ class Relocaliser:
     def stop(self) -> None:
         self.active = False
 
-    def _uniform(self, idx: NDArray[np.intp], heading: float) -> None:
+    def _uniform(self, idx: NDArray[np.intp], heading: float | None) -> None:
         p, rng = self.params, self._rng
         cm = self.map.world.cell_m
         cells = self._free[rng.integers(0, len(self._free), idx.size)]
         self.xy[0, idx] = (cells[:, 0] + rng.random(idx.size)) * cm
         self.xy[1, idx] = (cells[:, 1] + rng.random(idx.size)) * cm
-        th = heading + p.heading_sigma * rng.standard_normal(idx.size)
-        anyh = rng.random(idx.size) < p.share_any_heading
+        th = (0.0 if heading is None else heading) + p.heading_sigma * rng.standard_normal(idx.size)
+        anyh = rng.random(idx.size) < (1.0 if heading is None else p.share_any_heading)
         th[anyh] = rng.uniform(-math.pi, math.pi, int(anyh.sum()))
         self.th[idx] = th
 
-    def _redraw_inside_walls(self, heading: float) -> None:
+    def _redraw_inside_walls(self, heading: float | None) -> None:
         for _ in range(20):
             bad = np.nonzero(~self._fits(self.xy[0], self.xy[1]))[0]
             if bad.size == 0:

@@ -261,6 +261,8 @@ class RobustSettings:
     lost_min_rejections: Annotated[int, Field(ge=1)]
     lost_reject_ratio: Probability
     in_wall_s: Positive
+    absolute_window_s: Positive
+    absolute_min_rejections: Annotated[int, Field(ge=1)]
     uncertain_sigma_xy_m: Positive
     uncertain_sigma_theta_deg: Positive
     no_fix_timeout_s: Positive
@@ -505,6 +507,8 @@ class LocalisationNode:
         self.health = HealthMonitor(HealthParams(
             window_s=rb.lost_window_s, lost_min_rejections=rb.lost_min_rejections,
             lost_reject_ratio=rb.lost_reject_ratio, in_wall_s=rb.in_wall_s,
+            absolute_window_s=rb.absolute_window_s,
+            absolute_min_rejections=rb.absolute_min_rejections,
             uncertain_sigma_xy_m=rb.uncertain_sigma_xy_m,
             uncertain_sigma_theta=math.radians(rb.uncertain_sigma_theta_deg),
             no_fix_timeout_s=rb.no_fix_timeout_s))
@@ -603,6 +607,7 @@ class LocalisationNode:
                 sb = math.radians(ps.landmark_bearing_sigma_deg)
                 ok = self.tracker.on_landmark(t, xy, ob.range, ob.bearing, sr, sb)
                 self.health.evidence(t, int(ok), int(not ok))
+                self.health.absolute(t, ok)
                 if self.relocaliser is not None and self.relocaliser.active:
                     self.relocaliser.on_landmark(xy[0], xy[1], ob.range, ob.bearing, sr, sb)
                 self.counters.took("landmark")
@@ -757,9 +762,10 @@ class LocalisationNode:
         if reloc is None:
             self._set_state(t, LOST, reasons)
             return
-        heading = self._compass_heading if self._compass_heading is not None else self.tracker.pose[2]
+        # Headings: around the compass's (a kidnap may turn the robot), or any heading while the
+        # compass has no hard-iron offset yet.
         self._set_state(t, LOST, reasons)
-        reloc.start(x, y, self.tracker.pose[2], heading)
+        reloc.start(x, y, self.tracker.pose[2], self._compass_heading)
         self._set_state(t, RELOCALISING, reasons)
 
     def _set_state(self, t: float, state: str, reasons: list[str]) -> None:
@@ -790,7 +796,7 @@ class LocalisationNode:
             log.info("localisation: hard-iron offset %s uT (online fit)", self._hard_iron[:2])
         heading = heading_from_field((mx, my, mz), self._north, self._hard_iron)
         self._compass_heading = heading
-        self.tracker.on_compass(t, heading)
+        self.health.absolute(t, self.tracker.on_compass(t, heading))
 
     def _ir(self, t: float, counts: np.ndarray) -> None:
         self.counters.took("ir")
