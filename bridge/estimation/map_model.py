@@ -203,6 +203,16 @@ class MapModel:
         outside = np.hypot(ci - cc, ri - rc) * res
         return self._field[rc, cc] + outside
 
+    def clearance(self, x: float, y: float) -> float:
+        """:meth:`distance` of one point, without arrays (the estimator asks every step);
+        ``-1`` outside the map."""
+        if not (0.0 <= x <= self.world.width_m and 0.0 <= y <= self.world.height_m):
+            return -1.0
+        res = self.resolution_m
+        col = min(int(x / res + 0.5), self._cols - 1)
+        row = min(int(y / res + 0.5), self._rows - 1)
+        return float(self._field[row, col])
+
     def inside(self, x: FloatArray, y: FloatArray) -> NDArray[np.bool_]:
         """Whether each point lies inside the map's outer bounds."""
         return (x >= 0) & (y >= 0) & (x <= self.world.width_m) & (y <= self.world.height_m)

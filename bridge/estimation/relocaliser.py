@@ -57,7 +57,7 @@ class RelocaliserParams:
     min_sigma_theta: float = math.radians(1.0)
     converged_sigma_xy_m: float = 0.08
     converged_sigma_theta: float = math.radians(8.0)
-    min_updates: int = 20               # weightings before convergence may be declared
+    min_updates: int = 20               # position weightings (ranges, landmarks) before convergence
 
 
 class Relocaliser:
@@ -138,14 +138,14 @@ class Relocaliser:
 
     # -- weights -----------------------------------------------------------------------------
 
-    def _weigh(self, loglik: FloatArray) -> None:
+    def _weigh(self, loglik: FloatArray, counts: bool = True) -> None:
         self.logw += loglik
         top = np.max(self.logw)
         if not np.isfinite(top):  # every particle ruled out: start again around the mean
             self.logw[:] = 0.0
             return
         self.logw -= top
-        self.updates += 1
+        self.updates += int(counts)
         w = np.exp(self.logw)
         w /= w.sum()
         if 1.0 / np.sum(w * w) < 0.5 * self.params.particles:
@@ -190,7 +190,7 @@ class Relocaliser:
             return
         e = wrap_angle_array(self.th - heading) / sigma
         eps = self.params.compass_outlier
-        self._weigh(np.log((1 - eps) * np.exp(-0.5 * e * e) + eps * 0.05))
+        self._weigh(np.log((1 - eps) * np.exp(-0.5 * e * e) + eps * 0.05), counts=False)
 
     def _resample(self, w: FloatArray) -> None:
         p, rng, n = self.params, self._rng, self.params.particles

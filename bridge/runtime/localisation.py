@@ -149,6 +149,9 @@ IN_WALL_MARGIN_M = 0.05
 #: An IR sensor counts as facing the direction of travel when cos(its yaw) has the sign of the
 #: motion and at least this size (within ~70 deg of straight ahead / behind).
 CONTACT_FACING_COS = 0.35
+#: Simulated seconds between consistency checks (estimate in a wall, evidence against it, the
+#: relocaliser's convergence): the evidence arrives at the range sensors' rates, 5-20 Hz.
+CHECK_PERIOD_S = 0.1
 Publish = Callable[[str, dict[str, Any]], None]
 
 
@@ -524,6 +527,7 @@ class LocalisationNode:
         self._last_ds = 0.0
         self._state, self._reasons = TRACKING, []
         self._compass_heading: float | None = None
+        self._next_check = -math.inf
 
     def _restart_clock(self, t: float) -> None:
         """Time went backwards (the simulator was reset, e.g. a second ``run``): restart every
@@ -532,6 +536,7 @@ class LocalisationNode:
         log.info("localisation: time went back from %.3f to %.3f s; schedules restarted",
                  self._last_t, t)
         self._next = dict.fromkeys(self._next, -math.inf)
+        self._next_check = -math.inf
         self._next_due = -math.inf
         self._odo_t = None
         self._compass_t = -math.inf
@@ -737,12 +742,14 @@ class LocalisationNode:
         return t < self._slip_until
 
     def _check_consistency(self, t: float) -> None:
-        """After each prediction: is the estimated body in a wall, does the evidence contradict
+        """After a prediction, every ``CHECK_PERIOD_S``: is the estimated body in a wall, does the evidence contradict
         the estimate (start relocalising), has the relocaliser converged (restart the EKF)?"""
+        if t < self._next_check - 1e-9:
+            return
+        self._next_check = t + CHECK_PERIOD_S
         x, y, _ = self.tracker.pose
-        clear = float(self.map_model.distance(np.array(x), np.array(y)))
-        self.health.body_in_wall(t, clear < self._body_radius - IN_WALL_MARGIN_M
-                                 or not self.map_model.inside(x, y))
+        self.health.body_in_wall(
+            t, self.map_model.clearance(x, y) < self._body_radius - IN_WALL_MARGIN_M)
         reloc = self.relocaliser
         if reloc is not None and reloc.active:
             if reloc.converged:
@@ -779,11 +786,15 @@ class LocalisationNode:
     def _compass(self, t: float, mx: float, my: float, mz: float) -> None:
         self.counters.took("compass")
         reloc = self.relocaliser
-        if reloc is not None and reloc.active and self._hard_iron is not None:
-            # every sample while relocalising: the heading is what tells mirror-image places
-            # of a symmetric map apart (sigma widened: its errors are correlated)
-            reloc.on_heading(heading_from_field((mx, my, mz), self._north, self._hard_iron),
-                             3.0 * self.tracker.params.compass_sigma_rad)
+        if self._hard_iron is not None:
+            # every sample: the latest heading starts a relocalisation (a turning robot's heading
+            # of a second ago is no prior), and while relocalising it is what tells mirror-image
+            # places of a symmetric map apart (sigma widened: its errors are correlated)
+            self._compass_heading = heading_from_field((mx, my, mz), self._north,
+                                                       self._hard_iron)
+            if reloc is not None and reloc.active:
+                reloc.on_heading(self._compass_heading,
+                                 3.0 * self.tracker.params.compass_sigma_rad)
         if t - self._compass_t < self._compass_period - 1e-9:
             return
         self._compass_t = t
@@ -842,8 +853,8 @@ class LocalisationNode:
         the relocaliser when it runs."""
         reloc = self.relocaliser
         if reloc is not None and reloc.active:
-            first = rays[:, ::beams]
-            reloc.on_ranges(np.ascontiguousarray(first.T)[usable], z[usable], sigma[usable])
+            axis = rays[:, beams // 2::beams]     # each sensor's middle ray: its axis
+            reloc.on_ranges(np.ascontiguousarray(axis.T)[usable], z[usable], sigma[usable])
         hits = self.map_model.expected(self.tracker.pose, rays, max_range, beams, critical)
         idx: list[int] = []
         expected: list[RangeHit] = []
