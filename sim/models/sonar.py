@@ -14,9 +14,9 @@ Sources
   0–5 cm +-0.0, 5 cm +-0.03 cm, 10 cm +-0.1 cm, 30 cm +-0.7 cm, 60 cm +-2.5 cm, 100 cm +-6.6 cm
   (each "+-" read as one Gaussian standard deviation, interpolated linearly). Beyond the table's
   last row its *relative* error is held (:func:`distance_sigma`: 6.6 % of the range, 13.2 cm at
-  2 m): the headline "+-6.6 %", and Webots' lookup-table semantics (the noise column is a fraction
-  of the response, held beyond the last row), of which the table's ``~d^2`` growth inside 1 m is
-  the linear rise of that fraction;
+  2 m): the headline "+-6.6 %", and the unit of Webots' lookup tables (the noise column is a
+  fraction of the response), of which the table's ``~d^2`` growth inside 1 m is the linear rise;
+  holding the last row holds that fraction;
   "3. Reflection Errors": beyond a critical angle specular reflection makes the echo "never
   return to the sensor" ("maximum distance reading") or "return to the sensor too late"
   ("distance returned represents total round-trip delay"); "crosstalk: echoes emitted from one
