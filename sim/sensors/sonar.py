@@ -1,7 +1,8 @@
 """Ultrasonic range sensors (a ring of 9 on the Koala 2.5): first echo within a cone of rays.
 
 Truth (pure, :func:`first_echo`): each sensor casts ``rays`` rays over ``aperture_deg`` (defaults
-of seeds/004: 5 rays, 22.9 deg, the Webots Khepera III ultrasonic sensor); its range is the
+from seeds/004's Webots Khepera III ultrasonic sensor: 22.9 deg, and its 3 horizontal rays of 5;
+the 2 vertical ones never give the reading in 2-D, see ``sim/models/sonar.py``); its range is the
 nearest hit of any ray (the first echo), with that ray's incidence angle. ``truth_ranges`` is nan
 when nothing lies within ``max_range_m``.
 
