@@ -317,13 +317,15 @@ class PoseTracker:
         self._gyro_last_seen = t
 
     def on_odometry(self, t: float, left_ticks: int, right_ticks: int,
-                    slip_sigma_rel: float = 0.0) -> None:
+                    slip_sigma_rel: float = 0.0, slip_distance_scale: float = 1.0) -> None:
         """Cumulative encoder counts at ``t``; predicts over the interval since the last ones.
 
         ``slip_sigma_rel``: the wheels may be slipping (a wall, a slippery floor: the node's
         slip detector), so the distance the encoders report is only an upper bound of the real
         one; its standard deviation becomes ``slip_sigma_rel * |ds|`` on top of the normal
-        noise. The heading still comes from the gyro, which slip does not fool.
+        noise, and its mean ``slip_distance_scale`` times the encoders' (a slipping wheel
+        realises only part of its turn). The heading still comes from the gyro, which slip does
+        not fool.
         :attr:`last_increment` keeps ``(ds, dtheta, sigma_ds, sigma_dtheta)`` of the step."""
         p = self.params
         if self._ticks is None:
@@ -346,6 +348,7 @@ class PoseTracker:
         self._gyro_angle = 0.0
         self._gyro_time = 0.0
         var_ds += (slip_sigma_rel * ds) ** 2
+        ds *= slip_distance_scale
         self.last_increment = (ds, dth - self.x[3] * bias_time, math.sqrt(var_ds),
                                math.sqrt(var_th))
         self.odometry_increments += 1

@@ -149,6 +149,9 @@ IN_WALL_MARGIN_M = 0.05
 #: An IR sensor counts as facing the direction of travel when cos(its yaw) has the sign of the
 #: motion and at least this size (within ~70 deg of straight ahead / behind).
 CONTACT_FACING_COS = 0.35
+#: The map says "contact" when the motion points into the nearest wall by at least this cosine
+#: (~6 deg off parallel to it).
+MAP_CONTACT_COS = 0.1
 #: Simulated seconds between consistency checks (estimate in a wall, evidence against it, the
 #: relocaliser's convergence): the evidence arrives at the range sensors' rates, 5-20 Hz.
 CHECK_PERIOD_S = 0.1
@@ -258,6 +261,7 @@ class RobustSettings:
     slip_window_s: Positive
     slip_gate_sigmas: Positive
     slip_sigma_rel: NonNegative
+    slip_distance_scale: Annotated[NonNegative, Field(le=1)]
     slip_hold_s: NonNegative
     health_rate_hz: Positive
     lost_window_s: Positive
@@ -704,17 +708,33 @@ class LocalisationNode:
         self._ticks = (self._ticks[0] + dl, self._ticks[1] + dr)
         slipping = self._slip_check(t, dl / self._ticks_per_metre, dr / self._ticks_per_metre)
         rb = self._rb
+        self._map_contact(t, 0.5 * (dl + dr))
         widen = slipping or t < self._contact_until
         if widen:
             self.counters.slip_steps += 1
         self.tracker.on_odometry(t, *self._ticks,
-                                 slip_sigma_rel=rb.slip_sigma_rel if widen else 0.0)
+                                 slip_sigma_rel=rb.slip_sigma_rel if widen else 0.0,
+                                 slip_distance_scale=rb.slip_distance_scale if widen else 1.0)
         ds, dth, sds, sdth = self.tracker.last_increment
         self._last_ds = ds
         if self.relocaliser is not None and self.relocaliser.active:
             self.relocaliser.predict(ds, dth, sds, sdth)
         self._check_consistency(t)
         self._follow_cells()
+
+    def _map_contact(self, t: float, ds: float) -> None:
+        """Wall contact from the map: the estimated body is within ``contact_range_m`` of a
+        wall and the encoders drive it towards that wall (even at a glancing angle, where no
+        IR sensor faces the motion) -- the robot cannot be moving as the encoders say."""
+        if ds == 0.0:
+            return
+        x, y, th = self.tracker.pose
+        if self.map_model.clearance(x, y) > self._body_radius + self._rb.contact_range_m:
+            return
+        gx, gy = self.map_model.away_from_walls(x, y)
+        direction = math.copysign(1.0, ds)
+        if direction * (math.cos(th) * gx + math.sin(th) * gy) < -MAP_CONTACT_COS:
+            self._contact_until = t + self._rb.slip_hold_s
 
     def _slip_check(self, t: float, d_left: float, d_right: float) -> bool:
         """Wheel slip: over ``slip_window_s`` the heading change the encoders report differs from
@@ -785,28 +805,26 @@ class LocalisationNode:
 
     def _compass(self, t: float, mx: float, my: float, mz: float) -> None:
         self.counters.took("compass")
-        reloc = self.relocaliser
-        if self._hard_iron is not None:
-            # every sample: the latest heading starts a relocalisation (a turning robot's heading
-            # of a second ago is no prior), and while relocalising it is what tells mirror-image
-            # places of a symmetric map apart (sigma widened: its errors are correlated)
-            self._compass_heading = heading_from_field((mx, my, mz), self._north,
-                                                       self._hard_iron)
-            if reloc is not None and reloc.active:
-                reloc.on_heading(self._compass_heading,
-                                 3.0 * self.tracker.params.compass_sigma_rad)
-        if t - self._compass_t < self._compass_period - 1e-9:
-            return
-        self._compass_t = t
         if self._hard_iron is None:
+            # every sample goes to the online fit (the EKF gets the compass at compass_rate_hz,
+            # which would leave a turn on the spot with too few samples to fill the bins)
             assert self._hard_iron_fit is not None
             self._hard_iron = self._hard_iron_fit.add(self.tracker.pose[2], mx, my)
             if self._hard_iron is None:
                 return
             self.counters.hard_iron_uT = [round(float(v), 3) for v in self._hard_iron]
             log.info("localisation: hard-iron offset %s uT (online fit)", self._hard_iron[:2])
+        # Every sample: the latest heading starts a relocalisation (a turning robot's heading of
+        # a second ago is no prior), and while relocalising it is what tells mirror-image places
+        # of a symmetric map apart (sigma widened: its errors are correlated).
         heading = heading_from_field((mx, my, mz), self._north, self._hard_iron)
         self._compass_heading = heading
+        reloc = self.relocaliser
+        if reloc is not None and reloc.active:
+            reloc.on_heading(heading, 3.0 * self.tracker.params.compass_sigma_rad)
+        if t - self._compass_t < self._compass_period - 1e-9:
+            return
+        self._compass_t = t
         self.health.absolute(t, self.tracker.on_compass(t, heading))
 
     def _ir(self, t: float, counts: np.ndarray) -> None:
