@@ -724,12 +724,18 @@ class LocalisationNode:
 
     def _map_contact(self, t: float, ds: float) -> None:
         """Wall contact from the map: the estimated body is within ``contact_range_m`` of a
-        wall and the encoders drive it towards that wall (even at a glancing angle, where no
+        wall, the position is known to better than that, and the encoders drive it towards that
+        wall (even at a glancing angle, where no
         IR sensor faces the motion) -- the robot cannot be moving as the encoders say."""
         if ds == 0.0:
             return
         x, y, th = self.tracker.pose
-        if self.map_model.clearance(x, y) > self._body_radius + self._rb.contact_range_m:
+        P = self.tracker.P
+        reach = self._rb.contact_range_m
+        # (only when the estimate is sure to within that range: dead reckoning that merely
+        # believes itself near a wall is no evidence of contact)
+        if max(P[0, 0], P[1, 1]) > reach * reach \
+                or self.map_model.clearance(x, y) > self._body_radius + reach:
             return
         gx, gy = self.map_model.away_from_walls(x, y)
         direction = math.copysign(1.0, ds)
