@@ -17,7 +17,9 @@ resampling (ibid. table 4.4):
   reading (a wrong landmark id, a sonar late echo) cannot wipe out the right particles:
   ranges -- the end point's distance to the nearest wall (likelihood field); landmarks -- range
   and bearing; heading -- the compass. A particle inside a wall gets ``-inf``.
-* **Resampling** when the effective sample size falls below half the particles.
+* **Resampling** when the effective sample size falls below half the particles; when every
+  particle has been ruled out (all in walls, or all infinitely unlikely), they are spread again
+  as at the start.
 * **Converged** (:attr:`Relocaliser.converged`) when the weighted standard deviations of x and y
   are below ``converged_sigma_xy_m`` and of the heading below ``converged_sigma_theta`` (a single
   tight cluster: a two-mode cloud has a large spread): the EKF restarts from the weighted mean and
@@ -73,6 +75,8 @@ class Relocaliser:
         self.logw = np.zeros(n)
         self.active = False
         self.updates = 0
+        self.restarts = 0
+        self._started: tuple[float, float, float, float | None] = (0.0, 0.0, 0.0, None)
         world = map_model.world
         self._free = np.array(world.free_cells(), dtype=float)  # (F, 2) col, row
 
@@ -83,6 +87,7 @@ class Relocaliser:
         headings around ``heading`` (an absolute heading, the compass's), or uniform when it is
         None."""
         p, rng, n = self.params, self._rng, self.params.particles
+        self._started = (x, y, theta, heading)
         n_local = int(round(p.share_local * n))
         self.xy[0, :n_local] = x + p.local_sigma_xy_m * rng.standard_normal(n_local)
         self.xy[1, :n_local] = y + p.local_sigma_xy_m * rng.standard_normal(n_local)
@@ -135,14 +140,18 @@ class Relocaliser:
         self.th += dth
         inside = self._fits(self.xy[0], self.xy[1])
         self.logw[~inside] = -np.inf
+        if not inside.any():
+            self.restarts += 1
+            self.start(*self._started)
 
     # -- weights -----------------------------------------------------------------------------
 
     def _weigh(self, loglik: FloatArray, counts: bool = True) -> None:
         self.logw += loglik
         top = np.max(self.logw)
-        if not np.isfinite(top):  # every particle ruled out: start again around the mean
-            self.logw[:] = 0.0
+        if not np.isfinite(top):  # every particle ruled out: spread them again
+            self.restarts += 1
+            self.start(*self._started)
             return
         self.logw -= top
         self.updates += int(counts)
