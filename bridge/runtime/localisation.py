@@ -534,9 +534,12 @@ class LocalisationNode:
         self._next_check = -math.inf
 
     def _restart_clock(self, t: float) -> None:
-        """Time went backwards (the simulator was reset, e.g. a second ``run``): restart every
-        schedule from ``t``. The estimates carry on; the encoder counters' jump back to 0 is
-        taken as a client reset (:meth:`_odometry`)."""
+        """Time went backwards (the simulator was reset, e.g. a second ``run``, which puts the
+        robot back at its start): restart every schedule from ``t``, the pose estimate from the
+        initial pose and its prior (a relocalisation in progress is dropped, the health evidence
+        forgotten), the grid from its prior. The occupancy map and the hard-iron offset carry
+        on (same world, same robot); the encoder counters' jump back to 0 is taken as a client
+        reset (:meth:`_odometry`)."""
         log.info("localisation: time went back from %.3f to %.3f s; schedules restarted",
                  self._last_t, t)
         self._next = dict.fromkeys(self._next, -math.inf)
@@ -545,8 +548,28 @@ class LocalisationNode:
         self._odo_t = None
         self._compass_t = -math.inf
         self._last_occupancy = -math.inf
-        self.tracker.t = t
+        self._reset_pose(t)
         self.counters.clock_restarts += 1
+
+    def _reset_pose(self, t: float) -> None:
+        """The pose estimate, grid and health as at the start (``_restart_clock``)."""
+        s = self.settings
+        x0, y0, th0 = self._initial_pose()
+        sxy, sth = s.initial_sigma_xy_m, math.radians(s.initial_sigma_theta_deg)
+        self.tracker.reset(x0, y0, th0, np.diag([sxy**2, sxy**2, sth**2]), t=t)
+        start = self._cell_at(x0, y0)
+        g = s.grid
+        self.grid = GridLocaliser(self.world, GridParams(g.p_move, g.p_hit, g.p_clear),
+                                  start if s.grid_prior == "start" else None)
+        self._cell = start
+        self._observed_visit = False
+        if self.relocaliser is not None:
+            self.relocaliser.stop()
+        self.health.reset(t)
+        self._slip_terms.clear()
+        self._slip_until = self._contact_until = -math.inf
+        self._last_ds = 0.0
+        self._state, self._reasons = TRACKING, []
 
     def _now(self, t: float) -> None:
         if t < self._last_t - 0.5:
