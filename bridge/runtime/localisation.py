@@ -143,8 +143,9 @@ GRID_PRIORS = ("start", "uniform")
 HARD_IRON_BINS = 12          # heading bins (30 deg) the online hard-iron fit wants filled ...
 HARD_IRON_MIN_BINS = 10      # ... at least this many of them
 HARD_IRON_PER_BIN = 20       # samples kept per bin
-#: A robot whose estimated centre is closer than its body radius minus this to a wall is
-#: "in the wall" (the margin absorbs the estimate's normal error in wall contact).
+#: A robot whose estimated centre is closer than its body radius minus this (or minus 3 sigma of
+#: its position, if more) to a wall is "in the wall" (the margin absorbs the estimate's normal
+#: error in wall contact).
 IN_WALL_MARGIN_M = 0.05
 #: An IR sensor counts as facing the direction of travel when cos(its yaw) has the sign of the
 #: motion and at least this size (within ~70 deg of straight ahead / behind).
@@ -632,18 +633,34 @@ class LocalisationNode:
                 xy = self._landmarks.get(int(ob.id))
                 if xy is None or not (math.isfinite(ob.range) and math.isfinite(ob.bearing)):
                     continue
-                # Camera range error grows with distance (seeds/000 eq. 10-12).
-                far = max(0.0, ob.range - ps.landmark_far_from_m) / ps.landmark_far_doubling_m
-                far = min(far, MAX_DOUBLINGS)  # 2**far overflows a float past 1023
-                sr = ps.landmark_range_sigma_m + ps.landmark_range_sigma_rel * ob.range * 2.0**far
+                bias, sr = self._landmark_range_error(ob.range)
+                r = ob.range - bias
                 sb = math.radians(ps.landmark_bearing_sigma_deg)
-                ok = self.tracker.on_landmark(t, xy, ob.range, ob.bearing, sr, sb)
+                ok = self.tracker.on_landmark(t, xy, r, ob.bearing, sr, sb)
                 self.health.evidence(t, int(ok), int(not ok))
                 self.health.absolute(t, ok)
                 if self.relocaliser is not None and self.relocaliser.active:
-                    self.relocaliser.on_landmark(xy[0], xy[1], ob.range, ob.bearing, sr, sb)
+                    self.relocaliser.on_landmark(xy[0], xy[1], r, ob.bearing, sr, sb)
                 self.counters.took("landmark")
             self._maybe_publish(t)
+
+    def _landmark_range_error(self, d: float) -> tuple[float, float]:
+        """Mean and standard deviation of a camera range error at distance ``d`` (m).
+
+        seeds/000 eq. 10-12 as docs/models.md reads them: ``d_est = d + eps_near N(0,1) +
+        eps_far |N(0,1)|`` with ``eps_near = rel d`` and ``eps_far = rel d_mid 2^((d - d_mid) /
+        doubling)`` -- the far term is one-sided (stereo over-estimates far ranges), so its mean
+        ``eps_far sqrt(2/pi)`` is a bias the estimator removes, and the rest is the variance
+        ``eps_near^2 + eps_far^2 (1 - 2/pi)``; ``landmark_range_sigma_m`` adds in quadrature
+        (``rel`` = ``landmark_range_sigma_rel``, ``d_mid`` = ``landmark_far_from_m``, ``doubling``
+        = ``landmark_far_doubling_m``: the camera's dist, d_mid_m and far_doubling_m)."""
+        ps = self.settings.pose
+        doublings = min((d - ps.landmark_far_from_m) / ps.landmark_far_doubling_m, MAX_DOUBLINGS)
+        far = ps.landmark_range_sigma_rel * ps.landmark_far_from_m * 2.0 ** doublings
+        near = ps.landmark_range_sigma_rel * d
+        sigma = math.sqrt(ps.landmark_range_sigma_m ** 2 + near * near
+                          + far * far * (1.0 - 2.0 / math.pi))
+        return far * math.sqrt(2.0 / math.pi), sigma
 
     def _on_can(self, t: float, data: bytes, fields: Mapping[str, object]) -> None:
         can_id = fields.get("can_id")
@@ -797,8 +814,9 @@ class LocalisationNode:
             return
         self._next_check = t + CHECK_PERIOD_S
         x, y, _ = self.tracker.pose
-        self.health.body_in_wall(
-            t, self.map_model.clearance(x, y) < self._body_radius - IN_WALL_MARGIN_M)
+        P = self.tracker.P
+        margin = max(IN_WALL_MARGIN_M, 3.0 * math.sqrt(max(P[0, 0], P[1, 1])))
+        self.health.body_in_wall(t, self.map_model.clearance(x, y) < self._body_radius - margin)
         reloc = self.relocaliser
         if reloc is not None and reloc.active:
             if reloc.converged:
