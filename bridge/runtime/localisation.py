@@ -530,7 +530,8 @@ class LocalisationNode:
         self._slip_until = -math.inf
         self._contact_until = -math.inf
         self._last_ds = 0.0
-        self._state, self._reasons = TRACKING, []
+        self._state: str = TRACKING
+        self._reasons: list[str] = []
         self._compass_heading: float | None = None
         self._next_check = -math.inf
 
@@ -755,6 +756,8 @@ class LocalisationNode:
         self.tracker.on_odometry(t, *self._ticks,
                                  slip_sigma_rel=rb.slip_sigma_rel if widen else 0.0,
                                  slip_distance_scale=rb.slip_distance_scale if widen else 1.0)
+        if widen:
+            self._out_of_walls()
         ds, dth, sds, sdth = self.tracker.last_increment
         self._last_ds = ds
         if self.relocaliser is not None and self.relocaliser.active:
@@ -782,6 +785,17 @@ class LocalisationNode:
         if direction * (math.cos(th) * gx + math.sin(th) * gy) < -MAP_CONTACT_COS:
             self._contact_until = t + self._rb.slip_hold_s
 
+    def _out_of_walls(self) -> None:
+        """In contact the robot touches a wall and cannot be inside it: an estimate whose body
+        overlaps the wall (the encoders drove it there) is moved straight out, to touching
+        (the map as a constraint; the covariance is left as the prediction made it)."""
+        x = self.tracker.x
+        overlap = self._body_radius - self.map_model.clearance(float(x[0]), float(x[1]))
+        if 0.0 < overlap < self._body_radius:
+            gx, gy = self.map_model.away_from_walls(float(x[0]), float(x[1]))
+            x[0] += overlap * gx
+            x[1] += overlap * gy
+
     def _slip_check(self, t: float, d_left: float, d_right: float) -> bool:
         """Wheel slip: over ``slip_window_s`` the heading change the encoders report differs from
         the gyro's by more than ``slip_gate_sigmas`` of their joint noise (the EKF's own
@@ -808,8 +822,9 @@ class LocalisationNode:
         return t < self._slip_until
 
     def _check_consistency(self, t: float) -> None:
-        """After a prediction, every ``CHECK_PERIOD_S``: is the estimated body in a wall, does the evidence contradict
-        the estimate (start relocalising), has the relocaliser converged (restart the EKF)?"""
+        """After a prediction, every ``CHECK_PERIOD_S``: is the estimated body in a wall, does
+        the evidence contradict the estimate (start relocalising), has the relocaliser converged
+        (restart the EKF)?"""
         if t < self._next_check - 1e-9:
             return
         self._next_check = t + CHECK_PERIOD_S
