@@ -58,7 +58,9 @@ def localisation_rates(config: dict) -> dict[str, float]:
     loc = config.get("localisation") or {}
     if not loc.get("enabled"):
         return {}
+    # estimate/health also goes out at every change of state: none on this still run
     return {"/estimate/pose": float(loc["pose_rate_hz"]),
+            "/estimate/health": float(loc["robust"]["health_rate_hz"]),
             "/estimate/cell": float(loc["cell_rate_hz"]),
             "/estimate/grid": float(loc["grid_rate_hz"]),
             "/map/occupancy": float(loc["occupancy_rate_hz"])}

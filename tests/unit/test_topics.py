@@ -168,6 +168,8 @@ def every_message() -> list[tuple[str, dict[str, Any]]]:
         5.0, "drop:can#0", "drop", "can", {"can_id": 0x101}).to_json()))
     rng = np.random.default_rng(3)
     out.append(("estimate/pose", estimation.pose_message(1.0, 0.5, 0.25, -0.1, np.eye(3))))
+    out.append(("estimate/health", estimation.health_message(
+        1.0, "uncertain", ["wheel_slip", "wall_contact"], 0.02, 1.5, 12, 1, 0)))
     out.append(("estimate/cell", estimation.cell_message(1.0, (2, 3), 0.5)))
     out.append(("estimate/grid", estimation.grid_message(1.0, rng.uniform(size=(4, 6)), 0.5)))
     out.append(("map/occupancy", estimation.occupancy_message(
