@@ -196,6 +196,31 @@ class FoundLandmark:
     first_t: float      # robot time of the first agreeing sighting, s
 
 
+def _largest_agreeing(ss: Sequence[Sighting], camera: CameraParams, cluster_rad: float
+                      ) -> list[Sighting]:
+    """The largest subset of ``ss`` within ``cluster_rad`` in direction and 4 sigma in range of
+    one of its members (ties: the earliest member)."""
+    best: list[Sighting] = []
+    for centre in ss:
+        agree = [s for s in ss if _agree(s, centre, camera, cluster_rad)]
+        if len(agree) > len(best):
+            best = agree
+    return best
+
+
+def _agree(a: Sighting, b: Sighting, camera: CameraParams, cluster_rad: float) -> bool:
+    """Same direction and range: the same landmark, as seen from the spin centre."""
+    return (abs(wrap(a.direction - b.direction)) <= cluster_rad
+            and abs(a.range_m - b.range_m) <= 4.0 * camera.range_sigma(b.range_m))
+
+
+def _centre(group: Sequence[Sighting]) -> Sighting:
+    """A group's mean range and circular-mean direction (at its first sighting's time)."""
+    d = np.array([s.direction for s in group])
+    return Sighting(group[0].t, group[0].id, float(np.mean([s.range_m for s in group])),
+                    math.atan2(float(np.mean(np.sin(d))), float(np.mean(np.cos(d)))))
+
+
 def find_landmarks(
     sightings: Iterable[Sighting], camera: CameraParams, cluster_rad: float, min_sightings: int
 ) -> list[FoundLandmark]:
@@ -204,34 +229,41 @@ def find_landmarks(
     landmarks found, in the order first seen (seeds/003 "first three" = the first three of them).
 
     A wrong id (seeds/000 eq. 9) copies another landmark's range and direction, so a minority of
-    an id's sightings sits elsewhere: dropped. Deterministic: ties go to the earliest sighting.
+    an id's sightings sits elsewhere: dropped. When the wrong ones are the majority of an id (a
+    far landmark mostly missed), its group sits where another id's group is: two ids at one
+    place. The id with fewer sightings there loses them and is grouped again from the rest.
+    Deterministic: ties go to the earliest sighting, then the larger id loses.
     """
     by_id: dict[int, list[Sighting]] = defaultdict(list)
     for s in sorted(sightings, key=lambda s: (s.t, s.id, s.range_m)):
         by_id[s.id].append(s)
+    left = {lid: list(ss) for lid, ss in by_id.items()}
+    while True:
+        groups = {lid: _largest_agreeing(ss, camera, cluster_rad) for lid, ss in left.items()}
+        groups = {lid: g for lid, g in groups.items() if len(g) >= min_sightings}
+        centres = {lid: _centre(g) for lid, g in groups.items()}
+        clash = next(((a, b) for a, b in itertools.combinations(sorted(groups), 2)
+                      if _agree(centres[a], centres[b], camera, cluster_rad)), None)
+        if clash is None:
+            break
+        a, b = clash
+        loser = b if (len(groups[a]), -groups[a][0].t) >= (len(groups[b]), -groups[b][0].t) \
+            else a
+        lost = {id(s) for s in groups[loser]}
+        left[loser] = [s for s in left[loser] if id(s) not in lost]
     found = []
-    for lid, ss in by_id.items():
-        best: list[Sighting] = []
-        for centre in ss:
-            tol = 4.0 * camera.range_sigma(centre.range_m)
-            agree = [s for s in ss if abs(wrap(s.direction - centre.direction)) <= cluster_rad
-                     and abs(s.range_m - centre.range_m) <= tol]
-            if len(agree) > len(best):
-                best = agree
+    for lid, best in groups.items():
         n = len(best)
-        if n < min_sightings:
-            continue
-        r = float(np.mean([s.range_m for s in best]))
-        d = np.array([s.direction for s in best])
-        direction = math.atan2(float(np.mean(np.sin(d))), float(np.mean(np.cos(d))))
+        c = centres[lid]
+        r = c.range_m
         found.append(FoundLandmark(
             id=lid,
             range_m=r - camera.range_bias(r),
             sigma_m=camera.range_sigma(r) / math.sqrt(n),
-            direction=direction,
+            direction=c.direction,
             sigma_dir=math.hypot(camera.bearing_sigma() / math.sqrt(n), DIRECTION_DRIFT_RAD),
             sightings=n,
-            dropped=len(ss) - n,
+            dropped=len(by_id[lid]) - n,
             first_t=best[0].t,
         ))
     found.sort(key=lambda f: (f.first_t, f.id))
@@ -389,7 +421,7 @@ class CameraLinks(Links):
 
     def wait_compass(self, timeout_s: float) -> None:
         """Sleep until MAVLink or the camera has data, or ``timeout_s`` passed."""
-        select.select([self.mav, self._wake_r], [], [], timeout_s)
+        select.select([self.mav.fileno(), self._wake_r], [], [], timeout_s)
 
     def close(self) -> None:
         try:
