@@ -27,7 +27,9 @@ What it does:
    direction and one range, so its sightings form one cluster; a sighting that carries a wrong
    id (seeds/000 eq. 9) lies in another landmark's cluster. For each id, the largest set of its
    sightings that agree in direction (``--cluster-deg``) and range (4 sigma) is kept, the rest
-   are dropped as misrecognitions; an id needs ``--min-sightings`` agreeing sightings.
+   are dropped as misrecognitions; an id needs ``--min-sightings`` agreeing sightings. When an
+   id's largest group sits where another id's larger group is (a far landmark mostly missed,
+   its id mostly given to a nearer one), it loses that group and is grouped from the rest.
 2. *Trilaterate*: the landmarks in the order they were first seen; the *first three* give the
    lab's closed form (:func:`koala_bridge.estimation.trilaterate3`) and the weighted
    least-squares fix (:func:`koala_bridge.estimation.wls_fix`, ranges only) -- each range the
@@ -36,8 +38,10 @@ What it does:
    checked: a fit with the cluster directions as bearings (heading free) must pass a chi-square
    gate (``--gate-probability``); if the first three fail it (a wrong id that survived, a
    degenerate triangle), every landmark found is used, then every subset of at least three, in
-   the order seen, and the first consistent one is taken (``"consistent": false`` in the report
-   when none is).
+   the order seen, and the first consistent one is taken. Without a consistent set (or with
+   fewer than three landmarks) the robot turns again, at most ``--extra-turns`` times, and
+   starts over with that turn's sightings; then the best set is taken (``"consistent": false``
+   in the report).
 3. *Report the cell* (seeds/003 "Coordinate to Cell"; the world frame has y north and row 0
    south, so the cell is ``(floor(x / l), floor(y / l))``), logged and in the JSON report.
 4. *Cover*: the EKF pose is set to the fix, the grid filter to certainty at the cell, and the
@@ -58,7 +62,8 @@ session, so when it is answered the bridge knows the subscriber and no camera sa
 Command line as the coverage firmware's (``--endpoints-file``, ``--config``, ``--world``,
 ``--seed``, ``--report``, ``--timeout-s``, ...). It prints a JSON report -- the coverage
 firmware's, plus ``trilateration`` (the fix, its covariance, the cell, the landmarks used, the
-closed form, the sightings dropped) and ``landmark_updates`` -- and exits 0 when every reachable
+closed form, the sightings kept and dropped, the turns taken), ``landmark_updates`` and
+``landmark_rejects`` -- and exits 0 when every reachable
 cell was visited, 1 otherwise.
 
 example::
@@ -112,6 +117,8 @@ log = logging.getLogger("trilateration_firmware")
 CAMERA = len(STREAM_NAMES)
 #: a range sigma never below this (an ideal camera: only float rounding), m
 RANGE_SIGMA_FLOOR_M = 1e-3
+#: a bearing sigma never below this, rad
+BEARING_SIGMA_FLOOR_RAD = 1e-3
 #: the start-relative heading (gyro) drifts a little over the turn: added to each direction's
 #: sigma in the consistency check, rad
 DIRECTION_DRIFT_RAD = math.radians(3.0)
@@ -166,7 +173,7 @@ class CameraParams:
                    math.sqrt(near**2 + self._far(d) ** 2 * (1.0 - 2.0 / math.pi)))
 
     def bearing_sigma(self) -> float:
-        return 1e-3 if self.ideal else max(1e-3, self.bearing_sigma_rad)
+        return max(BEARING_SIGMA_FLOOR_RAD, 0.0 if self.ideal else self.bearing_sigma_rad)
 
 
 # --------------------------------------------------------------------------- find landmarks
@@ -282,7 +289,7 @@ class Trilateration:
     check_chi2: float                        # ranges + directions (heading free)
     check_dof: int
     consistent: bool
-    start_heading: float                     # the start frame's world heading the check found
+    frame_heading: float                     # world heading of the directions' frame (check)
     sets_tried: int
 
 
@@ -337,7 +344,7 @@ def trilaterate(
             check_chi2=check.chi2,
             check_dof=check.dof,
             consistent=check.chi2 <= gate,
-            start_heading=float(check.x[2]),
+            frame_heading=float(check.x[2]),
             sets_tried=tried,
         )
         if result.consistent:
@@ -456,6 +463,7 @@ class TrilaterationFirmware(CoverageFirmware):
         self.found: list[FoundLandmark] = []
         self.fix: Trilateration | None = None
         self.fix_t: float | None = None
+        self.turns = 0
         self.landmark_updates = 0
         self.landmark_rejects = 0
 
@@ -489,6 +497,18 @@ class TrilaterationFirmware(CoverageFirmware):
                 self.landmark_updates += int(ok)
                 self.landmark_rejects += int(not ok)
 
+    def spin(self, rate: float = 0.6) -> None:
+        """One more full turn on the spot at ``rate`` rad/s (gyro-tracked), then stop."""
+        turned, last = 0.0, self.tracker.pose[2]
+        end = self.t + 2 * math.pi / rate + 20.0
+        while turned < 2 * math.pi and self.t < end:
+            self.drive(0.0, rate)
+            self.cycle()
+            th = self.tracker.pose[2]
+            turned += abs(wrap(th - last))
+            last = th
+        self.stop()
+
     def calibrate(self) -> None:
         """The coverage firmware's turn, keeping every camera sighting (seeds/003 "Find
         Landmarks"). Every sighting is in the start-relative heading frame: the compass heading
@@ -501,14 +521,37 @@ class TrilaterationFirmware(CoverageFirmware):
 
     def localise(self) -> tuple[tuple[int, int], int]:
         """Trilaterate from the turn's landmarks; the cell; the EKF and the grid filter set to
-        them. No move is needed: returns ``(cell, 0)``."""
-        self.found = find_landmarks(self.sightings, self.camera,
-                                    math.radians(self.args.cluster_deg), self.args.min_sightings)
-        log.info("landmarks found, in the order seen: %s",
-                 ", ".join(f"{f.id} ({f.range_m:.3f} m, {f.sightings} seen, {f.dropped} dropped)"
-                           for f in self.found))
-        fix = trilaterate(self.found, self.landmark_map, self.args.gate_probability)
-        self.fix, self.fix_t = fix, self.t
+        them. No move is needed: returns ``(cell, 0)``. When the turn did not give a consistent
+        fix (fewer than three landmarks found, or no consistent set), the robot turns again, up
+        to ``--extra-turns`` times, each turn's sightings on their own (after the first turn the
+        heading is the compass's: another frame)."""
+        fix: Trilateration | None = None
+        found: list[FoundLandmark] = []
+        for turn in range(self.args.extra_turns + 1):
+            if turn:
+                self.sightings = []
+                self.collect_landmarks = True
+                try:
+                    self.spin()
+                finally:
+                    self.collect_landmarks = False
+            self.found = find_landmarks(self.sightings, self.camera,
+                                        math.radians(self.args.cluster_deg),
+                                        self.args.min_sightings)
+            log.info("turn %d: landmarks found, in the order seen: %s", turn + 1, ", ".join(
+                f"{f.id} ({f.range_m:.3f} m, {f.sightings} kept, {f.dropped} dropped)"
+                for f in self.found))
+            try:
+                fix = trilaterate(self.found, self.landmark_map, self.args.gate_probability)
+            except EstimationError as e:
+                log.warning("turn %d: %s", turn + 1, e)
+                continue
+            found, self.turns = self.found, turn + 1
+            if fix.consistent:
+                break
+        if fix is None:
+            raise RuntimeError(f"no trilateration after {self.args.extra_turns + 1} turns")
+        self.fix, self.fix_t, self.found = fix, self.t, found
         cell = self.world.cell_of(*fix.xy)
         log.info("trilaterated (%.3f, %.3f) m from landmarks %s: cell %s", *fix.xy, fix.ids, cell)
         if not self.world.in_bounds(*cell):
@@ -532,6 +575,7 @@ class TrilaterationFirmware(CoverageFirmware):
             "t": self.fix_t,
             "landmarks": [asdict(f) for f in self.found],
             "sightings": len(self.sightings),
+            "turns": self.turns,
         }
         report["landmark_updates"] = self.landmark_updates
         report["landmark_rejects"] = self.landmark_rejects
@@ -551,6 +595,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="agreeing sightings a landmark needs (default 2)")
     ap.add_argument("--gate-probability", type=float, default=0.999,
                     help="chi-square gate of the landmark set's consistency (default 0.999)")
+    ap.add_argument("--extra-turns", type=int, default=2,
+                    help="turns again, at most this often, without a consistent fix (default 2)")
     return run_firmware(
         ap.parse_args(argv), make_links=CameraLinks,
         make_firmware=lambda links, robot, world, config, args: TrilaterationFirmware(
