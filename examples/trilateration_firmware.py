@@ -299,7 +299,7 @@ def candidate_sets(n: int) -> list[tuple[int, ...]]:
     out: list[tuple[int, ...]] = []
     for s in [tuple(range(min(3, n))), tuple(range(n))] + [
         c for k in range(n - 1, 2, -1) for c in itertools.combinations(range(n), k)
-    ] + list(itertools.combinations(range(n), 3)):
+    ]:
         if len(s) >= 3 and s not in out:
             out.append(s)
     return out
@@ -330,11 +330,12 @@ def trilaterate(
             fix = wls_fix(lm, ranges, [f.sigma_m for f in use])
         except DegenerateGeometryError:
             continue
+        closed: tuple[float, float] | None = None
         try:
-            closed: tuple[float, float] | None = tuple(  # type: ignore[assignment]
-                float(v) for v in trilaterate3(lm[:3], ranges[:3]))
+            cx, cy = trilaterate3(lm[:3], ranges[:3])
+            closed = (float(cx), float(cy))
         except DegenerateGeometryError:
-            closed = None
+            pass
         gate = float(chi2.ppf(gate_probability, check.dof))
         result = Trilateration(
             xy=(float(fix.x[0]), float(fix.x[1])),
