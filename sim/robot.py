@@ -59,7 +59,7 @@ from koala_bridge.core.schema import (
 )
 from koala_bridge.sim.battery import BatteryConfig
 from koala_bridge.sim.noise import Variates
-from koala_bridge.sim.raycast import SegmentSet, point_segment_distances, sweep_circle
+from koala_bridge.core.raycast import SegmentSet, point_segment_distances, sweep_circle
 from koala_bridge.sim.sections import empty_errors, own_keys, sensor_section
 from pydantic import AfterValidator
 
@@ -262,7 +262,7 @@ def _move_near_walls(
     d_start: np.ndarray,
 ) -> tuple[float, float, float, float, bool]:
     """Sub-stepped move with wall tests (module docstring; compiled in
-    :func:`sim.raycast.sweep_circle`). Returns x, y, heading, the fraction of the motion done,
+    :func:`core.raycast.sweep_circle`). Returns x, y, heading, the fraction of the motion done,
     and whether a wall stopped it."""
     # Only walls within reach of this step matter.
     near = d_start <= radius + length + 1e-9

@@ -23,7 +23,7 @@ body moves as if each wheel's surface speed were scaled by its traction, while t
 the whole wheel turn).
 
 The rays of all range sensors due at a step go through one compiled cast
-(:func:`sim.raycast.cast_fan_arrays`); each range sensor then reads its slice of it in one
+(:func:`core.raycast.cast_fan_arrays`); each range sensor then reads its slice of it in one
 compiled call (truth and error model fused). The camera tests its lines of sight in its own
 compiled call.
 """
@@ -43,7 +43,7 @@ from koala_bridge.sim import robot as kin
 from koala_bridge.sim.battery import Battery
 from koala_bridge.sim.config import SENSOR_NAMES, SimConfig, load_sim_config
 from koala_bridge.sim.noise import BlockStream, Variates
-from koala_bridge.sim.raycast import SegmentSet, cast_fan_arrays
+from koala_bridge.core.raycast import SegmentSet, cast_fan_arrays
 from koala_bridge.sim.robot import DriveErrorSeam, Motion, RobotState
 from koala_bridge.sim.sections import poses_to_list
 from koala_bridge.sim.sensors.base import ErrorModelFactory

@@ -577,6 +577,26 @@ class EstimatePose(TopicMessage):
 
 
 @dataclass(frozen=True)
+class EstimateHealth(TopicMessage):
+    """``estimate/health``: whether the pose estimate can be trusted (docs/localisation.md
+    "Health"), at ``health_rate_hz`` and at every change of state."""
+
+    TOPIC: ClassVar[str] = "estimate/health"
+    TITLE: ClassVar[str] = "koala.estimate.Health"
+
+    t: float = _t()
+    state: Literal["tracking", "uncertain", "lost", "relocalising"] = _doc()
+    reasons: tuple[str, ...] = _doc(
+        "why not tracking: wheel_slip, wall_contact, covariance_large, no_absolute_fix, "
+        "innovations_rejected, estimate_in_wall")
+    sigma_xy_m: float = _doc("the larger of the position standard deviations")
+    sigma_theta_deg: float = _doc("heading standard deviation")
+    accepted: int = _doc("informative readings (landmarks, map ranges) accepted in the window")
+    rejected: int = _doc("... and gated out")
+    relocalisations: int = _doc("global relocalisations completed since the start")
+
+
+@dataclass(frozen=True)
 class EstimateCell(TopicMessage):
     """``estimate/cell``: the grid filter's most probable cell and its probability."""
 
@@ -760,7 +780,7 @@ TOPICS: dict[str, type[TopicMessage]] = {
     cls.TOPIC: cls
     for cls in (
         TruthPose, IrMessage, SonarMessage, OdometryMessage, GyroMessage, CompassMessage,
-        CameraMessage, StatusMessage, EstimatePose, EstimateCell, EstimateGrid, OccupancyMap,
+        CameraMessage, StatusMessage, EstimatePose, EstimateHealth, EstimateCell, EstimateGrid, OccupancyMap,
         FaultEventMessage, WorldMessage,
     )
 }

@@ -11,6 +11,9 @@ the grid convention of docs/architecture.md, and travel as base64 so a 100 x 100
 
 * ``estimate/pose``  ``{t, x, y, theta, cov}`` -- m, m, rad; ``cov`` the 3 x 3 covariance of
   ``(x, y, theta)`` as nested lists.
+* ``estimate/health`` ``{t, state, reasons, sigma_xy_m, sigma_theta_deg, accepted, rejected,
+  relocalisations}`` -- ``state`` one of tracking / uncertain / lost / relocalising
+  (:mod:`koala_bridge.estimation.health`).
 * ``estimate/cell``  ``{t, cell: [col, row], p}`` -- the grid filter's guess and its probability.
 * ``estimate/grid``  ``{t, cols, rows, cell_m, encoding: "float32-le", data, cell, p}`` -- the
   whole belief, ``rows * cols`` little-endian float32 probabilities in base64.
@@ -30,6 +33,7 @@ from koala_bridge.core.topics import (
     OCCUPANCY_ENCODING,
     EstimateCell,
     EstimateGrid,
+    EstimateHealth,
     EstimatePose,
     OccupancyMap,
     TopicError,
@@ -40,6 +44,7 @@ from numpy.typing import ArrayLike, NDArray
 
 KEY_POSE = EstimatePose.TOPIC
 KEY_CELL = EstimateCell.TOPIC
+KEY_HEALTH = EstimateHealth.TOPIC
 KEY_GRID = EstimateGrid.TOPIC
 KEY_OCCUPANCY = OccupancyMap.TOPIC
 
@@ -47,6 +52,7 @@ __all__ = [
     "GRID_ENCODING",
     "KEY_CELL",
     "KEY_GRID",
+    "KEY_HEALTH",
     "KEY_OCCUPANCY",
     "KEY_POSE",
     "OCCUPANCY_ENCODING",
@@ -54,6 +60,7 @@ __all__ = [
     "decode_grid",
     "decode_occupancy",
     "grid_message",
+    "health_message",
     "occupancy_message",
     "pose_message",
 ]
@@ -125,3 +132,12 @@ def decode_occupancy(msg: dict[str, Any]) -> NDArray[np.float64]:
         return OccupancyMap.from_json(msg).log_odds()
     except TopicError as e:
         raise EstimationError(str(e)) from e
+
+
+def health_message(t: float, state: str, reasons: list[str], sigma_xy_m: float,
+                   sigma_theta_deg: float, accepted: int, rejected: int,
+                   relocalisations: int) -> dict[str, Any]:
+    """``estimate/health`` payload (:class:`koala_bridge.core.topics.EstimateHealth`)."""
+    return EstimateHealth(float(t), state, tuple(reasons), float(sigma_xy_m),  # type: ignore[arg-type]
+                          float(sigma_theta_deg), int(accepted), int(rejected),
+                          int(relocalisations)).to_json()

@@ -216,6 +216,9 @@ class PoseTrackerParams:
         gyro_timeout_s: after this long without a gyro sample, heading comes from the encoders.
         compass_sigma_rad: standard deviation of a compass heading, rad.
         gate_probability: NIS gate; a measurement beyond this chi-square quantile is rejected.
+        process_noise_xy: random walk of x and y per metre the wheels travel, m^2/m
+            (unmodelled effects; a wheel's travel is ``|ds| + wheel_base / 2 * |dtheta|``).
+        process_noise_theta: random walk of the heading per metre the wheels travel, rad^2/m.
     """
 
     wheel_base_m: float
@@ -229,6 +232,8 @@ class PoseTrackerParams:
     gyro_timeout_s: float = 0.5
     compass_sigma_rad: float = math.radians(5.0)
     gate_probability: float = 0.999
+    process_noise_xy: float = 0.0
+    process_noise_theta: float = 0.0
 
     def __post_init__(self) -> None:
         if not (self.wheel_base_m > 0 and self.ticks_per_metre > 0):
@@ -268,6 +273,9 @@ class PoseTracker:
         self._gyro_angle = 0.0
         self._gyro_time = 0.0
         self._gyro_last_seen = -math.inf
+        self.last_increment = (0.0, 0.0, 0.0, 0.0)
+        self.odometry_increments = 0
+        self.last_nis: dict[str, float] = {}
 
     def reset(
         self,
@@ -277,16 +285,27 @@ class PoseTracker:
         cov: ArrayLike,
         t: float = 0.0,
         gyro_bias: float = 0.0,
+        keep_bias_cov: bool = False,
     ) -> None:
-        """Set the pose and its ``(3, 3)`` covariance; the bias keeps its prior."""
+        """Set the pose and its ``(3, 3)`` covariance; the bias takes its prior variance, or
+        keeps the current one (``keep_bias_cov``: a relocalisation, which moves the robot but
+        tells nothing new about its gyro)."""
+        bias_var = self.P[3, 3] if keep_bias_cov else self.params.gyro_bias_sigma0**2
         self.x = np.array([x, y, wrap_angle(theta), gyro_bias])
         P = np.zeros((STATE_DIM, STATE_DIM))
         P[:3, :3] = np.asarray(cov, dtype=float)
-        P[3, 3] = self.params.gyro_bias_sigma0**2
+        P[3, 3] = bias_var
         self.P = P
         self.t = t
 
     # -- prediction ------------------------------------------------------------------------
+    def pending_gyro(self, t: float) -> tuple[float, float] | None:
+        """The bias-corrected heading change the gyro has integrated since the last odometry
+        sample, and over how long; None when the gyro is silent (encoders carry the heading)."""
+        if t - self._gyro_last_seen > self.params.gyro_timeout_s:
+            return None
+        return self._gyro_angle - float(self.x[3]) * self._gyro_time, self._gyro_time
+
     def on_gyro(self, t: float, yaw_rate: float) -> None:
         """A gyro yaw rate (rad/s, CCW) sampled at ``t``; integrated until the next odometry."""
         # After a gap longer than the timeout the encoders carried the heading: start afresh.
@@ -297,8 +316,17 @@ class PoseTracker:
         self._gyro_t = t
         self._gyro_last_seen = t
 
-    def on_odometry(self, t: float, left_ticks: int, right_ticks: int) -> None:
-        """Cumulative encoder counts at ``t``; predicts over the interval since the last ones."""
+    def on_odometry(self, t: float, left_ticks: int, right_ticks: int,
+                    slip_sigma_rel: float = 0.0, slip_distance_scale: float = 1.0) -> None:
+        """Cumulative encoder counts at ``t``; predicts over the interval since the last ones.
+
+        ``slip_sigma_rel``: the wheels may be slipping (a wall, a slippery floor: the node's
+        slip detector), so the distance the encoders report is only an upper bound of the real
+        one; its standard deviation becomes ``slip_sigma_rel * |ds|`` on top of the normal
+        noise, and its mean ``slip_distance_scale`` times the encoders' (a slipping wheel
+        realises only part of its turn). The heading still comes from the gyro, which slip does
+        not fool.
+        :attr:`last_increment` keeps ``(ds, dtheta, sigma_ds, sigma_dtheta)`` of the step."""
         p = self.params
         if self._ticks is None:
             self._ticks = (left_ticks, right_ticks)
@@ -319,10 +347,25 @@ class PoseTracker:
         # The gyro integral restarts at every odometry sample, used or not.
         self._gyro_angle = 0.0
         self._gyro_time = 0.0
+        var_ds += (slip_sigma_rel * ds) ** 2
+        ds *= slip_distance_scale
+        self.last_increment = (ds, dth - self.x[3] * bias_time, math.sqrt(var_ds),
+                               math.sqrt(var_th))
+        self.odometry_increments += 1
         cov_u = np.diag([var_ds, var_th])
         self.x, self.P = predict(
             self.x, self.P, ds, dth, cov_u, bias_time, p.gyroscope_random_walk**2 * dt
         )
+        # Unmodelled effects (map and range-model errors that are not white, soft iron, floor
+        # unevenness): a random walk of the pose with the wheels' travel, so that errors that
+        # stay the same while the geometry does, averaged as if independent, cannot shrink the
+        # covariance below what the data support. (Per metre, not per second: a robot at rest
+        # sees the same scene, and its estimate does not get worse by waiting.)
+        if p.process_noise_xy or p.process_noise_theta:
+            travel = abs(ds) + 0.5 * p.wheel_base_m * abs(dth)
+            self.P[0, 0] += p.process_noise_xy * travel
+            self.P[1, 1] += p.process_noise_xy * travel
+            self.P[2, 2] += p.process_noise_theta * travel
         self.t = t
 
     # -- correction ------------------------------------------------------------------------
@@ -338,6 +381,7 @@ class PoseTracker:
         y, S = innovation(self.x, self.P, z, R, H, hx, angle_rows)
         nis = float(y @ np.linalg.solve(S, y))
         ok = nis <= self._gates[y.size]
+        self.last_nis[kind] = nis
         self.counters.count(kind, ok)
         if ok:
             self.x, self.P = _correct(self.x, self.P, y, S, R, H)
@@ -369,6 +413,44 @@ class PoseTracker:
         a range sensor facing a known wall, which fixes the coordinate across the wall only."""
         H = POSITION_H[axis : axis + 1]
         return self._gated_update("coordinate", [value], np.array([[sigma * sigma]]), H)
+
+    def on_ranges(self, t: float, kind: str, z: ArrayLike, hz: ArrayLike, H3: ArrayLike,
+                  sigma: ArrayLike) -> NDArray[np.bool_]:
+        """Ranges of sensors against the known map, each gated on its own and the accepted ones
+        fused in one update (independent errors, so one joint update equals the sequential
+        ones; one ``m x m`` solve instead of ``m``).
+
+        Args:
+            kind: counter label (``"ir"``, ``"sonar"``).
+            z: ``(m,)`` measured ranges, m.
+            hz: ``(m,)`` expected ranges at the current estimate
+                (:meth:`koala_bridge.estimation.map_model.MapModel.expected`).
+            H3: ``(m, 3)`` their Jacobians with respect to ``(x, y, theta)``.
+            sigma: ``(m,)`` standard deviations of the readings, m.
+
+        Returns:
+            ``(m,)`` which readings passed the gate.
+        """
+        za, ha = np.asarray(z, dtype=float), np.asarray(hz, dtype=float)
+        m = za.size
+        if m == 0:
+            return np.zeros(0, dtype=bool)
+        H = np.zeros((m, STATE_DIM))
+        H[:, :3] = np.asarray(H3, dtype=float).reshape(m, 3)
+        var = np.asarray(sigma, dtype=float) ** 2
+        y = za - ha
+        s_diag = np.einsum("ij,jk,ik->i", H, self.P, H) + var
+        nis = y * y / s_diag
+        ok = nis <= self._gates[1]
+        n_ok = int(ok.sum())
+        self.counters.accepted[kind] = self.counters.accepted.get(kind, 0) + n_ok
+        self.counters.rejected[kind] = self.counters.rejected.get(kind, 0) + m - n_ok
+        if n_ok:
+            Ha, ya = H[ok], y[ok]
+            R = np.diag(var[ok])
+            S = Ha @ self.P @ Ha.T + R
+            self.x, self.P = _correct(self.x, self.P, ya, S, R, Ha)
+        return ok
 
     def on_position(self, t: float, xy: ArrayLike, cov: ArrayLike) -> bool:
         """A position fix ``[x, y]`` with its ``(2, 2)`` covariance (e.g. from ``wls_fix``)."""

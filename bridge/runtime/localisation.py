@@ -54,6 +54,7 @@ Configuration: ``[localisation]`` with ``[localisation.pose]``, ``[localisation.
 
 from __future__ import annotations
 
+import collections
 import logging
 import math
 import threading
@@ -106,22 +107,32 @@ from koala_bridge.estimation import (
     PoseTracker,
     PoseTrackerParams,
     heading_from_field,
-    sensor_sides,
     walls_from_ir,
 )
+from koala_bridge.estimation.health import (
+    LOST,
+    RELOCALISING,
+    TRACKING,
+    HealthMonitor,
+    HealthParams,
+)
+from koala_bridge.estimation.map_model import MapModel, RangeHit
 from koala_bridge.estimation.messages import (
     KEY_CELL,
     KEY_GRID,
+    KEY_HEALTH,
     KEY_OCCUPANCY,
     KEY_POSE,
     cell_message,
     grid_message,
+    health_message,
     occupancy_message,
     pose_message,
 )
+from koala_bridge.estimation.relocaliser import Relocaliser, RelocaliserParams
 from koala_bridge.runtime.real_kteam import KteamReplyDecoder
 from koala_bridge.sim.config import SimConfig
-from koala_bridge.sim.world import SIDE_STEP, SIDES, World
+from koala_bridge.sim.world import SIDE_STEP, World
 from pydantic import AfterValidator, Field
 
 log = logging.getLogger(__name__)
@@ -132,9 +143,18 @@ GRID_PRIORS = ("start", "uniform")
 HARD_IRON_BINS = 12          # heading bins (30 deg) the online hard-iron fit wants filled ...
 HARD_IRON_MIN_BINS = 10      # ... at least this many of them
 HARD_IRON_PER_BIN = 20       # samples kept per bin
-WALL_FIX_MAX_OFF_NORMAL = math.radians(20.0)  # as the coverage firmware's wall fixes
-# Counts usable as a range: below, the curve is flat (far); above, the sensor saturates.
-WALL_FIX_COUNTS = (40.0, 1000.0)
+#: A robot whose estimated centre is closer than its body radius minus this to a wall is
+#: "in the wall" (the margin absorbs the estimate's normal error in wall contact).
+IN_WALL_MARGIN_M = 0.05
+#: An IR sensor counts as facing the direction of travel when cos(its yaw) has the sign of the
+#: motion and at least this size (within ~70 deg of straight ahead / behind).
+CONTACT_FACING_COS = 0.35
+#: The map says "contact" when the motion points into the nearest wall by at least this cosine
+#: (~6 deg off parallel to it).
+MAP_CONTACT_COS = 0.1
+#: Simulated seconds between consistency checks (estimate in a wall, evidence against it, the
+#: relocaliser's convergence): the evidence arrives at the range sensors' rates, 5-20 Hz.
+CHECK_PERIOD_S = 0.1
 Publish = Callable[[str, dict[str, Any]], None]
 
 
@@ -183,7 +203,8 @@ class PoseSettings:
     landmark_far_from_m: NonNegative
     landmark_far_doubling_m: Positive
     landmark_bearing_sigma_deg: Positive
-    ir_wall_fixes: Bool
+    process_noise_xy_m: NonNegative
+    process_noise_theta_deg: NonNegative
 
 
 @section
@@ -221,9 +242,53 @@ class OccupancySettings:
             raise ConfigError(f"[{SECTION}.occupancy] needs l_min < 0 < l_max")
 
 
+@section
+class RobustSettings:
+    """``[localisation.robust]``: range sensors against the map, slip and contact, health and
+    global relocalisation (docs/localisation.md "Robustness")."""
+
+    ir_ranges: Bool
+    ir_range_sigma_m: Positive
+    ir_range_sigma_rel: NonNegative
+    ir_usable_counts: Annotated[FloatTuple, _sized(2)]
+    sonar_ranges: Bool
+    sonar_range_sigma_m: Positive
+    sonar_range_sigma_rel: NonNegative
+    sonar_beam_rays: Annotated[int, Field(ge=1, le=15)]
+    sonar_critical_incidence_deg: Annotated[Positive, Field(le=90)]
+    corner_margin_m: NonNegative
+    contact_range_m: NonNegative
+    slip_window_s: Positive
+    slip_gate_sigmas: Positive
+    slip_sigma_rel: NonNegative
+    slip_distance_scale: Annotated[NonNegative, Field(le=1)]
+    slip_hold_s: NonNegative
+    health_rate_hz: Positive
+    lost_window_s: Positive
+    lost_min_rejections: Annotated[int, Field(ge=1)]
+    lost_reject_ratio: Probability
+    in_wall_s: Positive
+    absolute_window_s: Positive
+    absolute_min_rejections: Annotated[int, Field(ge=1)]
+    uncertain_sigma_xy_m: Positive
+    uncertain_sigma_theta_deg: Positive
+    no_fix_timeout_s: Positive
+    relocalise: Bool
+    particles: Annotated[int, Field(ge=10, le=200_000)]
+    converged_sigma_xy_m: Positive
+    converged_sigma_theta_deg: Positive
+
+    def __post_init__(self) -> None:
+        lo, hi = self.ir_usable_counts
+        if not 0 <= lo < hi:
+            raise ConfigError(f"[{SECTION}.robust] 'ir_usable_counts' needs 0 <= low < high, "
+                              f"got {[lo, hi]}")
+
+
 #: The sub-tables of ``[localisation]``, each its own section.
 _TABLES: dict[str, Any] = {
     "pose": PoseSettings, "grid": GridSettings, "occupancy": OccupancySettings,
+    "robust": RobustSettings,
 }
 
 
@@ -245,6 +310,7 @@ class LocalisationSettings:
     pose: PoseSettings
     grid: GridSettings
     occupancy: OccupancySettings
+    robust: RobustSettings
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> LocalisationSettings:
@@ -283,7 +349,8 @@ class NodeCounters:
     odometry_resets: int = 0       # encoder counters set by a client (K-Team G) or a jump
     grid_moves: int = 0
     grid_observations: int = 0
-    wall_fixes: int = 0
+    relocalisations: int = 0
+    slip_steps: int = 0           # odometry steps predicted with the slip noise
     occupancy_scans: int = 0
     clock_restarts: int = 0
     hard_iron_uT: list[float] | None = None
@@ -351,6 +418,8 @@ class LocalisationNode:
             gyro_timeout_s=ps.gyro_timeout_s,
             compass_sigma_rad=math.radians(ps.compass_sigma_deg),
             gate_probability=ps.gate_probability,
+            process_noise_xy=ps.process_noise_xy_m ** 2,
+            process_noise_theta=math.radians(ps.process_noise_theta_deg) ** 2,
         ))
         self._ticks_per_metre = r.ticks_per_metre
         self._max_wheel_speed = r.max_wheel_speed_mps
@@ -391,6 +460,7 @@ class LocalisationNode:
         self._hard_iron: np.ndarray | None = (
             np.array([*hard, 0.0][:3]) if hard else None)
         self._hard_iron_fit = _HardIron() if not hard else None
+        self._init_robust(settings.robust, robot)
         # decoders, one per bus (streams keep their partial frames)
         self._can = can_codec if can_codec is not None else KoalaCanCodec()
         self._mavlink = CompassDecoder()
@@ -409,12 +479,59 @@ class LocalisationNode:
         self._compass_period = 1.0 / ps.compass_rate_hz
         self._compass_t = -math.inf
         self._last_occupancy = -math.inf
-        periods = {KEY_POSE: settings.pose_rate_hz, KEY_CELL: settings.cell_rate_hz,
+        periods = {KEY_POSE: settings.pose_rate_hz, KEY_HEALTH: settings.robust.health_rate_hz,
+                   KEY_CELL: settings.cell_rate_hz,
                    KEY_GRID: settings.grid_rate_hz, KEY_OCCUPANCY: settings.occupancy_rate_hz}
         self._period = {k: 1.0 / hz for k, hz in periods.items()}
         self._next = {k: -math.inf for k in periods}
         self._next_due = -math.inf
         self._last_t = -math.inf
+
+    def _init_robust(self, rb: RobustSettings, robot: SimConfig) -> None:
+        """Map ranges, slip and contact detection, health, relocalisation
+        (docs/localisation.md "Robustness")."""
+        self._rb = rb
+        self.map_model = MapModel(self.world, corner_margin_m=rb.corner_margin_m)
+        self._wheel_base = robot.robot.wheel_base_m
+        ir, sonar = robot.sensors.ir, robot.sensors.sonar
+        yaw = self._ir_poses[:, 2]               # SimConfig poses: radians
+        self._ir_yaw_cos = np.cos(yaw)
+        self._ir_rays = np.ascontiguousarray(np.vstack([self._ir_poses[:, 0], self._ir_poses[:, 1],
+                                                        yaw]))
+        self._ir_max = np.full(yaw.size, float(ir.max_range_m))
+        self._contact_counts = float(np.interp(rb.contact_range_m, ir.response_range_m,
+                                               ir.response_counts))
+        k = rb.sonar_beam_rays
+        half = 0.5 * math.radians(sonar.aperture_deg)
+        offsets = np.linspace(-half, half, k) if k > 1 else np.zeros(1)
+        syaw = self._sonar_poses[:, 2]
+        self._sonar_rays = np.ascontiguousarray(np.vstack([
+            np.repeat(self._sonar_poses[:, 0], k), np.repeat(self._sonar_poses[:, 1], k),
+            (syaw[:, None] + offsets[None, :]).ravel()]))
+        self._sonar_max = np.full(self._sonar_rays.shape[1], float(sonar.max_range_m))
+        self._sonar_min = float(sonar.min_range_m)
+        self._sonar_critical = math.radians(rb.sonar_critical_incidence_deg)
+        self.health = HealthMonitor(HealthParams(
+            window_s=rb.lost_window_s, lost_min_rejections=rb.lost_min_rejections,
+            lost_reject_ratio=rb.lost_reject_ratio, in_wall_s=rb.in_wall_s,
+            absolute_window_s=rb.absolute_window_s,
+            absolute_min_rejections=rb.absolute_min_rejections,
+            uncertain_sigma_xy_m=rb.uncertain_sigma_xy_m,
+            uncertain_sigma_theta=math.radians(rb.uncertain_sigma_theta_deg),
+            no_fix_timeout_s=rb.no_fix_timeout_s))
+        self.relocaliser = Relocaliser(self.map_model, RelocaliserParams(
+            particles=rb.particles, body_radius_m=robot.robot.body_radius_m,
+            converged_sigma_xy_m=rb.converged_sigma_xy_m,
+            converged_sigma_theta=math.radians(rb.converged_sigma_theta_deg),
+        )) if rb.relocalise else None
+        self._body_radius = robot.robot.body_radius_m
+        self._slip_terms: collections.deque[tuple[float, float, float]] = collections.deque()
+        self._slip_until = -math.inf
+        self._contact_until = -math.inf
+        self._last_ds = 0.0
+        self._state, self._reasons = TRACKING, []
+        self._compass_heading: float | None = None
+        self._next_check = -math.inf
 
     def _restart_clock(self, t: float) -> None:
         """Time went backwards (the simulator was reset, e.g. a second ``run``): restart every
@@ -423,6 +540,7 @@ class LocalisationNode:
         log.info("localisation: time went back from %.3f to %.3f s; schedules restarted",
                  self._last_t, t)
         self._next = dict.fromkeys(self._next, -math.inf)
+        self._next_check = -math.inf
         self._next_due = -math.inf
         self._odo_t = None
         self._compass_t = -math.inf
@@ -495,8 +613,12 @@ class LocalisationNode:
                 far = max(0.0, ob.range - ps.landmark_far_from_m) / ps.landmark_far_doubling_m
                 far = min(far, MAX_DOUBLINGS)  # 2**far overflows a float past 1023
                 sr = ps.landmark_range_sigma_m + ps.landmark_range_sigma_rel * ob.range * 2.0**far
-                self.tracker.on_landmark(t, xy, ob.range, ob.bearing, sr,
-                                         math.radians(ps.landmark_bearing_sigma_deg))
+                sb = math.radians(ps.landmark_bearing_sigma_deg)
+                ok = self.tracker.on_landmark(t, xy, ob.range, ob.bearing, sr, sb)
+                self.health.evidence(t, int(ok), int(not ok))
+                self.health.absolute(t, ok)
+                if self.relocaliser is not None and self.relocaliser.active:
+                    self.relocaliser.on_landmark(xy[0], xy[1], ob.range, ob.bearing, sr, sb)
                 self.counters.took("landmark")
             self._maybe_publish(t)
 
@@ -584,25 +706,150 @@ class LocalisationNode:
             self.counters.odometry_resets += 1
             dl = dr = 0
         self._ticks = (self._ticks[0] + dl, self._ticks[1] + dr)
-        self.tracker.on_odometry(t, *self._ticks)
+        slipping = self._slip_check(t, dl / self._ticks_per_metre, dr / self._ticks_per_metre)
+        rb = self._rb
+        self._map_contact(t, 0.5 * (dl + dr))
+        widen = slipping or t < self._contact_until
+        if widen:
+            self.counters.slip_steps += 1
+        self.tracker.on_odometry(t, *self._ticks,
+                                 slip_sigma_rel=rb.slip_sigma_rel if widen else 0.0,
+                                 slip_distance_scale=rb.slip_distance_scale if widen else 1.0)
+        ds, dth, sds, sdth = self.tracker.last_increment
+        self._last_ds = ds
+        if self.relocaliser is not None and self.relocaliser.active:
+            self.relocaliser.predict(ds, dth, sds, sdth)
+        self._check_consistency(t)
         self._follow_cells()
+
+    def _map_contact(self, t: float, ds: float) -> None:
+        """Wall contact from the map: the estimated body is within ``contact_range_m`` of a
+        wall, the position is known to better than that, and the encoders drive it towards that
+        wall (even at a glancing angle, where no
+        IR sensor faces the motion) -- the robot cannot be moving as the encoders say."""
+        if ds == 0.0:
+            return
+        x, y, th = self.tracker.pose
+        P = self.tracker.P
+        reach = self._rb.contact_range_m
+        # (only when the estimate is sure to within that range: dead reckoning that merely
+        # believes itself near a wall is no evidence of contact)
+        if max(P[0, 0], P[1, 1]) > reach * reach \
+                or self.map_model.clearance(x, y) > self._body_radius + reach:
+            return
+        gx, gy = self.map_model.away_from_walls(x, y)
+        direction = math.copysign(1.0, ds)
+        if direction * (math.cos(th) * gx + math.sin(th) * gy) < -MAP_CONTACT_COS:
+            self._contact_until = t + self._rb.slip_hold_s
+
+    def _slip_check(self, t: float, d_left: float, d_right: float) -> bool:
+        """Wheel slip: over ``slip_window_s`` the heading change the encoders report differs from
+        the gyro's by more than ``slip_gate_sigmas`` of their joint noise (the EKF's own
+        variances: encoder heading per metre and per radian, gyro white noise over the time).
+        Held for ``slip_hold_s``. A slip that turns both wheels alike (pushing straight into a
+        wall) does not show here; the IR contact test catches that."""
+        rb, ps = self._rb, self.settings.pose
+        pending = self.tracker.pending_gyro(t)
+        if pending is not None:
+            gyro_dth, span = pending
+            ds = 0.5 * (d_left + d_right)
+            enc_dth = (d_right - d_left) / self._wheel_base
+            var = (ps.odo_heading_var_per_m * abs(ds) + ps.odo_heading_var_per_rad * abs(enc_dth)
+                   + ps.gyroscope_noise_density ** 2 * span)
+            self._slip_terms.append((t, enc_dth - gyro_dth, var))
+        terms = self._slip_terms
+        while terms and terms[0][0] <= t - rb.slip_window_s:
+            terms.popleft()
+        if terms:
+            d = sum(e for _, e, _ in terms)
+            v = sum(w for _, _, w in terms)
+            if d * d > rb.slip_gate_sigmas ** 2 * v:
+                self._slip_until = t + rb.slip_hold_s
+        return t < self._slip_until
+
+    def _check_consistency(self, t: float) -> None:
+        """After a prediction, every ``CHECK_PERIOD_S``: is the estimated body in a wall, does the evidence contradict
+        the estimate (start relocalising), has the relocaliser converged (restart the EKF)?"""
+        if t < self._next_check - 1e-9:
+            return
+        self._next_check = t + CHECK_PERIOD_S
+        x, y, _ = self.tracker.pose
+        self.health.body_in_wall(
+            t, self.map_model.clearance(x, y) < self._body_radius - IN_WALL_MARGIN_M)
+        reloc = self.relocaliser
+        if reloc is not None and reloc.active:
+            if reloc.converged:
+                mean, cov = reloc.estimate()
+                self.tracker.reset(float(mean[0]), float(mean[1]), float(mean[2]), cov, t=t,
+                                   gyro_bias=self.tracker.gyro_bias, keep_bias_cov=True)
+                reloc.stop()
+                self.health.reset(t)
+                self.counters.relocalisations += 1
+                log.info("localisation: relocalised at t=%.2f s to (%.2f, %.2f, %.0f deg)", t,
+                         mean[0], mean[1], math.degrees(mean[2]))
+                self._set_state(t, TRACKING, [])
+            return
+        reasons = self.health.inconsistent(t)
+        if not reasons:
+            return
+        if reloc is None:
+            self._set_state(t, LOST, reasons)
+            return
+        # Headings: around the compass's (a kidnap may turn the robot), or any heading while the
+        # compass has no hard-iron offset yet.
+        self._set_state(t, LOST, reasons)
+        reloc.start(x, y, self.tracker.pose[2], self._compass_heading)
+        self._set_state(t, RELOCALISING, reasons)
+
+    def _set_state(self, t: float, state: str, reasons: list[str]) -> None:
+        changed = state != self._state
+        self._state, self._reasons = state, list(reasons)
+        if changed:
+            if state in (LOST, RELOCALISING):
+                log.warning("localisation: %s at t=%.2f s (%s)", state, t, ", ".join(reasons))
+            self._publish(KEY_HEALTH, self._health_message(t))
 
     def _compass(self, t: float, mx: float, my: float, mz: float) -> None:
         self.counters.took("compass")
-        if t - self._compass_t < self._compass_period - 1e-9:
-            return
-        self._compass_t = t
         if self._hard_iron is None:
+            # every sample goes to the online fit (the EKF gets the compass at compass_rate_hz,
+            # which would leave a turn on the spot with too few samples to fill the bins)
             assert self._hard_iron_fit is not None
             self._hard_iron = self._hard_iron_fit.add(self.tracker.pose[2], mx, my)
             if self._hard_iron is None:
                 return
             self.counters.hard_iron_uT = [round(float(v), 3) for v in self._hard_iron]
             log.info("localisation: hard-iron offset %s uT (online fit)", self._hard_iron[:2])
-        self.tracker.on_compass(t, heading_from_field((mx, my, mz), self._north, self._hard_iron))
+        # Every sample: the latest heading starts a relocalisation (a turning robot's heading of
+        # a second ago is no prior), and while relocalising it is what tells mirror-image places
+        # of a symmetric map apart (sigma widened: its errors are correlated).
+        heading = heading_from_field((mx, my, mz), self._north, self._hard_iron)
+        self._compass_heading = heading
+        reloc = self.relocaliser
+        if reloc is not None and reloc.active:
+            reloc.on_heading(heading, 3.0 * self.tracker.params.compass_sigma_rad)
+        if t - self._compass_t < self._compass_period - 1e-9:
+            return
+        self._compass_t = t
+        self.health.absolute(t, self.tracker.on_compass(t, heading))
 
     def _ir(self, t: float, counts: np.ndarray) -> None:
         self.counters.took("ir")
+        rb = self._rb
+        # Wall contact: a sensor facing the direction of travel reads a wall within
+        # contact_range_m (seeds/003: the Koala's IR is its bumper).
+        if self._last_ds != 0.0:
+            facing = self._ir_yaw_cos * math.copysign(1.0, self._last_ds) > CONTACT_FACING_COS
+            if np.any(facing & (counts >= self._contact_counts)):
+                self._contact_until = t + rb.slip_hold_s
+        if rb.ir_ranges:
+            lo, hi = rb.ir_usable_counts
+            usable = (counts >= lo) & (counts < hi)
+            if usable.any():
+                r = np.interp(counts, *self._ir_curve)
+                sigma = rb.ir_range_sigma_m + rb.ir_range_sigma_rel * r
+                self._map_ranges("ir", t, usable, r, sigma, self._ir_rays, self._ir_max, 1,
+                                 math.pi / 2)
         x, y, th = self.tracker.pose
         cx, cy = self.world.cell_centre(*self._cell)
         g = self.settings.grid
@@ -612,8 +859,6 @@ class LocalisationNode:
                                   cell_m=self.world.cell_m)
             self.grid.observe(walls)
             self.counters.grid_observations += 1
-            if self.settings.pose.ir_wall_fixes:
-                self._wall_fixes(t, counts)
         o = self.settings.occupancy
         if o.ir and t - self._last_occupancy >= 1.0 / o.update_hz:
             self._last_occupancy = t
@@ -623,40 +868,53 @@ class LocalisationNode:
                                           self._ir_beam)
             self.counters.occupancy_scans += 1
 
-    def _wall_fixes(self, t: float, counts: np.ndarray) -> None:
-        """A sensor facing a known wall of the current cell within 20 deg of its normal measures
-        the robot's coordinate across that wall (range from the response curve)."""
-        x, y, th = self.tracker.pose
-        cell, cm = self._cell, self.world.cell_m
-        sides = sensor_sides(th, self._ir_poses, cm, WALL_FIX_MAX_OFF_NORMAL)
-        c, s = math.cos(th), math.sin(th)
-        for i, k in enumerate(sides):
-            n = float(counts[i])
-            if k is None or not self.world.has_wall(*cell, SIDES[k]) \
-                    or not WALL_FIX_COUNTS[0] <= n < WALL_FIX_COUNTS[1]:
+    def _map_ranges(self, kind: str, t: float, usable: np.ndarray, z: np.ndarray,
+                    sigma: np.ndarray, rays: np.ndarray, max_range: np.ndarray, beams: int,
+                    critical: float) -> None:
+        """Readings of one ring against the map: the EKF update of the readings whose expected
+        range is usable, each gated; the evidence to the health monitor (a reading of a wall
+        where the map has none within the sensor's range counts as rejected); the readings to
+        the relocaliser when it runs."""
+        reloc = self.relocaliser
+        if reloc is not None and reloc.active:
+            axis = rays[:, beams // 2::beams]     # each sensor's middle ray: its axis
+            reloc.on_ranges(np.ascontiguousarray(axis.T)[usable], z[usable], sigma[usable])
+        hits = self.map_model.expected(self.tracker.pose, rays, max_range, beams, critical)
+        idx: list[int] = []
+        expected: list[RangeHit] = []
+        unexplained = 0
+        for i in np.flatnonzero(usable):
+            h = hits[i]
+            if h is None:
                 continue
-            r = float(np.interp(n, *self._ir_curve))
-            bx, by, yaw = self._ir_poses[i]
-            phi = th + yaw
-            sigma = 0.004 + 0.05 * r
-            side = SIDES[k]
-            if side in ("N", "S"):
-                wall = (cell[1] + (1 if side == "N" else 0)) * cm
-                ok = self.tracker.on_coordinate(t, 1, wall - r * math.sin(phi) - (s * bx + c * by),
-                                                sigma)
-            else:
-                wall = (cell[0] + (1 if side == "E" else 0)) * cm
-                ok = self.tracker.on_coordinate(t, 0, wall - r * math.cos(phi) - (c * bx - s * by),
-                                                sigma)
-            self.counters.wall_fixes += int(ok)
+            if not math.isfinite(h.r):
+                unexplained += 1
+                continue
+            idx.append(int(i))
+            expected.append(h)
+        accepted = 0
+        if idx:
+            ok = self.tracker.on_ranges(t, kind, z[idx], [h.r for h in expected],
+                                        [h.H for h in expected], sigma[idx])
+            accepted = int(ok.sum())
+        self.health.evidence(t, accepted, len(idx) - accepted + unexplained)
 
     def _sonar(self, t: float, readings: Sequence[int]) -> None:
         self.counters.took("sonar")
-        o = self.settings.occupancy
-        if not o.sonar:
-            return
         ranges = np.array([np.inf if v == NO_ECHO else v / 1000.0 for v in readings])
-        if ranges.size == len(self._sonar_poses):
+        if ranges.size != len(self._sonar_poses):
+            return
+        rb = self._rb
+        if rb.sonar_ranges:
+            usable = np.isfinite(ranges) & (ranges >= self._sonar_min) \
+                & (ranges < self._sonar_max[0])
+            if usable.any():
+                sigma = rb.sonar_range_sigma_m + rb.sonar_range_sigma_rel * np.where(
+                    usable, ranges, 0.0)
+                self._map_ranges("sonar", t, usable, np.where(usable, ranges, 0.0), sigma,
+                                 self._sonar_rays, self._sonar_max, rb.sonar_beam_rays,
+                                 self._sonar_critical)
+        if self.settings.occupancy.sonar:
             self.occupancy.integrate_scan(self.tracker.pose, self._sonar_poses, ranges,
                                           self._sonar_beam)
 
@@ -700,9 +958,30 @@ class LocalisationNode:
             self._publish(key, self._message(key, t))
         self._next_due = min(self._next.values())
 
+    def _health_message(self, t: float) -> dict[str, Any]:
+        x, cov = self._estimate()
+        state, reasons = self._state, self._reasons
+        if state == TRACKING:  # the EKF runs: tracking or uncertain (or lost, seen first here)
+            state, reasons = self.health.assess(
+                t, math.sqrt(max(cov[0, 0], cov[1, 1])), math.sqrt(cov[2, 2]),
+                t < self._slip_until, t < self._contact_until)
+        accepted, rejected = self.health.counts()
+        return health_message(t, state, reasons, math.sqrt(max(cov[0, 0], cov[1, 1])),
+                              math.degrees(math.sqrt(cov[2, 2])), accepted, rejected,
+                              self.counters.relocalisations)
+
+    def _estimate(self) -> tuple[np.ndarray, np.ndarray]:
+        """The published pose and covariance: the relocaliser's while it runs, else the EKF's."""
+        if self.relocaliser is not None and self.relocaliser.active:
+            return self.relocaliser.estimate()
+        return np.array(self.tracker.pose), self.tracker.pose_cov
+
     def _message(self, key: str, t: float) -> dict[str, Any]:
         if key == KEY_POSE:
-            return pose_message(t, *self.tracker.pose, self.tracker.pose_cov)
+            x, cov = self._estimate()
+            return pose_message(t, float(x[0]), float(x[1]), float(x[2]), cov)
+        if key == KEY_HEALTH:
+            return self._health_message(t)
         if key == KEY_CELL:
             cell = self.grid.guess()
             return cell_message(t, cell, self.grid.probability(cell))
@@ -722,7 +1001,9 @@ class LocalisationNode:
                 "odometry_resets": c.odometry_resets,
                 "grid_moves": c.grid_moves,
                 "grid_observations": c.grid_observations,
-                "wall_fixes": c.wall_fixes,
+                "relocalisations": c.relocalisations,
+                "slip_steps": c.slip_steps,
+                "health": {"state": self._state, "reasons": list(self._reasons)},
                 "occupancy_scans": c.occupancy_scans,
                 "clock_restarts": c.clock_restarts,
                 "hard_iron_uT": c.hard_iron_uT,

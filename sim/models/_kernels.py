@@ -15,7 +15,7 @@ import math
 
 import numba
 import numpy as np
-from koala_bridge.sim.raycast import first_hit, wrap_angle_compiled
+from koala_bridge.core.raycast import first_hit, wrap_angle_compiled
 
 
 @numba.njit(cache=True, nogil=True)
@@ -31,6 +31,16 @@ def interp(x: float, xs: np.ndarray, ys: np.ndarray) -> float:  # pragma: no cov
         i += 1
     t = (x - xs[i - 1]) / (xs[i] - xs[i - 1])
     return ys[i - 1] + t * (ys[i] - ys[i - 1])
+
+
+@numba.njit(cache=True, nogil=True)
+def table_sigma(x: float, xs: np.ndarray, ys: np.ndarray) -> float:  # pragma: no cover
+    """``sonar.distance_sigma`` for one range: :func:`interp` within the table, the last row's
+    relative error ``ys[-1] / xs[-1]`` held beyond it (seeds/004 "+-6.6 %")."""
+    n = xs.shape[0]
+    if x > xs[n - 1] and xs[n - 1] > 0.0:
+        return x * ys[n - 1] / xs[n - 1]
+    return interp(x, xs, ys)
 
 
 # ---------------------------------------------------------------------------------------- IR
@@ -158,7 +168,7 @@ def sonar_kernel(d: np.ndarray, inc: np.ndarray, max_range: float, tx: np.ndarra
         e = echo[i]
         r = np.nan
         if e < np.inf:
-            r = max(e + interp(e, tx, ty) * z[i], 0.0)
+            r = max(e + table_sigma(e, tx, ty) * z[i], 0.0)
         if u[n + i] < p_glitch:
             r = min_range + (max_range - min_range) * u[2 * n + i]
             out_kind[i] = 4
@@ -196,7 +206,7 @@ def sonar_ring_kernel(seg: np.ndarray, rays: np.ndarray, index: np.ndarray, star
                       cycle: np.ndarray, u: np.ndarray, z: np.ndarray, out: np.ndarray
                       ) -> None:  # pragma: no cover - compiled
     """The sonar ring from the simulator's cast, in one call: ``rays`` (6, R) rows origin x, y,
-    direction x, y, range, incidence (:func:`sim.raycast.cast_fan_arrays`), ``index`` (R,) wall
+    direction x, y, range, incidence (:func:`core.raycast.cast_fan_arrays`), ``index`` (R,) wall
     hit; the ring's rays start at ``start``. Computes the specular second legs and the crosstalk
     geometry when needed and runs :func:`sonar_kernel`; readings nearer than ``min_reading``
     become 0 (the Koala's "too close"). Writes ``out`` (3, n): ranges, truth ranges, truth
@@ -255,13 +265,9 @@ def sonar_ring_kernel(seg: np.ndarray, rays: np.ndarray, index: np.ndarray, star
 
 # ------------------------------------------------------------------------------------ camera
 @numba.njit(cache=True, nogil=True)
-def _distance_term(d: float, dmin: float, dmax: float, base: float) -> float:
-    if d < dmin or d > dmax:
-        return 1.0
-    u = (d - dmin) / (dmax - dmin)
-    if abs(base - 1.0) < 1e-12:
-        return u
-    return (base**u - 1.0) / (base - 1.0)
+def _distance_factor(d: float, dmax: float, base: float) -> float:
+    """``g(d)`` of ``camera.distance_factor`` (seeds/000 eq. 6)."""
+    return base ** ((d - dmax) / dmax)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -291,11 +297,13 @@ def camera_kernel(rows: np.ndarray, all_ids: np.ndarray, fp: np.ndarray, u: np.n
         a = abs(rows[q, 3])
         amax = rows[q, 4]
         ang = 4.0 * a * a / (amax * amax)
-        f = _distance_term(d, dmin, dmax, base)
-        if u[3 * q] < min(1.0, ang + p_perc + f):
+        if d < dmin or d > dmax:
+            continue                                   # out of sight: not perceived
+        g = _distance_factor(d, dmax, base)
+        if u[3 * q] < min(1.0, ang + p_perc * g):
             continue                                   # not perceived
         lid = true_id
-        if n_all > 1 and u[3 * q + 1] < min(1.0, ang + p_recog + f):
+        if n_all > 1 and u[3 * q + 1] < min(1.0, ang + p_recog * g):
             j = min(int(u[3 * q + 2] * (n_all - 1)), n_all - 2)
             # the j-th id of all_ids skipping the true one
             seen = 0

@@ -5,33 +5,38 @@ reading below is argued in docs/models.md §Camera. Symbols: ``a`` = viewing ang
 between the landmark's facing direction and the direction from the landmark to the robot
 (0 = seen head-on); ``d`` = distance robot–landmark.
 
-Perception (miss) probability, eq. 5, 6 and 8 read as::
+Perception (miss) probability, eq. 5–8, the multiplicative reading (docs/models.md "Seed readings
+decided on purpose" argues it against the additive one)::
 
-    P_miss(a, d) = min(1, 4 a^2 / a_max^2 + p_perc + f(d))                      (5)+(8)
-    f(d) = (b^((d - d_min)/(d_max - d_min)) - 1) / (b - 1)   for d_min <= d <= d_max   (6)
-    f(d) = 1                                                 for d < d_min or d > d_max
+    P_miss(a, d) = min(1, 4 a^2 / a_max^2 + p_perc * g(d))      for d_min <= d <= d_max     (5)+(8)
+    g(d) = b^((d - d_max) / d_max)                                                          (6)
+    P_miss = 1                                                  for d < d_min or d > d_max
 
 ``d_min``/``d_max`` are the camera's ``min_range_m``/``max_range_m`` (the same keys of
 ``[sensors.camera]`` bound the field of view). ``b`` = ``distance_base`` (2 in the seed:
-"exponential at base 2"; Figure 4 compares bases).
-Properties kept from the text: the angle term reaches 1 at ``a = a_max / 2`` (``a_max`` is the
-full opening of the landmark's viewing cone), ``P_miss = p_perc`` at 0° and at near range
-(``d = d_min``), ``P_miss = 1`` at ``d_max`` ("reaches its maximum (1) at the maximum sight
-distance"), and below ``d_min`` the landmark is not perceived ("approximate the error, when the
-landmark is too close, by applying a minimum sight distance"). A huge ``a_max`` (10000°) makes the
-angle term vanish: an omnidirectional landmark. The seed's eq. 7 (a square-root-free
-approximation of eq. 6) is a speed trick with no effect on the distribution; it is not used.
+"exponential at base 2"; Figure 4 compares bases). ``g`` is the seed's distance function: it
+"grows with increasing distance and reaches its maximum (1) at the maximum sight distance" and
+scales the base rate ``p_perc``. Eq. 7, extracted as ``2^((d^2 - d_max^2) / (2 d_max))``, is
+the square-root-free approximation of an exponent in ``d - d_max`` (``d - d_max = (d^2 -
+d_max^2) / (d + d_max)`` and ``d + d_max = 2 d_max`` at ``d = d_max``: the ``2 d_max`` of its
+denominator), and is 1 at ``d_max``; so eq. 6's extracted ``d_min`` is read as ``d_max``. Eq. 7
+itself is a speed trick with no effect on the distribution; it is not used. ``P_miss = p_perc``
+at 0° and ``d_max``, ``p_perc / b`` next to the camera; the angle term reaches 1 at
+``a = a_max / 2`` (``a_max`` is the full opening of the landmark's viewing cone); below ``d_min``
+the landmark is not perceived ("approximate the error, when the landmark is too close, by
+applying a minimum sight distance"). A huge ``a_max`` (10000°) makes the angle term vanish: an
+omnidirectional landmark.
 
 Recognition, eq. 9: "depends on the perception angle and the distance. So we get the same
-distribution": ``P_wrong(a, d) = min(1, 4 a^2/a_max^2 + p_recog + f(d))`` for a perceived landmark;
-a wrong id is drawn uniformly from the *other* ``n - 1`` landmark ids (eq. 9's ``1/n`` would
-include the true id; we draw from the others so that ``p_recog`` is the rate of ids that are
-actually wrong, the quantity one measures). With a single landmark no wrong id exists.
+distribution": ``P_wrong(a, d) = min(1, 4 a^2/a_max^2 + p_recog * g(d))`` for a perceived
+landmark; a wrong id is drawn uniformly from the *other* ``n - 1`` landmark ids (eq. 9's ``1/n``
+would include the true id; we draw from the others so that ``p_recog`` is the rate of ids that
+are actually wrong, the quantity one measures). With a single landmark no wrong id exists.
 
 Distance, eq. 10–12::
 
     d_est = d + eps_near * N(0, 1) + eps_far * |N(0, 1)|       (10)
-    eps_far  = dist * d_mid * 2^((d - d_mid) / far_doubling_m)  (11)
+    eps_far  = dist * d_mid * 2^((d - d_mid) / far_doubling_m)  (11), far_doubling_m = 2 (text)
     eps_near = dist * d                                         (12)
 
 so at ``d = d_mid`` each term is ``+-dist`` (relative) as the seed says; the far term is one-sided
@@ -48,7 +53,7 @@ Gaussian error").
 The simulator's stateful model is :class:`CameraErrorModel` (end of this module; the truth it
 perturbs comes from ``sim/sensors/camera.py``, its factory :func:`error_model` is registered in
 ``sim.models.ERROR_MODELS``). Compiled kernel (``sim/models/_kernels.py``): ``camera_kernel`` (with
-``_distance_term``); the truth's visibility test is ``sim/sensors/camera.py``
+``_distance_factor``); the truth's visibility test is ``sim/sensors/camera.py``
 ``visible_landmarks``.
 """
 
@@ -94,15 +99,15 @@ class CameraErrorParams:
     ABSENT: ClassVar[Mapping[str, Any]] = MappingProxyType({})
 
     ideal: Bool = False
-    p_perc: Probability = 0.01        # eq. 5: miss probability at 0°, near range (Figure 2)
-    p_recog: Probability = 0.01       # eq. 9: wrong-id probability at 0°, near range
+    p_perc: Probability = 0.01        # eq. 5/8: miss probability at 0° and d_max (Figure 2)
+    p_recog: Probability = 0.01       # eq. 9: wrong-id probability at 0° and d_max
     # eq. 6 d_min / d_max (shared with the camera's field of view in [sensors.camera]):
     min_range_m: NonNegative = 0.1    # minimum sight distance; nearer is not perceived
-    max_range_m: Positive = 4.0       # maximum sight distance; P_miss = 1 there
+    max_range_m: Positive = 4.0       # maximum sight distance; g(d_max) = 1, beyond: not seen
     distance_base: Positive = 2.0     # eq. 6: "exponential at base 2"
     dist: NonNegative = 0.05          # eq. 10–12: relative distance error (+-dist at d_mid)
     d_mid_m: Positive = 1.0           # eq. 11: medium sight distance
-    far_doubling_m: Positive = 1.0    # eq. 11: distance over which the far error doubles
+    far_doubling_m: Positive = 2.0    # eq. 11: the far error doubles every 2 m (the text's "/2")
     bearing_sigma_deg: NonNegative = 2.0  # eq. 14: alpha_ang
 
     def __post_init__(self) -> None:
@@ -120,31 +125,31 @@ def angle_term(a_rad: np.ndarray | float, a_max_rad: np.ndarray | float) -> np.n
     return 4.0 * a * a / np.asarray(a_max_rad, dtype=float) ** 2
 
 
-def distance_term(d_m: np.ndarray | float, params: CameraErrorParams) -> np.ndarray:
-    """``f(d)`` of seeds/000 eq. 6 as reconstructed: 0 at d_min, 1 at d_max, exponential with base
-    ``distance_base`` in between (linear when the base is 1), 1 outside [d_min, d_max]."""
+def distance_factor(d_m: np.ndarray | float, params: CameraErrorParams) -> np.ndarray:
+    """``g(d) = b^((d - d_max)/d_max)`` of seeds/000 eq. 6 (its approximation: eq. 7): the factor
+    on the base rates ``p_perc``/``p_recog``; 1 at ``d_max``, ``1/b`` at the camera."""
     d = np.asarray(d_m, dtype=float)
-    u = (d - params.min_range_m) / (params.max_range_m - params.min_range_m)
-    b = params.distance_base
-    if abs(b - 1.0) < 1e-12:
-        f = u
-    else:
-        f = (np.power(b, np.clip(u, 0.0, 1.0)) - 1.0) / (b - 1.0)
-    return np.where((d < params.min_range_m) | (d > params.max_range_m), 1.0, f)
+    return np.power(params.distance_base, (d - params.max_range_m) / params.max_range_m)
+
+
+def _in_sight(d_m: np.ndarray | float, params: CameraErrorParams) -> np.ndarray:
+    d = np.asarray(d_m, dtype=float)
+    return (d >= params.min_range_m) & (d <= params.max_range_m)
 
 
 def miss_probability(a_rad: np.ndarray | float, d_m: np.ndarray | float,
                      a_max_rad: np.ndarray | float, params: CameraErrorParams) -> np.ndarray:
-    """Perception error probability ``P_miss(a, d)`` (seeds/000 eq. 5, 6, 8 as reconstructed)."""
-    p = angle_term(a_rad, a_max_rad) + params.p_perc + distance_term(d_m, params)
-    return np.minimum(1.0, p)
+    """Perception error probability ``P_miss(a, d)`` (seeds/000 eq. 5–8, multiplicative reading);
+    1 outside ``[d_min, d_max]``."""
+    p = angle_term(a_rad, a_max_rad) + params.p_perc * distance_factor(d_m, params)
+    return np.where(_in_sight(d_m, params), np.minimum(1.0, p), 1.0)
 
 
 def wrong_id_probability(a_rad: np.ndarray | float, d_m: np.ndarray | float,
                          a_max_rad: np.ndarray | float, params: CameraErrorParams) -> np.ndarray:
     """Recognition error probability for a perceived landmark (seeds/000 eq. 9 text: "the same
     distribution" as perception, with base rate ``p_recog``)."""
-    p = angle_term(a_rad, a_max_rad) + params.p_recog + distance_term(d_m, params)
+    p = angle_term(a_rad, a_max_rad) + params.p_recog * distance_factor(d_m, params)
     return np.minimum(1.0, p)
 
 

@@ -3,9 +3,20 @@ glitches (seeds/004 "Sensor Models").
 
 Sources
 - seeds/004_38ad9834df6871a1.txt: Webots ``Khepera3_USSensor`` ``aperture 0.4`` rad (22.9°),
-  ``numberOfRays 5``; "Ultrasonic Sensors have a distance error of +-6.6 %" with the range table
+  ``numberOfRays 5``: "The three red beams are all horizontal at the height of the sensor. The two
+  orange beams are centered horizontally but go up and down vertically." In a 2-D world of walls
+  the vertical pair never gives the reading (each lies above/below the centre ray's azimuth: on a
+  wall it is longer, ``d / cos(e)``, at a larger incidence, ``acos(cos(inc) cos(e))``, ``e`` its
+  elevation, so it is a direct echo only when the centre ray is a shorter one; the floor meets it
+  at a grazing incidence beyond the critical angle), so the simulator casts the 3 horizontal rays
+  only (``[sensors.sonar] rays = 3``; docs/models.md "Seed readings decided on purpose").
+  "Ultrasonic Sensors have a distance error of +-6.6 %" with the range table
   0–5 cm +-0.0, 5 cm +-0.03 cm, 10 cm +-0.1 cm, 30 cm +-0.7 cm, 60 cm +-2.5 cm, 100 cm +-6.6 cm
-  (each "+-" read as one Gaussian standard deviation, interpolated linearly, held beyond 1 m);
+  (each "+-" read as one Gaussian standard deviation, interpolated linearly). Beyond the table's
+  last row its *relative* error is held (:func:`distance_sigma`: 6.6 % of the range, 13.2 cm at
+  2 m): the headline "+-6.6 %", and the unit of Webots' lookup tables (the noise column is a
+  fraction of the response), of which the table's ``~d^2`` growth inside 1 m is the linear rise;
+  holding the last row holds that fraction;
   "3. Reflection Errors": beyond a critical angle specular reflection makes the echo "never
   return to the sensor" ("maximum distance reading") or "return to the sensor too late"
   ("distance returned represents total round-trip delay"); "crosstalk: echoes emitted from one
@@ -24,7 +35,7 @@ Model, per sensor (rays ``k``; incidence = angle between ray and surface normal)
                points p inside this sensor's cone gives an echo (d_jk + |p - s_i|) / 2; it is
                heard (per pair and cycle) with probability crosstalk_probability; the first echo
                to arrive (the smallest) is the reading
-    range      = echo + sigma(echo) * z          (seed-004 table; clipped at 0)
+    range      = echo + sigma(echo) * z          (seed-004 table, relative beyond; clipped at 0)
     glitch:    with probability glitch_probability the reading is U(min_range_m, max_range_m)
     beyond max range: nan (no echo)
 
@@ -66,6 +77,18 @@ def _seed004_us_table() -> LookupTable:
     return LookupTable.from_rows(
         [[0.0, 0.0], [0.05, 0.0003], [0.10, 0.001], [0.30, 0.007], [0.60, 0.025], [1.00, 0.066]]
     )
+
+
+def distance_sigma(range_m: np.ndarray | float, table_x: np.ndarray, table_y: np.ndarray
+                   ) -> np.ndarray:
+    """sigma (m) of the distance error at ``range_m`` (seeds/004 ultrasonic table): the table
+    ``(table_x, table_y)`` interpolated linearly within it; beyond its last row that row's
+    relative error ``y_last / x_last`` is held, ``sigma = range * y_last / x_last`` (6.6 % with
+    the seed's table). Compiled twin: ``_kernels.table_sigma``."""
+    r = np.asarray(range_m, dtype=float)
+    xl, yl = float(table_x[-1]), float(table_y[-1])
+    rel = yl / xl if xl > 0 else 0.0
+    return np.where(r > xl, r * rel, np.interp(r, table_x, table_y))
 
 
 @section

@@ -28,7 +28,7 @@ import numba
 import numpy as np
 from koala_bridge.core.schema import Bool, NonNegative, Positive, section
 from koala_bridge.sim.noise import Variates
-from koala_bridge.sim.raycast import SegmentSet, first_hit, wrap_angle_compiled
+from koala_bridge.core.raycast import SegmentSet, first_hit, wrap_angle_compiled
 from koala_bridge.sim.robot import RobotState
 from koala_bridge.sim.sections import Pose, empty_errors, range_limits, sensor_section
 from koala_bridge.sim.sensors.base import ErrorModel
@@ -89,7 +89,7 @@ def visible_landmarks(
     """Landmarks ``(L, 5)`` rows ``[id, x, y, facing, a_max]`` seen from a camera at
     ``(cx, cy)`` whose axis points at ``axis`` (robot heading ``theta``): within range, within
     the field of view (by the dot product: ``v . a >= cos(fov / 2) |v|``) and not hidden by a
-    wall (``seg``: :attr:`sim.raycast.SegmentSet.packed`). Writes one row per visible landmark
+    wall (``seg``: :attr:`core.raycast.SegmentSet.packed`). Writes one row per visible landmark
     into ``out`` (L, 5): id, range, bearing (CCW from the heading), viewing angle (between the
     landmark's facing and the direction landmark -> camera), a_max; returns their number."""
     ax = math.cos(axis)

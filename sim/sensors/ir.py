@@ -8,7 +8,7 @@ ray's range is the sensor's ``truth_ranges`` value (inf: nothing within the tabl
 Ambient light is the constant ``ambient_counts`` (no light sources are simulated yet).
 
 Seam: ``IrSensor.measure(rays, index, start, variates)`` takes the simulator's cast of this
-step (:func:`sim.raycast.cast_fan_arrays`); with ``ideal = false`` the error model (seeds/004:
+step (:func:`core.raycast.cast_fan_arrays`); with ``ideal = false`` the error model (seeds/004:
 reflectivity, distance error table +-3 %, ambient light; ``sim/models/ir.py``) gets the
 :class:`IrTruth` -- per-ray ranges -- and returns an :class:`koala_bridge.sim.types.IrReading`.
 
@@ -151,7 +151,7 @@ class IrSensor:
     def measure(
         self, rays: np.ndarray, index: np.ndarray, start: int, variates: Variates
     ) -> IrReading:
-        """Reading from this step's cast (:func:`sim.raycast.cast_fan_arrays` of a fan whose rays
+        """Reading from this step's cast (:func:`core.raycast.cast_fan_arrays` of a fan whose rays
         ``start..`` are :attr:`fan`'s): ``rays`` (6, R) rows ox, oy, dx, dy, range, incidence."""
         n, k = self.fan.n, self.fan.k
         rr = rays[4, start:start + n * k]

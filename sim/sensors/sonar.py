@@ -1,7 +1,8 @@
 """Ultrasonic range sensors (a ring of 9 on the Koala 2.5): first echo within a cone of rays.
 
 Truth (pure, :func:`first_echo`): each sensor casts ``rays`` rays over ``aperture_deg`` (defaults
-of seeds/004: 5 rays, 22.9 deg, the Webots Khepera III ultrasonic sensor); its range is the
+from seeds/004's Webots Khepera III ultrasonic sensor: 22.9 deg, and its 3 horizontal rays of 5;
+the 2 vertical ones never give the reading in 2-D, see ``sim/models/sonar.py``); its range is the
 nearest hit of any ray (the first echo), with that ray's incidence angle. ``truth_ranges`` is nan
 when nothing lies within ``max_range_m``.
 
@@ -10,7 +11,7 @@ Ideal reading, as the Koala 2.5 reports (User Manual rev 1.1 section 4.1): neare
 Koala returns 1000); otherwise the true range.
 
 Seam: ``SonarSensor.measure(rays, index, start, variates)`` takes the simulator's cast of this
-step (:func:`sim.raycast.cast_fan_arrays`); with ``ideal = false`` the error model (distance
+step (:func:`core.raycast.cast_fan_arrays`); with ``ideal = false`` the error model (distance
 error table +-6.6 %, specular reflection beyond a critical incidence angle, late echoes via a
 second wall, crosstalk, glitches; ``sim/models/sonar.py``) gets the :class:`SonarTruth`: every
 ray's world geometry, range, incidence and wall index, and the walls.
@@ -32,7 +33,7 @@ import numba
 import numpy as np
 from koala_bridge.core.schema import Bool, NonNegative, Positive, section
 from koala_bridge.sim.noise import Variates
-from koala_bridge.sim.raycast import SegmentSet
+from koala_bridge.core.raycast import SegmentSet
 from koala_bridge.sim.sections import Poses, Rays, empty_errors, range_limits, sensor_section
 from koala_bridge.sim.sensors.base import ErrorModel
 from koala_bridge.sim.sensors.fan import RayFan
@@ -154,7 +155,7 @@ class SonarSensor:
     def measure(
         self, rays: np.ndarray, index: np.ndarray, start: int, variates: Variates
     ) -> SonarReading:
-        """Reading from this step's cast (:func:`sim.raycast.cast_fan_arrays` of a fan whose rays
+        """Reading from this step's cast (:func:`core.raycast.cast_fan_arrays` of a fan whose rays
         ``start..`` are :attr:`fan`'s)."""
         p = self.params
         if self.error_model is None:

@@ -28,6 +28,7 @@ from koala_bridge.runtime.localisation import (
     LocalisationSettings,
     OccupancySettings,
     PoseSettings,
+    RobustSettings,
 )
 from koala_bridge.runtime.real_source import RealPorts
 from koala_bridge.runtime.settings import (
@@ -109,6 +110,7 @@ SECTIONS: list[tuple[Any, str]] = [
     (PoseSettings, "localisation.pose"),
     (GridSettings, "localisation.grid"),
     (OccupancySettings, "localisation.occupancy"),
+    (RobustSettings, "localisation.robust"),
 ]
 
 #: Fields that are built, not read from the file: the error model's params, and [robot]'s
@@ -273,6 +275,8 @@ def test_an_int_is_a_float_and_a_bare_word_is_a_string() -> None:
     ("buses.mavlink.heartbeat_hz=0", r"'heartbeat_hz' must be > 0"),
     ("localisation.occupancy.resolution_m=0", r"'resolution_m' must be > 0"),
     ("localisation.pose.gate_probability=1", r"'gate_probability' must be < 1"),
+    ("localisation.robust.ir_usable_counts=[900, 100]", r"ir_usable_counts.*low < high"),
+    ("localisation.robust.lost_reject_ratio=1.5", r"lost_reject_ratio"),
 ])
 def test_numbers_are_finite_and_in_range(override: str, message: str) -> None:
     cfg = apply_override(default(), *parse_override(override))

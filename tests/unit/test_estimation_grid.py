@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from koala_bridge.core.grid import SIDE_STEP, SIDES, Grid
+from koala_bridge.core.raycast import SegmentSet, cast_rays
 from koala_bridge.estimation import (
     EstimationError,
     GridLocaliser,
@@ -24,7 +25,6 @@ from koala_bridge.estimation import (
     walls_from_ir,
 )
 from koala_bridge.estimation.grid_localisation import wall_log_likelihood
-from koala_bridge.sim.raycast import SegmentSet, cast_rays
 
 ROOT = Path(__file__).resolve().parents[2]
 WALL_WORLDS = ["lab_walls_1", "lab_walls_2", "lab_walls_3"]

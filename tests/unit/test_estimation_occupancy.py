@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 from koala_bridge.core.grid import Grid
+from koala_bridge.core.raycast import SegmentSet, cast_rays
 from koala_bridge.estimation import BeamModel, OccupancyGrid, OccupancyParams, beam_cells
 from koala_bridge.estimation.occupancy import decode_log_odds, encode_log_odds
-from koala_bridge.sim.raycast import SegmentSet, cast_rays
 
 ROOT = Path(__file__).resolve().parents[2]
 RES = 0.05

@@ -1,5 +1,5 @@
 """core/geometry.py: one wrap_angle (scalar, array and the kernels' compiled copy in
-sim/raycast.py agree bit for bit) and one circle fit."""
+bridge/core/raycast.py agree bit for bit) and one circle fit."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 from koala_bridge.core.geometry import TAU, circle_centre, wrap_angle
-from koala_bridge.sim.raycast import wrap_angle_compiled as compiled_wrap
+from koala_bridge.core.raycast import wrap_angle_compiled as compiled_wrap
 
 BOUNDARIES = [0.0, -0.0, math.pi, -math.pi, TAU, -TAU, 3 * math.pi, -3 * math.pi,
               math.nextafter(math.pi, 4.0), math.nextafter(-math.pi, -4.0),

@@ -39,7 +39,8 @@ RMSE_BOUND_M = {"landmarks": 0.02, "no_landmarks": 0.02, "dead_reckoning": 0.10}
 VARIANTS = {
     "landmarks": {},
     "no_landmarks": {"use_landmarks": False, "grid_prior": "uniform", "occupancy.ir": False},
-    "dead_reckoning": {"use_landmarks": False, "pose.ir_wall_fixes": False,
+    "dead_reckoning": {"use_landmarks": False, "robust.ir_ranges": False,
+                       "robust.sonar_ranges": False, "robust.relocalise": False,
                        "occupancy.ir": False},
 }
 
@@ -75,7 +76,8 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=3)
     args = ap.parse_args()
     variants = {**VARIANTS,
-                "no_wall_fixes": {"pose.ir_wall_fixes": False, "occupancy.ir": False}}
+                "no_map_ranges": {"robust.ir_ranges": False, "robust.sonar_ranges": False,
+                                  "occupancy.ir": False}}
     for world in WORLDS:
         for seed in range(args.seeds):
             r = run(world, args.seconds, seed, variants)

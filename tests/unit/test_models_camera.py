@@ -1,4 +1,4 @@
-"""Camera landmark errors (seeds/000 eq. 5–14 as reconstructed; sim/models/camera.py)."""
+"""Camera landmark errors (seeds/000 eq. 5–14, eq. 5–8 multiplicative; sim/models/camera.py)."""
 
 from __future__ import annotations
 
@@ -6,12 +6,18 @@ import math
 
 import numpy as np
 import pytest
-from _stats import assert_mean, assert_normal_variance, assert_rate, assert_uniform_counts
+from _stats import (
+    assert_mean,
+    assert_normal_variance,
+    assert_rate,
+    assert_uniform_counts,
+    binomial_interval,
+)
 from koala_bridge.sim.models.camera import (
     CameraErrorParams,
     distance_error_mean,
     distance_error_std,
-    distance_term,
+    distance_factor,
     far_sigma,
     measure,
     miss_probability,
@@ -30,7 +36,7 @@ def make_params(**kw: object) -> CameraErrorParams:
     return CameraErrorParams(**{**QUIET, **kw})  # type: ignore[arg-type]
 
 P = make_params(p_perc=0.01, p_recog=0.02, min_range_m=0.1, max_range_m=3.0,
-                      distance_base=2.0, dist=0.05, d_mid_m=1.0, far_doubling_m=1.0,
+                      distance_base=2.0, dist=0.05, d_mid_m=1.0, far_doubling_m=2.0,
                       bearing_sigma_deg=2.0)
 A120 = math.radians(120.0)
 N = 20000
@@ -43,17 +49,47 @@ def _one_landmark(n: int, a_deg: float, d: float, a_max: float = A120, lid: int 
 
 
 def test_seed_properties_of_the_miss_probability() -> None:
-    # at 0 deg and near range (d_min) it is p_perc; it reaches 1 at d_max and at a_max/2
-    assert miss_probability(0.0, P.min_range_m, A120, P) == pytest.approx(P.p_perc)
-    assert miss_probability(0.0, P.max_range_m, A120, P) == pytest.approx(1.0)
-    assert miss_probability(A120 / 2, 0.5, A120, P) == pytest.approx(1.0)
+    # eq. 6: g(d) = 2^((d - d_max)/d_max) "reaches its maximum (1) at the maximum sight distance"
+    # and scales p_perc: P_miss = p_perc at 0 deg and d_max, p_perc / 2 next to the camera
+    assert miss_probability(0.0, P.max_range_m, A120, P) == pytest.approx(P.p_perc)
+    assert float(distance_factor(0.0, P)) == pytest.approx(0.5)
+    assert float(distance_factor(P.max_range_m / 2, P)) == pytest.approx(2 ** -0.5)
+    assert miss_probability(0.0, P.min_range_m, A120, P) == pytest.approx(
+        P.p_perc * 2 ** ((P.min_range_m - P.max_range_m) / P.max_range_m))
+    assert miss_probability(A120 / 2, 0.5, A120, P) == pytest.approx(1.0)   # angle term alone
     assert miss_probability(0.0, 0.05, A120, P) == 1.0            # closer than d_min
-    # the distance term is exponential at base 2: f(mid) = (sqrt(2) - 1) / (2 - 1)
-    mid = 0.5 * (P.min_range_m + P.max_range_m)
-    assert distance_term(mid, P) == pytest.approx(math.sqrt(2) - 1)
+    assert miss_probability(0.0, P.max_range_m + 0.01, A120, P) == 1.0  # beyond d_max
     # omnidirectional: a_max = 10000 deg leaves the miss rate flat in angle (< 0.0013 added)
     omni = math.radians(10000.0)
-    assert miss_probability(math.pi, 0.1, omni, P) - P.p_perc < 0.0013
+    assert miss_probability(math.pi, 0.1, omni, P) - miss_probability(0.0, 0.1, omni, P) < 0.0013
+
+
+# The default camera (config/default.toml: d_min 0.1 m, d_max 4 m, p_perc = p_recog = 0.01) head-on
+# at 1 m and 2 m: P = 0.01 * 2^((d - 4)/4) = 0.595 % and 0.707 % (seeds/000 eq. 5–8 multiplied).
+# The additive reading used before (4a^2/a_max^2 + p_perc + (2^((d - d_min)/(d_max - d_min)) - 1))
+# gave 18.3 % and 41.1 %; a distance term dropped (p_perc flat) gives 1 %.
+ADDITIVE = {1.0: 0.01 + 2 ** (0.9 / 3.9) - 1, 2.0: 0.01 + 2 ** (1.9 / 3.9) - 1}
+N_DEFAULT = 100000
+
+
+@pytest.mark.parametrize("d", [1.0, 2.0])
+def test_default_camera_miss_and_wrong_id_rates_at_1_and_2_m(d: float) -> None:
+    params = CameraErrorParams()                 # the keyword defaults are config/default.toml's
+    p = 0.01 * 2 ** ((d - 4.0) / 4.0)
+    assert float(miss_probability(0.0, d, A120, params)) == pytest.approx(p)
+    assert float(wrong_id_probability(0.0, d, A120, params)) == pytest.approx(p)
+    all_ids = np.array([1, 2, 3, 4, 5])
+    m = measure(*_one_landmark(N_DEFAULT, 0.0, d, lid=2), all_ids=all_ids, params=params,
+                rng=np.random.default_rng(int(d * 1000)))
+    missed = N_DEFAULT - m.ids.size
+    # Binomial(N, p) at alpha = 1e-4, and a flat p_perc (no distance factor) must be rejected ...
+    assert_rate(missed, N_DEFAULT, p, wrong=0.01)
+    # ... and so, by far, must the additive reading (18 % / 41 %)
+    lo_add = binomial_interval(N_DEFAULT, ADDITIVE[d])[0]
+    assert missed < lo_add
+    # wrong ids among the perceived: Binomial(seen, p), the same distribution (eq. 9)
+    seen = m.ids.size
+    assert_rate(int((m.ids != 2).sum()), seen, p, wrong=0.01)
 
 
 @pytest.mark.parametrize(
@@ -67,8 +103,10 @@ def test_empirical_miss_rate_matches_eq_5_6_8(a_deg: float, d: float, a_max_deg:
     m = measure(*_one_landmark(N, a_deg, d, a_max), all_ids=np.array([1]), params=P, rng=rng)
     p = float(miss_probability(math.radians(a_deg), d, a_max, P))
     missed = N - m.ids.size
-    # power: a model that ignores the distance term (or the angle term) must be rejected
-    wrong = float(np.minimum(1.0, 4 * math.radians(a_deg) ** 2 / a_max**2 + P.p_perc))
+    # power: the additive reading (distance term at full weight) must be rejected; where it and
+    # the model meet (the angle term saturates), a rate 0.02 off
+    u = (d - P.min_range_m) / (P.max_range_m - P.min_range_m)
+    wrong = float(min(1.0, 4 * math.radians(a_deg) ** 2 / a_max**2 + P.p_perc + 2**u - 1))
     if abs(wrong - p) < 0.01:
         wrong = min(1.0, p + 0.02) if p < 0.5 else p - 0.02
     assert_rate(missed, N, p, wrong=wrong)
@@ -98,7 +136,7 @@ def test_single_landmark_cannot_be_misrecognised() -> None:
 def test_distance_error_mean_and_spread_match_eq_10_12(d: float) -> None:
     rng = np.random.default_rng(int(d * 10))
     params = make_params(p_perc=0.0, p_recog=0.0, min_range_m=0.0, max_range_m=100.0,
-                               dist=0.05, d_mid_m=1.0, far_doubling_m=1.0)
+                               dist=0.05, d_mid_m=1.0, far_doubling_m=2.0)
     m = measure(*_one_landmark(N, 0.0, d), all_ids=np.array([1]), params=params, rng=rng)
     err = m.ranges - d
     mu, sd = float(distance_error_mean(d, params)), float(distance_error_std(d, params))
@@ -111,6 +149,24 @@ def test_distance_error_mean_and_spread_match_eq_10_12(d: float) -> None:
     assert abs(s2 - sd**2) <= half, (s2, sd**2, half)
     # the near term alone (eq. 12) would be dist*d; at d_mid both terms equal dist * d_mid
     assert float(near_sigma(1.0, params)) == pytest.approx(float(far_sigma(1.0, params)))
+
+
+def test_far_error_doubles_every_2_m_as_eq_11_reads() -> None:
+    # eq. 11 as extracted: eps_far = dist d_mid 2^((d - d_mid)/2); the default far_doubling_m is 2
+    params = CameraErrorParams(p_perc=0.0, p_recog=0.0)
+    assert params.far_doubling_m == 2.0
+    assert float(far_sigma(3.0, params)) == pytest.approx(2 * float(far_sigma(1.0, params)))
+    # at 3.9 m the 1 m doubling read before gave 2^(2.9/2) = 2.7 times the text's far error
+    old = CameraErrorParams(p_perc=0.0, p_recog=0.0, far_doubling_m=1.0)
+    assert float(far_sigma(3.9, old) / far_sigma(3.9, params)) == pytest.approx(2 ** 1.45)
+    # empirical mean at 3 m: eps_far sqrt(2/pi) = 0.080 m, the 1 m doubling's 0.160 m rejected
+    d = 3.0
+    m = measure(*_one_landmark(N, 0.0, d), all_ids=np.array([1]), params=params,
+                rng=np.random.default_rng(31))
+    assert m.ids.size == N
+    assert_mean(m.ranges - d, float(distance_error_mean(d, params)),
+                float(distance_error_std(d, params)),
+                wrong=float(distance_error_mean(d, old)))
 
 
 def test_bearing_error_is_gaussian_with_alpha_ang() -> None:

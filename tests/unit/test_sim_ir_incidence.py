@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from koala_bridge.core.raycast import cast_fan_arrays
 from koala_bridge.core.resources import default_config_path
 from koala_bridge.runtime.settings import apply_override, load_config
-from koala_bridge.sim.raycast import cast_fan_arrays
 from koala_bridge.sim.simulator import Simulator
 from koala_bridge.sim.types import WheelCommand
 

@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 from _sim_support import box_world, config_with_world
+from koala_bridge.core.raycast import SegmentSet
 from koala_bridge.sim import robot as kin
 from koala_bridge.sim.config import load_sim_config
-from koala_bridge.sim.raycast import SegmentSet
 from koala_bridge.sim.simulator import Simulator
 from koala_bridge.sim.types import WheelCommand
 

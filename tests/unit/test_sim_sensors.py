@@ -1,4 +1,4 @@
-"""Ideal sensors against geometry (sim/sensors/*, sim/raycast.py)."""
+"""Ideal sensors against geometry (sim/sensors/*, bridge/core/raycast.py)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from _sim_support import box_world, config_with_world, ideal_config
 from koala_bridge.core.geometry import wrap_angle
-from koala_bridge.sim.raycast import SegmentSet, cast_rays, first_hit_before, merge_collinear
+from koala_bridge.core.raycast import SegmentSet, cast_rays, first_hit_before, merge_collinear
 from koala_bridge.sim.simulator import Simulator
 from koala_bridge.sim.types import WheelCommand
 
@@ -222,7 +222,7 @@ def test_camera_sees_a_landmark_from_the_default_start_pose() -> None:
 
 
 def test_compiled_cast_matches_numpy_reference() -> None:
-    from koala_bridge.sim.raycast import cast_fan, cast_rays_numpy
+    from koala_bridge.core.raycast import cast_fan, cast_rays_numpy
     from koala_bridge.sim.sensors.fan import RayFan
 
     rng = np.random.default_rng(7)

@@ -439,11 +439,13 @@ def build_ranges(bundle: Bundle, model: DeclaredModel) -> list[ScalarProblem]:
             # dropped no-echo readings do not bias the rest.
             lo, hi = model.sonar_range_m
             tr = sub["true_range"]
-            sig = (
-                np.interp(tr, *model.sonar_distance_error)
-                if model.sonar_distance_error is not None
-                else np.zeros_like(tr)
-            )
+            sig = np.zeros_like(tr)
+            if model.sonar_distance_error is not None:
+                # the model's sigma: the table, its relative error held beyond the last row
+                from koala_bridge.sim.models.sonar import distance_sigma
+
+                xs, ys = model.sonar_distance_error
+                sig = distance_sigma(tr, np.asarray(xs), np.asarray(ys))
             edge = (tr - 3 * sig < lo) | (tr + 3 * sig > hi)
             beyond += int((ok & edge).sum())
             ok &= ~edge
