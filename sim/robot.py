@@ -47,6 +47,7 @@ from typing import Annotated, Any, Protocol
 
 import numpy as np
 from koala_bridge.core.geometry import wrap_angle
+from koala_bridge.core.raycast import SegmentSet, point_segment_distances, sweep_circle
 from koala_bridge.core.schema import (
     Bool,
     ConfigError,
@@ -59,7 +60,6 @@ from koala_bridge.core.schema import (
 )
 from koala_bridge.sim.battery import BatteryConfig
 from koala_bridge.sim.noise import Variates
-from koala_bridge.core.raycast import SegmentSet, point_segment_distances, sweep_circle
 from koala_bridge.sim.sections import empty_errors, own_keys, sensor_section
 from pydantic import AfterValidator
 

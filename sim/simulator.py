@@ -38,12 +38,12 @@ from typing import Any
 
 import numpy as np
 from koala_bridge.core.geometry import wrap_angle
+from koala_bridge.core.raycast import SegmentSet, cast_fan_arrays
 from koala_bridge.core.schema import ConfigError
 from koala_bridge.sim import robot as kin
 from koala_bridge.sim.battery import Battery
 from koala_bridge.sim.config import SENSOR_NAMES, SimConfig, load_sim_config
 from koala_bridge.sim.noise import BlockStream, Variates
-from koala_bridge.core.raycast import SegmentSet, cast_fan_arrays
 from koala_bridge.sim.robot import DriveErrorSeam, Motion, RobotState
 from koala_bridge.sim.sections import poses_to_list
 from koala_bridge.sim.sensors.base import ErrorModelFactory

@@ -31,7 +31,7 @@ def wrap_angle(a: float | ArrayLike) -> float | FloatArray:
     One formula for scalars (``math``, the hot path of the filters) and arrays (``numpy``), bit
     for bit the same: ``fmod(a, 2 pi)`` is exact (IEEE 754), which leaves ``(-2 pi, 2 pi)``, then
     one shift by ``2 pi`` lands in ``(-pi, pi]``. So ``pi`` stays ``pi`` and ``-pi`` becomes
-    ``pi``. The simulator's numba kernels call ``bridge/core/raycast.py`` ``wrap_angle_compiled``, the
+    ``pi``. The simulator's numba kernels call ``core/raycast.py`` ``wrap_angle_compiled``, the
     same formula compiled (numba has ``np.fmod`` but not ``math.fmod``). NaN stays NaN.
     """
     if isinstance(a, float | int):  # np.float64 is a float

@@ -780,7 +780,8 @@ TOPICS: dict[str, type[TopicMessage]] = {
     cls.TOPIC: cls
     for cls in (
         TruthPose, IrMessage, SonarMessage, OdometryMessage, GyroMessage, CompassMessage,
-        CameraMessage, StatusMessage, EstimatePose, EstimateHealth, EstimateCell, EstimateGrid, OccupancyMap,
+        CameraMessage, StatusMessage, EstimatePose, EstimateHealth, EstimateCell, EstimateGrid,
+        OccupancyMap,
         FaultEventMessage, WorldMessage,
     )
 }

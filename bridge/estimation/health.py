@@ -105,7 +105,8 @@ class HealthMonitor:
         self._expire(t)
         p, out = self.params, []
         total = self._accepted + self._rejected
-        if self._rejected >= p.lost_min_rejections and self._rejected >= p.lost_reject_ratio * total:
+        if self._rejected >= p.lost_min_rejections \
+                and self._rejected >= p.lost_reject_ratio * total:
             out.append("innovations_rejected")
         bad = sum(1 for _, ok in self._absolute if not ok)
         if bad >= p.absolute_min_rejections and bad >= p.lost_reject_ratio * len(self._absolute):

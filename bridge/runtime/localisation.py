@@ -143,8 +143,9 @@ GRID_PRIORS = ("start", "uniform")
 HARD_IRON_BINS = 12          # heading bins (30 deg) the online hard-iron fit wants filled ...
 HARD_IRON_MIN_BINS = 10      # ... at least this many of them
 HARD_IRON_PER_BIN = 20       # samples kept per bin
-#: A robot whose estimated centre is closer than its body radius minus this to a wall is
-#: "in the wall" (the margin absorbs the estimate's normal error in wall contact).
+#: A robot whose estimated centre is closer than its body radius minus this (or minus 3 sigma of
+#: its position, if more) to a wall is "in the wall" (the margin absorbs the estimate's normal
+#: error in wall contact).
 IN_WALL_MARGIN_M = 0.05
 #: An IR sensor counts as facing the direction of travel when cos(its yaw) has the sign of the
 #: motion and at least this size (within ~70 deg of straight ahead / behind).
@@ -529,14 +530,18 @@ class LocalisationNode:
         self._slip_until = -math.inf
         self._contact_until = -math.inf
         self._last_ds = 0.0
-        self._state, self._reasons = TRACKING, []
+        self._state: str = TRACKING
+        self._reasons: list[str] = []
         self._compass_heading: float | None = None
         self._next_check = -math.inf
 
     def _restart_clock(self, t: float) -> None:
-        """Time went backwards (the simulator was reset, e.g. a second ``run``): restart every
-        schedule from ``t``. The estimates carry on; the encoder counters' jump back to 0 is
-        taken as a client reset (:meth:`_odometry`)."""
+        """Time went backwards (the simulator was reset, e.g. a second ``run``, which puts the
+        robot back at its start): restart every schedule from ``t``, the pose estimate from the
+        initial pose and its prior (a relocalisation in progress is dropped, the health evidence
+        forgotten), the grid from its prior. The occupancy map and the hard-iron offset carry
+        on (same world, same robot); the encoder counters' jump back to 0 is taken as a client
+        reset (:meth:`_odometry`)."""
         log.info("localisation: time went back from %.3f to %.3f s; schedules restarted",
                  self._last_t, t)
         self._next = dict.fromkeys(self._next, -math.inf)
@@ -545,8 +550,28 @@ class LocalisationNode:
         self._odo_t = None
         self._compass_t = -math.inf
         self._last_occupancy = -math.inf
-        self.tracker.t = t
+        self._reset_pose(t)
         self.counters.clock_restarts += 1
+
+    def _reset_pose(self, t: float) -> None:
+        """The pose estimate, grid and health as at the start (``_restart_clock``)."""
+        s = self.settings
+        x0, y0, th0 = self._initial_pose()
+        sxy, sth = s.initial_sigma_xy_m, math.radians(s.initial_sigma_theta_deg)
+        self.tracker.reset(x0, y0, th0, np.diag([sxy**2, sxy**2, sth**2]), t=t)
+        start = self._cell_at(x0, y0)
+        g = s.grid
+        self.grid = GridLocaliser(self.world, GridParams(g.p_move, g.p_hit, g.p_clear),
+                                  start if s.grid_prior == "start" else None)
+        self._cell = start
+        self._observed_visit = False
+        if self.relocaliser is not None:
+            self.relocaliser.stop()
+        self.health.reset(t)
+        self._slip_terms.clear()
+        self._slip_until = self._contact_until = -math.inf
+        self._last_ds = 0.0
+        self._state, self._reasons = TRACKING, []
 
     def _now(self, t: float) -> None:
         if t < self._last_t - 0.5:
@@ -609,18 +634,34 @@ class LocalisationNode:
                 xy = self._landmarks.get(int(ob.id))
                 if xy is None or not (math.isfinite(ob.range) and math.isfinite(ob.bearing)):
                     continue
-                # Camera range error grows with distance (seeds/000 eq. 10-12).
-                far = max(0.0, ob.range - ps.landmark_far_from_m) / ps.landmark_far_doubling_m
-                far = min(far, MAX_DOUBLINGS)  # 2**far overflows a float past 1023
-                sr = ps.landmark_range_sigma_m + ps.landmark_range_sigma_rel * ob.range * 2.0**far
+                bias, sr = self._landmark_range_error(ob.range)
+                r = ob.range - bias
                 sb = math.radians(ps.landmark_bearing_sigma_deg)
-                ok = self.tracker.on_landmark(t, xy, ob.range, ob.bearing, sr, sb)
+                ok = self.tracker.on_landmark(t, xy, r, ob.bearing, sr, sb)
                 self.health.evidence(t, int(ok), int(not ok))
                 self.health.absolute(t, ok)
                 if self.relocaliser is not None and self.relocaliser.active:
-                    self.relocaliser.on_landmark(xy[0], xy[1], ob.range, ob.bearing, sr, sb)
+                    self.relocaliser.on_landmark(xy[0], xy[1], r, ob.bearing, sr, sb)
                 self.counters.took("landmark")
             self._maybe_publish(t)
+
+    def _landmark_range_error(self, d: float) -> tuple[float, float]:
+        """Mean and standard deviation of a camera range error at distance ``d`` (m).
+
+        seeds/000 eq. 10-12 as docs/models.md reads them: ``d_est = d + eps_near N(0,1) +
+        eps_far |N(0,1)|`` with ``eps_near = rel d`` and ``eps_far = rel d_mid 2^((d - d_mid) /
+        doubling)`` -- the far term is one-sided (stereo over-estimates far ranges), so its mean
+        ``eps_far sqrt(2/pi)`` is a bias the estimator removes, and the rest is the variance
+        ``eps_near^2 + eps_far^2 (1 - 2/pi)``; ``landmark_range_sigma_m`` adds in quadrature
+        (``rel`` = ``landmark_range_sigma_rel``, ``d_mid`` = ``landmark_far_from_m``, ``doubling``
+        = ``landmark_far_doubling_m``: the camera's dist, d_mid_m and far_doubling_m)."""
+        ps = self.settings.pose
+        doublings = min((d - ps.landmark_far_from_m) / ps.landmark_far_doubling_m, MAX_DOUBLINGS)
+        far = ps.landmark_range_sigma_rel * ps.landmark_far_from_m * 2.0 ** doublings
+        near = ps.landmark_range_sigma_rel * d
+        sigma = math.sqrt(ps.landmark_range_sigma_m ** 2 + near * near
+                          + far * far * (1.0 - 2.0 / math.pi))
+        return far * math.sqrt(2.0 / math.pi), sigma
 
     def _on_can(self, t: float, data: bytes, fields: Mapping[str, object]) -> None:
         can_id = fields.get("can_id")
@@ -715,6 +756,8 @@ class LocalisationNode:
         self.tracker.on_odometry(t, *self._ticks,
                                  slip_sigma_rel=rb.slip_sigma_rel if widen else 0.0,
                                  slip_distance_scale=rb.slip_distance_scale if widen else 1.0)
+        if widen:
+            self._out_of_walls()
         ds, dth, sds, sdth = self.tracker.last_increment
         self._last_ds = ds
         if self.relocaliser is not None and self.relocaliser.active:
@@ -742,6 +785,17 @@ class LocalisationNode:
         if direction * (math.cos(th) * gx + math.sin(th) * gy) < -MAP_CONTACT_COS:
             self._contact_until = t + self._rb.slip_hold_s
 
+    def _out_of_walls(self) -> None:
+        """In contact the robot touches a wall and cannot be inside it: an estimate whose body
+        overlaps the wall (the encoders drove it there) is moved straight out, to touching
+        (the map as a constraint; the covariance is left as the prediction made it)."""
+        x = self.tracker.x
+        overlap = self._body_radius - self.map_model.clearance(float(x[0]), float(x[1]))
+        if 0.0 < overlap < self._body_radius:
+            gx, gy = self.map_model.away_from_walls(float(x[0]), float(x[1]))
+            x[0] += overlap * gx
+            x[1] += overlap * gy
+
     def _slip_check(self, t: float, d_left: float, d_right: float) -> bool:
         """Wheel slip: over ``slip_window_s`` the heading change the encoders report differs from
         the gyro's by more than ``slip_gate_sigmas`` of their joint noise (the EKF's own
@@ -768,14 +822,16 @@ class LocalisationNode:
         return t < self._slip_until
 
     def _check_consistency(self, t: float) -> None:
-        """After a prediction, every ``CHECK_PERIOD_S``: is the estimated body in a wall, does the evidence contradict
-        the estimate (start relocalising), has the relocaliser converged (restart the EKF)?"""
+        """After a prediction, every ``CHECK_PERIOD_S``: is the estimated body in a wall, does
+        the evidence contradict the estimate (start relocalising), has the relocaliser converged
+        (restart the EKF)?"""
         if t < self._next_check - 1e-9:
             return
         self._next_check = t + CHECK_PERIOD_S
         x, y, _ = self.tracker.pose
-        self.health.body_in_wall(
-            t, self.map_model.clearance(x, y) < self._body_radius - IN_WALL_MARGIN_M)
+        P = self.tracker.P
+        margin = max(IN_WALL_MARGIN_M, 3.0 * math.sqrt(max(P[0, 0], P[1, 1])))
+        self.health.body_in_wall(t, self.map_model.clearance(x, y) < self._body_radius - margin)
         reloc = self.relocaliser
         if reloc is not None and reloc.active:
             if reloc.converged:

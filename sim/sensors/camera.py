@@ -26,9 +26,9 @@ from typing import Annotated, Any
 
 import numba
 import numpy as np
+from koala_bridge.core.raycast import SegmentSet, first_hit, wrap_angle_compiled
 from koala_bridge.core.schema import Bool, NonNegative, Positive, section
 from koala_bridge.sim.noise import Variates
-from koala_bridge.core.raycast import SegmentSet, first_hit, wrap_angle_compiled
 from koala_bridge.sim.robot import RobotState
 from koala_bridge.sim.sections import Pose, empty_errors, range_limits, sensor_section
 from koala_bridge.sim.sensors.base import ErrorModel

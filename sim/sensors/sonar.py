@@ -31,9 +31,9 @@ from typing import Any
 
 import numba
 import numpy as np
+from koala_bridge.core.raycast import SegmentSet
 from koala_bridge.core.schema import Bool, NonNegative, Positive, section
 from koala_bridge.sim.noise import Variates
-from koala_bridge.core.raycast import SegmentSet
 from koala_bridge.sim.sections import Poses, Rays, empty_errors, range_limits, sensor_section
 from koala_bridge.sim.sensors.base import ErrorModel
 from koala_bridge.sim.sensors.fan import RayFan
