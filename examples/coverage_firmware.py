@@ -82,7 +82,7 @@ import socket
 import sys
 import time
 import tomllib
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -362,6 +362,9 @@ class CoverageFirmware:
     """Calibrate, localise, cover, one control cycle at a time (:meth:`cycle`). Time is *robot*
     time: the sampling times the robot's frames carry."""
 
+    #: the streams' names, by stream number (a subclass with more streams extends it)
+    stream_names: tuple[str, ...] = STREAM_NAMES
+
     def __init__(self, links: Links, robot: RobotParams, world: Grid, args: argparse.Namespace):
         self.links = links
         self.robot = robot
@@ -444,7 +447,7 @@ class CoverageFirmware:
                 waiting_since = now
             elif now - waiting_since > self.args.stream_grace_s:
                 log.warning("t = %.2f s: no %s data up to the cycle's end; not waiting for it",
-                            clock.end, ", ".join(STREAM_NAMES[s] for s in behind))
+                            clock.end, ", ".join(self.stream_names[s] for s in behind))
                 self.silent.update(behind)
                 self.silent_streams += len(behind)
                 break
@@ -879,13 +882,17 @@ def _reachable(world: Grid, start: tuple[int, int]) -> set[tuple[int, int]]:
     return seen
 
 
-def main(argv: list[str] | None = None) -> int:
+def argument_parser(description: str = __doc__.split("\n\n")[0],
+                    epilog: str = "example:\n  python examples/coverage_firmware.py "
+                                  "--endpoints-file /tmp/koala.json --config "
+                                  "config/default.toml --world config/worlds/lab_walls_1.toml",
+                    ) -> argparse.ArgumentParser:
+    """The command line; a firmware built on this one (examples/trilateration_firmware.py)
+    adds its own options to it."""
     ap = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0],
+        description=description,
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="example:\n  python examples/coverage_firmware.py --endpoints-file "
-               "/tmp/koala.json --config config/default.toml --world "
-               "config/worlds/lab_walls_1.toml",
+        epilog=epilog,
     )
     ap.add_argument("--endpoints-file", type=Path, required=True,
                     help="the JSON the bridge wrote (koala-bridge run --endpoints-file)")
@@ -917,17 +924,31 @@ def main(argv: list[str] | None = None) -> int:
                     help="occupancy grid cell side (default 0.05)")
     ap.add_argument("--report", type=Path, help="also write the JSON report here")
     ap.add_argument("--log-level", default="INFO")
-    args = ap.parse_args(argv)
+    return ap
+
+
+def run_firmware(
+    args: argparse.Namespace,
+    make_links: Callable[[Mapping[str, Any], float], Links] = Links,
+    make_firmware: Callable[[Any, RobotParams, Grid, Mapping[str, Any], argparse.Namespace],
+                            CoverageFirmware] = (
+        lambda links, robot, world, _config, args: CoverageFirmware(links, robot, world, args)),
+) -> int:
+    """Open the links, run the firmware, print (and ``--report``) its JSON report; the exit
+    status: 0 when every reachable cell was visited. ``make_links(endpoints, watchdog_s)`` and
+    ``make_firmware(links, robot, world, config, args)`` let a firmware built on this one bring
+    its own links and firmware class."""
     logging.basicConfig(level=args.log_level, stream=sys.stderr,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
     logging.getLogger("can").setLevel(logging.ERROR)  # python-can socketcand is chatty
 
     endpoints = json.loads(args.endpoints_file.read_text())
-    robot = RobotParams.from_config(tomllib.loads(args.config.read_text()))
+    config = tomllib.loads(args.config.read_text())
+    robot = RobotParams.from_config(config)
     world = Grid.from_dict(tomllib.loads(args.world.read_text())["world"])
-    links = Links(endpoints, args.timeout_s)
+    links = make_links(endpoints, args.timeout_s)
     try:
-        report = CoverageFirmware(links, robot, world, args).run()
+        report = make_firmware(links, robot, world, config, args).run()
     finally:
         links.close()
     text = json.dumps(report)
@@ -935,6 +956,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.report:
         args.report.write_text(text + "\n")
     return 0 if report["complete"] else 1
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_firmware(argument_parser().parse_args(argv))
 
 
 if __name__ == "__main__":
