@@ -588,7 +588,8 @@ class EstimateHealth(TopicMessage):
     state: Literal["tracking", "uncertain", "lost", "relocalising"] = _doc()
     reasons: tuple[str, ...] = _doc(
         "why not tracking: wheel_slip, wall_contact, covariance_large, no_absolute_fix, "
-        "innovations_rejected, estimate_in_wall")
+        "evidence_disputed, innovations_rejected, absolute_references_rejected, "
+        "estimate_in_wall")
     sigma_xy_m: float = _doc("the larger of the position standard deviations")
     sigma_theta_deg: float = _doc("heading standard deviation")
     accepted: int = _doc("informative readings (landmarks, map ranges) accepted in the window")

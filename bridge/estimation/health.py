@@ -19,7 +19,9 @@ States, worst first (the published ``state``), with the ``reasons`` that led to 
   gyro), ``wall_contact`` (an IR sensor facing the direction of travel touches a wall),
   ``covariance_large`` (position sigma above ``uncertain_sigma_xy_m`` or heading sigma above
   ``uncertain_sigma_theta``), ``no_absolute_fix`` (no landmark or map range accepted for
-  ``no_fix_timeout_s``: dead reckoning only).
+  ``no_fix_timeout_s``: dead reckoning only), ``evidence_disputed`` (in the window at least
+  ``lost_min_rejections`` readings and ``disputed_ratio`` of all were gated out: not
+  enough to call the estimate lost, too many to call it tracking).
 * ``tracking`` -- none of the above.
 """
 
@@ -43,6 +45,7 @@ class HealthParams:
     in_wall_s: float = 0.5
     absolute_window_s: float = 10.0
     absolute_min_rejections: int = 4
+    disputed_ratio: float = 0.3
     uncertain_sigma_xy_m: float = 0.1
     uncertain_sigma_theta: float = math.radians(10.0)
     no_fix_timeout_s: float = 10.0
@@ -131,6 +134,9 @@ class HealthMonitor:
             reasons.append("covariance_large")
         if t - self.last_fix_t > p.no_fix_timeout_s:
             reasons.append("no_absolute_fix")
+        if self._rejected >= p.lost_min_rejections \
+                and self._rejected >= p.disputed_ratio * (self._accepted + self._rejected):
+            reasons.append("evidence_disputed")
         return (UNCERTAIN if reasons else TRACKING), reasons
 
     def counts(self) -> tuple[int, int]:

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from koala_bridge.core.grid import Grid
-from koala_bridge.core.raycast import SegmentSet, cast_fan_arrays
+from koala_bridge.core.raycast import SegmentSet, cast_fan_arrays, point_segment_distances
 from numpy.typing import NDArray
 from scipy import ndimage
 
@@ -212,6 +212,19 @@ class MapModel:
         col = min(int(x / res + 0.5), self._cols - 1)
         row = min(int(y / res + 0.5), self._rows - 1)
         return float(self._field[row, col])
+
+    def nearest_wall(self, x: float, y: float) -> tuple[float, float, float]:
+        """Exact distance (m) from ``(x, y)`` to the nearest wall segment and the unit direction
+        from that wall's nearest point to ``(x, y)`` (no rasterisation: what contact tests
+        need at millimetres)."""
+        d = point_segment_distances(self.walls, x, y)
+        m = int(np.argmin(d))
+        seg = self.walls.segments[m]
+        ex, ey = seg[2] - seg[0], seg[3] - seg[1]
+        u = min(max(((x - seg[0]) * ex + (y - seg[1]) * ey) / (ex * ex + ey * ey), 0.0), 1.0)
+        dx, dy = x - (seg[0] + u * ex), y - (seg[1] + u * ey)
+        dist = float(d[m])
+        return (dist, dx / dist, dy / dist) if dist > 0 else (0.0, 0.0, 0.0)
 
     def away_from_walls(self, x: float, y: float) -> tuple[float, float]:
         """Unit direction in which the clearance grows fastest at ``(x, y)`` (central differences

@@ -150,8 +150,10 @@ IN_WALL_MARGIN_M = 0.05
 #: An IR sensor counts as facing the direction of travel when cos(its yaw) has the sign of the
 #: motion and at least this size (within ~70 deg of straight ahead / behind).
 CONTACT_FACING_COS = 0.35
-#: The map says "contact" when the motion points into the nearest wall by at least this cosine
-#: (~6 deg off parallel to it).
+#: The map says "contact" when the estimated body is within this of a wall (touching, not merely
+#: passing close: a robot passing a wall's end at 1 cm is not blocked) ...
+MAP_CONTACT_GAP_M = 0.005
+#: ... and the motion points into the nearest wall by at least this cosine (~6 deg off parallel).
 MAP_CONTACT_COS = 0.1
 #: Simulated seconds between consistency checks (estimate in a wall, evidence against it, the
 #: relocaliser's convergence): the evidence arrives at the range sensors' rates, 5-20 Hz.
@@ -198,6 +200,7 @@ class PoseSettings:
     compass_rate_hz: Positive
     compass_sigma_deg: Positive
     compass_hard_iron_uT: Annotated[FloatTuple, _sized(0, 2, 3)]   # () = estimate online
+    compass_field_tolerance: Annotated[Positive, Field(le=1)]
     gate_probability: Annotated[Positive, Field(lt=1)]
     landmark_range_sigma_m: Positive
     landmark_range_sigma_rel: NonNegative
@@ -268,6 +271,7 @@ class RobustSettings:
     lost_window_s: Positive
     lost_min_rejections: Annotated[int, Field(ge=1)]
     lost_reject_ratio: Probability
+    disputed_ratio: Probability
     in_wall_s: Positive
     absolute_window_s: Positive
     absolute_min_rejections: Annotated[int, Field(ge=1)]
@@ -352,6 +356,7 @@ class NodeCounters:
     grid_observations: int = 0
     relocalisations: int = 0
     slip_steps: int = 0           # odometry steps predicted with the slip noise
+    compass_disturbed: int = 0    # compass samples whose field strength says "not the Earth's"
     occupancy_scans: int = 0
     clock_restarts: int = 0
     hard_iron_uT: list[float] | None = None
@@ -457,6 +462,7 @@ class LocalisationNode:
                                      sonar.max_range_m, sonar.min_range_m)
         self._landmarks = {lm.id: (lm.x, lm.y) for lm in self.world.landmarks}
         self._north = math.radians(self.world.earth_field.north_deg)
+        self._earth_horizontal = abs(self.world.earth_field.horizontal_uT)
         hard = ps.compass_hard_iron_uT
         self._hard_iron: np.ndarray | None = (
             np.array([*hard, 0.0][:3]) if hard else None)
@@ -514,7 +520,8 @@ class LocalisationNode:
         self._sonar_critical = math.radians(rb.sonar_critical_incidence_deg)
         self.health = HealthMonitor(HealthParams(
             window_s=rb.lost_window_s, lost_min_rejections=rb.lost_min_rejections,
-            lost_reject_ratio=rb.lost_reject_ratio, in_wall_s=rb.in_wall_s,
+            lost_reject_ratio=rb.lost_reject_ratio, disputed_ratio=rb.disputed_ratio,
+            in_wall_s=rb.in_wall_s,
             absolute_window_s=rb.absolute_window_s,
             absolute_min_rejections=rb.absolute_min_rejections,
             uncertain_sigma_xy_m=rb.uncertain_sigma_xy_m,
@@ -529,6 +536,7 @@ class LocalisationNode:
         self._slip_terms: collections.deque[tuple[float, float, float]] = collections.deque()
         self._slip_until = -math.inf
         self._contact_until = -math.inf
+        self._contact_sign = 0.0
         self._last_ds = 0.0
         self._state: str = TRACKING
         self._reasons: list[str] = []
@@ -750,12 +758,17 @@ class LocalisationNode:
         slipping = self._slip_check(t, dl / self._ticks_per_metre, dr / self._ticks_per_metre)
         rb = self._rb
         self._map_contact(t, 0.5 * (dl + dr))
-        widen = slipping or t < self._contact_until
+        # contact holds while the wheels keep driving the same way (backing off a wall is free)
+        contact = t < self._contact_until and (dl + dr) * self._contact_sign > 0
+        widen = slipping or contact
         if widen:
             self.counters.slip_steps += 1
+        # Slip or contact: the encoders' distance is uncertain. In contact the robot is pushing
+        # against a wall, so it realises only part of it (the mean is scaled); a slip seen by the
+        # gyro alone (one wheel) says nothing about the mean.
         self.tracker.on_odometry(t, *self._ticks,
                                  slip_sigma_rel=rb.slip_sigma_rel if widen else 0.0,
-                                 slip_distance_scale=rb.slip_distance_scale if widen else 1.0)
+                                 slip_distance_scale=rb.slip_distance_scale if contact else 1.0)
         if widen:
             self._out_of_walls()
         ds, dth, sds, sdth = self.tracker.last_increment
@@ -766,9 +779,9 @@ class LocalisationNode:
         self._follow_cells()
 
     def _map_contact(self, t: float, ds: float) -> None:
-        """Wall contact from the map: the estimated body is within ``contact_range_m`` of a
-        wall, the position is known to better than that, and the encoders drive it towards that
-        wall (even at a glancing angle, where no
+        """Wall contact from the map: the estimated body touches a wall (within
+        ``MAP_CONTACT_GAP_M``), the position is known to better than ``contact_range_m``, and
+        the encoders drive it towards that wall (even at a glancing angle, where no
         IR sensor faces the motion) -- the robot cannot be moving as the encoders say."""
         if ds == 0.0:
             return
@@ -777,22 +790,25 @@ class LocalisationNode:
         reach = self._rb.contact_range_m
         # (only when the estimate is sure to within that range: dead reckoning that merely
         # believes itself near a wall is no evidence of contact)
-        if max(P[0, 0], P[1, 1]) > reach * reach \
-                or self.map_model.clearance(x, y) > self._body_radius + reach:
+        if max(P[0, 0], P[1, 1]) > reach * reach:
             return
-        gx, gy = self.map_model.away_from_walls(x, y)
+        clearance, gx, gy = self.map_model.nearest_wall(x, y)
+        if clearance > self._body_radius + MAP_CONTACT_GAP_M:
+            return
         direction = math.copysign(1.0, ds)
         if direction * (math.cos(th) * gx + math.sin(th) * gy) < -MAP_CONTACT_COS:
             self._contact_until = t + self._rb.slip_hold_s
+            self._contact_sign = direction
 
     def _out_of_walls(self) -> None:
         """In contact the robot touches a wall and cannot be inside it: an estimate whose body
-        overlaps the wall (the encoders drove it there) is moved straight out, to touching
-        (the map as a constraint; the covariance is left as the prediction made it)."""
+        overlaps the wall (the encoders drove it there) is moved straight out, to touching (the
+        map as a constraint, exact distances; the covariance is left as the prediction made
+        it)."""
         x = self.tracker.x
-        overlap = self._body_radius - self.map_model.clearance(float(x[0]), float(x[1]))
+        clearance, gx, gy = self.map_model.nearest_wall(float(x[0]), float(x[1]))
+        overlap = self._body_radius - clearance
         if 0.0 < overlap < self._body_radius:
-            gx, gy = self.map_model.away_from_walls(float(x[0]), float(x[1]))
             x[0] += overlap * gx
             x[1] += overlap * gy
 
@@ -876,6 +892,15 @@ class LocalisationNode:
                 return
             self.counters.hard_iron_uT = [round(float(v), 3) for v in self._hard_iron]
             log.info("localisation: hard-iron offset %s uT (online fit)", self._hard_iron[:2])
+        # A local magnetic disturbance (a radiator, steel in the floor) bends the heading and
+        # changes the field's strength: a horizontal field off the Earth's by more than
+        # compass_field_tolerance is not a heading (the standard magnetic-disturbance test).
+        hx, hy = mx - float(self._hard_iron[0]), my - float(self._hard_iron[1])
+        if abs(math.hypot(hx, hy) - self._earth_horizontal) \
+                > self.settings.pose.compass_field_tolerance * self._earth_horizontal:
+            self.counters.compass_disturbed += 1
+            self._compass_heading = None
+            return
         # Every sample: the latest heading starts a relocalisation (a turning robot's heading of
         # a second ago is no prior), and while relocalising it is what tells mirror-image places
         # of a symmetric map apart (sigma widened: its errors are correlated).
@@ -898,6 +923,7 @@ class LocalisationNode:
             facing = self._ir_yaw_cos * math.copysign(1.0, self._last_ds) > CONTACT_FACING_COS
             if np.any(facing & (counts >= self._contact_counts)):
                 self._contact_until = t + rb.slip_hold_s
+                self._contact_sign = math.copysign(1.0, self._last_ds)
         if rb.ir_ranges:
             lo, hi = rb.ir_usable_counts
             usable = (counts >= lo) & (counts < hi)
@@ -1059,6 +1085,7 @@ class LocalisationNode:
                 "grid_observations": c.grid_observations,
                 "relocalisations": c.relocalisations,
                 "slip_steps": c.slip_steps,
+                "compass_disturbed": c.compass_disturbed,
                 "health": {"state": self._state, "reasons": list(self._reasons)},
                 "occupancy_scans": c.occupancy_scans,
                 "clock_restarts": c.clock_restarts,

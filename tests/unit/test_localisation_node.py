@@ -4,6 +4,7 @@ quantity, encoder counter resets, a clock that goes back, frames that do not dec
 from __future__ import annotations
 
 import copy
+import math
 import tomllib
 from typing import Any
 
@@ -96,3 +97,27 @@ def test_undecodable_frames_are_counted() -> None:
     node.on_frame("serial/rangefinders", "from_robot", 0.0, b"\xa5\x5a\x01\x01\x00")
     rejected = node.snapshot()["rejected"]
     assert rejected.get("can") == 1 and rejected.get("mavlink", 0) >= 1
+
+
+def test_a_field_off_the_earths_strength_is_not_a_heading() -> None:
+    """A horizontal field 30 % stronger than [world.earth_field] (a magnet near the robot) is
+    counted as disturbed and gives no heading; one of the Earth's strength, in any direction, is
+    used."""
+    from koala_bridge.drivers.mavlink_codec import CompassEncoder, MavlinkIdentity
+    from koala_bridge.drivers.messages import CompassSample
+
+    cfg = _config()
+    cfg["localisation"]["pose"]["compass_hard_iron_uT"] = [0.0, 0.0]
+    node = LocalisationNode(LocalisationSettings.from_dict(cfg["localisation"]),
+                            load_sim_config(cfg), lambda k, m: None)
+    earth = cfg["world"]["earth_field"]["horizontal_uT"]
+    tolerance = cfg["localisation"]["pose"]["compass_field_tolerance"]
+    enc = CompassEncoder(MavlinkIdentity(1, 1))
+    scales = (1.0, 1.0 - 0.5 * tolerance, 1.0 + 3 * tolerance, 1.0 - 3 * tolerance)
+    for k, scale in enumerate(scales):
+        a = 0.7 * k
+        node.on_frame("mavlink", "from_robot", 0.1 * k, enc.scaled_imu(CompassSample(
+            k, earth * scale * math.cos(a), earth * scale * math.sin(a), -40.0)))
+    snap = node.snapshot()
+    assert snap["compass_disturbed"] == 2
+    assert snap["frames"]["compass"] == 4

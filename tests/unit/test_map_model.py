@@ -144,3 +144,32 @@ def test_health_states() -> None:
     h.body_in_wall(4.0, True)
     assert h.inconsistent(4.2) == []
     assert h.inconsistent(4.6) == ["estimate_in_wall"]
+
+
+def test_disputed_evidence_is_uncertain_not_lost() -> None:
+    h = HealthMonitor(HealthParams(window_s=2.0, lost_min_rejections=8, lost_reject_ratio=0.7,
+                                   disputed_ratio=0.3, no_fix_timeout_s=10.0))
+    h.reset(0.0)
+    h.evidence(0.5, accepted=20, rejected=7)      # 7 rejected: under lost_min_rejections
+    assert h.assess(0.5, 0.01, 0.01, False, False) == (TRACKING, [])
+    h.evidence(0.6, accepted=0, rejected=2)       # 9 of 29 = 31 %: disputed, far from 70 %
+    assert h.assess(0.6, 0.01, 0.01, False, False) == (UNCERTAIN, ["evidence_disputed"])
+    h.evidence(0.7, accepted=10, rejected=0)      # 9 of 39 = 23 %: tracking again
+    assert h.assess(0.7, 0.01, 0.01, False, False) == (TRACKING, [])
+
+
+def test_nearest_wall_is_exact_and_points_away_from_it(model) -> None:
+    # 0.1 m below the default arena's north wall (y = 3), in the open
+    d, gx, gy = model.nearest_wall(1.75, 2.9)
+    assert d == pytest.approx(0.1, abs=1e-12)
+    assert (gx, gy) == pytest.approx((0.0, -1.0), abs=1e-12)
+    # agrees with the rasterised distance field to its resolution everywhere in the arena
+    rng = np.random.default_rng(5)
+    for x, y in rng.uniform(0.05, 2.95, size=(200, 2)):
+        d, gx, gy = model.nearest_wall(float(x), float(y))
+        assert d == pytest.approx(float(model.distance(np.array([x]), np.array([y]))[0]),
+                                  abs=0.011)
+        assert math.hypot(gx, gy) == pytest.approx(1.0)
+        # a step along the direction moves away from the nearest wall by that step
+        d2, _, _ = model.nearest_wall(float(x + 1e-4 * gx), float(y + 1e-4 * gy))
+        assert d2 >= d + 1e-4 - 1e-9 or d2 == pytest.approx(d + 1e-4, abs=1e-9)
