@@ -19,6 +19,7 @@ import pytest
 from koala_bridge.tools.drive_scenario import (
     HOSTILE,
     HOSTILE_KIDNAP,
+    Segment,
     ScenarioResult,
     run_scenario,
     wall_clearance,
@@ -147,3 +148,22 @@ def test_health_reports_the_kidnap_and_the_recovery(kidnapped: ScenarioResult) -
     assert relocalising, "the kidnap went unnoticed"
     assert relocalising[0] - HOSTILE_KIDNAP.t_s <= RECOVERY_BOUND_S
     assert after[-1][1] in ("tracking", "uncertain")
+
+
+def test_a_long_push_at_a_walls_end_is_tracked_without_relocalising() -> None:
+    """The robot arcs into the end of an inner wall and keeps pushing for ~20 s: the body is
+    stopped, the wheels spin, the encoders keep counting. The estimator must hold the stalled
+    pose (the range sensors against the map, the encoders' distance realising nothing in
+    contact) and never call itself lost: before the stall model it drifted by centimetres a
+    second and relocalised ~140 times."""
+    run = run_scenario([Segment("arc into a wall's end", 30.0, 0.10, 0.14)], seed=SEED)
+    assert run.contact, "the arc did not reach the wall"
+    (t0, t1), *_ = run.contact
+    assert t1 - t0 >= 15.0          # stalled for the rest of the run
+    states = {s for _, s, _ in _states(run)}
+    assert states <= {"tracking", "uncertain"}
+    aligned = run.aligned()
+    during = aligned.t >= t0
+    err = np.hypot(aligned.error[during, 0], aligned.error[during, 1])
+    # the issue's 0.10 m RMSE target, held as a maximum over the stall
+    assert err.max() <= 0.10
