@@ -21,6 +21,7 @@ from koala_bridge.calibration.problem import SecondaryMetric, StreamProblem
 from koala_bridge.calibration.selection import (
     ALPHA,
     MAX_EFFECTS,
+    Fit,
     Selection,
     Trial,
     fit_model,
@@ -140,6 +141,8 @@ def run_stream(
         options.effects is None or "bias" in options.effects
     ):
         _turn_on_bias_check(problem, sel)
+    sel.before = declared_fit(problem, sel.before)
+    keep_only_helpful(problem, sel)
     before = problem.metric_value(sel.before.insts, sel.before.x, "score")
     after = problem.metric_value(sel.after.insts, sel.after.x, "score")
     secondary = problem.secondary_metrics(
@@ -165,12 +168,75 @@ def _note_known_rotation(problem: StreamProblem, secondary: Sequence[SecondaryMe
             )
 
 
+def declared_fit(problem: StreamProblem, fit: Fit) -> Fit:
+    """``fit`` with the declared model's per-run (turn-on) bias held to what it declares.
+
+    "Before" is the declared model exactly as declared (issue 16): a turn-on bias declared as
+    ``N(mu, sigma^2)`` says the run's bias is unknown *within that spread*, so "before" may fit
+    it, but only inside ``mu +- z(1 - alpha/2) sigma`` (2.58 sigma). Fitting it without a bound
+    absorbed any bias, however far beyond the declared spread, and before equalled after on a
+    gyro whose bias the model lacked. A bias beyond the bound is then a found effect
+    (:func:`_turn_on_bias_check`). Other nuisance parameters (magnetic north, the field's
+    magnitude) are quantities the declared model itself leaves unknown and stay fitted.
+    """
+    sigma = float(getattr(problem, "turn_on_bias_sigma", 0.0))
+    if sigma <= 0 or not len(fit.x):
+        return fit
+    bound = float(stats.norm.ppf(1 - ALPHA / 2)) * sigma
+    if abs(fit.x[0]) <= bound:
+        return fit
+    x = fit.x.copy()
+    x[0] = float(np.clip(x[0], -bound, bound))
+    return Fit(list(fit.insts), x, problem.residuals(fit.insts, x, "fit"),
+               problem.residuals(fit.insts, x, "score"))
+
+
+def keep_only_helpful(problem: StreamProblem, sel: Selection) -> None:
+    """Backward check on held-out data: an added effect whose removal (the rest refitted) leaves
+    the held-out metric no worse is dropped, one at a time, worst first; and a model not better
+    than ``sel.before`` on held-out data is no model: "after" is never worse than "before"
+    (issue 16: on a still gyro the held-out error once got worse after calibration). Each drop
+    is noted in the report."""
+    def score(fit: Fit) -> float:
+        return float(problem.metric_value(fit.insts, fit.x, "score"))
+
+    while sel.added:
+        current = score(sel.after)
+        best: tuple[float, EffectInstance, Fit] | None = None
+        for inst, _ in sel.added:
+            if inst.name == "bias" and getattr(problem, "turn_on_bias_sigma", 0.0) > 0:
+                continue    # judged by its z test against the declared spread (without
+                #             it the nuisance takes the same value back)
+            insts = [i for i in sel.after.insts if i is not inst]
+            fit = fit_model(problem, insts, problem.initial_vector(insts, sel.after.x,
+                                                                   sel.after.insts))
+            s = score(fit)
+            if s <= current and (best is None or s < best[0]):
+                best = (s, inst, fit)
+        if best is None:
+            break
+        s, inst, fit = best
+        problem.notes.append(
+            f"{inst.name} dropped: held-out {problem.metric} {s:.4g} without it, "
+            f"{current:.4g} with it (an effect must improve held-out error to be kept)")
+        sel.added = [(i, t) for i, t in sel.added if i is not inst]
+        sel.after = fit
+    base = score(sel.before)
+    if sel.added and score(sel.after) >= base:
+        problem.notes.append(
+            f"{', '.join(i.name for i, _ in sel.added)} dropped: held-out {problem.metric} "
+            f"{score(sel.after):.4g} with them, {base:.4g} under the declared model")
+        sel.added = []
+        sel.after = sel.before
+
+
 def _turn_on_bias_check(problem: StreamProblem, sel: Selection) -> None:
     """A declared per-run bias ``N(mu, sigma^2)`` is a nuisance, fitted in every model (its
     deviation from ``mu`` is ``x[0]``). When the fitted deviation is implausible under that
     distribution, ``|b| / sqrt(sigma^2 + SE^2) > z(1 - alpha/2)``, the data hold a bias the
     declared model lacks: ``bias`` is added (its value fixed at ``b``, the nuisance refitted),
-    so ``--write-config`` writes ``bias_rad_s = mu + b``."""
+    so ``--write-config`` writes ``bias_rad_s = mu + b``; "before" holds the nuisance to the
+    declared spread (:func:`declared_fit`), so the bias shows in before -> after."""
     sigma = float(getattr(problem, "turn_on_bias_sigma", 0.0))
     fit = sel.after
     b = float(fit.x[0])
@@ -178,8 +244,9 @@ def _turn_on_bias_check(problem: StreamProblem, sel: Selection) -> None:
     z = abs(b) / float(np.hypot(sigma, se))
     threshold = float(stats.norm.ppf(1 - ALPHA / 2))
     problem.notes.append(
-        f"turn-on bias fitted: {b:+.4g} (declared sigma {sigma:g}, SE {se:.2g}, z = {z:.2f})"
-    )
+        f"turn-on bias fitted: {b:+.4g} (declared sigma {sigma:g}, SE {se:.2g}, z = {z:.2f}: "
+        + ("within the declared spread: this run's turn-on bias, part of the declared model)"
+           if z <= threshold else "beyond the declared spread: a bias the model lacks)"))
     if z <= threshold or len(sel.added) >= MAX_EFFECTS:
         return
     inst = EffectInstance("bias", get_effect("bias"), ("bias",), (b,), fixed=True)
@@ -235,7 +302,7 @@ def _problems(
 def refit_full(full: StreamProblem, small: StreamResult) -> StreamResult:
     """Refit the effects selected on a decimated stream on the full stream; metrics on it."""
     sel = small.selection
-    before = fit_model(full, [], full.nuisance_x0())
+    before = declared_fit(full, fit_model(full, [], full.nuisance_x0()))
     insts = list(sel.after.insts)
     after = fit_model(
         full,

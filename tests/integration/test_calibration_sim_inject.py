@@ -322,13 +322,9 @@ def _check(case: SimCase, results: Mapping[str, StreamResult], turn_on: float) -
                     problems.append(f"{name}: {eff}.{p} injected {e.size:.3g} < 20 SE {errors[p]}")
         if not expected:
             continue
-        if set(expected) == {"bias"} and name == "gyro":
-            # A constant is absorbed by the declared turn-on bias in *before* as well: naming
-            # it says the value is implausible under its declared spread, not that the error
-            # shrinks.
-            if res.after != pytest.approx(res.before, rel=1e-6):
-                problems.append(f"{name}: held-out {res.before:.4g} -> {res.after:.4g} changed")
-        elif not res.after <= 0.5 * res.before:
+        # (a gyro bias beyond the declared turn-on spread is not absorbed by *before*: "before"
+        # holds the turn-on bias to 2.58 sigma of the declared spread, issue 16)
+        if not res.after <= 0.5 * res.before:
             problems.append(f"{name}: held-out {res.before:.4g} -> {res.after:.4g} not halved")
     return problems
 
