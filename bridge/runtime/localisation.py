@@ -155,6 +155,10 @@ CONTACT_FACING_COS = 0.35
 MAP_CONTACT_GAP_M = 0.005
 #: ... and the motion points into the nearest wall by at least this cosine (~6 deg off parallel).
 MAP_CONTACT_COS = 0.1
+#: ... and it pushes into the wall (a stall: ``push_distance_scale``) when that cosine is at least
+#: this (within 60 deg of the wall's normal); at a shallower angle a body slides along or grazes
+#: past (a robot backing past a wall's end touches it and moves on).
+MAP_PUSH_COS = 0.5
 #: Simulated seconds between consistency checks (estimate in a wall, evidence against it, the
 #: relocaliser's convergence): the evidence arrives at the range sensors' rates, 5-20 Hz.
 CHECK_PERIOD_S = 0.1
@@ -266,6 +270,7 @@ class RobustSettings:
     slip_gate_sigmas: Positive
     slip_sigma_rel: NonNegative
     slip_distance_scale: Annotated[NonNegative, Field(le=1)]
+    push_distance_scale: Annotated[NonNegative, Field(le=1)]
     slip_hold_s: NonNegative
     health_rate_hz: Positive
     lost_window_s: Positive
@@ -537,6 +542,7 @@ class LocalisationNode:
         self._slip_until = -math.inf
         self._contact_until = -math.inf
         self._contact_sign = 0.0
+        self._pushing_until = -math.inf
         self._last_ds = 0.0
         self._state: str = TRACKING
         self._reasons: list[str] = []
@@ -577,7 +583,7 @@ class LocalisationNode:
             self.relocaliser.stop()
         self.health.reset(t)
         self._slip_terms.clear()
-        self._slip_until = self._contact_until = -math.inf
+        self._slip_until = self._contact_until = self._pushing_until = -math.inf
         self._last_ds = 0.0
         self._state, self._reasons = TRACKING, []
 
@@ -763,12 +769,19 @@ class LocalisationNode:
         widen = slipping or contact
         if widen:
             self.counters.slip_steps += 1
-        # Slip or contact: the encoders' distance is uncertain. In contact the robot is pushing
-        # against a wall, so it realises only part of it (the mean is scaled); a slip seen by the
-        # gyro alone (one wheel) says nothing about the mean.
+        # Slip or contact: the encoders' distance is uncertain. In contact the robot may be
+        # pushing against a wall, so it realises only part of it (the mean is scaled): an IR
+        # sensor near a wall says "perhaps blocked" (a robot backing past a wall's end reads it
+        # and moves on), the map with a sure estimate says "pushing into it": a stall, whose
+        # wheels spin in place. A slip seen by the gyro alone (one wheel) says nothing about
+        # the mean.
+        scale = 1.0
+        if contact:
+            scale = (rb.push_distance_scale if t < self._pushing_until
+                     else rb.slip_distance_scale)
         self.tracker.on_odometry(t, *self._ticks,
                                  slip_sigma_rel=rb.slip_sigma_rel if widen else 0.0,
-                                 slip_distance_scale=rb.slip_distance_scale if contact else 1.0)
+                                 slip_distance_scale=scale)
         if widen:
             self._out_of_walls()
         ds, dth, sds, sdth = self.tracker.last_increment
@@ -796,9 +809,12 @@ class LocalisationNode:
         if clearance > self._body_radius + MAP_CONTACT_GAP_M:
             return
         direction = math.copysign(1.0, ds)
-        if direction * (math.cos(th) * gx + math.sin(th) * gy) < -MAP_CONTACT_COS:
+        into = -direction * (math.cos(th) * gx + math.sin(th) * gy)
+        if into > MAP_CONTACT_COS:
             self._contact_until = t + self._rb.slip_hold_s
             self._contact_sign = direction
+            if into > MAP_PUSH_COS:
+                self._pushing_until = self._contact_until
 
     def _out_of_walls(self) -> None:
         """In contact the robot touches a wall and cannot be inside it: an estimate whose body

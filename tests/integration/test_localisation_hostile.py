@@ -19,8 +19,8 @@ import pytest
 from koala_bridge.tools.drive_scenario import (
     HOSTILE,
     HOSTILE_KIDNAP,
-    Segment,
     ScenarioResult,
+    Segment,
     run_scenario,
     wall_clearance,
 )
