@@ -150,7 +150,8 @@ def fit_speed_odometry(bundle: str, odo: dict[str, NDArray], truth: dict[str, ND
     before = window_position_rms(t, ds0, dth0, t_ref, p_ref, score_m, window)[0]
     after = window_position_rms(t, ds0 * k_s, dth0 * k_w, t_ref, p_ref, score_m, window)[0]
     return HandFit(bundle, "odometry", "window_position_rms", "m", before, after,
-                   "tick_scale + wheel_base" + (" (sign: left/right swapped)" if k_w < 0 else ""),
+                   "tick_scale + wheel_base"
+                   + (" (negative: left/right swapped or mirrored frame)" if k_w < 0 else ""),
                    {"distance_scale": k_s, "yaw_scale": k_w,
                     "wheel_base_m": wheel_base_m / abs(k_w), "window_s": window})
 
