@@ -6,10 +6,10 @@ Upstream: github.com/LIAS-CUHKSZ/Efficient-Pose-Estimation-via-UWB-measurements,
 copyright 2023 Haodong Jiang).
 
 Cut: the UWB log (~100 Hz, 24 tag-anchor ranges per row) is decimated to every 50th row inside
-the motion-capture span (~2 Hz): 258 rows x 24 links. ``true_range`` is the 3-D distance from the
-tag (the rigid body's position plus the tag's surveyed offset turned by the body's heading) to
-the anchor, with the motion capture interpolated linearly to the UWB time stamp (the upstream
-alignment script does the same, on the same clock).
+the motion-capture span (~2 Hz): 259 of 12 908 rows, x 24 links. ``true_range`` is the 3-D
+distance from the tag (the rigid body's position plus the tag's surveyed offset turned by the
+body's heading) to the anchor, with the motion capture interpolated linearly to the UWB time
+stamp (the upstream alignment script does the same, on the same clock).
 """
 
 from __future__ import annotations
