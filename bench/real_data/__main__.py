@@ -16,6 +16,7 @@ CONVERTERS = (
     "convert_hcsr04_sweeps",
     "convert_mag_ellipsoid_bazhin",
     "convert_roomba_spin",
+    "convert_sharp_gp2y0a02_sweep",
 )
 
 
