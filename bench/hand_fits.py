@@ -290,12 +290,31 @@ def fit_roomba_spin(d: Path) -> list[HandFit]:
     return [compass]
 
 
+def fit_sharp_gp2y0a02_sweep(d: Path) -> list[HandFit]:
+    """IR triangulation sensor against its datasheet curve: offset + gain of the declared
+    curve, robust loss, fitted only inside the datasheet's specified range (below 20 cm the
+    output folds back and the curve does not describe it)."""
+    ir = json.loads((d / "meta.json").read_text())["sensor"]["ir"]
+    r = read_table(d / "range.csv")
+    fit, score = split(r["t"])
+    lo, hi = ir["datasheet_range_m"]
+    rated = (r["true_range"] >= lo) & (r["true_range"] <= hi)
+    y = r["measured"]
+    u = np.interp(r["true_range"], ir["datasheet_curve_range_m"], ir["datasheet_curve_counts"])
+    design = np.column_stack([np.ones_like(u), u])
+    p = linear_range_fit(y, u, design, fit & rated, f_scale=5.0)
+    return [HandFit(d.name, "range:ir", "rms_error", "counts", rms((y - u)[score]),
+                    rms((y - u - design @ p)[score]), "bias + scale (robust, rated range)",
+                    {"bias_counts": p[0], "scale_error": p[1]})]
+
+
 HAND_FITS: dict[str, Callable[[Path], list[HandFit]]] = {
     "labyrinth_uwb": fit_labyrinth_uwb,
     "lias_uwb_trolley": fit_lias_uwb_trolley,
     "hcsr04_sweeps": fit_hcsr04_sweeps,
     "mag_ellipsoid_bazhin": fit_mag_ellipsoid_bazhin,
     "roomba_spin": fit_roomba_spin,
+    "sharp_gp2y0a02_sweep": fit_sharp_gp2y0a02_sweep,
 }
 
 

@@ -1,4 +1,4 @@
-"""The five bundles bench/real_data converts from public measured data (tests/data/real,
+"""The six bundles bench/real_data converts from public measured data (tests/data/real,
 PROVENANCE.md "Bundles converted here"), held against the hand fits of bench/hand_fits.py.
 
 The bundles are not committed (data brought in by a snapshot fetch stays out of this
@@ -14,6 +14,7 @@ yet the test is ``xfail(strict=True)``, so that the fix shows up as an XPASS.
 from __future__ import annotations
 
 import json
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +34,7 @@ HAND = {
     ("hcsr04_sweeps", "range:sonar"): (0.1543, 0.1422),  # bias + scale, robust loss, m
     ("mag_ellipsoid_bazhin", "compass"): (40.36, 2.140),  # hard + soft iron, %
     ("roomba_spin", "compass"): (19.67, 8.264),  # before: 3-D |m|; after: 2-D ellipse, %
+    ("sharp_gp2y0a02_sweep", "range:ir"): (19.37, 2.026),  # bias + scale, rated range, counts
 }
 
 STREAMS = {
@@ -41,6 +43,7 @@ STREAMS = {
     "hcsr04_sweeps": {"range:sonar"},
     "mag_ellipsoid_bazhin": {"compass"},
     "roomba_spin": {"compass"},
+    "sharp_gp2y0a02_sweep": {"range:ir"},
 }
 
 _cache: dict[str, dict[str, StreamResult]] = {}
@@ -51,7 +54,10 @@ def _results(name: str) -> dict[str, StreamResult]:
         pytest.skip(f"bundle {name} not generated: python -m bench.real_data.convert_{name}")
     if name not in _cache:
         bundle = load_bundle(DATA / name)
-        model = declared_model({}, bundle.meta)
+        # A bundle whose declared curve only a config can state ships it (--config).
+        toml = DATA / name / "declared_model.toml"
+        config = tomllib.loads(toml.read_text()) if toml.is_file() else {}
+        model = declared_model(config, bundle.meta)
         _cache[name] = {r.problem.name: r for r in calibrate(bundle, model)}
     return _cache[name]
 
@@ -149,3 +155,16 @@ def test_roomba_spin_compass_is_planar() -> None:
         assert np.linalg.norm([h.get("dh_x", 0.0), h.get("dh_y", 0.0), h.get("dh_z", 0.0)]) < 2.0
     assert res.problem.metric == "horizontal_field_magnitude_spread"
     _within_target("roomba_spin", "compass")
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "the 5 cm reading lies outside the declared curve (the datasheet starts at 10 cm and the "
+    "sensor's rated range at 20 cm) and is 111 counts off it; in the tool's plain least squares "
+    "it pulls the offset from -19.6 to -22.4 counts, 3.29 counts held-out; the robust hand fit "
+    "inside the rated range leaves 2.03 (1.62 x)"))
+def test_sharp_gp2y0a02_sweep_offset() -> None:
+    _within_target("sharp_gp2y0a02_sweep", "range:ir")
+
+
+def test_sharp_gp2y0a02_sweep_names_the_offset() -> None:
+    assert "bias" in _effects(_results("sharp_gp2y0a02_sweep")["range:ir"])
