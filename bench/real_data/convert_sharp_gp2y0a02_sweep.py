@@ -31,7 +31,8 @@ VOLTS_PER_COUNT = 0.0049  # upstream header: "raw_output (4.9mV/unit)"
 
 def convert(mirror: Path, out: Path) -> dict[str, int]:
     text = read_upstream(mirror, REPO, COMMIT, PATH).decode()
-    rows, curve = [], []
+    rows: list[list[object]] = []
+    curve: list[tuple[float, float]] = []
     for line in text.splitlines():
         cells = [c.strip() for c in line.split(",")]
         if len(cells) != 4 or not cells[0].isdigit():
