@@ -16,8 +16,14 @@ from koala_bridge.calibration.bundle import Bundle
 from koala_bridge.calibration.effects import available_effects, get_effect
 from koala_bridge.calibration.effects.base import EffectInstance
 from koala_bridge.calibration.errors import EffectRegistryError
+from koala_bridge.calibration.metrics import HeldOutStatistics, heldout_statistics
 from koala_bridge.calibration.model import DeclaredModel
-from koala_bridge.calibration.problem import SecondaryMetric, StreamProblem
+from koala_bridge.calibration.problem import (
+    FloatArray,
+    SecondaryMetric,
+    SkippedStream,
+    StreamProblem,
+)
 from koala_bridge.calibration.selection import (
     ALPHA,
     MAX_EFFECTS,
@@ -33,11 +39,18 @@ from koala_bridge.calibration.streams import (
     build_landmarks,
     build_odometry,
     build_ranges,
+    bundle_streams,
 )
 from koala_bridge.calibration.streams.compass import CompassProblem
 from scipy import stats
 
 log = logging.getLogger(__name__)
+
+#: ``--write-config`` writes a fitted effect only when it is at least this many standard errors
+#: from the declared model, ``z(1 - ALPHA / 2)`` (2.58): the declared value outside the effect's
+#: 99 % interval, as for the turn-on bias. A slipping wheel once proposed ticks_per_metre
+#: 22 222 -> 70 968 with an SE of 32 500 (1.5 SE), which ``|d| < SE`` alone would have written.
+WRITE_Z = float(stats.norm.ppf(1 - ALPHA / 2))
 
 #: Callback ``(stream, done, total)`` for progress display; the library never prints.
 Progress = Callable[[str, int, int], None]
@@ -70,30 +83,73 @@ class StreamResult:
         p = self.problem
         return [SecondaryMetric(p.metric, p.unit, self.before, self.after), *self.secondary]
 
-    def effect_params(self) -> list[tuple[dict[str, float], dict[str, float]]]:
-        """Per added effect: its parameters and their standard errors (fixed ones: none)."""
+    def _params_and_se(self) -> list[tuple[FloatArray, FloatArray | None]]:
+        """Per added effect: its parameter values and their standard errors (None: fixed)."""
         sel = self.selection
         params = sel.params_of(sel.after)
         se = parameter_se(self.problem, sel.after)
-        k0 = len(self.problem.nuisance_x0())
         offsets: dict[str, int] = {}
-        k = k0
+        k = len(self.problem.nuisance_x0())
         for inst in sel.after.insts:
             if not inst.fixed:
                 offsets[inst.name] = k
                 k += inst.n_free
-        out = []
+        out: list[tuple[FloatArray, FloatArray | None]] = []
         for inst in self.effects:
             p = params[sel.after.insts.index(inst)]
-            entry: dict[str, float] = {
-                n: float(f"{v:.6g}") for n, v in zip(inst.param_names, p, strict=True)
-            }
-            errs: dict[str, float] = {}
-            if inst.name in offsets:
-                for j, n in enumerate(inst.param_names):
-                    errs[n] = float(f"{se[offsets[inst.name] + j]:.3g}")
+            k = offsets.get(inst.name, -1)
+            out.append((p, None if k < 0 else se[k : k + len(inst.param_names)]))
+        return out
+
+    def effect_params(self) -> list[tuple[dict[str, float], dict[str, float]]]:
+        """Per added effect: its parameters and their standard errors (fixed ones: none)."""
+        out = []
+        for inst, (p, se) in zip(self.effects, self._params_and_se(), strict=True):
+            entry = {n: float(f"{v:.6g}") for n, v in zip(inst.param_names, p, strict=True)}
+            errs = (
+                {}
+                if se is None
+                else {n: float(f"{v:.3g}") for n, v in zip(inst.param_names, se, strict=True)}
+            )
             out.append((entry, errs))
         return out
+
+    def not_written(self) -> list[str | None]:
+        """Per added effect: why ``--write-config`` must not write it, or None (module
+        constant :data:`WRITE_Z`). An effect is uncertain when its size, ``d = params -
+        absent``, is within ``WRITE_Z`` standard errors of nothing: ``sum d^2 < WRITE_Z^2 sum
+        SE^2`` (``|d| < WRITE_Z SE`` for one parameter: the declared value lies inside the
+        effect's 99 % interval). Fixed parameters (a glitch value, a quantisation step, a
+        turn-on bias judged against its declared spread) have no standard error here and are
+        written."""
+        out: list[str | None] = []
+        for inst, (p, se) in zip(self.effects, self._params_and_se(), strict=True):
+            if se is None:
+                out.append(None)
+                continue
+            d = np.asarray(p, dtype=float) - inst.effect.absent(inst)
+            size, err = float(np.sqrt(np.sum(d**2))), float(np.sqrt(np.sum(se**2)))
+            if not np.isfinite(err):
+                out.append("uncertainty unknown: its standard error could not be computed")
+            elif size < WRITE_Z * err:
+                what = "|value - declared|" if d.size == 1 else "|values - declared|"
+                out.append(
+                    f"uncertainty larger than the effect: {what} = {size:.3g} < "
+                    f"{WRITE_Z:.3g} SE = {WRITE_Z * err:.3g} (the declared value lies inside "
+                    "its 99 % interval)"
+                )
+            else:
+                out.append(None)
+        return out
+
+    def heldout_statistics(self, before: FloatArray | None = None) -> HeldOutStatistics:
+        """Robust statistics of the held-out errors before and after
+        (:func:`koala_bridge.calibration.metrics.heldout_statistics`); ``before`` replaces the
+        declared model's errors (a staged run's user-declared model)."""
+        p, sel = self.problem, self.selection
+        if before is None:
+            before = p.heldout_errors(sel.before.insts, sel.before.x)
+        return heldout_statistics(before, p.heldout_errors(sel.after.insts, sel.after.x))
 
 
 def candidates_for(
