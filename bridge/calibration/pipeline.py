@@ -276,15 +276,16 @@ def _problems(
     compass_heading: Any = None,
     with_compass: bool = True,
     odometry_bundle: Bundle | None = None,
+    skipped: list[SkippedStream] | None = None,
 ) -> list[StreamProblem]:
     out: list[StreamProblem | None] = []
     if with_compass:
-        out.append(build_compass(bundle, model))
+        out.append(build_compass(bundle, model, skipped))
     else:
-        out.append(build_gyro(bundle, model, compass_heading))
-        out.append(build_odometry(odometry_bundle or bundle, model, options.window_s))
-        out.extend(build_ranges(bundle, model))
-        out.extend(build_landmarks(bundle, model))
+        out.append(build_gyro(bundle, model, compass_heading, skipped))
+        out.append(build_odometry(odometry_bundle or bundle, model, options.window_s, skipped))
+        out.extend(build_ranges(bundle, model, skipped))
+        out.extend(build_landmarks(bundle, model, skipped))
     return [p for p in out if p is not None]
 
 
@@ -312,6 +313,7 @@ def calibrate(
     model: DeclaredModel,
     options: Options | None = None,
     progress: Progress | None = None,
+    skipped: list[SkippedStream] | None = None,
 ) -> list[StreamResult]:
     """Run the loop on every stream the bundle holds; see the module docstring for the order.
 
@@ -319,7 +321,11 @@ def calibrate(
     size (estimates from 20 000 samples are far more precise than any tolerance, and the test
     is then only more conservative); the selected effects are refitted on the full stream and
     before/after are measured on the full held-out part.
+
+    Every stream of the bundle (:func:`koala_bridge.calibration.streams.bundle_streams`) ends
+    either among the results or in ``skipped``, with what it lacks and how to add it.
     """
+    found: list[SkippedStream] = []
     options = options or Options()
     small = decimate_bundle(bundle, options.max_rows)
     small_odometry = decimate_bundle(bundle, options.max_rows, references=True)
@@ -335,7 +341,7 @@ def calibrate(
         return out
 
     results = run(
-        _problems(small, model, options),
+        _problems(small, model, options, skipped=found),
         _problems(bundle, model, options) if small is not bundle else [],
     )
     compass_heading = None
@@ -351,12 +357,25 @@ def calibrate(
             compass_heading,
             with_compass=False,
             odometry_bundle=small_odometry,
+            skipped=found,
         ),
         _problems(bundle, model, options, compass_heading, with_compass=False)
         if small is not bundle
         else [],
     )
-    return results  # empty: no stream with a reference (the caller says so)
+    named = {r.problem.name for r in results} | {s.stream for s in found}
+    for stream in bundle_streams(bundle):
+        if stream not in named:  # a builder that dropped a stream without saying why
+            found.append(
+                SkippedStream(
+                    stream,
+                    "not calibrated, for no reason the tool recorded",
+                    "please report this with the bundle (docs/calibration.md)",
+                )
+            )
+    if skipped is not None:
+        skipped.extend(found)
+    return results  # empty: no stream with a reference (the caller says so, from skipped)
 
 
 def compass_heading_of(problem: CompassProblem, sel: Selection) -> tuple[Any, Any] | None:
