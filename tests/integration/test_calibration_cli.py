@@ -65,15 +65,27 @@ def test_report_shape_and_written_config(tmp_path: Path) -> None:
     )
     assert cli.run(args) == 0
     report = json.loads((out / "report.json").read_text())
-    assert list(report) == ["streams"]
+    assert list(report) == ["streams", "not_calibrated"]
+    assert report["not_calibrated"] == []
     entry = report["streams"][0]
-    assert list(entry) == ["stream", "metric", "unit", "before", "after", "split", "effects"]
+    assert list(entry) == [
+        "stream",
+        "metric",
+        "unit",
+        "before",
+        "after",
+        "change",
+        "relative_change",
+        "heldout_errors",
+        "split",
+        "effects",
+    ]
     assert entry["stream"] == "odometry" and entry["unit"] == "m"
     assert (
         list(entry["split"]) == ["fit", "score"]
         and entry["split"]["fit"][1] == entry["split"]["score"][0]
     )
-    assert all(list(e) == ["name", "params", "evidence"] for e in entry["effects"])
+    assert all(list(e) == ["name", "params", "evidence", "written"] for e in entry["effects"])
     md = (out / "report.md").read_text()
     assert "```diff" in md and "wheel_base_m" in md
     assert (out / "residuals_odometry.png").stat().st_size > 1000
