@@ -40,6 +40,7 @@ from koala_bridge.calibration.streams import (
     build_odometry,
     build_ranges,
     bundle_streams,
+    unknown_files,
 )
 from koala_bridge.calibration.streams.compass import CompassProblem
 from scipy import stats
@@ -266,7 +267,7 @@ def decimate_bundle(bundle: Bundle, max_rows: int, references: bool = False) -> 
             keep[[0, -1]] = True  # keep the span, so the split is the same
             table = table.select(keep)
         tables[name] = table
-    return Bundle(bundle.path, tables, bundle.meta)
+    return Bundle(bundle.path, tables, bundle.meta, bundle.unknown_files)
 
 
 def _problems(
@@ -373,6 +374,7 @@ def calibrate(
                     "please report this with the bundle (docs/calibration.md)",
                 )
             )
+    found += unknown_files(bundle)
     if skipped is not None:
         skipped.extend(found)
     return results  # empty: no stream with a reference (the caller says so, from skipped)

@@ -206,6 +206,7 @@ def test_every_stream_appears_with_what_it_lacks(
     rows.sort(key=lambda row: row[0])  # stable: one clock, rows in time order
     text = "\n".join(["t,sensor,measured,true_range,kind", *(r for _, r in rows)])
     (b / "range.csv").write_text(text + "\n", encoding="utf-8")
+    (b / "beacons.csv").write_text("t,beacon,r\n0,1,2.5\n", encoding="utf-8")  # not read
     model = tmp_path / "model.toml"
     model.write_text(tomli_w.dumps(dict(DECLARED)), encoding="utf-8")
     out = tmp_path / "out"
@@ -214,7 +215,15 @@ def test_every_stream_appears_with_what_it_lacks(
     report = json.loads((out / "report.json").read_text())
     assert {e["stream"] for e in report["streams"]} == {"odometry", "range:sonar"}
     skipped = {e["stream"]: e for e in report["not_calibrated"]}
-    assert set(skipped) == {"gyro", "range:ir", "landmark_range", "landmark_bearing"}
+    assert set(skipped) == {
+        "gyro",
+        "range:ir",
+        "landmark_range",
+        "landmark_bearing",
+        "beacons.csv",
+    }
+    assert skipped["beacons.csv"]["missing"] == "not a file of the bundle format: not read"
+    assert "range.csv (t,sensor,measured,true_range" in skipped["beacons.csv"]["fix"]
     assert "truth_pose.csv has no theta column" in skipped["gyro"]["missing"]
     assert "no compass.csv" in skipped["gyro"]["missing"]
     assert skipped["gyro"]["fix"].startswith("add theta")
@@ -290,6 +299,26 @@ def test_a_still_ir_recording_says_what_it_lacks(tmp_path: Path) -> None:
     assert "several distances per sensor" in s.fix
     with pytest.raises(BundleError, match=r"no stream can be calibrated: range: true_range does"):
         cli.run(_args(str(b), f"--out={tmp_path / 'out'}"))
+
+
+def test_data_under_another_file_name_is_named(tmp_path: Path) -> None:
+    """Range beacons in uwb.csv and odometry in odom.csv, beside truth_pose.csv: neither is a
+    file of the format. The one error line names both and the files they should be."""
+    b = tmp_path / "b"
+    b.mkdir()
+    t = np.arange(0.0, 10.0, 0.1)
+    _csv(b / "truth_pose.csv", "t,x,y", t, t * 0.1, t * 0)
+    _csv(b / "uwb.csv", "t,anchor,range", t, t * 0 + 1, 3 + t * 0.1)
+    _csv(b / "odom.csv", "t,left_ticks,right_ticks", t, t * 100, t * 100)
+    with pytest.raises(BundleError) as e:
+        cli.run(_args(str(b), f"--out={tmp_path / 'out'}"))
+    line = str(e.value)
+    assert "\n" not in line and "no stream can be calibrated" in line
+    assert (
+        "odom.csv: not a file of the bundle format: not read: if it holds that stream, name it "
+        "odometry.csv with the columns t" in line
+    )
+    assert "uwb.csv: not a file of the bundle format" in line and "kind column such as uwb" in line
 
 
 # --- never write an uncertain effect -----------------------------------------------------------

@@ -14,10 +14,11 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
+from difflib import get_close_matches
 from typing import Any
 
 import numpy as np
-from koala_bridge.calibration.bundle import Bundle, Table
+from koala_bridge.calibration.bundle import REQUIRED_COLUMNS, Bundle, Table
 from koala_bridge.calibration.effects.common import categorical_levels
 from koala_bridge.calibration.model import DeclaredModel
 from koala_bridge.calibration.problem import FloatArray, SkippedStream, Split
@@ -41,6 +42,7 @@ __all__ = [
     "build_ranges",
     "bundle_streams",
     "heading_reference",
+    "unknown_files",
 ]
 
 #: Heading-error windows for the gyro's secondary metric (shortened on short recordings).
@@ -119,6 +121,35 @@ def _moving_average(v: FloatArray, n: int) -> FloatArray:
         return v
     pad = np.pad(v, (n // 2, n - 1 - n // 2), mode="edge")
     return np.convolve(pad, np.ones(n) / n, mode="valid")
+
+
+def unknown_files(bundle: Bundle) -> list[SkippedStream]:
+    """A :class:`SkippedStream` for each CSV file of the bundle directory the format does not
+    know (``bundle.unknown_files``): its rows were not read, and the report says so, with the
+    file it most likely should be (range beacons under ``uwb.csv`` once left a bundle with
+    truth_pose alone: 'no stream has a reference')."""
+    out = []
+    for name in bundle.unknown_files:
+        stem = name.removesuffix(".csv")
+        close = get_close_matches(stem, list(REQUIRED_COLUMNS), n=1, cutoff=0.6)
+        if close:
+            fix = (
+                f"if it holds that stream, name it {close[0]}.csv with the columns "
+                f"{','.join(REQUIRED_COLUMNS[close[0]])}"
+            )
+        else:
+            fix = (
+                "put its measurements into a file of the format: range.csv (t,sensor,measured,"
+                "true_range, a kind column such as uwb for range beacons), landmarks.csv with "
+                "landmark_map.csv (beacons or landmarks at surveyed positions), gyro.csv, "
+                "compass.csv or odometry.csv"
+            )
+        out.append(
+            SkippedStream(
+                name, "not a file of the bundle format: not read", f"{fix}; see {FORMAT_DOC}"
+            )
+        )
+    return out
 
 
 def build_gyro(
