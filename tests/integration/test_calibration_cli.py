@@ -143,6 +143,10 @@ def test_staged_inputs_carry_effects_into_the_next_model(tmp_path: Path) -> None
     assert bias["evidence"]["stage"] == 1
     # before: the declared (ideal) gyro; before_with_carried: with the still recording's bias.
     assert turns_gyro["before_with_carried"] < turns_gyro["before"]
+    # The held-out errors' before is the declared model's too: their RMS is the metric.
+    errors = turns_gyro["heldout_errors"]
+    assert errors["before"]["rms"] == pytest.approx(turns_gyro["before"], rel=1e-5)
+    assert errors["after"]["rms"] == pytest.approx(turns_gyro["after"], rel=1e-5)
     still_gyro = entries[(1, "gyro", "rms_rate_error")]
     assert "before_with_carried" not in still_gyro
     assert "not a whole bridge" in new.read_text()  # no --config: a fragment, and it says so

@@ -772,8 +772,8 @@ def build_landmarks(
         "time span"
     )
     fix = (
-        "give every observed landmark_id its row in landmark_map.csv, and stamp every file on "
-        f"one clock; see {FORMAT_DOC}"
+        "give every observed landmark_id its row in landmark_map.csv, stamp every file on one "
+        f"clock, and record at least {MIN_ROWS} observations; see {FORMAT_DOC}"
     )
     obs, idx, t = obs.select(inside), idx[inside], t[inside]
     px = np.interp(t, truth["t"], truth["x"])
