@@ -275,7 +275,7 @@ def test_uwb_ranges_are_not_held_to_the_sonar_s_limits(tmp_path: Path) -> None:
     assert sonar["stream"] == "range:sonar"
     assert f"0 usable rows of {t.size}" in sonar["missing"]
     assert "beyond the declared sonar's critical incidence angle" in sonar["missing"]
-    assert "min_range_m..max_range_m" in sonar["fix"]
+    assert "min_range_m..max_range_m" in sonar["fix"] and "a kind column (e.g. uwb)" in sonar["fix"]
 
 
 def test_a_still_ir_recording_says_what_it_lacks(tmp_path: Path) -> None:

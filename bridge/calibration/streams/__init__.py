@@ -721,10 +721,12 @@ def _too_few_ranges(n: int, usable: int, dropped: int, beyond: int) -> tuple[str
         )
         fixes.append(
             "record within the declared [sensors.sonar] min_range_m..max_range_m and "
-            "critical_angle_deg of --config (or give a kind column: the limits are the sonar's)"
+            "critical_angle_deg of --config; for another sensor (range beacons, lidar) give "
+            "range.csv a kind column (e.g. uwb): the limits are the sonar's"
         )
-    fixes.append(f"record more readings; see {FORMAT_DOC}")
-    return missing, "; ".join(fixes)
+    if not fixes:
+        fixes.append("record more readings")
+    return missing, "; ".join(fixes) + f"; see {FORMAT_DOC}"
 
 
 def _range_varies(table: Table, fit: NDArray[np.bool_]) -> bool:
