@@ -94,6 +94,9 @@ class Bundle:
     path: Path
     tables: Mapping[str, Table]
     meta: Mapping[str, Any]
+    #: ``*.csv`` files of the directory that are no file of the format (not read; the report
+    #: names them, so data under another name does not vanish silently)
+    unknown_files: tuple[str, ...] = ()
 
     def get(self, name: str) -> Table | None:
         return self.tables.get(name)
@@ -210,12 +213,19 @@ def load_bundle(directory: Path) -> Bundle:
         _check_rows(csv_path, table)
         tables[name] = table
     meta = read_meta(directory / "meta.json")
+    unknown = tuple(
+        sorted(p.name for p in directory.glob("*.csv") if p.stem not in REQUIRED_COLUMNS)
+    )
     if not tables:
-        raise BundleError(f"{directory} holds no bundle CSV file ({', '.join(REQUIRED_COLUMNS)})")
+        found = f"; it has {', '.join(unknown)}, which the format does not know" if unknown else ""
+        raise BundleError(
+            f"{directory} holds no bundle CSV file ({', '.join(REQUIRED_COLUMNS)}){found}: "
+            "see docs/bundle-format.md"
+        )
     log.info(
         "loaded bundle %s: %s", directory, ", ".join(f"{k}[{len(v)}]" for k, v in tables.items())
     )
-    return Bundle(directory, tables, meta)
+    return Bundle(directory, tables, meta, unknown)
 
 
 def _line(table: Table, row: int) -> str:

@@ -75,14 +75,18 @@ def config_path(section: str, key: str) -> str:
 
 
 def found_keys(results: Sequence[StreamResult]) -> dict[str, Any]:
-    """``{dotted.key: value}`` for every found effect (and fitted declared parts, e.g. a curve)."""
+    """``{dotted.key: value}`` for every found effect (and fitted declared parts, e.g. a curve),
+    except an effect whose uncertainty is larger than it (:meth:`StreamResult.not_written`):
+    it is neither written nor carried into a later stage; the report says so."""
     out: dict[str, Any] = {}
     for res in results:
         problem, after = res.problem, res.selection.after
         entries: dict[str, Any] = dict(problem.config_values(after.insts, after.x))
         params = split_params(problem, after.insts, after.x)
         increments: dict[str, np.ndarray] = {}
-        for inst in res.effects:
+        for inst, reason in zip(res.effects, res.not_written(), strict=True):
+            if reason is not None:
+                continue
             for key, value in inst.config(params[after.insts.index(inst)], problem).items():
                 if key.startswith("+"):  # per-element increments of a declared list: summed
                     inc = np.asarray(value, dtype=float)

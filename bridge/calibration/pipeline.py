@@ -16,8 +16,14 @@ from koala_bridge.calibration.bundle import Bundle
 from koala_bridge.calibration.effects import available_effects, get_effect
 from koala_bridge.calibration.effects.base import EffectInstance
 from koala_bridge.calibration.errors import EffectRegistryError
+from koala_bridge.calibration.metrics import HeldOutStatistics, heldout_statistics
 from koala_bridge.calibration.model import DeclaredModel
-from koala_bridge.calibration.problem import SecondaryMetric, StreamProblem
+from koala_bridge.calibration.problem import (
+    FloatArray,
+    SecondaryMetric,
+    SkippedStream,
+    StreamProblem,
+)
 from koala_bridge.calibration.selection import (
     ALPHA,
     MAX_EFFECTS,
@@ -34,11 +40,19 @@ from koala_bridge.calibration.streams import (
     build_landmarks,
     build_odometry,
     build_ranges,
+    bundle_streams,
+    unknown_files,
 )
 from koala_bridge.calibration.streams.compass import CompassProblem
 from scipy import stats
 
 log = logging.getLogger(__name__)
+
+#: ``--write-config`` writes a fitted effect only when it is at least this many standard errors
+#: from the declared model, ``z(1 - ALPHA / 2)`` (2.58): the declared value outside the effect's
+#: 99 % interval, as for the turn-on bias. A slipping wheel once proposed ticks_per_metre
+#: 22 222 -> 70 968 with an SE of 32 500 (1.5 SE), which ``|d| < SE`` alone would have written.
+WRITE_Z = float(stats.norm.ppf(1 - ALPHA / 2))
 
 #: Callback ``(stream, done, total)`` for progress display; the library never prints.
 Progress = Callable[[str, int, int], None]
@@ -71,30 +85,73 @@ class StreamResult:
         p = self.problem
         return [SecondaryMetric(p.metric, p.unit, self.before, self.after), *self.secondary]
 
-    def effect_params(self) -> list[tuple[dict[str, float], dict[str, float]]]:
-        """Per added effect: its parameters and their standard errors (fixed ones: none)."""
+    def _params_and_se(self) -> list[tuple[FloatArray, FloatArray | None]]:
+        """Per added effect: its parameter values and their standard errors (None: fixed)."""
         sel = self.selection
         params = sel.params_of(sel.after)
         se = parameter_se(self.problem, sel.after)
-        k0 = len(self.problem.nuisance_x0())
         offsets: dict[str, int] = {}
-        k = k0
+        k = len(self.problem.nuisance_x0())
         for inst in sel.after.insts:
             if not inst.fixed:
                 offsets[inst.name] = k
                 k += inst.n_free
-        out = []
+        out: list[tuple[FloatArray, FloatArray | None]] = []
         for inst in self.effects:
             p = params[sel.after.insts.index(inst)]
-            entry: dict[str, float] = {
-                n: float(f"{v:.6g}") for n, v in zip(inst.param_names, p, strict=True)
-            }
-            errs: dict[str, float] = {}
-            if inst.name in offsets:
-                for j, n in enumerate(inst.param_names):
-                    errs[n] = float(f"{se[offsets[inst.name] + j]:.3g}")
+            k = offsets.get(inst.name, -1)
+            out.append((p, None if k < 0 else se[k : k + len(inst.param_names)]))
+        return out
+
+    def effect_params(self) -> list[tuple[dict[str, float], dict[str, float]]]:
+        """Per added effect: its parameters and their standard errors (fixed ones: none)."""
+        out = []
+        for inst, (p, se) in zip(self.effects, self._params_and_se(), strict=True):
+            entry = {n: float(f"{v:.6g}") for n, v in zip(inst.param_names, p, strict=True)}
+            errs = (
+                {}
+                if se is None
+                else {n: float(f"{v:.3g}") for n, v in zip(inst.param_names, se, strict=True)}
+            )
             out.append((entry, errs))
         return out
+
+    def not_written(self) -> list[str | None]:
+        """Per added effect: why ``--write-config`` must not write it, or None (module
+        constant :data:`WRITE_Z`). An effect is uncertain when its size, ``d = params -
+        absent``, is within ``WRITE_Z`` standard errors of nothing: ``sum d^2 < WRITE_Z^2 sum
+        SE^2`` (``|d| < WRITE_Z SE`` for one parameter: the declared value lies inside the
+        effect's 99 % interval). Fixed parameters (a glitch value, a quantisation step, a
+        turn-on bias judged against its declared spread) have no standard error here and are
+        written."""
+        out: list[str | None] = []
+        for inst, (p, se) in zip(self.effects, self._params_and_se(), strict=True):
+            if se is None:
+                out.append(None)
+                continue
+            d = np.asarray(p, dtype=float) - inst.effect.absent(inst)
+            size, err = float(np.sqrt(np.sum(d**2))), float(np.sqrt(np.sum(se**2)))
+            if not np.isfinite(err):
+                out.append("uncertainty unknown: its standard error could not be computed")
+            elif size < WRITE_Z * err:
+                what = "|value - declared|" if d.size == 1 else "|values - declared|"
+                out.append(
+                    f"uncertainty larger than the effect: {what} = {size:.3g} < "
+                    f"{WRITE_Z:.3g} SE = {WRITE_Z * err:.3g} (the declared value lies inside "
+                    "its 99 % interval)"
+                )
+            else:
+                out.append(None)
+        return out
+
+    def heldout_statistics(self, before: FloatArray | None = None) -> HeldOutStatistics:
+        """Robust statistics of the held-out errors before and after
+        (:func:`koala_bridge.calibration.metrics.heldout_statistics`); ``before`` replaces the
+        declared model's errors (a staged run's user-declared model)."""
+        p, sel = self.problem, self.selection
+        if before is None:
+            before = p.heldout_errors(sel.before.insts, sel.before.x)
+        return heldout_statistics(before, p.heldout_errors(sel.after.insts, sel.after.x))
 
 
 def candidates_for(
@@ -277,7 +334,7 @@ def decimate_bundle(bundle: Bundle, max_rows: int, references: bool = False) -> 
             keep[[0, -1]] = True  # keep the span, so the split is the same
             table = table.select(keep)
         tables[name] = table
-    return Bundle(bundle.path, tables, bundle.meta)
+    return Bundle(bundle.path, tables, bundle.meta, bundle.unknown_files)
 
 
 def _problems(
@@ -287,15 +344,16 @@ def _problems(
     compass_heading: Any = None,
     with_compass: bool = True,
     odometry_bundle: Bundle | None = None,
+    skipped: list[SkippedStream] | None = None,
 ) -> list[StreamProblem]:
     out: list[StreamProblem | None] = []
     if with_compass:
-        out.append(build_compass(bundle, model))
+        out.append(build_compass(bundle, model, skipped))
     else:
-        out.append(build_gyro(bundle, model, compass_heading))
-        out.append(build_odometry(odometry_bundle or bundle, model, options.window_s))
-        out.extend(build_ranges(bundle, model))
-        out.extend(build_landmarks(bundle, model))
+        out.append(build_gyro(bundle, model, compass_heading, skipped))
+        out.append(build_odometry(odometry_bundle or bundle, model, options.window_s, skipped))
+        out.extend(build_ranges(bundle, model, skipped))
+        out.extend(build_landmarks(bundle, model, skipped))
     return [p for p in out if p is not None]
 
 
@@ -323,6 +381,7 @@ def calibrate(
     model: DeclaredModel,
     options: Options | None = None,
     progress: Progress | None = None,
+    skipped: list[SkippedStream] | None = None,
 ) -> list[StreamResult]:
     """Run the loop on every stream the bundle holds; see the module docstring for the order.
 
@@ -330,7 +389,11 @@ def calibrate(
     size (estimates from 20 000 samples are far more precise than any tolerance, and the test
     is then only more conservative); the selected effects are refitted on the full stream and
     before/after are measured on the full held-out part.
+
+    Every stream of the bundle (:func:`koala_bridge.calibration.streams.bundle_streams`) ends
+    either among the results or in ``skipped``, with what it lacks and how to add it.
     """
+    found: list[SkippedStream] = []
     options = options or Options()
     small = decimate_bundle(bundle, options.max_rows)
     small_odometry = decimate_bundle(bundle, options.max_rows, references=True)
@@ -346,7 +409,7 @@ def calibrate(
         return out
 
     results = run(
-        _problems(small, model, options),
+        _problems(small, model, options, skipped=found),
         _problems(bundle, model, options) if small is not bundle else [],
     )
     compass_heading = None
@@ -362,12 +425,26 @@ def calibrate(
             compass_heading,
             with_compass=False,
             odometry_bundle=small_odometry,
+            skipped=found,
         ),
         _problems(bundle, model, options, compass_heading, with_compass=False)
         if small is not bundle
         else [],
     )
-    return results  # empty: no stream with a reference (the caller says so)
+    named = {r.problem.name for r in results} | {s.stream for s in found}
+    for stream in bundle_streams(bundle):
+        if stream not in named:  # a builder that dropped a stream without saying why
+            found.append(
+                SkippedStream(
+                    stream,
+                    "not calibrated, for no reason the tool recorded",
+                    "please report this with the bundle (docs/calibration.md)",
+                )
+            )
+    found += unknown_files(bundle)
+    if skipped is not None:
+        skipped.extend(found)
+    return results  # empty: no stream with a reference (the caller says so, from skipped)
 
 
 def compass_heading_of(problem: CompassProblem, sel: Selection) -> tuple[Any, Any] | None:

@@ -51,6 +51,25 @@ class SecondaryMetric:
     unit: str
     before: float
     after: float
+    #: the metric can be negative (a signed error, e.g. ``known_rotation_error``): reported by
+    #: its magnitude, the signed values beside it (report.py)
+    signed: bool = False
+
+
+@dataclass(frozen=True)
+class SkippedStream:
+    """A stream of the bundle that could not be calibrated: what it lacks and how to add it.
+
+    ``missing`` and ``fix`` are read together, as in the report's line
+    ``range:ir: true_range is empty in every row: add true_range (m) per row, ...``.
+    """
+
+    stream: str
+    missing: str
+    fix: str
+
+    def line(self) -> str:
+        return f"{self.stream}: {self.missing}: {self.fix}"
 
 
 @dataclass
@@ -121,6 +140,11 @@ class StreamProblem(ABC):
     ) -> list[SecondaryMetric]:
         """Further metrics on the score part (default: none)."""
         return []
+
+    def heldout_errors(self, insts: Sequence[EffectInstance], x: FloatArray) -> FloatArray:
+        """One error per held-out measurement, in :attr:`unit`, for the report's robust
+        statistics (:mod:`koala_bridge.calibration.metrics`); default: the score residual."""
+        return self.residuals(insts, x, "score")
 
     @abstractmethod
     def residual_series(

@@ -1,17 +1,34 @@
 """The calibration report: ``report.json`` (machine), ``report.md`` + residual PNGs (people).
 
-report.json shape (issue 6)::
+report.json shape (issue 6, issue 16)::
 
     {"streams": [{"stream": "gyro", "metric": "...", "unit": "...", "before": X, "after": Y,
+                  "change": "better by 63 %", "relative_change": -0.63,
+                  "heldout_errors": {"unit": "...", "n": N, "outlier_threshold": T,
+                                     "before": {"rms": .., "median_abs": .., "p95_abs": ..,
+                                                "outlier_fraction": ..},
+                                     "after": {...}},
                   "split": {"fit": [t0, t1], "score": [t1, t2]},
-                  "effects": [{"name": "bias", "params": {...}, "evidence": {...}}]}]}
+                  "effects": [{"name": "bias", "params": {...}, "evidence": {...},
+                               "written": true}]}],
+     "not_calibrated": [{"stream": "range:ir", "missing": "...", "fix": "..."}]}
 
 A stream with a secondary metric (the gyro's windowed heading error) has a second entry with the
-same ``stream``, that metric, and the same effects. In a staged run (several inputs,
-:mod:`koala_bridge.calibration.stages`) the document also lists ``inputs``, and each entry names its
-``input`` and ``stage``, lists the effects carried from earlier stages (``evidence.carried_from``),
-and gives ``before_with_carried``, the stage's own starting point, while ``before`` stays the
-metric under the user's declared model.
+same ``stream``, that metric, and the same effects; ``heldout_errors`` (robust statistics of the
+held-out errors, :mod:`koala_bridge.calibration.metrics`) is in the stream's first entry only.
+Every metric is an error: ``change`` compares magnitudes. A metric that can be negative
+(``known_rotation_error``) has ``"signed": true``: ``before`` and ``after`` are then its
+magnitudes, ``before_signed`` and ``after_signed`` the values, so a sign flip never reads as an
+improvement. An effect ``--write-config`` leaves out has ``"written": false`` and
+``not_written`` says why (its uncertainty). ``not_calibrated`` lists every stream of the input
+that could not be calibrated, with what it lacks and how to add it.
+
+In a staged run (several inputs, :mod:`koala_bridge.calibration.stages`) the document also
+lists ``inputs``, and each entry (of ``streams`` and ``not_calibrated``) names its ``input`` and
+``stage``; stream entries list the effects carried from earlier stages
+(``evidence.carried_from``), and give ``before_with_carried``, the stage's own starting point,
+while ``before`` (and ``heldout_errors.before``) stays the metric under the user's declared
+model.
 """
 
 from __future__ import annotations
@@ -19,12 +36,18 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Sequence
-from dataclasses import astuple
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from koala_bridge.calibration.metrics import (
+    OUTLIER_SIGMAS,
+    ErrorStatistics,
+    HeldOutStatistics,
+    change,
+)
 from koala_bridge.calibration.pipeline import StreamResult
+from koala_bridge.calibration.problem import SecondaryMetric
 from koala_bridge.calibration.stages import Stage
 
 log = logging.getLogger(__name__)
@@ -45,6 +68,41 @@ def _carried(stage: Stage, res: StreamResult) -> list[dict[str, Any]]:
     ]
 
 
+def _effect_entries(res: StreamResult) -> list[dict[str, Any]]:
+    out = []
+    for (inst, trial), (params, se), reason in zip(
+        res.selection.added, res.effect_params(), res.not_written(), strict=True
+    ):
+        entry: dict[str, Any] = {
+            "name": inst.name,
+            "params": params,
+            "evidence": {**trial.evidence(), "param_se": se},
+            "written": reason is None,
+        }
+        if reason is not None:
+            entry["not_written"] = reason
+        out.append(entry)
+    return out
+
+
+def _before(stage: Stage | None, res: StreamResult, m: SecondaryMetric) -> float:
+    """The metric's *before*: under the user's declared model (a later stage's is measured
+    again against it), else the result's own."""
+    if stage is not None and stage.declared_before:
+        return stage.declared_before.get((res.problem.name, m.metric), float("nan"))
+    return m.before
+
+
+def _is_signed(m: SecondaryMetric, *values: float) -> bool:
+    return m.signed or any(v < 0 for v in values)
+
+
+def heldout_statistics(res: StreamResult, stage: Stage | None = None) -> HeldOutStatistics:
+    """The stream's robust held-out statistics; *before* under the user's declared model."""
+    declared = None if stage is None else stage.declared_errors.get(res.problem.name)
+    return res.heldout_statistics(declared)
+
+
 def stream_entries(
     res: StreamResult, stage: Stage | None = None, staged: bool = False
 ) -> list[dict[str, Any]]:
@@ -55,27 +113,56 @@ def stream_entries(
         "fit": [_num(p.split.t0), _num(p.split.t1)],
         "score": [_num(p.split.t1), _num(p.split.t2)],
     }
-    effects = [
-        {"name": inst.name, "params": params, "evidence": {**trial.evidence(), "param_se": se}}
-        for (inst, trial), (params, se) in zip(
-            res.selection.added, res.effect_params(), strict=True
-        )
-    ]
+    effects = _effect_entries(res)
     carried = _carried(stage, res) if stage is not None else []
+    stats = heldout_statistics(res, stage)
     entries = []
-    for metric, unit, before, after in (astuple(m) for m in res.metrics()):
+    for i, m in enumerate(res.metrics()):
+        before = _before(stage, res, m)
+        signed = _is_signed(m, before, m.after, m.before)
         entry: dict[str, Any] = {"stream": p.name}
         if stage is not None and staged:
             entry["input"] = stage.source
-        entry.update(metric=metric, unit=unit, before=_num(before), after=_num(after))
+        ch = change(before, m.after)
+        entry.update(
+            metric=m.metric,
+            unit=m.unit,
+            before=_num(abs(before) if signed else before),
+            after=_num(abs(m.after) if signed else m.after),
+            change=ch.text,
+            relative_change=_num(ch.relative),
+        )
+        if signed:
+            entry.update(signed=True, before_signed=_num(before), after_signed=_num(m.after))
         if stage is not None and staged:
             entry["stage"] = stage.number
         if stage is not None and stage.declared_before:
-            entry["before"] = _num(stage.declared_before.get((p.name, metric), float("nan")))
-            entry["before_with_carried"] = _num(before)
+            entry["before_with_carried"] = _num(abs(m.before) if signed else m.before)
+            if signed:
+                entry["before_with_carried_signed"] = _num(m.before)
+        if i == 0:
+            entry["heldout_errors"] = {
+                "unit": p.unit,
+                "n": stats.n,
+                "outlier_threshold": _num(stats.threshold),
+                "before": stats.before.as_dict(),
+                "after": stats.after.as_dict(),
+            }
         entry.update(split=split, effects=carried + effects)
         entries.append(entry)
     return entries
+
+
+def skipped_entries(stage: Stage, staged: bool = False) -> list[dict[str, Any]]:
+    """report.json ``not_calibrated`` entries of one stage."""
+    out = []
+    for s in stage.skipped:
+        entry: dict[str, Any] = {"stream": s.stream}
+        if staged:
+            entry.update(input=stage.source, stage=stage.number)
+        entry.update(missing=s.missing, fix=s.fix)
+        out.append(entry)
+    return out
 
 
 def report_json(stages: Sequence[Stage]) -> dict[str, Any]:
@@ -84,7 +171,85 @@ def report_json(stages: Sequence[Stage]) -> dict[str, Any]:
         out["inputs"] = [s.source for s in stages]
     staged = len(stages) > 1
     out["streams"] = [e for s in stages for r in s.results for e in stream_entries(r, s, staged)]
+    out["not_calibrated"] = [e for s in stages for e in skipped_entries(s, staged)]
     return out
+
+
+def _g(v: float) -> str:
+    return f"{v:.4g}" if np.isfinite(v) else "-"
+
+
+def metric_text(m: SecondaryMetric, before: float) -> tuple[str, str, str, str]:
+    """``(metric, before, after, change)`` as people read them: a signed metric by its
+    magnitude, ``known_rotation_error magnitude (signed +0.23 -> -0.24)``."""
+    ch = change(before, m.after).text
+    if _is_signed(m, before, m.after):
+        name = f"{m.metric} magnitude (signed {before:+.4g} -> {m.after:+.4g})"
+        return name, _g(abs(before)), _g(abs(m.after)), ch
+    return m.metric, _g(before), _g(m.after), ch
+
+
+def metric_lines(stage: Stage, res: StreamResult) -> list[str]:
+    """One line per metric of a stream for the log: ``gyro rms_rate_error: 0.0197 -> 0.002
+    rad/s, better by 90 % [bias]``."""
+    effects = ", ".join(
+        [c.name + "*" for c in stage.carried.get(res.problem.section, [])]
+        + [i.name for i in res.effects]
+    )
+    out = []
+    for m in res.metrics():
+        name, before, after, ch = metric_text(m, _before(stage, res, m))
+        out.append(
+            f"{res.problem.name} {name}: {before} -> {after} {m.unit}, {ch} [{effects or '-'}]"
+        )
+    return out
+
+
+def _stats_cells(b: ErrorStatistics, a: ErrorStatistics) -> list[str]:
+    return [
+        f"{_g(b.rms)} -> {_g(a.rms)}",
+        f"{_g(b.median_abs)} -> {_g(a.median_abs)}",
+        f"{_g(b.p95_abs)} -> {_g(a.p95_abs)}",
+        f"{_g(100 * b.outlier_fraction)} % -> {_g(100 * a.outlier_fraction)} %",
+    ]
+
+
+def _heldout_table(stages: Sequence[Stage], staged: bool) -> list[str]:
+    head = "| stream | unit | n | RMS | median abs | 95th pct abs | outliers | outlier threshold |"
+    if staged:
+        head = "| input | " + head[2:]
+    lines = [
+        "",
+        "## Held-out errors, before -> after",
+        "",
+        "One error per held-out measurement (odometry: the position error per reference "
+        "sample; compass magnitude: the deviation from the fitted field in %). An outlier lies "
+        f"beyond {OUTLIER_SIGMAS:g} x 1.4826 x MAD of the *after* errors from its own set's "
+        "median: the same threshold before and after (docs/calibration.md).",
+        "",
+        head,
+        "|" + "---|" * (head.count("|") - 1),
+    ]
+    for stage in stages:
+        for res in stage.results:
+            st = heldout_statistics(res, stage)
+            row = [res.problem.name, res.problem.unit, str(st.n)]
+            row += _stats_cells(st.before, st.after) + [_g(st.threshold)]
+            lines.append(
+                ("| `" + stage.source + "` " if staged else "") + "| " + " | ".join(row) + " |"
+            )
+    return lines
+
+
+def _skipped_section(stages: Sequence[Stage], staged: bool) -> list[str]:
+    items = [(stage, s) for stage in stages for s in stage.skipped]
+    if not items:
+        return []
+    lines = ["", "## Not calibrated", ""]
+    for stage, s in items:
+        where = f"stage {stage.number} (`{stage.source}`): " if staged else ""
+        lines.append(f"- {where}**{s.stream}**: {s.missing}. To add it: {s.fix}.")
+    return lines
 
 
 def plot_residuals(res: StreamResult, path: Path) -> None:
@@ -134,12 +299,13 @@ def _stream_markdown(res: StreamResult, stage: Stage, plot: str | None, heading:
                 f"stage {ev['stage']}: `{ev['carried_from']}` |"
             )
     if res.effects:
-        lines += ["", "| effect | params | evidence |", "|---|---|---|"]
-        for (inst, trial), (params, se) in zip(
-            res.selection.added, res.effect_params(), strict=True
-        ):
-            ev = {**trial.evidence(), "param_se": se}
-            lines.append(f"| {inst.name} | {json.dumps(params)} | {json.dumps(ev)} |")
+        lines += ["", "| effect | params | evidence | --write-config |", "|---|---|---|---|"]
+        for e in _effect_entries(res):
+            written = "written" if e["written"] else f"**not written**: {e['not_written']}"
+            lines.append(
+                f"| {e['name']} | {json.dumps(e['params'])} | {json.dumps(e['evidence'])} | "
+                f"{written} |"
+            )
     lines += [
         "",
         "Candidates per round (dBIC < 0, LR > threshold, gain >= 1 % to pass):",
@@ -183,18 +349,34 @@ def report_markdown(stages: Sequence[Stage], diff: str, plots: bool) -> str:
         "effective sample size) and lowers the held-out RMS by at least 1 %.",
         "",
     ]
-    head = "| stream | metric | unit | before | after | effects |"
+    lines += [
+        "Every metric is an error: *change* compares magnitudes, and a metric that can be "
+        "negative is shown by its magnitude, its signed values beside the name.",
+        "",
+    ]
+    head = "| stream | metric | unit | before | after | change | effects |"
     if staged:
         head = "| input | " + head[2:]
     lines += [head, "|" + "---|" * (head.count("|") - 1)]
     for stage in stages:
+        prefix = f"| `{stage.source}` " if staged else ""
         for res in stage.results:
-            for e in stream_entries(res, stage, staged):
-                row = (
-                    f"| {e['stream']} | {e['metric']} | {e['unit']} | {e['before']} | "
-                    f"{e['after']} | {', '.join(x['name'] for x in e['effects']) or '-'} |"
+            names = [c["name"] for c in _carried(stage, res)]
+            names += [
+                e["name"] + ("" if e["written"] else " (not written)") for e in _effect_entries(res)
+            ]
+            for m in res.metrics():
+                name, before, after, ch = metric_text(m, _before(stage, res, m))
+                lines.append(
+                    prefix + f"| {res.problem.name} | {name} | {m.unit} | {before} | {after} | "
+                    f"{ch} | {', '.join(names) or '-'} |"
                 )
-                lines.append(f"| `{stage.source}` " + row if staged else row)
+        for s in stage.skipped:
+            lines.append(
+                prefix + f"| {s.stream} | - | - | - | - | not calibrated | see below: {s.missing} |"
+            )
+    lines += _heldout_table(stages, staged)
+    lines += _skipped_section(stages, staged)
     for stage in stages:
         for res in stage.results:
             heading = res.problem.name

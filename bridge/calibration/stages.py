@@ -40,7 +40,7 @@ from koala_bridge.calibration.config_update import (
 from koala_bridge.calibration.errors import BundleError
 from koala_bridge.calibration.model import declared_model
 from koala_bridge.calibration.pipeline import Options, Progress, StreamResult, calibrate
-from koala_bridge.calibration.problem import split_params
+from koala_bridge.calibration.problem import FloatArray, SkippedStream, split_params
 
 
 @dataclass(frozen=True)
@@ -67,6 +67,10 @@ class Stage:
     carried: dict[str, list[CarriedEffect]] = field(default_factory=dict)
     #: (stream, metric) -> the metric under the user's declared model (stages after the first)
     declared_before: dict[tuple[str, str], float] = field(default_factory=dict)
+    #: stream -> its held-out errors under the user's declared model (stages after the first)
+    declared_errors: dict[str, FloatArray] = field(default_factory=dict)
+    #: streams of the input that could not be calibrated, with what they lack
+    skipped: list[SkippedStream] = field(default_factory=list)
 
 
 def _effect_keys(res: StreamResult) -> list[tuple[str, dict[str, float], dict[str, Any]]]:
@@ -136,14 +140,13 @@ def calibrate_stages(
         work = tmp / f"stage-{number}"
         work.mkdir(parents=True, exist_ok=True)
         bundle = load_input(path, work)
-        results = calibrate(bundle, declared_model(current, bundle.meta), options, progress)
+        skipped: list[SkippedStream] = []
+        results = calibrate(
+            bundle, declared_model(current, bundle.meta), options, progress, skipped
+        )
         if not results:
-            raise BundleError(
-                f"{path}: no stream it holds has a reference to be held against (gyro: "
-                "truth_pose.csv with theta, or compass.csv; odometry: truth_pose.csv; range: "
-                "true_range; landmarks: landmark_map.csv; see docs/bundle-format.md)"
-            )
-        stage = Stage(number, str(path), results)
+            raise BundleError(_nothing_to_calibrate(path, skipped))
+        stage = Stage(number, str(path), results, skipped=skipped)
         if carried:
             sections = {res.problem.section for res in results}
             for effect in carried:
@@ -152,6 +155,12 @@ def calibrate_stages(
             with _quiet():
                 declared = calibrate(bundle, declared_model(config, bundle.meta), options)
             stage.declared_before = _befores(declared)
+            stage.declared_errors = {
+                r.problem.name: r.problem.heldout_errors(
+                    r.selection.before.insts, r.selection.before.x
+                )
+                for r in declared
+            }
         stages.append(stage)
         keys = found_keys(results)
         if with_noise:
@@ -159,6 +168,17 @@ def calibrate_stages(
         current = updated_config(current, keys)
         carried += carried_from(stage)
     return stages, current
+
+
+def _nothing_to_calibrate(path: Path, skipped: Sequence[SkippedStream]) -> str:
+    """The one line for an input none of whose streams can be calibrated: each stream, what it
+    lacks and how to add it."""
+    if not skipped:
+        return (
+            f"{path}: holds no measured stream (gyro.csv, compass.csv, odometry.csv, range.csv "
+            "or landmarks.csv), only references; see docs/bundle-format.md"
+        )
+    return f"{path}: no stream can be calibrated: " + " | ".join(s.line() for s in skipped)
 
 
 def all_keys(stages: Sequence[Stage], with_noise: bool = False) -> dict[str, Any]:

@@ -23,7 +23,7 @@ from pathlib import Path
 from koala_bridge.calibration.config_update import config_diff, not_simulated, write_config
 from koala_bridge.calibration.model import read_config
 from koala_bridge.calibration.pipeline import Options, check_effect_names
-from koala_bridge.calibration.report import write_report
+from koala_bridge.calibration.report import metric_lines, write_report
 from koala_bridge.calibration.stages import all_keys, calibrate_stages
 
 log = logging.getLogger(__name__)
@@ -178,20 +178,15 @@ def run(args: argparse.Namespace) -> int:
         print(f"koala-bridge calibrate: {e}", file=sys.stderr)
         return 1
     for stage in stages:
+        tag = f"{stage.number}:" if len(stages) > 1 else ""
         for res in stage.results:
-            for m in res.metrics():
-                log.info(
-                    "%s%s %s: %.4g -> %.4g %s [%s]",
-                    f"{stage.number}:" if len(stages) > 1 else "",
-                    res.problem.name,
-                    m.metric,
-                    stage.declared_before.get((res.problem.name, m.metric), m.before),
-                    m.after,
-                    m.unit,
-                    ", ".join(
-                        [c.name + "*" for c in stage.carried.get(res.problem.section, [])]
-                        + [i.name for i in res.effects]
+            for line in metric_lines(stage, res):
+                log.info("%s%s", tag, line)
+            for inst, reason in zip(res.effects, res.not_written(), strict=True):
+                if reason is not None:
+                    log.warning(
+                        "%s%s: %s not written: %s", tag, res.problem.name, inst.name, reason
                     )
-                    or "-",
-                )
+        for skipped in stage.skipped:
+            log.warning("%snot calibrated: %s", tag, skipped.line())
     return 0

@@ -65,15 +65,27 @@ def test_report_shape_and_written_config(tmp_path: Path) -> None:
     )
     assert cli.run(args) == 0
     report = json.loads((out / "report.json").read_text())
-    assert list(report) == ["streams"]
+    assert list(report) == ["streams", "not_calibrated"]
+    assert report["not_calibrated"] == []
     entry = report["streams"][0]
-    assert list(entry) == ["stream", "metric", "unit", "before", "after", "split", "effects"]
+    assert list(entry) == [
+        "stream",
+        "metric",
+        "unit",
+        "before",
+        "after",
+        "change",
+        "relative_change",
+        "heldout_errors",
+        "split",
+        "effects",
+    ]
     assert entry["stream"] == "odometry" and entry["unit"] == "m"
     assert (
         list(entry["split"]) == ["fit", "score"]
         and entry["split"]["fit"][1] == entry["split"]["score"][0]
     )
-    assert all(list(e) == ["name", "params", "evidence"] for e in entry["effects"])
+    assert all(list(e) == ["name", "params", "evidence", "written"] for e in entry["effects"])
     md = (out / "report.md").read_text()
     assert "```diff" in md and "wheel_base_m" in md
     assert (out / "residuals_odometry.png").stat().st_size > 1000
@@ -131,6 +143,10 @@ def test_staged_inputs_carry_effects_into_the_next_model(tmp_path: Path) -> None
     assert bias["evidence"]["stage"] == 1
     # before: the declared (ideal) gyro; before_with_carried: with the still recording's bias.
     assert turns_gyro["before_with_carried"] < turns_gyro["before"]
+    # The held-out errors' before is the declared model's too: their RMS is the metric.
+    errors = turns_gyro["heldout_errors"]
+    assert errors["before"]["rms"] == pytest.approx(turns_gyro["before"], rel=1e-5)
+    assert errors["after"]["rms"] == pytest.approx(turns_gyro["after"], rel=1e-5)
     still_gyro = entries[(1, "gyro", "rms_rate_error")]
     assert "before_with_carried" not in still_gyro
     assert "not a whole bridge" in new.read_text()  # no --config: a fragment, and it says so

@@ -84,6 +84,13 @@ class Effect(ABC):
         something else, and the candidate is rejected whatever its statistics."""
         return True
 
+    def absent(self, inst: EffectInstance) -> NDArray[np.float64]:
+        """The parameter values that mean "no such effect": the declared model. Default 0 (an
+        increment, a coefficient); an effect whose parameter is the quantity itself (ticks per
+        metre) returns the declared value. ``|params - absent|`` is the effect's size, which
+        ``--write-config`` holds against its standard error."""
+        return np.zeros(len(inst.param_names))
+
     @abstractmethod
     def apply(self, inst: EffectInstance, state: Any, params: NDArray[np.float64]) -> None:
         """Change the stream's model state (see the stream module) by this effect."""

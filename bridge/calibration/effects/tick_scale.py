@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 from koala_bridge.calibration.effects import register_effect
 from koala_bridge.calibration.effects.base import Effect, EffectInstance
 
@@ -33,3 +34,6 @@ class TickScale(Effect):
         if inst.param_names[0] == "ticks_per_metre":
             return {"/robot.ticks_per_metre": float(f"{params[0]:.6g}")}
         return {"calibration.distance_scale": float(f"{params[0]:.6g}")}
+
+    def absent(self, inst: EffectInstance) -> Any:
+        return np.asarray(inst.x0, dtype=float)  # proposed at the declared value

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 from koala_bridge.calibration.effects import register_effect
 from koala_bridge.calibration.effects.base import Effect, EffectInstance
 
@@ -32,3 +33,6 @@ class WheelBase(Effect):
         if inst.param_names[0] == "wheel_base_m":
             return {"/robot.wheel_base_m": float(f"{params[0]:.6g}")}
         return {"calibration.yaw_scale": float(f"{params[0]:.6g}")}
+
+    def absent(self, inst: EffectInstance) -> Any:
+        return np.asarray(inst.x0, dtype=float)  # proposed at the declared value

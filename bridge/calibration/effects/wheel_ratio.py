@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 from koala_bridge.calibration.effects import register_effect
 from koala_bridge.calibration.effects.base import Effect, EffectInstance
 
@@ -29,3 +30,6 @@ class WheelRatio(Effect):
 
     def config(self, inst: EffectInstance, params: Any, problem: Any) -> dict[str, Any]:
         return {"/robot.wheel_diameter_ratio": float(f"{params[0]:.6g}")}
+
+    def absent(self, inst: EffectInstance) -> Any:
+        return np.asarray(inst.x0, dtype=float)  # proposed at the declared ratio

@@ -14,17 +14,19 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
+from difflib import get_close_matches
 from typing import Any
 
 import numpy as np
-from koala_bridge.calibration.bundle import Bundle, Table
+from koala_bridge.calibration.bundle import REQUIRED_COLUMNS, Bundle, Table
 from koala_bridge.calibration.effects.common import categorical_levels
 from koala_bridge.calibration.model import DeclaredModel
-from koala_bridge.calibration.problem import FloatArray, Split
+from koala_bridge.calibration.problem import FloatArray, SkippedStream, Split
 from koala_bridge.calibration.streams.compass import CompassProblem
 from koala_bridge.calibration.streams.odometry import OdometryProblem
 from koala_bridge.calibration.streams.scalar import ScalarProblem, fit_shared_curve
 from koala_bridge.core.geometry import wrap_angle
+from numpy.typing import NDArray
 from scipy.integrate import cumulative_trapezoid
 
 log = logging.getLogger(__name__)
@@ -38,13 +40,51 @@ __all__ = [
     "build_landmarks",
     "build_odometry",
     "build_ranges",
+    "bundle_streams",
     "heading_reference",
+    "unknown_files",
 ]
 
 #: Heading-error windows for the gyro's secondary metric (shortened on short recordings).
 HEADING_WINDOW_S = 10.0
 #: Smoothing of a compass-derived heading before it is differentiated into a reference rate.
 COMPASS_SMOOTHING_S = 0.25
+#: Fewest usable rows a stream is calibrated on: both the fit and the held-out part need data.
+MIN_ROWS = 10
+#: Where a bundle's files and columns are described, for the report's "how to add it".
+FORMAT_DOC = "docs/bundle-format.md"
+
+
+def _skip(skipped: list[SkippedStream] | None, stream: str, missing: str, fix: str) -> None:
+    """Record that ``stream`` cannot be calibrated; the report and the CLI say so."""
+    log.debug("%s not calibrated: %s", stream, missing)
+    if skipped is not None:
+        skipped.append(SkippedStream(stream, missing, fix))
+
+
+def _range_kinds(table: Table) -> NDArray[np.str_]:
+    """The sensor kinds of ``range.csv`` (its ``kind`` column; ``""``: a single kind)."""
+    return np.unique(table.text["kind"]) if "kind" in table.text else np.array([""])
+
+
+def _range_name(kind: str) -> str:
+    return f"range:{kind}" if kind else "range"
+
+
+def bundle_streams(bundle: Bundle) -> list[str]:
+    """The name of every measured stream ``bundle`` holds, as the report names it: each must
+    end calibrated or skipped with a reason (:func:`koala_bridge.calibration.pipeline.calibrate`).
+    References (``truth_pose``, ``landmark_map``) are not streams."""
+    out = [name for name in ("compass", "gyro", "odometry") if bundle.get(name) is not None]
+    ranges = bundle.get("range")
+    if ranges is not None:
+        out += [_range_name(str(k)) for k in _range_kinds(ranges)]
+    obs = bundle.get("landmarks")
+    if obs is not None:
+        for column, name in (("range", "landmark_range"), ("bearing", "landmark_bearing")):
+            if np.isfinite(obs[column]).any():
+                out.append(name)
+    return out
 
 
 def _extras(table: Table, known: set[str]) -> dict[str, FloatArray]:
@@ -83,10 +123,40 @@ def _moving_average(v: FloatArray, n: int) -> FloatArray:
     return np.convolve(pad, np.ones(n) / n, mode="valid")
 
 
+def unknown_files(bundle: Bundle) -> list[SkippedStream]:
+    """A :class:`SkippedStream` for each CSV file of the bundle directory the format does not
+    know (``bundle.unknown_files``): its rows were not read, and the report says so, with the
+    file it most likely should be (range beacons under ``uwb.csv`` once left a bundle with
+    truth_pose alone: 'no stream has a reference')."""
+    out = []
+    for name in bundle.unknown_files:
+        stem = name.removesuffix(".csv")
+        close = get_close_matches(stem, list(REQUIRED_COLUMNS), n=1, cutoff=0.6)
+        if close:
+            fix = (
+                f"if it holds that stream, name it {close[0]}.csv with the columns "
+                f"{','.join(REQUIRED_COLUMNS[close[0]])}"
+            )
+        else:
+            fix = (
+                "put its measurements into a file of the format: range.csv (t,sensor,measured,"
+                "true_range, a kind column such as uwb for range beacons), landmarks.csv with "
+                "landmark_map.csv (beacons or landmarks at surveyed positions), gyro.csv, "
+                "compass.csv or odometry.csv"
+            )
+        out.append(
+            SkippedStream(
+                name, "not a file of the bundle format: not read", f"{fix}; see {FORMAT_DOC}"
+            )
+        )
+    return out
+
+
 def build_gyro(
     bundle: Bundle,
     model: DeclaredModel,
     compass_heading: tuple[FloatArray, FloatArray] | None = None,
+    skipped: list[SkippedStream] | None = None,
 ) -> ScalarProblem | None:
     gyro = bundle.get("gyro")
     if gyro is None:
@@ -101,11 +171,39 @@ def build_gyro(
         ref = (grid, _moving_average(np.interp(grid, t_c, np.unwrap(th_c)), 5))
         source = "calibrated compass heading (no truth heading in the bundle)"
     if ref is None:
-        log.warning("gyro: no heading reference (truth_pose.theta or compass); stream skipped")
+        truth = bundle.get("truth_pose")
+        if truth is None:
+            no_truth = "no truth_pose.csv"
+        elif "theta" not in truth.columns:
+            no_truth = "truth_pose.csv has no theta column"
+        else:
+            no_truth = "truth_pose.csv's theta is empty"
+        no_compass = (
+            "no compass.csv"
+            if bundle.get("compass") is None
+            else "compass.csv gives no heading (its field varies in 3-D: the sensor tilted)"
+        )
+        _skip(
+            skipped,
+            "gyro",
+            f"no heading reference: {no_truth}, and {no_compass}",
+            "add theta (rad, counter-clockwise from the world x axis) per row to truth_pose.csv, "
+            f"or a compass.csv turning in the horizontal plane; see {FORMAT_DOC}",
+        )
         return None
     dense = source == "truth_pose.theta"
     t = gyro["t"]
     inside = (t >= ref[0][0]) & (t <= ref[0][-1]) & np.isfinite(gyro["yaw_rate"])
+    if inside.sum() < MIN_ROWS:
+        _skip(
+            skipped,
+            "gyro",
+            f"{int(inside.sum())} rows with a yaw_rate inside the reference's time span "
+            f"{ref[0][0]:.6g}..{ref[0][-1]:.6g} s ({source}); at least {MIN_ROWS} needed",
+            f"stamp every file on one clock (t in seconds), and record the reference while the "
+            f"gyro runs; see {FORMAT_DOC}",
+        )
+        return None
     table = gyro.select(inside)
     t = table["t"]
     interval = model.gyro_sample_interval_s
@@ -202,7 +300,9 @@ def _compass_unit(meta: Mapping[str, Any]) -> tuple[str, float]:
     return "uT", 1.0
 
 
-def build_compass(bundle: Bundle, model: DeclaredModel) -> CompassProblem | None:
+def build_compass(
+    bundle: Bundle, model: DeclaredModel, skipped: list[SkippedStream] | None = None
+) -> CompassProblem | None:
     compass = bundle.get("compass")
     if compass is None:
         return None
@@ -217,6 +317,16 @@ def build_compass(bundle: Bundle, model: DeclaredModel) -> CompassProblem | None
     direction = None
     if ref is not None:
         inside = (t >= ref[0][0]) & (t <= ref[0][-1])
+        if inside.sum() < MIN_ROWS:
+            _skip(
+                skipped,
+                "compass",
+                f"{int(inside.sum())} rows inside truth_pose.csv's time span "
+                f"{ref[0][0]:.6g}..{ref[0][-1]:.6g} s; at least {MIN_ROWS} needed",
+                "stamp every file on one clock (t in seconds), or leave theta out of "
+                f"truth_pose.csv to calibrate on the field magnitude alone; see {FORMAT_DOC}",
+            )
+            return None
         t, m = t[inside], m[inside]
         theta = np.interp(t, ref[0], ref[1])
         mode = "heading"
@@ -329,12 +439,21 @@ def _declared_motor_field(
 
 
 def build_odometry(
-    bundle: Bundle, model: DeclaredModel, window_s: float = 10.0
+    bundle: Bundle,
+    model: DeclaredModel,
+    window_s: float = 10.0,
+    skipped: list[SkippedStream] | None = None,
 ) -> OdometryProblem | None:
     odo, truth = bundle.get("odometry"), bundle.get("truth_pose")
     if odo is not None and truth is None:
         # e.g. a real robot's recording: nothing says where the wheels took it
-        log.warning("odometry: no reference pose (truth_pose) in the bundle; stream skipped")
+        _skip(
+            skipped,
+            "odometry",
+            "no reference pose: the bundle has no truth_pose.csv",
+            "add truth_pose.csv (t,x,y[,theta] in m and rad: a tracker, or the positions of a "
+            f"measured path); see {FORMAT_DOC}",
+        )
     if odo is None or truth is None:
         return None
     t = odo["t"]
@@ -344,9 +463,20 @@ def build_odometry(
     kw: dict[str, Any] = {}
     if "left_ticks" in odo.columns and "right_ticks" in odo.columns:
         if model.ticks_per_metre is None or model.wheel_base_m is None:
-            log.warning(
-                "odometry: ticks need ticks_per_metre and wheel_base_m "
-                "([robot] in the config or meta.json robot); stream skipped"
+            lacking = [
+                k
+                for k, v in (
+                    ("ticks_per_metre", model.ticks_per_metre),
+                    ("wheel_base_m", model.wheel_base_m),
+                )
+                if v is None
+            ]
+            _skip(
+                skipped,
+                "odometry",
+                f"encoder ticks, but the declared model has no {' and no '.join(lacking)}",
+                f"declare {' and '.join(lacking)} in meta.json's robot section, or in [robot] "
+                f"of --config; see {FORMAT_DOC}",
             )
             return None
         form = "ticks"
@@ -371,10 +501,28 @@ def build_odometry(
         mid = 0.5 * (th[1:] + th[:-1])
         kw.update(ds=dx * np.cos(mid) + dy * np.sin(mid), dtheta=np.diff(th))
     else:
-        log.warning("odometry: needs left_ticks,right_ticks or v,omega or x,y,theta; skipped")
+        _skip(
+            skipped,
+            "odometry",
+            "odometry.csv has none of left_ticks,right_ticks / v,omega / x,y,theta (it has "
+            f"{','.join(odo.columns) or 'no numeric column'})",
+            f"add one of these column sets: cumulative ticks, body speeds or a dead-reckoned "
+            f"pose; see {FORMAT_DOC}",
+        )
         return None
     ok = np.isfinite(truth["x"]) & np.isfinite(truth["y"])
     truth = truth.select(ok)
+    overlap = (truth["t"] >= t[0]) & (truth["t"] <= t[-1])
+    if overlap.sum() < MIN_ROWS:
+        _skip(
+            skipped,
+            "odometry",
+            f"{int(overlap.sum())} truth_pose.csv rows with x,y inside odometry.csv's time span "
+            f"{t[0]:.6g}..{t[-1]:.6g} s; at least {MIN_ROWS} needed",
+            f"stamp every file on one clock (t in seconds), and record the reference while the "
+            f"robot drives; see {FORMAT_DOC}",
+        )
+        return None
     ref = heading_reference(bundle)
     theta = np.interp(truth["t"], ref[0], ref[1]) if ref is not None else None
     t_ref = truth["t"]
@@ -412,20 +560,35 @@ def build_odometry(
     return problem
 
 
-def build_ranges(bundle: Bundle, model: DeclaredModel) -> list[ScalarProblem]:
+def build_ranges(
+    bundle: Bundle, model: DeclaredModel, skipped: list[SkippedStream] | None = None
+) -> list[ScalarProblem]:
     table = bundle.get("range")
     if table is None:
         return []
     out = []
-    kinds = np.unique(table.text["kind"]) if "kind" in table.text else np.array([""])
-    for kind in kinds:
+    for kind in _range_kinds(table):
         sub = table.select(table.text["kind"] == kind) if kind else table
         counts = "count" in _range_unit(bundle.meta, str(kind)).lower() or kind == "ir"
+        section_kind = kind or ("ir" if counts else "sonar")
+        name = _range_name(str(kind))
+        if not np.isfinite(sub["true_range"]).any():
+            _skip(
+                skipped,
+                name,
+                "true_range is empty in every row: nothing says what it should have read",
+                "add true_range (m) per row, the distance to what the sensor faces (from the "
+                f"truth pose and a map, or measured); see {FORMAT_DOC}",
+            )
+            continue
         ok = np.isfinite(sub["measured"]) & np.isfinite(sub["true_range"]) & (sub["true_range"] > 0)
         dropped = int((~ok).sum())
         beyond = 0
+        # The sonar's declared echo rules are the sonar's: a UWB or lidar range beyond the
+        # sonar's 2.5 m is no censored echo (every UWB reading once went, unreported).
+        sonar = not counts and section_kind == "sonar"
         critical = model.sonar_critical_angle_rad
-        if not counts and critical is not None and "incidence_angle" in sub.columns:
+        if sonar and critical is not None and "incidence_angle" in sub.columns:
             # The declared echo rule (sim/models/sonar.py): beyond the critical incidence there is
             # no direct echo; what is read there (late echo, crosstalk) is the model's, not a
             # residual of the direct-echo range.
@@ -433,7 +596,7 @@ def build_ranges(bundle: Bundle, model: DeclaredModel) -> list[ScalarProblem]:
             far = np.isfinite(inc) & (inc > critical)
             beyond = int((ok & far).sum())
             ok &= ~far
-        if not counts and model.sonar_range_m is not None:
+        if sonar and model.sonar_range_m is not None:
             # Readings the declared range limits could censor (0 below min_range_m, no echo
             # beyond max_range_m): keep only true ranges 3 sigma inside both limits, so the
             # dropped no-echo readings do not bias the rest.
@@ -449,18 +612,26 @@ def build_ranges(bundle: Bundle, model: DeclaredModel) -> list[ScalarProblem]:
             edge = (tr - 3 * sig < lo) | (tr + 3 * sig > hi)
             beyond += int((ok & edge).sum())
             ok &= ~edge
-        if not np.isfinite(sub["true_range"]).any():
-            log.warning("range %s: no reference range (true_range) in the bundle; stream skipped",
-                        kind or ("ir" if counts else "sonar"))
+        if int(ok.sum()) < MIN_ROWS:
+            _skip(skipped, name, *_too_few_ranges(len(sub), int(ok.sum()), dropped, beyond))
             continue
         sub = sub.select(ok)
-        if len(sub) < 10:
-            continue
         t = sub["t"]
         split = Split.of(t)
-        section_kind = kind or ("ir" if counts else "sonar")
         extras = _extras(sub, {"t", "measured", "true_range"})
         fit = split.mask(t, "fit")
+        if counts and model.ir_curve is None and not _range_varies(sub, fit):
+            _skip(
+                skipped,
+                name,
+                "true_range does not vary for any sensor (the robot stood still), and the "
+                "response curve is declared only as a shape: a curve fitted to one distance per "
+                "sensor explains every reading, so nothing can be told from it",
+                "record while the robot moves towards and away from a wall (several distances "
+                "per sensor), or declare the curve ([sensors.ir] response_range_m and "
+                f"response_counts in --config); see {FORMAT_DOC}",
+            )
+            continue
         curve = None
         fitted = False
         base_add: FloatArray | float = 0.0
@@ -479,7 +650,6 @@ def build_ranges(bundle: Bundle, model: DeclaredModel) -> list[ScalarProblem]:
                 base_add = np.where(
                     (idx >= 0) & (idx < off.size), off[np.clip(idx, 0, off.size - 1)], 0.0
                 )
-        name = f"range:{kind}" if kind else "range"
         problem = ScalarProblem(
             name,
             "scalar",
@@ -537,9 +707,58 @@ def build_ranges(bundle: Bundle, model: DeclaredModel) -> list[ScalarProblem]:
     return out
 
 
-def build_landmarks(bundle: Bundle, model: DeclaredModel) -> list[ScalarProblem]:
+def _too_few_ranges(n: int, usable: int, dropped: int, beyond: int) -> tuple[str, str]:
+    """``(missing, fix)`` for a range stream left with fewer than :data:`MIN_ROWS` rows."""
+    missing = f"{usable} usable rows of {n}, at least {MIN_ROWS} needed"
+    fixes = []
+    if dropped:
+        missing += f"; {dropped} with measured or true_range empty, or true_range <= 0"
+        fixes.append("fill measured and true_range (> 0 m) in every row")
+    if beyond:
+        missing += (
+            f"; {beyond} beyond the declared sonar's critical incidence angle or within 3 sigma "
+            "of its range limits"
+        )
+        fixes.append(
+            "record within the declared [sensors.sonar] min_range_m..max_range_m and "
+            "critical_angle_deg of --config; for another sensor (range beacons, lidar) give "
+            "range.csv a kind column (e.g. uwb): the limits are the sonar's"
+        )
+    if not fixes:
+        fixes.append("record more readings")
+    return missing, "; ".join(fixes) + f"; see {FORMAT_DOC}"
+
+
+def _range_varies(table: Table, fit: NDArray[np.bool_]) -> bool:
+    """Whether any sensor saw two different true ranges in the fit part (by more than 1 mm):
+    a response curve fitted from the data needs that to be told from per-sensor offsets."""
+    tr = table["true_range"][fit]
+    sensors = table["sensor"][fit] if "sensor" in table.columns else np.zeros_like(tr)
+    for s in np.unique(sensors):
+        r = tr[sensors == s]
+        if r.size > 1 and float(np.ptp(r)) > 1e-3:
+            return True
+    return False
+
+
+def build_landmarks(
+    bundle: Bundle, model: DeclaredModel, skipped: list[SkippedStream] | None = None
+) -> list[ScalarProblem]:
     obs, lmap, truth = bundle.get("landmarks"), bundle.get("landmark_map"), bundle.get("truth_pose")
-    if obs is None or lmap is None or truth is None:
+    if obs is None:
+        return []
+    present = [n for n in bundle_streams(bundle) if n.startswith("landmark_")]
+    if lmap is None or truth is None:
+        refs = (("landmark_map.csv", lmap), ("truth_pose.csv", truth))
+        lacking = [f for f, v in refs if v is None]
+        for name in present:
+            _skip(
+                skipped,
+                name,
+                f"no reference: the bundle has no {' and no '.join(lacking)}",
+                "add landmark_map.csv (id,x,y: the surveyed landmark positions, m) and "
+                "truth_pose.csv (t,x,y,theta: where the robot was); see " + FORMAT_DOC,
+            )
         return []
     ids = lmap["id"]
     idx = np.searchsorted(ids, obs["landmark_id"], sorter=np.argsort(ids))
@@ -547,7 +766,17 @@ def build_landmarks(bundle: Bundle, model: DeclaredModel) -> list[ScalarProblem]
     idx = order[np.clip(idx, 0, ids.size - 1)]
     known = ids[idx] == obs["landmark_id"]
     t = obs["t"]
-    inside = known & (t >= truth["t"][0]) & (t <= truth["t"][-1])
+    during = (t >= truth["t"][0]) & (t <= truth["t"][-1])
+    inside = known & during
+    why = (
+        f"{int((~known).sum())} of {known.size} observations name a landmark_id not in "
+        f"landmark_map.csv, {int((known & ~during).sum())} more lie outside truth_pose.csv's "
+        "time span"
+    )
+    fix = (
+        "give every observed landmark_id its row in landmark_map.csv, stamp every file on one "
+        f"clock, and record at least {MIN_ROWS} observations; see {FORMAT_DOC}"
+    )
     obs, idx, t = obs.select(inside), idx[inside], t[inside]
     px = np.interp(t, truth["t"], truth["x"])
     py = np.interp(t, truth["t"], truth["y"])
@@ -563,7 +792,9 @@ def build_landmarks(bundle: Bundle, model: DeclaredModel) -> list[ScalarProblem]
     extras = _extras(obs, {"t", "range", "bearing", "landmark_id"})
     out: list[ScalarProblem] = []
     ok = np.isfinite(obs["range"])
-    if ok.sum() >= 10:
+    if ok.sum() < MIN_ROWS and "landmark_range" in present:
+        _skip(skipped, "landmark_range", f"{int(ok.sum())} usable ranges ({why})", fix)
+    if ok.sum() >= MIN_ROWS:
         sub_split = Split.of(t[ok])
         out.append(
             ScalarProblem(
@@ -583,11 +814,21 @@ def build_landmarks(bundle: Bundle, model: DeclaredModel) -> list[ScalarProblem]
                 quantity="landmark range",
             )
         )
+    if ref is None and "landmark_bearing" in present:
+        _skip(
+            skipped,
+            "landmark_bearing",
+            "no reference heading: truth_pose.csv has no theta",
+            "add theta (rad, counter-clockwise from the world x axis) per row to "
+            f"truth_pose.csv; see {FORMAT_DOC}",
+        )
     if ref is not None:
         theta = np.interp(t, ref[0], ref[1])
         bearing = wrap_angle(np.arctan2(ly, lx) - theta)
         okb = np.isfinite(obs["bearing"])
-    if ref is not None and okb.sum() >= 10:
+        if okb.sum() < MIN_ROWS and "landmark_bearing" in present:
+            _skip(skipped, "landmark_bearing", f"{int(okb.sum())} usable bearings ({why})", fix)
+    if ref is not None and okb.sum() >= MIN_ROWS:
         out.append(
             ScalarProblem(
                 "landmark_bearing",

@@ -165,6 +165,12 @@ class CompassProblem(StreamProblem):
     ) -> tuple[FloatArray, FloatArray]:
         return self.t, self._residual(insts, x, "all")
 
+    def heldout_errors(self, insts: Sequence[EffectInstance], x: FloatArray) -> FloatArray:
+        """Heading error (rad), or the field magnitude's deviation from the fitted one in % (the
+        metric's unit; its RMS is then close to, not equal to, the held-out spread)."""
+        r = self._residual(insts, x, "score")
+        return r if self.mode == "heading" else 100.0 * r
+
     def heading_error_vs_gyro(self, insts: Sequence[EffectInstance], x: FloatArray) -> float:
         """Held-out RMS (rad) of the compass heading against the declared gyro's heading, north
         (the constant between them) fitted on the fit part."""

@@ -150,6 +150,11 @@ class OdometryProblem(StreamProblem):
         e, _ = self._errors(insts, x, part)
         return float(np.sqrt(np.mean(np.sum(e**2, axis=1)))) if e.size else float("nan")
 
+    def heldout_errors(self, insts: Sequence[EffectInstance], x: FloatArray) -> FloatArray:
+        """The held-out position error per reference sample (m): its RMS is the metric."""
+        e, _ = self._errors(insts, x, "score")
+        return np.asarray(np.linalg.norm(e, axis=1), dtype=float)
+
     def independent_count(self, part: Part) -> int | None:
         # Dead-reckoning errors integrate the noise twice (slip -> heading -> position), so
         # residuals inside a window are not independent whatever their lag-1 correlation says;

@@ -241,6 +241,7 @@ class ScalarProblem(StreamProblem):
                     "rad",
                     self.rotation_error(*before),
                     self.rotation_error(*after),
+                    signed=True,
                 )
             )
         return out
