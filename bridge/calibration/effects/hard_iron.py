@@ -5,7 +5,8 @@
 Two components for planar modes, three for a full-sphere recording. Starting value: with a heading
 reference the linear least-squares solution of ``m_i = R(-theta_i) b + h`` (b the horizontal
 field in the world frame); without, the algebraic circle/sphere fit ``|m|^2 = 2 h.m + c``
-(both exact for noise-free data). Writes ``[sensors.compass] hard_iron_uT`` (declared + found,
+(both exact for noise-free data). Plausible only within ``3 max|m|`` of zero (``m = f + h`` bounds
+``|h| <= 2 max|m|`` once the orientations vary). Writes ``[sensors.compass] hard_iron_uT`` (declared + found,
 converted to uT).
 """
 
@@ -44,7 +45,17 @@ class HardIron(Effect):
             h = circle_centre(m[:, :d])
         dh = h - problem.h_declared[:d]
         names = ("dh_x", "dh_y", "dh_z")[:d]
-        return [EffectInstance(self.name, self, names, tuple(float(v) for v in dh))]
+        # m = f + h with f the outside field: once the orientations vary (checked above), some
+        # reading is at least as long as f, so |h| <= |m| + |f| <= 2 max|m|; beyond 3 max|m|
+        # the fit is not a hard iron (a sphere through a circle runs off along its normal).
+        bound = 3.0 * float(np.max(np.linalg.norm(problem.m[:, :d], axis=1)))
+        return [EffectInstance(self.name, self, names, tuple(float(v) for v in dh),
+                               data={"max_offset": bound,
+                                     "declared": problem.h_declared[:d].copy()})]
+
+    def plausible(self, inst: EffectInstance, params: Any) -> bool:
+        h = np.asarray(inst.data["declared"], dtype=float) + np.asarray(params, dtype=float)
+        return bool(np.linalg.norm(h) <= inst.data["max_offset"])
 
     def apply(self, inst: EffectInstance, state: Any, params: Any) -> None:
         h = state.h.copy()
