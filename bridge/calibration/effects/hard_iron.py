@@ -5,9 +5,9 @@
 Two components for planar modes, three for a full-sphere recording. Starting value: with a heading
 reference the linear least-squares solution of ``m_i = R(-theta_i) b + h`` (b the horizontal
 field in the world frame); without, the algebraic circle/sphere fit ``|m|^2 = 2 h.m + c``
-(both exact for noise-free data). Plausible only within ``3 max|m|`` of zero (``m = f + h`` bounds
-``|h| <= 2 max|m|`` once the orientations vary). Writes ``[sensors.compass] hard_iron_uT`` (declared + found,
-converted to uT).
+(both exact for noise-free data). Plausible only within ``3 max|m|`` of zero (``m = f + h``
+bounds ``|h| <= 2 max|m|`` once the orientations vary). Writes ``[sensors.compass]
+hard_iron_uT`` (declared + found, converted to uT).
 """
 
 from __future__ import annotations
