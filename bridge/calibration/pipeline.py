@@ -35,6 +35,7 @@ from koala_bridge.calibration.selection import (
     select_effects,
 )
 from koala_bridge.calibration.streams import (
+    build_beacons,
     build_compass,
     build_gyro,
     build_landmarks,
@@ -353,6 +354,7 @@ def _problems(
         out.append(build_gyro(bundle, model, compass_heading, skipped))
         out.append(build_odometry(odometry_bundle or bundle, model, options.window_s, skipped))
         out.extend(build_ranges(bundle, model, skipped))
+        out.extend(build_beacons(bundle, model, skipped))
         out.extend(build_landmarks(bundle, model, skipped))
     return [p for p in out if p is not None]
 
