@@ -18,6 +18,7 @@ from koala_bridge.calibration.effects.base import EffectInstance
 from koala_bridge.calibration.errors import EffectRegistryError
 from koala_bridge.calibration.metrics import HeldOutStatistics, heldout_statistics
 from koala_bridge.calibration.model import DeclaredModel
+from koala_bridge.calibration.noise import StreamNoise, identify_noise
 from koala_bridge.calibration.problem import (
     FloatArray,
     SecondaryMetric,
@@ -76,6 +77,8 @@ class StreamResult:
     before: float
     after: float
     secondary: list[SecondaryMetric] = field(default_factory=list)
+    #: Allan-variance noise terms of a rate stream's residual (calibration/noise.py)
+    noise: StreamNoise | None = None
 
     @property
     def effects(self) -> list[EffectInstance]:
@@ -444,6 +447,8 @@ def calibrate(
                 )
             )
     found += unknown_files(bundle)
+    for res in results:
+        res.noise = identify_noise(res.problem, res.selection.after)
     if skipped is not None:
         skipped.extend(found)
     return results  # empty: no stream with a reference (the caller says so, from skipped)
