@@ -8,7 +8,9 @@ any unmodelled effect add, so the terms are then upper bounds on the sensor's. R
 are the scalar streams in a unit per second (the gyro, ``gyro:level``) held against a rate
 reference; a gyro compared in heading space (against a compass heading) has no rate residual and
 gets none. Samples are taken as equally spaced at the mean interval (a logger's irregular stamps
-jitter about the sensor's rate, which is what the Allan variance needs).
+jitter about the sensor's rate, which is what the Allan variance needs); a series with breaks
+(intervals beyond :data:`BREAK_FACTOR` median ones, as ``gyro:level`` has) is analysed on its
+longest unbroken stretch.
 """
 
 from __future__ import annotations
@@ -25,6 +27,8 @@ from koala_bridge.calibration.streams.scalar import ScalarProblem
 
 #: Stamps whose largest interval exceeds this many mean intervals are noted as irregular
 GAP_FACTOR = 3.0
+#: An interval longer than this many median intervals breaks the series (not a logger's jitter)
+BREAK_FACTOR = 10.0
 
 
 @dataclass(frozen=True)
@@ -58,11 +62,22 @@ def identify_noise(problem: StreamProblem, fit: Fit) -> StreamNoise | None:
     t, r = t[ok], r[ok]
     if t.size < 30:
         return None
+    notes = []
+    gaps = np.flatnonzero(np.diff(t) > BREAK_FACTOR * np.median(np.diff(t)))
+    if gaps.size:  # a series with breaks (level segments only): its longest unbroken stretch
+        bounds = np.r_[0, gaps + 1, t.size]
+        k = int(np.argmax(np.diff(bounds)))
+        t, r = t[bounds[k] : bounds[k + 1]], r[bounds[k] : bounds[k + 1]]
+        notes.append(
+            f"{gaps.size} break(s) in the series: its longest unbroken stretch, "
+            f"{t[-1] - t[0]:.4g} s"
+        )
+        if t.size < 30:
+            return None
     tau0 = float((t[-1] - t[0]) / (t.size - 1))
     allan = allan_noise(r, tau0)
     if allan is None:
         return None
-    notes = []
     gap = float(np.max(np.diff(t)))
     if gap > GAP_FACTOR * tau0:
         notes.append(

@@ -46,6 +46,7 @@ from koala_bridge.calibration.streams import (
     unknown_files,
 )
 from koala_bridge.calibration.streams.compass import CompassProblem
+from koala_bridge.calibration.streams.level import build_gyro_level, note_level_bias
 from scipy import stats
 
 log = logging.getLogger(__name__)
@@ -355,6 +356,7 @@ def _problems(
         out.append(build_compass(bundle, model, skipped))
     else:
         out.append(build_gyro(bundle, model, compass_heading, skipped))
+        out.append(build_gyro_level(bundle, model))
         out.append(build_odometry(odometry_bundle or bundle, model, options.window_s, skipped))
         out.extend(build_ranges(bundle, model, skipped))
         out.extend(build_beacons(bundle, model, skipped))
@@ -410,7 +412,8 @@ def calibrate(
         full_by_name = {p.name: p for p in problems_full}
         for p in problems_small:
             res = run_stream(p, options, progress)
-            out.append(res if small is bundle else refit_full(full_by_name[p.name], res))
+            full = full_by_name.get(p.name)  # a stream the subset alone has keeps its result
+            out.append(res if small is bundle or full is None else refit_full(full, res))
         return out
 
     results = run(
@@ -449,6 +452,7 @@ def calibrate(
     found += unknown_files(bundle)
     for res in results:
         res.noise = identify_noise(res.problem, res.selection.after)
+    note_level_bias(results)
     if skipped is not None:
         skipped.extend(found)
     return results  # empty: no stream with a reference (the caller says so, from skipped)
