@@ -19,9 +19,12 @@ The lines are fitted together, by non-negative weighted least squares of the All
 number of independent clusters of ``m`` samples (the confidence of Annex C.1, percentage error of
 sigma ``1 / sqrt(2 (M - 1))``; the overlapping estimate is more precise, so this is conservative),
 reweighted by the fitted curve. Cluster sizes are octaves (m = 1, 2, 4, ...) with at least
-:data:`MIN_CLUSTERS` clusters, so neighbouring points share little data. B is read from the
-curve's minimum, not from the fitted flat term: that is the standard reading, an upper bound on
-the flicker floor when the N and K lines meet near the minimum.
+:data:`MIN_CLUSTERS` clusters. Neighbouring points still share data, so the fit's least-squares
+covariance is too small (1.6-1.7x on white noise plus a random walk); a term's standard error is
+instead its reading at the best single point (:func:`reading_error`), which matches the spread
+over seeds. B is read from the curve's minimum, not from the fitted flat term: that is the
+standard reading, an upper bound on the flicker floor when the N and K lines meet near the
+minimum.
 
 Pure functions of arrays (no I/O); :func:`overlapping_adev` is NIST SP 1065 eq. 11 in the phase
 form (W. J. Riley, "Handbook of Frequency Stability Analysis", 2008).
