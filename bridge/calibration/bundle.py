@@ -32,9 +32,13 @@ REQUIRED_COLUMNS: Mapping[str, tuple[str, ...]] = {
     "gyro": ("t", "yaw_rate"),
     "compass": ("t", "mx", "my"),
     "range": ("t", "sensor", "measured", "true_range"),
-    "landmarks": ("t", "landmark_id", "range", "bearing"),
+    "landmarks": ("t", "landmark_id"),
     "landmark_map": ("id", "x", "y"),
 }
+
+#: Files that need at least one of these columns (a range beacon gives no bearing, a
+#: bearing-only camera no range).
+ONE_OF_COLUMNS: Mapping[str, tuple[str, ...]] = {"landmarks": ("range", "bearing")}
 
 #: Files with one sample per time: at least two rows, no time twice. (``range`` and
 #: ``landmarks`` hold several sensors / observations per time.)
@@ -202,6 +206,10 @@ def load_bundle(directory: Path) -> Bundle:
         missing = [c for c in required if c not in table]
         if missing:
             raise BundleError(f"{csv_path} lacks required column(s) {', '.join(missing)}")
+        either = ONE_OF_COLUMNS.get(name, ())
+        if either and not any(c in table for c in either):
+            raise BundleError(f"{csv_path} lacks a {' or '.join(either)} column")
+        required = required + tuple(c for c in either if c in table)
         for c in required:
             if c in table.text:
                 cells = table.text[c]

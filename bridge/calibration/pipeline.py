@@ -18,6 +18,7 @@ from koala_bridge.calibration.effects.base import EffectInstance
 from koala_bridge.calibration.errors import EffectRegistryError
 from koala_bridge.calibration.metrics import HeldOutStatistics, heldout_statistics
 from koala_bridge.calibration.model import DeclaredModel
+from koala_bridge.calibration.noise import StreamNoise, identify_noise
 from koala_bridge.calibration.problem import (
     FloatArray,
     SecondaryMetric,
@@ -35,6 +36,7 @@ from koala_bridge.calibration.selection import (
     select_effects,
 )
 from koala_bridge.calibration.streams import (
+    build_beacons,
     build_compass,
     build_gyro,
     build_landmarks,
@@ -44,6 +46,7 @@ from koala_bridge.calibration.streams import (
     unknown_files,
 )
 from koala_bridge.calibration.streams.compass import CompassProblem
+from koala_bridge.calibration.streams.level import build_gyro_level, note_level_bias
 from scipy import stats
 
 log = logging.getLogger(__name__)
@@ -75,6 +78,8 @@ class StreamResult:
     before: float
     after: float
     secondary: list[SecondaryMetric] = field(default_factory=list)
+    #: Allan-variance noise terms of a rate stream's residual (calibration/noise.py)
+    noise: StreamNoise | None = None
 
     @property
     def effects(self) -> list[EffectInstance]:
@@ -351,8 +356,10 @@ def _problems(
         out.append(build_compass(bundle, model, skipped))
     else:
         out.append(build_gyro(bundle, model, compass_heading, skipped))
+        out.append(build_gyro_level(bundle, model))
         out.append(build_odometry(odometry_bundle or bundle, model, options.window_s, skipped))
         out.extend(build_ranges(bundle, model, skipped))
+        out.extend(build_beacons(bundle, model, skipped))
         out.extend(build_landmarks(bundle, model, skipped))
     return [p for p in out if p is not None]
 
@@ -405,7 +412,8 @@ def calibrate(
         full_by_name = {p.name: p for p in problems_full}
         for p in problems_small:
             res = run_stream(p, options, progress)
-            out.append(res if small is bundle else refit_full(full_by_name[p.name], res))
+            full = full_by_name.get(p.name)  # a stream the subset alone has keeps its result
+            out.append(res if small is bundle or full is None else refit_full(full, res))
         return out
 
     results = run(
@@ -442,6 +450,9 @@ def calibrate(
                 )
             )
     found += unknown_files(bundle)
+    for res in results:
+        res.noise = identify_noise(res.problem, res.selection.after)
+    note_level_bias(results)
     if skipped is not None:
         skipped.extend(found)
     return results  # empty: no stream with a reference (the caller says so, from skipped)

@@ -46,6 +46,7 @@ from koala_bridge.calibration.metrics import (
     HeldOutStatistics,
     change,
 )
+from koala_bridge.calibration.noise import noise_json, noise_markdown, plot_allan
 from koala_bridge.calibration.pipeline import StreamResult
 from koala_bridge.calibration.problem import SecondaryMetric
 from koala_bridge.calibration.stages import Stage
@@ -149,6 +150,8 @@ def stream_entries(
                 "after": stats.after.as_dict(),
             }
         entry.update(split=split, effects=carried + effects)
+        if res.noise is not None and i == 0:  # once per stream, with its own metric
+            entry["allan"] = noise_json(res.noise)
         entries.append(entry)
     return entries
 
@@ -322,6 +325,8 @@ def _stream_markdown(res: StreamResult, stage: Stage, plot: str | None, heading:
             )
     if plot is not None:
         lines += ["", f"![{p.name} residuals]({plot})"]
+    if res.noise is not None:
+        lines += noise_markdown(res.noise, plot and plot.replace("residuals_", "allan_", 1))
     return lines
 
 
@@ -398,5 +403,8 @@ def write_report(out: Path, stages: Sequence[Stage], diff: str, plots: bool = Tr
         for stage in stages:
             for res in stage.results:
                 plot_residuals(res, out / _plot_name(stage, res, staged))
+                if res.noise is not None:
+                    name = _plot_name(stage, res, staged).replace("residuals_", "allan_", 1)
+                    plot_allan(res.noise, out / name)
     (out / "report.md").write_text(report_markdown(stages, diff, plots), encoding="utf-8")
     log.info("report written to %s", out)

@@ -22,6 +22,11 @@ from koala_bridge.calibration.bundle import REQUIRED_COLUMNS, Bundle, Table
 from koala_bridge.calibration.effects.common import categorical_levels
 from koala_bridge.calibration.model import DeclaredModel
 from koala_bridge.calibration.problem import FloatArray, SkippedStream, Split
+from koala_bridge.calibration.streams.beacons import (
+    beacon_rows,
+    beacon_streams,
+    build_beacons,
+)
 from koala_bridge.calibration.streams.compass import CompassProblem
 from koala_bridge.calibration.streams.odometry import OdometryProblem
 from koala_bridge.calibration.streams.scalar import ScalarProblem, fit_shared_curve
@@ -35,6 +40,7 @@ __all__ = [
     "CompassProblem",
     "OdometryProblem",
     "ScalarProblem",
+    "build_beacons",
     "build_compass",
     "build_gyro",
     "build_landmarks",
@@ -81,8 +87,10 @@ def bundle_streams(bundle: Bundle) -> list[str]:
         out += [_range_name(str(k)) for k in _range_kinds(ranges)]
     obs = bundle.get("landmarks")
     if obs is not None:
+        out += beacon_streams(bundle)  # range-only rows: streams/beacons.py
+        camera = obs.select(~beacon_rows(obs))
         for column, name in (("range", "landmark_range"), ("bearing", "landmark_bearing")):
-            if np.isfinite(obs[column]).any():
+            if column in camera.columns and np.isfinite(camera[column]).any():
                 out.append(name)
     return out
 
@@ -760,6 +768,11 @@ def build_landmarks(
                 "truth_pose.csv (t,x,y,theta: where the robot was); see " + FORMAT_DOC,
             )
         return []
+    obs = obs.select(~beacon_rows(obs))  # range beacons are streams/beacons.py's
+    if len(obs) == 0:
+        return []
+    nan = np.full(len(obs), np.nan)
+    obs = Table(obs.name, {"range": nan, "bearing": nan, **obs.columns}, obs.text, obs.lines)
     ids = lmap["id"]
     idx = np.searchsorted(ids, obs["landmark_id"], sorter=np.argsort(ids))
     order = np.argsort(ids)

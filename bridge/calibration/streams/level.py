@@ -1,0 +1,154 @@
+"""The gyro on its level segments (``gyro:level``): where the z axis is vertical, the z rate is the
+heading rate, so a z-rate bias is plain there.
+
+An IMU moved in 3-D (tilts up to 90 deg) reads on its z axis ``psi' cos(pitch) cos(roll)`` plus
+the tilt rates mixed in, not the heading rate ``psi'`` the reference gives. On the whole stream
+that error looks like a coupling to the x/y rates (``covariate:rate_y``, ``scale``), and the bias
+is lost under it. On the level segments the declared model holds, and the bias is fitted and
+scored there alone: a second stream, ``gyro:level``, with the gyro's own section and keys (its
+``bias`` is the gyro's ``bias_rad_s``; listed after ``gyro``, so the written config takes it).
+The tilt coupling stays on the whole stream.
+
+Level segments:
+
+* with an accelerometer in ``gyro.csv`` (``acc_x, acc_y, acc_z``, m/s^2, body frame, z up):
+  the tilt of the z axis from the measured gravity, ``atan2(hypot(a_x, a_y), a_z)``, below
+  :data:`LEVEL_TILT_DEG`, where the accelerometer reads gravity alone (``|a|`` within
+  :data:`GRAVITY_TOLERANCE` of its median: a body that accelerates is not measured for tilt);
+* without one, from ``rate_x, rate_y``: where neither rotates (each within
+  :data:`ROTATION_SIGMAS` noise sigmas, at least :data:`MIN_ROTATION_RAD_S`, of its median).
+  That finds the body not *tilting*, not the body level: a tilt held still passes for level, so an
+  accelerometer is the better evidence (the report says which was used);
+
+kept only in stretches of at least :data:`MIN_LEVEL_S`. At 3 deg a heading rate psi' is read as
+``psi' cos 3 deg``, 0.14 % low: far below a bias at any turn rate the robot has.
+
+Built only when it tells something new: a heading reference from ``truth_pose.theta`` (a
+compass-derived reference is compared over windows, which gaps would break), some samples not
+level (else the gyro stream is the level stream), and at least :data:`MIN_LEVEL_SAMPLES` level
+ones in each of the fit and score parts.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+from koala_bridge.calibration.bundle import Bundle, Table
+from koala_bridge.calibration.model import DeclaredModel
+from koala_bridge.calibration.streams.scalar import ScalarProblem
+from numpy.typing import NDArray
+
+ACC_COLUMNS = ("acc_x", "acc_y", "acc_z")
+RATE_COLUMNS = ("rate_x", "rate_y")
+#: z axis within this of the vertical: level
+LEVEL_TILT_DEG = 3.0
+#: |a| within this fraction of its median: the accelerometer reads gravity alone
+GRAVITY_TOLERANCE = 0.05
+#: without an accelerometer: x/y rates within this many noise sigmas (and at least
+#: MIN_ROTATION_RAD_S) of their medians are "not rotating"
+ROTATION_SIGMAS = 4.0
+MIN_ROTATION_RAD_S = 0.005
+#: shortest level stretch used (s)
+MIN_LEVEL_S = 1.0
+#: fewest level samples in each of the fit and score parts
+MIN_LEVEL_SAMPLES = 50
+#: a gyro level on more than this fraction of its samples needs no level stream
+MAX_LEVEL_FRACTION = 0.95
+
+
+def tilt_from_accelerometer(acc: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(n,) angle between the body z axis and the measured gravity (rad), from (n, 3) m/s^2."""
+    return np.asarray(np.arctan2(np.hypot(acc[:, 0], acc[:, 1]), acc[:, 2]), dtype=float)
+
+
+def _noise_sigma(v: NDArray[np.float64]) -> float:
+    """White-noise sigma from first differences (MAD, robust to the motion's steps)."""
+    d = np.diff(v[np.isfinite(v)])
+    return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2)) if d.size else 0.0
+
+
+def _long_runs(mask: NDArray[np.bool_], t: NDArray[np.float64], min_s: float) -> NDArray[np.bool_]:
+    """``mask`` with its true runs shorter than ``min_s`` seconds cleared."""
+    out = mask.copy()
+    edges = np.flatnonzero(np.diff(np.r_[0, mask.astype(np.int8), 0]))
+    for start, stop in zip(edges[::2], edges[1::2], strict=True):
+        if t[stop - 1] - t[start] < min_s:
+            out[start:stop] = False
+    return out
+
+
+def level_mask(gyro: Table) -> tuple[NDArray[np.bool_], str] | None:
+    """Level samples of ``gyro.csv`` and how they were found (module docstring); None when the
+    file has neither an accelerometer nor the x/y rates."""
+    t = gyro["t"]
+    if all(c in gyro.columns for c in ACC_COLUMNS):
+        acc = np.column_stack([gyro[c] for c in ACC_COLUMNS])
+        norm = np.linalg.norm(acc, axis=1)
+        ok = np.isfinite(norm)
+        g = float(np.median(norm[ok])) if ok.any() else 0.0
+        calm = ok & (np.abs(norm - g) < GRAVITY_TOLERANCE * g)
+        level = calm & (
+            np.abs(tilt_from_accelerometer(np.nan_to_num(acc))) < np.deg2rad(LEVEL_TILT_DEG)
+        )
+        how = (
+            f"accelerometer: tilt of z from gravity < {LEVEL_TILT_DEG:g} deg, |a| within "
+            f"{100 * GRAVITY_TOLERANCE:g} % of g"
+        )
+    elif all(c in gyro.columns for c in RATE_COLUMNS):
+        level = np.ones(t.size, dtype=bool)
+        for c in RATE_COLUMNS:
+            v = gyro[c]
+            limit = max(ROTATION_SIGMAS * _noise_sigma(v), MIN_ROTATION_RAD_S)
+            level &= np.isfinite(v) & (np.abs(v - np.nanmedian(v)) < limit)
+        how = (
+            "no accelerometer: x/y rates ~0 (not tilting; a tilt held still is not told from level)"
+        )
+    else:
+        return None
+    return _long_runs(level, t, MIN_LEVEL_S), f"{how}, stretches >= {MIN_LEVEL_S:g} s"
+
+
+def build_gyro_level(bundle: Bundle, model: DeclaredModel) -> ScalarProblem | None:
+    """The ``gyro:level`` stream (module docstring), or None."""
+    from koala_bridge.calibration.streams import build_gyro, heading_reference
+
+    gyro = bundle.get("gyro")
+    if gyro is None or heading_reference(bundle) is None:
+        return None
+    found = level_mask(gyro)
+    if found is None:
+        return None
+    mask, how = found
+    if mask.mean() > MAX_LEVEL_FRACTION:
+        return None
+    tables = dict(bundle.tables)
+    tables["gyro"] = gyro.select(mask)
+    problem = build_gyro(replace(bundle, tables=tables), model)
+    if problem is None:
+        return None
+    fit = problem.split.mask(problem.t, "fit")
+    if min(int(fit.sum()), int((~fit).sum())) < MIN_LEVEL_SAMPLES:
+        return None
+    problem.name = "gyro:level"
+    problem.heading_window_s = None  # windows would span the tilted gaps
+    problem.notes.append(
+        f"level segments only ({how}): {int(mask.sum())} of {mask.size} samples; the z-rate "
+        "bias is fitted and scored here, apart from the tilt coupling of the whole stream"
+    )
+    return problem
+
+
+def note_level_bias(results: Sequence[Any]) -> None:
+    """On the whole ``gyro`` stream, say where the written bias comes from when ``gyro:level``
+    found one (``results``: :class:`koala_bridge.calibration.pipeline.StreamResult`)."""
+    by_name = {res.problem.name: res for res in results}
+    whole, level = by_name.get("gyro"), by_name.get("gyro:level")
+    if whole is None or level is None or not any(i.name == "bias" for i in level.effects):
+        return
+    whole.problem.notes.append(
+        "the gyro's bias is the level segments' (stream gyro:level, written as bias_rad_s): "
+        "on the whole stream the tilted segments' error mixes into any bias fitted here"
+    )

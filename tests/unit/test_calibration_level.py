@@ -1,0 +1,84 @@
+"""3-D / tilt awareness: a gyro z bias found on the level segments of an IMU moved in 3-D.
+
+Synthetic IMU (bridge/calibration/synthetic_imu.py): the body turns while, in episodes, it rolls
+or pitches up to 90 deg; tilted, the z gyro reads psi' cos(pitch) cos(roll) plus the tilt rates
+mixed in. On the whole stream that shows as a coupling to rate_x/rate_y and hides the bias; on
+the level segments (gravity within 3 deg of z) the reading is psi' + b + noise.
+
+Bound: on the level segments the residual is b + white noise of the generator's sigma, so the
+least-squares bias on the fit part's n samples has standard error sigma / sqrt(n); the found bias
+must lie within 4 of them (two-sided false alarm 6e-5).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from koala_bridge.calibration.bundle import load_bundle
+from koala_bridge.calibration.config_update import found_keys
+from koala_bridge.calibration.model import declared_model
+from koala_bridge.calibration.pipeline import calibrate
+from koala_bridge.calibration.problem import SkippedStream
+from koala_bridge.calibration.streams.level import level_mask, tilt_from_accelerometer
+from koala_bridge.calibration.synthetic_imu import TiltCase, make_tilt_bundle, tilt_angles
+
+Z = 4.0
+IDEAL = {"sensors": {"gyro": {"ideal": True}}}
+
+
+@pytest.mark.parametrize("accelerometer", [True, False])
+def test_z_bias_found_on_level_segments(tmp_path: Path, accelerometer: bool) -> None:
+    case = TiltCase()
+    bundle = load_bundle(make_tilt_bundle(tmp_path / "imu", 5, case, accelerometer))
+    skipped: list[SkippedStream] = []
+    model = declared_model(IDEAL, bundle.meta)
+    results = {r.problem.name: r for r in calibrate(bundle, model, skipped=skipped)}
+    assert set(results) == {"gyro", "gyro:level"} and skipped == []
+    level = results["gyro:level"]
+    assert [i.name for i in level.effects] == ["bias"]
+    n_fit = int(level.problem.split.mask(level.problem.t, "fit").sum())
+    se = case.noise / np.sqrt(n_fit)
+    assert se < 0.01 * case.bias  # a bound a wrong bias fails
+    ((params, _),) = level.effect_params()
+    assert abs(params["bias"] - case.bias) < Z * se
+    # the written gyro bias is the level segments' (the stream after the whole gyro)
+    assert abs(found_keys(list(results.values()))["sensors.gyro.bias_rad_s"] - case.bias) < Z * se
+    # the whole stream's tilt error shows as a coupling to the other axes' rates
+    whole = results["gyro"]
+    assert any(i.name.startswith("covariate:rate_") for i in whole.effects)
+    assert any("gyro:level" in n for n in whole.problem.notes)
+    # held out on the level segments: the bias was the error, the noise is left
+    n = level.problem.residuals([], np.empty(0), "score").size
+    assert level.after < case.noise * (1 + Z / np.sqrt(2 * n)) < level.before
+
+
+def test_level_mask_follows_the_tilt(tmp_path: Path) -> None:
+    """Level from gravity: every sample the generator tilted by more than 3 deg plus the
+    accelerometer noise's worth is not level; the level ones were tilted by at most that."""
+    case = TiltCase()
+    bundle = load_bundle(make_tilt_bundle(tmp_path / "imu", 6, case))
+    _, _, th, ph = tilt_angles(case)
+    true_tilt = np.degrees(np.arccos(np.cos(th) * np.cos(ph)))
+    found = level_mask(bundle.tables["gyro"])
+    assert found is not None and "accelerometer" in found[1]
+    mask = found[0]
+    # the accelerometer's noise (0.05 m/s^2 per axis) moves the tilt by < 4 sigma / g rad
+    slack = np.degrees(Z * case.acc_noise / 9.80665)
+    assert true_tilt[mask].max() < 3.0 + slack
+    assert not mask[true_tilt > 3.0 + slack].any()
+    assert 0.4 < mask.mean() < 0.9  # level half of the time, tilted the other half
+
+
+def test_tilt_from_accelerometer() -> None:
+    g = 9.81
+    acc = np.array([[0, 0, g], [g, 0, 0], [0, -g, 0], [0, 0, -g], [0, g / 2, g * np.sqrt(3) / 2]])
+    assert np.degrees(tilt_from_accelerometer(acc)) == pytest.approx([0, 90, 90, 180, 30])
+
+
+def test_no_level_stream_without_tilts(tmp_path: Path) -> None:
+    """A gyro level all the time is its own level stream: nothing is added."""
+    bundle = load_bundle(make_tilt_bundle(tmp_path / "imu", 7, TiltCase(amplitudes_deg=())))
+    names = [r.problem.name for r in calibrate(bundle, declared_model(IDEAL, bundle.meta))]
+    assert names == ["gyro"]
