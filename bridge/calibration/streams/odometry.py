@@ -9,7 +9,9 @@ Wheel odometry (UMBmark's kinematics, Borenstein & Feng 1996, eq. 2-5), per step
 with ``tpm`` ticks per metre, ``b`` the wheel base and ``rho`` the left/right wheel diameter ratio.
 Odometry given as body speeds (``v, omega``) or as a dead-reckoned pose (``x, y, theta``) is turned
 into ``ds, dtheta`` directly; then ``tick_scale`` scales ``ds`` and ``wheel_base`` scales
-``dtheta`` (the parameters are reported as factors).
+``dtheta`` (the parameters are reported as factors). In every form ``heading_drift`` takes
+``d dt`` off each ``dtheta`` (a dead-reckoned heading that turns at ``d`` rad/s relative to the
+truth).
 
 Residual: the reference is cut into windows of ``window_s`` seconds; each window starts at the
 reference pose of its first sample (re-anchored) and the dead-reckoned path is compared with the
@@ -32,7 +34,8 @@ from numpy.typing import NDArray
 
 @dataclass
 class OdometryState:
-    """Geometry the effects change: ticks per metre, wheel base, diameter ratio, time offset."""
+    """What the effects change: ticks per metre, wheel base, diameter ratio, time offset,
+    heading drift."""
 
     tpm: float
     wheel_base: float
@@ -40,6 +43,7 @@ class OdometryState:
     tau: float = 0.0
     distance_scale: float = 1.0
     yaw_scale: float = 1.0
+    heading_drift: float = 0.0  # rad/s the dead-reckoned heading turns relative to the truth
 
 
 @dataclass
@@ -102,6 +106,8 @@ class OdometryProblem(StreamProblem):
             assert self.ds is not None and self.dtheta is not None
             ds = self.ds * st.distance_scale
             dth = self.dtheta * st.yaw_scale
+        if st.heading_drift:
+            dth = dth - st.heading_drift * np.diff(self.t_odo)
         th = np.r_[0.0, np.cumsum(dth)]
         mid = th[:-1] + 0.5 * dth
         x = np.r_[0.0, np.cumsum(ds * np.cos(mid))]
