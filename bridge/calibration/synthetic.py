@@ -98,9 +98,9 @@ def make_bundle(
     b = DECLARED["robot"]["wheel_base_m"] * (1 + inj.wheel_base)
     dth = np.diff(theta)
     s_l, s_r = ds - dth * b / 2, ds + dth * b / 2
-    # A heading drift as opposite tick streams: (s_r - s_l) / b_declared gains d dt.
-    drift = 0.5 * inj.heading_drift * dt * DECLARED["robot"]["wheel_base_m"]
-    s_l, s_r = s_l - drift, s_r + drift
+    # A heading drift as opposite tick streams: with the true wheel base, (s_r - s_l) / b gains
+    # d dt, so the odometry of the calibrated geometry drifts by d.
+    s_l, s_r = s_l - 0.5 * inj.heading_drift * dt * b, s_r + 0.5 * inj.heading_drift * dt * b
     rho = 1 + inj.wheel_ratio
     tpm_true = tpm * (1 + inj.tick_scale)
     slip = rng_odo.normal(0, 2e-4, (2, ds.size)) * np.sqrt(np.abs(ds) / max(ds.mean(), 1e-9))
