@@ -137,8 +137,8 @@ def speed_lag(
     the shift of the reference's speed profile -- and turn-rate profile, with a reference
     heading -- that correlates best with the odometry's (the profiles' correlation coefficients,
     each weighted by its own unshifted one), on a grid of half the finer sample interval (at least
-    :data:`STALL_LAG_STEP_S`) over ``[t0, t1]``. A turn rate
-    makes it well defined on a drive at constant speed, as the weave of the simulator tests."""
+    :data:`STALL_LAG_STEP_S`) over ``[t0, t1]``. The turn rate makes it well defined on a drive
+    at constant speed (the weave of the simulator tests); without any profile that varies, 0."""
     step = max(
         STALL_LAG_STEP_S,
         0.5 * min(float(np.median(np.diff(t_odo))), float(np.median(np.diff(t_ref)))),
