@@ -159,6 +159,17 @@ def wheel_ratio(bundle: Path, rho: float) -> None:
     _scale_ticks(bundle, (1 + rho) / (2 * rho), (1 + rho) / 2)
 
 
+def heading_drift(bundle: Path, d: float, wheel_base_m: float, ticks_per_metre: float) -> None:
+    """The odometry's heading turns at ``d`` rad/s relative to the truth: opposite tick streams,
+    ``d (t - t0) b / 2`` metres of wheel travel taken off the left wheel and added to the right
+    (rounded to whole ticks), so ``(s_r - s_l) / b`` gains ``d dt`` per step."""
+    o = _edit(bundle, "odometry")
+    extra = 0.5 * d * (o["t"] - o["t"][0]) * wheel_base_m * ticks_per_metre
+    o["left_ticks"] = np.rint(o["left_ticks"] - extra)
+    o["right_ticks"] = np.rint(o["right_ticks"] + extra)
+    o.save()
+
+
 def undeclare_robot_key(bundle: Path, key: str) -> None:
     """Drop a ``[robot]`` key from ``meta.json``, which declares the recorded robot and wins over
     MODEL.toml (bundle precedence), so that MODEL.toml's value is the declared one."""

@@ -49,6 +49,7 @@ from _sim_inject import (
     gyro_scale,
     gyro_time_offset,
     hard_iron,
+    heading_drift,
     range_dependent,
     soft_iron,
     tick_scale,
@@ -118,6 +119,9 @@ SOFT = (0.06, 0.03)  # |e| = 0.067
 # -> 0.20 = 22 SE; wheel base 0.0015 m -> 0.035 m = 23 SE.
 TICKS = 0.13
 RATIO = 1.20
+# heading drift: SE 0.0029 rad/s -> 20 SE = 0.058 (3 sigma_0 needs only 0.009: a drift d gives
+# a window error of ~v d t^2 / 2, 0.0057 m at 0.01 rad/s).
+DRIFT_ODO = 0.06
 WRONG_BASE = 0.25  # declared; the recorded robot's is 0.285 (0.035 m = 23 SE)
 # sonar: sigma_0 = 0.076 m (rms_error); k r^2 has held-out rms 1.65 k (r up to 2.2 m) ->
 # k >= 3 sigma_0 / 1.65 = 0.139 (SE 9e-4). A glitch of probability p adds (2.5 m - r) on a
@@ -232,6 +236,10 @@ CASES: Mapping[str, SimCase] = {
                 }
             }
         },
+    ),
+    "heading_drift": SimCase(
+        lambda b, c: heading_drift(b, DRIFT_ODO, WHEEL_BASE, TPM),
+        {"odometry": {"heading_drift": {"rate_rad_s": Expect(DRIFT_ODO, DRIFT_ODO)}}},
     ),
     "range_dependent": SimCase(lambda b, c: range_dependent(b, K_R2), {"range:sonar": E_K}),
     "glitch": SimCase(lambda b, c: glitch(b, GLITCH_P, SONAR_MAX), {"range:sonar": E_GLITCH}),

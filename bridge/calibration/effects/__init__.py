@@ -33,6 +33,7 @@ BUILTIN_MODULES: tuple[str, ...] = (
     "tick_scale",
     "wheel_base",
     "wheel_ratio",
+    "heading_drift",
     "time_offset",
     "glitch",
     "quantisation",

@@ -9,13 +9,38 @@ Wheel odometry (UMBmark's kinematics, Borenstein & Feng 1996, eq. 2-5), per step
 with ``tpm`` ticks per metre, ``b`` the wheel base and ``rho`` the left/right wheel diameter ratio.
 Odometry given as body speeds (``v, omega``) or as a dead-reckoned pose (``x, y, theta``) is turned
 into ``ds, dtheta`` directly; then ``tick_scale`` scales ``ds`` and ``wheel_base`` scales
-``dtheta`` (the parameters are reported as factors).
+``dtheta`` (the parameters are reported as factors). In every form ``heading_drift`` takes
+``d dt`` off each ``dtheta`` (a dead-reckoned heading that turns at ``d`` rad/s relative to the
+truth).
 
 Residual: the reference is cut into windows of ``window_s`` seconds; each window starts at the
 reference pose of its first sample (re-anchored) and the dead-reckoned path is compared with the
 reference positions in it. Without a reference heading, the window's start heading is the one
 that best aligns the window (closed-form 2-D Procrustes rotation), so only the shape of the path
 counts. The metric is the RMS position error over the score part's windows (m).
+
+Set aside: stalls and wheel slip (:func:`find_stalls`). Where the wheels turn and the robot
+does not follow -- pushing into a wall, spinning on a slippery floor -- the encoders count motion
+that did not happen, and no effect of the declared model explains it (a recording of the
+simulator pushing into walls proposed ``ticks_per_metre`` 22 222 -> 49 662 against the config it
+ran with, ``tests/integration/test_calibration_wall_slip.py``). The span is cut into intervals of
+:data:`STALL_INTERVAL_S`; on each, the motion the declared odometry gives is held against the
+reference's. An interval is *stalled* when the odometry says the robot travelled at least
+:data:`STALL_MIN_TRAVEL_M` (or turned at least :data:`STALL_MIN_TURN_RAD`, with a reference
+heading) and the reference moved (turned) less than :data:`STALL_FRACTION` of what the
+recording's typical ratio makes of it: the median of reference over odometry motion on the
+intervals where both moved that much. The median takes out any global error of the declared
+geometry (a wrong tick size or wheel base scales every interval alike), and a robot that spent
+most of a recording against a wall still has its ratio from where it moved; so only intervals far
+off the recording's own ratio are set aside, with one interval more on each side (the contact's
+onset and end). The reference is first shifted by the lag that best aligns the two motion
+profiles (:func:`speed_lag`, within +-:data:`STALL_MAX_LAG_S`): a reference that shows the motion
+late would otherwise make every start look like a stall (the LEGO log's tracker lags its encoders
+by ~0.2 s). Reference samples in a set-aside span are dropped, the windows restart after it
+(pieces shorter than half a window are dropped too), and the counts inside it are not
+dead-reckoned. How much was set aside, and why, is in the stream's notes and ``describe()``.
+Not detected: a twist the encoders do not count (the reference turns, the odometry does not), and
+slip that keeps more than :data:`STALL_FRACTION` of the motion.
 """
 
 from __future__ import annotations
@@ -32,7 +57,8 @@ from numpy.typing import NDArray
 
 @dataclass
 class OdometryState:
-    """Geometry the effects change: ticks per metre, wheel base, diameter ratio, time offset."""
+    """What the effects change: ticks per metre, wheel base, diameter ratio, time offset,
+    heading drift."""
 
     tpm: float
     wheel_base: float
@@ -40,6 +66,168 @@ class OdometryState:
     tau: float = 0.0
     distance_scale: float = 1.0
     yaw_scale: float = 1.0
+    heading_drift: float = 0.0  # rad/s the dead-reckoned heading turns relative to the truth
+
+
+#: Length of the intervals on which the odometry's motion is held against the reference's (s);
+#: at least two sample intervals of either series.
+STALL_INTERVAL_S = 0.5
+#: Least motion by the declared odometry on an interval for it to be judged (m, rad).
+STALL_MIN_TRAVEL_M = 0.01
+STALL_MIN_TURN_RAD = 0.1
+#: Largest time offset between the odometry and the reference taken out before judging (s).
+STALL_MAX_LAG_S = 0.5
+#: Finest step of the speed profiles it is found on (s): finer ones hold the drive's per-step
+#: jitter and the ticks' rounding rather than the motion.
+STALL_LAG_STEP_S = 0.05
+#: Stalled: the reference moved less than this fraction of the recording's typical ratio
+#: times the odometry's motion.
+STALL_FRACTION = 0.5
+
+
+@dataclass(frozen=True)
+class SetAside:
+    """Spans of the recording where the wheels stalled or slipped (:func:`find_stalls`)."""
+
+    spans: tuple[tuple[float, float], ...] = ()
+    #: travel (m) the declared odometry counted over the spans, and the reference's
+    odometry_m: float = 0.0
+    reference_m: float = 0.0
+
+    @property
+    def seconds(self) -> float:
+        return float(sum(b - a for a, b in self.spans))
+
+    def contains(self, t: FloatArray) -> NDArray[np.bool_]:
+        """Which of the times ``t`` lie in a span."""
+        out = np.zeros(np.shape(t), dtype=bool)
+        for a, b in self.spans:
+            out |= (t >= a) & (t <= b)
+        return out
+
+
+def _stalled(ref: FloatArray, odo: FloatArray, least: float) -> NDArray[np.bool_]:
+    """Intervals where the reference motion ``ref`` is below :data:`STALL_FRACTION` of the
+    typical ratio times the odometry motion ``odo`` (signed: a turn the other way is a stall
+    too), judged where ``|odo| >= least``. The typical ratio is the median over the intervals
+    where both moved by ``least``: a robot that spent most of a recording against a wall still
+    has its ratio from where it moved."""
+    judged = np.abs(odo) >= least
+    both = judged & (np.abs(ref) >= least)
+    if both.sum() < 3:
+        return np.zeros(odo.shape, dtype=bool)
+    typical = float(np.median(ref[both] / odo[both]))
+    if not typical > 0:
+        return np.zeros(odo.shape, dtype=bool)
+    out = np.zeros(odo.shape, dtype=bool)
+    out[judged] = ref[judged] / odo[judged] < STALL_FRACTION * typical
+    return out
+
+
+def speed_lag(
+    t0: float,
+    t1: float,
+    t_odo: FloatArray,
+    pose_odo: tuple[FloatArray, FloatArray, FloatArray],
+    t_ref: FloatArray,
+    p_ref: FloatArray,
+    theta_ref: FloatArray | None = None,
+) -> float:
+    """How late the reference shows the odometry's motion (s, within +-:data:`STALL_MAX_LAG_S`):
+    the shift of the reference's speed profile -- and turn-rate profile, with a reference
+    heading -- that correlates best with the odometry's (the profiles' correlation coefficients,
+    each weighted by its own unshifted one), on a grid of half the finer sample interval (at least
+    :data:`STALL_LAG_STEP_S`) over ``[t0, t1]``. The turn rate makes it well defined on a drive
+    at constant speed (the weave of the simulator tests); without any profile that varies, 0."""
+    step = max(
+        STALL_LAG_STEP_S,
+        0.5 * min(float(np.median(np.diff(t_odo))), float(np.median(np.diff(t_ref)))),
+    )
+    k = int(STALL_MAX_LAG_S / step)
+    grid = np.arange(t0, t1, step)
+    if grid.size < 4 * k + 10:
+        return 0.0
+    odo = [np.hypot(*(np.diff(np.interp(grid, t_odo, c)) for c in pose_odo[:2]))]
+    ref = [np.hypot(*(np.diff(np.interp(grid, t_ref, p_ref[:, j])) for j in (0, 1)))]
+    if theta_ref is not None:
+        odo.append(np.diff(np.interp(grid, t_odo, pose_odo[2])))
+        ref.append(np.diff(np.interp(grid, t_ref, theta_ref)))
+    n = odo[0].size
+
+    def corr(v_o: FloatArray, v_r: FloatArray, j: int) -> float:
+        a = v_o[max(0, -j) : n - max(0, j)]
+        b = v_r[max(0, j) : n - max(0, -j)]  # the reference j steps later
+        a, b = a - a.mean(), b - b.mean()
+        den = float(np.sqrt(np.dot(a, a) * np.dot(b, b)))
+        return float(np.dot(a, b)) / den if den > 0 else 0.0
+
+    # A profile counts by how well it agrees unshifted: the speed of a drive at constant speed
+    # is the drive's jitter (correlation ~0), its turn rate the motion (~1); one that does not
+    # vary (by 1 % of its RMS) holds no timing at all.
+    weight = [
+        max(corr(v_o, v_r, 0), 0.0) if np.std(v_o) > 0.01 * np.sqrt(np.mean(v_o**2)) else 0.0
+        for v_o, v_r in zip(odo, ref, strict=True)
+    ]
+    if not any(weight):
+        return 0.0
+    best, best_r = 0, -np.inf
+    for j in range(-k, k + 1):
+        r = sum(w * corr(v_o, v_r, j) for w, v_o, v_r in zip(weight, odo, ref, strict=True) if w)
+        if r > best_r:
+            best, best_r = j, r
+    return best * step
+
+
+def _runs(flag: NDArray[np.bool_]) -> list[tuple[int, int]]:
+    """``(start, end)`` (end exclusive) of each run of true values."""
+    padded = np.r_[False, flag, False].astype(np.int8)
+    starts, ends = np.flatnonzero(np.diff(padded) == 1), np.flatnonzero(np.diff(padded) == -1)
+    return list(zip(starts.tolist(), ends.tolist(), strict=True))
+
+
+def find_stalls(
+    t_odo: FloatArray,
+    pose_odo: tuple[FloatArray, FloatArray, FloatArray],
+    t_ref: FloatArray,
+    p_ref: FloatArray,
+    theta_ref: FloatArray | None,
+) -> SetAside:
+    """Spans where the declared odometry moves and the reference does not (module docstring).
+
+    ``pose_odo``: the dead-reckoned ``(x, y, theta)`` at ``t_odo`` under the declared model;
+    ``p_ref`` (N, 2) and ``theta_ref`` (N,, unwrapped, or None) at ``t_ref``. The odometry's
+    travel on an interval is its chord (the distance between its end points, in the robot's own
+    frame: no heading needed), as is the reference's, taken :func:`speed_lag` later.
+    """
+    t0, t1 = max(t_odo[0], t_ref[0]), min(t_odo[-1], t_ref[-1])
+    h = max(
+        STALL_INTERVAL_S, 2 * float(np.median(np.diff(t_ref))), 2 * float(np.median(np.diff(t_odo)))
+    )
+    n = int((t1 - t0) // h)
+    if n < 3:
+        return SetAside()
+    lag = speed_lag(t0, t1, t_odo, pose_odo, t_ref, p_ref, theta_ref)
+    # Intervals where both series are, the reference shifted.
+    t0, t1 = max(t0, t_ref[0] - lag), min(t1, t_ref[-1] - lag)
+    n = int((t1 - t0) // h)
+    if n < 3:
+        return SetAside()
+    edges = t0 + h * np.arange(n + 1)
+    x, y, th = (np.interp(edges, t_odo, v) for v in pose_odo)
+    travel_odo = np.hypot(np.diff(x), np.diff(y))
+    px, py = (np.interp(edges + lag, t_ref, p_ref[:, j]) for j in (0, 1))
+    travel_ref = np.hypot(np.diff(px), np.diff(py))
+    flag = _stalled(travel_ref, travel_odo, STALL_MIN_TRAVEL_M)
+    if theta_ref is not None:
+        turn_ref = np.diff(np.interp(edges + lag, t_ref, theta_ref))
+        flag |= _stalled(turn_ref, np.diff(th), STALL_MIN_TURN_RAD)
+    # One interval more on each side: the contact's onset and end fall inside neither.
+    flag = flag | np.r_[flag[1:], False] | np.r_[False, flag[:-1]]
+    if not flag.any():
+        return SetAside()
+    starts, ends = np.transpose(_runs(flag))
+    spans = tuple((float(edges[a]), float(edges[b])) for a, b in zip(starts, ends, strict=True))
+    return SetAside(spans, float(travel_odo[flag].sum()), float(travel_ref[flag].sum()))
 
 
 @dataclass
@@ -68,21 +256,68 @@ class OdometryProblem(StreamProblem):
     start_pose: tuple[float, float, float] | None = None  # (t, theta) known at the start
 
     def __post_init__(self) -> None:
+        self._counted: NDArray[np.bool_] | None = None  # odometry steps dead-reckoned
+        self.set_aside = find_stalls(
+            self.t_odo, self.dead_reckon(self.state()), self.t_ref, self.p_ref, self.theta_ref
+        )
+        if self.set_aside.spans:
+            mid = 0.5 * (self.t_odo[1:] + self.t_odo[:-1])
+            self._counted = ~self.set_aside.contains(mid)
         inside = (self.t_ref >= self.t_odo[0]) & (self.t_ref <= self.t_odo[-1])
+        self._short_s = 0.0  # pieces between set-aside spans too short for a window
+        keep = inside & ~self.set_aside.contains(self.t_ref)
         self._windows = {
-            p: self._make_windows(inside & self.split.mask(self.t_ref, p), p)
+            p: self._make_windows(keep & self.split.mask(self.t_ref, p), p)
             for p in ("fit", "score")
         }
-        self._windows["all"] = self._make_windows(inside, "all")
+        self._windows["all"] = self._make_windows(keep, "all")
+        if self.set_aside.spans:
+            self._note_set_aside(inside)
+
+    def _note_set_aside(self, inside: NDArray[np.bool_]) -> None:
+        s = self.set_aside
+        span = float(np.ptp(self.t_ref[inside])) if inside.any() else 0.0
+        self.notes.append(
+            f"set aside {len(s.spans)} span(s) where the wheels stalled or slipped, "
+            f"{s.seconds:.1f} s of {span:.1f} s ({100 * s.seconds / max(span, 1e-9):.0f} %): "
+            f"the encoders counted {s.odometry_m:.2f} m (declared model) while the reference "
+            f"moved {s.reference_m:.2f} m (e.g. pushing into a wall); windows restart after "
+            "each span"
+            + (
+                f", and {self._short_s:.1f} s between spans too short for half a window "
+                "were dropped"
+                if self._short_s > 0
+                else ""
+            )
+        )
 
     def _make_windows(self, m: NDArray[np.bool_], part: str) -> _Windows:
         idx = np.flatnonzero(m)
+        if idx.size and self.set_aside.spans:
+            # Windows restart after every set-aside span; a piece shorter than half a window
+            # between two spans holds too little to judge anything and is dropped.
+            starts = np.array([a for a, _ in self.set_aside.spans])
+            piece = np.searchsorted(starts, self.t_ref[idx], side="right")
+            keep = np.ones(idx.size, dtype=bool)
+            for k in np.unique(piece):
+                sel = piece == k
+                t_k = self.t_ref[idx[sel]]
+                if t_k[-1] - t_k[0] < 0.5 * self.window_s:
+                    keep[sel] = False
+                    if part == "all":
+                        self._short_s += float(t_k[-1] - t_k[0])
+            idx, piece = idx[keep], piece[keep]
+        else:
+            piece = np.zeros(idx.size, dtype=np.intp)
         if idx.size == 0:
             e = np.empty(0, dtype=np.intp)
             return _Windows(e, e, e, 0)
         t = self.t_ref[idx]
-        label = np.floor((t - t[0]) / self.window_s).astype(np.intp)
-        _, label = np.unique(label, return_inverse=True)
+        first_of_piece = np.r_[0, np.flatnonzero(np.diff(piece)) + 1]
+        t_start = t[first_of_piece][np.cumsum(np.r_[0, np.diff(piece) != 0])]
+        label = np.floor((t - t_start) / self.window_s).astype(np.intp)
+        _, label = np.unique(np.column_stack([piece, label]), axis=0, return_inverse=True)
+        label = label.ravel()
         first = np.r_[0, np.flatnonzero(np.diff(label)) + 1]
         anchor = idx[first][label]
         return _Windows(idx, anchor, label, int(label.max()) + 1)
@@ -102,6 +337,11 @@ class OdometryProblem(StreamProblem):
             assert self.ds is not None and self.dtheta is not None
             ds = self.ds * st.distance_scale
             dth = self.dtheta * st.yaw_scale
+        if self._counted is not None:
+            # Counts over a stall are not motion (set aside, module docstring).
+            ds, dth = ds * self._counted, dth * self._counted
+        if st.heading_drift:
+            dth = dth - st.heading_drift * np.diff(self.t_odo)
         th = np.r_[0.0, np.cumsum(dth)]
         mid = th[:-1] + 0.5 * dth
         x = np.r_[0.0, np.cumsum(ds * np.cos(mid))]
@@ -175,4 +415,12 @@ class OdometryProblem(StreamProblem):
             "window_s": self.window_s,
             "reference_heading": self.theta_ref is not None,
             "windows": {"fit": self._windows["fit"].n, "score": self._windows["score"].n},
+            "set_aside": {
+                "reason": "stall or wheel slip: the encoders counted, the reference did not move",
+                "spans_s": [[round(a, 3), round(b, 3)] for a, b in self.set_aside.spans],
+                "seconds": round(self.set_aside.seconds, 3),
+                "odometry_m": round(self.set_aside.odometry_m, 4),
+                "reference_m": round(self.set_aside.reference_m, 4),
+                "short_pieces_s": round(self._short_s, 3),
+            },
         }
