@@ -2,7 +2,9 @@
 
     dtheta = (s_r - s_l) / b          params: b (m; speed/pose odometry: a factor on dtheta)
 
-Writes ``[robot] wheel_base_m`` (or ``[sensors.odometry.calibration] yaw_scale``).
+A negative ``b`` (or yaw scale) is a left/right swap or a mirrored frame; the fit starts from the
+sign the fit part prefers. Writes ``[robot] wheel_base_m`` (or ``[sensors.odometry.calibration]
+yaw_scale``; a negative wheel base as ``calibration.wheel_base_m`` and ``wheels_swapped``).
 """
 
 from __future__ import annotations
@@ -19,9 +21,20 @@ class WheelBase(Effect):
     kinds = frozenset({"odometry"})
 
     def _propose(self, problem: Any) -> list[EffectInstance]:
-        if problem.form == "ticks":
-            return [EffectInstance(self.name, self, ("wheel_base_m",), (problem.wheel_base,))]
-        return [EffectInstance(self.name, self, ("yaw_scale",), (1.0,))]
+        name, declared = (("wheel_base_m", float(problem.wheel_base)) if problem.form == "ticks"
+                          else ("yaw_scale", 1.0))
+        data = {"declared": declared}
+        same = EffectInstance(self.name, self, (name,), (declared,), data=data)
+        # Left and right swapped (wiring, a mirrored frame) turn the dead reckoning the other
+        # way: a wheel base of -b. Least squares started at +b cannot cross the zero between
+        # (no heading at all there), so the fit starts from the sign the fit part prefers.
+        flipped = EffectInstance(self.name, self, (name,), (-declared,), data=data)
+        x = problem.nuisance_x0()
+
+        def error(inst: EffectInstance) -> float:
+            return float(problem.metric_value([inst], np.r_[x, inst.x0], "fit"))
+
+        return [flipped] if error(flipped) < error(same) else [same]
 
     def apply(self, inst: EffectInstance, state: Any, params: Any) -> None:
         if inst.param_names[0] == "wheel_base_m":
@@ -30,9 +43,12 @@ class WheelBase(Effect):
             state.yaw_scale = float(params[0])
 
     def config(self, inst: EffectInstance, params: Any, problem: Any) -> dict[str, Any]:
-        if inst.param_names[0] == "wheel_base_m":
-            return {"/robot.wheel_base_m": float(f"{params[0]:.6g}")}
-        return {"calibration.yaw_scale": float(f"{params[0]:.6g}")}
+        value = float(f"{params[0]:.6g}")
+        if inst.param_names[0] == "wheel_base_m" and value > 0:
+            return {"/robot.wheel_base_m": value}
+        if inst.param_names[0] == "wheel_base_m":   # the simulator has no swapped wheels
+            return {"calibration.wheel_base_m": value, "calibration.wheels_swapped": True}
+        return {"calibration.yaw_scale": value}
 
     def absent(self, inst: EffectInstance) -> Any:
-        return np.asarray(inst.x0, dtype=float)  # proposed at the declared value
+        return np.asarray([inst.data.get("declared", inst.x0[0])], dtype=float)
