@@ -131,6 +131,9 @@ def read_csv_table(path: Path) -> Table:
     if "\x00" in text:
         line = text.count("\n", 0, text.index("\x00")) + 1
         raise BundleError(f"{path} line {line}: a NUL byte: binary data, not CSV text")
+    fast = _read_numeric_fast(path, text)
+    if fast is not None:
+        return fast
     try:
         rows = [
             (n, [c.strip() for c in row])
@@ -173,6 +176,30 @@ def read_csv_table(path: Path) -> Table:
             )
         cols[h] = values
     return Table(path.stem, cols, text_cols, lines)
+
+
+def _read_numeric_fast(path: Path, text: str) -> Table | None:
+    """The common case at C speed: a header and rows of numbers only, every cell filled, no
+    blank, comment or quoted line (numpy's ``loadtxt``; a 1-hour 100 Hz bundle's 2.9 M rows
+    took 10 s in the csv module). None for anything else -- the general reader then reads it
+    and names the line of any defect."""
+    head, sep, body = text.partition("\n")
+    if not sep or not body.strip() or '"' in text or "\n#" in body or ",," in body \
+            or "\n\n" in body.rstrip("\n") or head.lstrip().startswith("#") \
+            or "\n," in body or ",\n" in body or body.startswith(","):
+        return None
+    header = [h.strip() for h in head.rstrip("\r").split(",")]
+    if len(set(header)) != len(header) or not all(header):
+        return None
+    try:
+        values = np.loadtxt(io.StringIO(body), delimiter=",", dtype=np.float64, ndmin=2)
+    except ValueError:
+        return None
+    if values.shape[1] != len(header) or not np.all(np.abs(values) <= MAX_ABS_VALUE):
+        return None
+    lines = np.arange(2, values.shape[0] + 2, dtype=np.int64)
+    cols = {h: np.ascontiguousarray(values[:, i]) for i, h in enumerate(header)}
+    return Table(path.stem, cols, {}, lines)
 
 
 def _is_number(cell: str) -> bool:
