@@ -137,6 +137,18 @@ class StreamProblem(ABC):
         than an AR(1) model does (None: prewhiten and count residuals)."""
         return None
 
+    def noise_shape(self, part: Part) -> FloatArray | None:
+        """The declared relative noise level of each reading of ``part`` (a sonar's distance
+        error grows with the range); None (the default): the same for every reading."""
+        return None
+
+    def robust_scale(self) -> float | None:
+        """The robust noise scale (1.4826 MAD) of the declared model's fit-part residual when
+        that residual is heavy-tailed (:func:`koala_bridge.calibration.robust.heavy_tailed`):
+        least squares then uses a soft-L1 loss with this scale, so spurious readings cannot pull
+        the parameters. None (the default): plain least squares."""
+        return None
+
     def config_values(self, insts: Sequence[EffectInstance], x: FloatArray) -> dict[str, Any]:
         """Config keys written for the declared model's own fitted parts (default: none)."""
         return {}

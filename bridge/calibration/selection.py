@@ -31,12 +31,19 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 from koala_bridge.calibration.effects.base import EffectInstance
 from koala_bridge.calibration.problem import FloatArray, StreamProblem, effective_size, split_params
+from koala_bridge.calibration.robust import (
+    gaussian_logpdf,
+    inlier_responsibility,
+    mad_sigma,
+    mixture_loglik,
+    weighted_rms,
+)
 from scipy import optimize, stats
 
 log = logging.getLogger(__name__)
@@ -44,6 +51,12 @@ log = logging.getLogger(__name__)
 ALPHA = 0.01
 MIN_RELATIVE_GAIN = 0.01
 MAX_EFFECTS = 6
+#: EM (mixture effects): iterations at most, and the stop when the fit part's log-likelihood
+#: rises by less than this per reading
+EM_MAX_ITERATIONS = 30
+EM_TOLERANCE = 1e-7
+#: the largest spurious fraction EM may reach: beyond one half the "outliers" are the model
+MAX_SPURIOUS_FRACTION = 0.5
 
 
 @dataclass
@@ -57,10 +70,40 @@ class Fit:
     jac: FloatArray | None = None
     #: unrounded residuals, when the model holds an output transform (quantisation)
     smooth: tuple[FloatArray, FloatArray] | None = None
+    #: with a mixture effect: log density of a spurious reading per reading, (fit, score)
+    log_g: tuple[FloatArray, FloatArray] | None = None
+    #: with a mixture effect: (spurious fraction p, inlier sigma)
+    mixture: tuple[float, float] | None = None
+    #: the declared relative noise level per reading, (fit, score) (StreamProblem.noise_shape)
+    shape: tuple[FloatArray | None, FloatArray | None] = (None, None)
 
     @property
     def rss_fit(self) -> float:
         return float(np.sum(self.r_fit**2))
+
+    def loglik(self) -> tuple[float, float]:
+        """Log-likelihood of the fit and the score part with the parameters of the fit part:
+        the mixture's (module docstring), or Gaussian with the fit part's ML variance."""
+        sf, ss = self.shape
+        if self.mixture is not None and self.log_g is not None:
+            p, sigma = self.mixture
+            return (
+                mixture_loglik(self.r_fit, sigma, p, self.log_g[0], sf),
+                mixture_loglik(self.r_score, sigma, p, self.log_g[1], ss),
+            )
+        z = self.r_fit if sf is None else self.r_fit / sf
+        sigma = float(np.sqrt(np.mean(z**2))) if z.size else 0.0
+        return (
+            float(np.sum(gaussian_logpdf(self.r_fit, sigma, sf))),
+            float(np.sum(gaussian_logpdf(self.r_score, sigma, ss))),
+        )
+
+    def inlier_weights(self) -> FloatArray | None:
+        """Posterior inlier probability of each fit-part reading (None without a mixture)."""
+        if self.mixture is None or self.log_g is None:
+            return None
+        p, sigma = self.mixture
+        return inlier_responsibility(self.r_fit, sigma, p, self.log_g[0], self.shape[0])
 
 
 @dataclass
@@ -100,26 +143,118 @@ class Selection:
     def params_of(self, fit: Fit) -> list[FloatArray]:
         return split_params(self.problem, fit.insts, fit.x)
 
+    def sync_added(self) -> None:
+        """Point ``added`` at the instances of ``after``: a refit replaces a mixture effect's
+        instance by one holding its refitted parameters (:func:`fit_model`)."""
+        by_name = {i.name: i for i in self.after.insts}
+        self.added = [(by_name.get(i.name, i), t) for i, t in self.added]
+
 
 def _r(v: float) -> float:
     return float(f"{v:.6g}") if np.isfinite(v) else float(v)
 
 
-def fit_model(problem: StreamProblem, insts: Sequence[EffectInstance], x0: FloatArray) -> Fit:
-    """Least-squares fit of all free parameters on the fit part."""
-    insts = list(insts)
-    jac = None
+def _least_squares(
+    problem: StreamProblem,
+    insts: list[EffectInstance],
+    x: FloatArray,
+    weights: FloatArray | None = None,
+    f_scale: float | None = None,
+    max_nfev: int = 200,
+) -> tuple[FloatArray, FloatArray | None]:
+    """``(x, jac)`` of least squares on the fit part: weighted (EM's M step) when ``weights``
+    are given, with a soft-L1 loss of scale ``f_scale`` when one is given."""
+    if not x.size:
+        return x, None
+    sw = None if weights is None else np.sqrt(weights)
+
+    def fun(v: FloatArray) -> FloatArray:
+        r = problem.residuals(insts, v, "fit", for_fit=True)
+        return r if sw is None else sw * r
+
+    robust = {"loss": "soft_l1", "f_scale": f_scale} if f_scale else {}
+    try:
+        sol = optimize.least_squares(
+            fun,
+            x,
+            x_scale="jac",
+            method="trf",
+            max_nfev=max_nfev,
+            **robust,  # type: ignore[arg-type]
+        )
+        return sol.x, sol.jac
+    except ValueError as e:  # degenerate data (e.g. no samples): keep the start values
+        log.warning("%s: fit of %s failed: %s", problem.name, [i.name for i in insts], e)
+        return x, None
+
+
+def _fit_mixture(
+    problem: StreamProblem, insts: list[EffectInstance], x0: FloatArray, at: int
+) -> tuple[list[EffectInstance], FloatArray, FloatArray | None, FloatArray]:
+    """EM for a model whose instance ``insts[at]`` is a mixture effect: the spurious fraction
+    ``p``, the inlier sigma and the model's free parameters jointly, maximising the fit part's
+    mixture likelihood (:mod:`koala_bridge.calibration.robust`). Starts from a soft-L1 fit (so
+    the spurious readings do not pull the start), then alternates responsibilities (E) with
+    ``p``, ``sigma`` and a weighted least-squares refit (M) until the likelihood stops rising.
+    Returns the instances (the mixture's with its fitted parameters), ``x``, the Jacobian of
+    the weighted residual and the final weights."""
+    mix = insts[at]
+    params = np.asarray(mix.x0, dtype=float)
+    p, sigma = float(params[0]), float(params[1])
+    y = problem.part("fit").y  # type: ignore[attr-defined]
+    shape = problem.noise_shape("fit")
+    s = np.ones_like(y) if shape is None else shape
     x = np.asarray(x0, dtype=float)
-    if x.size:
+    scale = problem.robust_scale() or mad_sigma(problem.residuals(insts, x, "fit"))
+    x, jac = _least_squares(problem, insts, x, f_scale=scale or None)
+    r = problem.residuals(insts, x, "fit")
+    sigma = mad_sigma(r / s) or max(sigma, 1e-12)
+    w = np.ones_like(r)
+    prev = -np.inf
+    for _ in range(EM_MAX_ITERATIONS):
+        log_g = mix.effect.log_density(mix, params, y, r)
+        w = inlier_responsibility(r, sigma, p, log_g, shape)
+        p = float(np.clip(1.0 - np.mean(w), 1e-6, MAX_SPURIOUS_FRACTION))
+        sigma = max(weighted_rms(r / s, w), 1e-12)
+        if x.size:
+            x, jac = _least_squares(problem, insts, x, weights=w / s**2, max_nfev=50)
+            r = problem.residuals(insts, x, "fit")
+            log_g = mix.effect.log_density(mix, params, y, r)
+        ll = mixture_loglik(r, sigma, p, log_g, shape)
+        if ll - prev < EM_TOLERANCE * max(r.size, 1):
+            break
+        prev = ll
+    params[0], params[1] = p, sigma
+    fitted = replace(mix, x0=tuple(float(v) for v in params))
+    w = inlier_responsibility(r, sigma, p, mix.effect.log_density(mix, params, y, r), shape)
+    return [*insts[:at], fitted, *insts[at + 1 :]], x, jac, w
 
-        def fun(v: FloatArray) -> FloatArray:
-            return problem.residuals(insts, v, "fit", for_fit=True)
 
-        try:
-            sol = optimize.least_squares(fun, x, x_scale="jac", method="trf", max_nfev=200)
-            x, jac = sol.x, sol.jac
-        except ValueError as e:  # degenerate data (e.g. no samples): keep the start values
-            log.warning("%s: fit of %s failed: %s", problem.name, [i.name for i in insts], e)
+def fit_model(problem: StreamProblem, insts: Sequence[EffectInstance], x0: FloatArray) -> Fit:
+    """Fit of all free parameters on the fit part: least squares; with a soft-L1 loss when the
+    stream is heavy-tailed (:meth:`StreamProblem.robust_scale`); EM with a mixture effect."""
+    insts = list(insts)
+    x = np.asarray(x0, dtype=float)
+    at = next((k for k, i in enumerate(insts) if i.effect.mixture), None)
+    if at is not None:
+        insts, x, jac, _ = _fit_mixture(problem, insts, x, at)
+    else:
+        x, jac = _least_squares(problem, insts, x, f_scale=problem.robust_scale())
+    log_g = mixture = None
+    if at is not None:
+        mix = insts[at]
+        params = np.asarray(mix.x0, dtype=float)
+        log_g = tuple(
+            mix.effect.log_density(
+                mix,
+                params,
+                problem.part(part).y,  # type: ignore[attr-defined]
+                problem.residuals(insts, x, part),
+            )
+            for part in ("fit", "score")
+        )
+        mixture = (float(params[0]), float(params[1]))
+    shape = (problem.noise_shape("fit"), problem.noise_shape("score"))
     smooth = None
     if any(i.effect.output_transform for i in insts):
         smooth = (
@@ -133,6 +268,9 @@ def fit_model(problem: StreamProblem, insts: Sequence[EffectInstance], x0: Float
         problem.residuals(insts, x, "score"),
         jac,
         smooth,
+        log_g,  # type: ignore[arg-type]
+        mixture,
+        shape,
     )
 
 
@@ -144,6 +282,10 @@ def parameter_se(problem: StreamProblem, fit: Fit) -> FloatArray:
     dof = max(n - fit.x.size, 1)
     rho = problem.autocorrelation(fit.r_fit)
     s2 = fit.rss_fit / dof * n / effective_size(n, rho)
+    w = fit.inlier_weights()
+    if w is not None:  # the Jacobian is of the weighted residual: the inliers' variance
+        z = fit.r_fit if fit.shape[0] is None else fit.r_fit / fit.shape[0]
+        s2 = float(np.sum(w * z**2)) / max(float(np.sum(w)) - fit.x.size, 1.0)
     try:
         cov = np.linalg.pinv(fit.jac.T @ fit.jac) * s2
     except np.linalg.LinAlgError:
@@ -172,6 +314,8 @@ def judge(
     name = new.insts[-1].name
     if old.r_score.size == 0 or new.r_fit.size == 0:
         return Trial(name, k, np.nan, np.nan, np.nan, np.nan, False, new)
+    if old.mixture is not None or new.mixture is not None:
+        return _judge_likelihood(old, new, k, n_candidates, rho)
     tiny = 1e-300
     rf_old, rs_old, rf_new, rs_new = old.r_fit, old.r_score, new.r_fit, new.r_score
     if old.smooth is not None and new.smooth is not None:
@@ -191,6 +335,29 @@ def judge(
     gain = 1 - np.sqrt(ss_new / ss_old) if ss_old > 0 else 0.0
     passed = bool(dbic < 0 and lr > thr and gain >= MIN_RELATIVE_GAIN)
     return Trial(name, k, float(dbic), float(lr), thr, float(gain), passed, new)
+
+
+def _judge_likelihood(old: Fit, new: Fit, k: int, n_candidates: int, rho: float) -> Trial:
+    """The stopping rule when either model is a mixture (``outlier``): the same three tests on
+    log-likelihoods with the fit part's parameters instead of residual sums. For Gaussian models
+    ``-2 dl = n ln(RSS_new / RSS_old)``, so the statistics keep their meaning: BIC
+    ``-2 (l_f,new - l_f,old) + k ln n_f``; held-out ``L = 2 (l_s,new - l_s,old)`` against the
+    same chi-square quantile; practical size ``1 - exp(-(l_s,new - l_s,old) / n_s)``, the drop of
+    the geometric mean held-out density's scale (``1 - sqrt(RSS_new / RSS_old)`` for Gaussians).
+    Every reading counts, spurious ones by their probability under the mixture: no reading is
+    excluded. Correlated residuals: the statistics are scaled by ``(1 - rho) / (1 + rho)``
+    (:func:`koala_bridge.calibration.problem.effective_size`)."""
+    name = new.insts[-1].name
+    lf_old, ls_old = old.loglik()
+    lf_new, ls_new = new.loglik()
+    nf, ns = max(new.r_fit.size, 1), max(new.r_score.size, 1)
+    c = (1 - rho) / (1 + rho) if rho > 0 else 1.0
+    dbic = -2 * c * (lf_new - lf_old) + k * np.log(max(c * nf, 2.0))
+    lr = 2 * c * (ls_new - ls_old)
+    thr = float(stats.chi2.ppf(1 - ALPHA / max(n_candidates, 1), max(k, 1)))
+    gain = float(-np.expm1(-(ls_new - ls_old) / ns)) if np.isfinite(ls_new - ls_old) else np.nan
+    passed = bool(dbic < 0 and lr > thr and gain >= MIN_RELATIVE_GAIN)
+    return Trial(name, k, float(dbic), float(lr), thr, gain, passed, new)
 
 
 def noise_autocorrelation(
@@ -223,7 +390,7 @@ def select_effects(
             insts = [*current.insts, cand]
             x0 = problem.initial_vector(insts, current.x, current.insts)
             new = fit_model(problem, insts, x0)
-            trial = judge(current, new, len(cand.param_names), len(remaining), rho, counts)
+            trial = judge(current, new, cand.effect.n_tested(cand), len(remaining), rho, counts)
             if trial.passed and not cand.effect.plausible(
                 cand, split_params(problem, new.insts, new.x)[-1]
             ):
@@ -254,7 +421,12 @@ def select_effects(
         current = best.fit
         chosen = current.insts[-1]
         result.added.append((chosen, best))
-        remaining = [c for c in remaining if c.name != chosen.name]
+        # one mixture at most: a second spurious-reading model would share the first's readings
+        remaining = [
+            c
+            for c in remaining
+            if c.name != chosen.name and not (c.effect.mixture and chosen.effect.mixture)
+        ]
         log.info(
             "%s: added %s (held-out gain %.1f %%)",
             problem.name,
@@ -262,4 +434,5 @@ def select_effects(
             100 * best.relative_gain,
         )
     result.after = current
+    result.sync_added()
     return result

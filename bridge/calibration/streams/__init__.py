@@ -456,6 +456,12 @@ def build_ranges(bundle: Bundle, model: DeclaredModel) -> list[ScalarProblem]:
         sub = sub.select(ok)
         if len(sub) < 10:
             continue
+        noise_sigma = None
+        if not counts and model.sonar_distance_error is not None:
+            from koala_bridge.sim.models.sonar import distance_sigma
+
+            xs, ys = model.sonar_distance_error
+            noise_sigma = distance_sigma(sub["true_range"], np.asarray(xs), np.asarray(ys))
         t = sub["t"]
         split = Split.of(t)
         section_kind = kind or ("ir" if counts else "sonar")
@@ -496,6 +502,9 @@ def build_ranges(bundle: Bundle, model: DeclaredModel) -> list[ScalarProblem]:
                 k for k in sorted(extras) if categorical_levels(extras[k][fit]) is not None
             ),
             is_range=True,
+            range_limits=None if counts else model.sonar_range_m,
+            declared_outlier_probability=0.0 if counts else model.sonar_glitch_probability,
+            noise_sigma=noise_sigma,
             curve_points=curve,
             curve_fitted=fitted,
             base_add=base_add,
