@@ -23,6 +23,12 @@ Per stream, starting from the declared model (nuisance parameters fitted):
 3. the passing candidate with the largest held-out statistic ``L`` is added; repeat until none
    passes (or ``max_effects``).
 
+Heavy-tailed streams (:meth:`StreamProblem.robust_scale`, :mod:`koala_bridge.calibration.robust`)
+are fitted with a soft-L1 loss of scale 1.4826 MAD. With a mixture effect in the model
+(``outlier``: a share of spurious readings) the fit is EM (:func:`_fit_mixture`) and candidates
+are judged by the same three tests on log-likelihoods with the fit part's parameters
+(:func:`_judge_likelihood`): every reading counts, none is dropped, so *after* is not flattered.
+
 Because the held-out part was not used to fit, an effect that only fits noise makes the held-out
 RSS larger on average: the test is one-sided and conservative.
 """
