@@ -12,11 +12,13 @@ test) it named a spurious ``scale`` of about -4 % on every seed: the mean of the
 from __future__ import annotations
 
 import csv
+import tomllib
 from pathlib import Path
 
 import numpy as np
 import pytest
 from koala_bridge.calibration.bundle import load_bundle
+from koala_bridge.calibration.config_update import write_config
 from koala_bridge.calibration.effects import available_effects, get_effect
 from koala_bridge.calibration.effects.base import EffectInstance
 from koala_bridge.calibration.model import declared_model
@@ -202,3 +204,15 @@ def test_heavy_tail_test_false_alarm_rate() -> None:
     assert heavy_tailed(x)
     # ... unless the declared model already has that share
     assert not heavy_tailed(x, declared_fraction=0.012)
+
+
+def test_unsimulated_tables_are_written_as_one_comment_line_each(tmp_path: Path) -> None:
+    # An effect with several named parameters (outlier, covariate) once left its second and
+    # later parameters as bare keys at the end of the written config.
+    path = tmp_path / "new.toml"
+    found = {"sensors.sonar.calibration.outlier_short": {"probability": 0.09, "low": 0.25}}
+    write_config(path, {"robot": {"wheel_base_m": 0.3}}, found)
+    text = path.read_text()
+    assert tomllib.loads(text) == {"robot": {"wheel_base_m": 0.3}}
+    (line,) = [ln for ln in text.splitlines() if "outlier_short" in ln]
+    assert line.startswith("#") and "probability = 0.09" in line and "low = 0.25" in line
