@@ -137,6 +137,11 @@ class StreamProblem(ABC):
         than an AR(1) model does (None: prewhiten and count residuals)."""
         return None
 
+    def readings(self, part: Part) -> FloatArray:
+        """The measured value of each reading of ``part``, one per residual (the density of a
+        spurious reading depends on it; streams without one reading per residual have none)."""
+        raise NotImplementedError(f"{self.name}: no single reading per residual")
+
     def noise_shape(self, part: Part) -> FloatArray | None:
         """The declared relative noise level of each reading of ``part`` (a sonar's distance
         error grows with the range); None (the default): the same for every reading."""

@@ -178,7 +178,6 @@ def _least_squares(
         r = problem.residuals(insts, v, "fit", for_fit=True)
         return r if sw is None else sw * r
 
-    robust = {"loss": "soft_l1", "f_scale": f_scale} if f_scale else {}
     try:
         sol = optimize.least_squares(
             fun,
@@ -186,7 +185,8 @@ def _least_squares(
             x_scale="jac",
             method="trf",
             max_nfev=max_nfev,
-            **robust,  # type: ignore[arg-type]
+            loss="soft_l1" if f_scale else "linear",
+            f_scale=f_scale or 1.0,
         )
         return sol.x, sol.jac
     except ValueError as e:  # degenerate data (e.g. no samples): keep the start values
@@ -207,7 +207,7 @@ def _fit_mixture(
     mix = insts[at]
     params = np.asarray(mix.x0, dtype=float)
     p, sigma = float(params[0]), float(params[1])
-    y = problem.part("fit").y  # type: ignore[attr-defined]
+    y = problem.readings("fit")
     shape = problem.noise_shape("fit")
     s = np.ones_like(y) if shape is None else shape
     x = np.asarray(x0, dtype=float)
@@ -250,14 +250,13 @@ def fit_model(problem: StreamProblem, insts: Sequence[EffectInstance], x0: Float
     if at is not None:
         mix = insts[at]
         params = np.asarray(mix.x0, dtype=float)
-        log_g = tuple(
+        log_g = (
             mix.effect.log_density(
-                mix,
-                params,
-                problem.part(part).y,  # type: ignore[attr-defined]
-                problem.residuals(insts, x, part),
-            )
-            for part in ("fit", "score")
+                mix, params, problem.readings("fit"), problem.residuals(insts, x, "fit")
+            ),
+            mix.effect.log_density(
+                mix, params, problem.readings("score"), problem.residuals(insts, x, "score")
+            ),
         )
         mixture = (float(params[0]), float(params[1]))
     shape = (problem.noise_shape("fit"), problem.noise_shape("score"))
@@ -274,7 +273,7 @@ def fit_model(problem: StreamProblem, insts: Sequence[EffectInstance], x0: Float
         problem.residuals(insts, x, "score"),
         jac,
         smooth,
-        log_g,  # type: ignore[arg-type]
+        log_g,
         mixture,
         shape,
     )
@@ -393,7 +392,11 @@ def select_effects(
     while remaining and len(result.added) < max_effects:
         trials: list[Trial] = []
         for cand in remaining:
-            insts = [*current.insts, cand]
+            # One mixture at most: another spurious-reading model is tried *in place of* the
+            # one in the model (outlier:uniform chosen first may give way to outlier:short once
+            # glitch explains the max-range readings), judged like any candidate.
+            keep = [i for i in current.insts if not (cand.effect.mixture and i.effect.mixture)]
+            insts = [*keep, cand]
             x0 = problem.initial_vector(insts, current.x, current.insts)
             new = fit_model(problem, insts, x0)
             trial = judge(current, new, cand.effect.n_tested(cand), len(remaining), rho, counts)
@@ -426,13 +429,11 @@ def select_effects(
         assert best.fit is not None
         current = best.fit
         chosen = current.insts[-1]
+        if chosen.effect.mixture:  # replaced, not added: see the loop above
+            result.added = [(i, t) for i, t in result.added if not i.effect.mixture]
         result.added.append((chosen, best))
-        # one mixture at most: a second spurious-reading model would share the first's readings
-        remaining = [
-            c
-            for c in remaining
-            if c.name != chosen.name and not (c.effect.mixture and chosen.effect.mixture)
-        ]
+        # each candidate enters once: a replaced mixture does not come back, so no cycles
+        remaining = [c for c in remaining if c.name != chosen.name]
         log.info(
             "%s: added %s (held-out gain %.1f %%)",
             problem.name,

@@ -70,18 +70,36 @@ def test_short_readings_are_named_as_outliers_and_nothing_else(tmp_path: Path, s
     assert "temperature_c" in res.problem.covariate_names  # the covariate was a candidate
     params = _params(res)
     assert set(params) == {"outlier:short"}
-    n_fit = res.problem.part("fit").y.size  # type: ignore[attr-defined]
+    n_fit = res.problem.readings("fit").size
     p = params["outlier:short"]["probability"]
     assert abs(p - SHORT) <= _fraction_bound(SHORT, n_fit), (p, n_fit)
     # Inlier error on the held-out part at the noise sigma: the chi-square interval of the
     # inliers' RMS (about (1 - p) n_s of them) at two-sided 1e-3.
     (inlier,) = [m for m in res.secondary if m.metric == "inlier_rms_error"]
-    n_in = (1 - SHORT) * res.problem.part("score").y.size  # type: ignore[attr-defined]
+    n_in = (1 - SHORT) * res.problem.readings("score").size
     lo, hi = (np.sqrt(stats.chi2.ppf(q, n_in) / n_in) for q in (5e-4, 1 - 5e-4))
     assert lo * NOISE["sonar"] <= inlier.after <= hi * NOISE["sonar"], inlier
     # "after" is the RMS of every held-out reading: not flattered by the classification
     assert res.after > 10 * inlier.after
     assert res.after == pytest.approx(res.before)
+
+
+def test_outliers_and_an_effect_are_fitted_jointly(tmp_path: Path) -> None:
+    # EM refits the effect on the readings the mixture holds as inliers: recovered within the
+    # synthetic cases' 10 % (>= 20 SE), the inlier error falls to the noise.
+    res = _range(tmp_path, 1, Injected(sonar_short=SHORT, sonar_range_dependent=0.02))
+    params = _params(res)
+    assert set(params) == {"outlier:short", "range_dependent"}
+    assert params["range_dependent"]["k_per_m2"] == pytest.approx(0.02, abs=0.002)
+    (inlier,) = [m for m in res.secondary if m.metric == "inlier_rms_error"]
+    assert inlier.after < 1.1 * NOISE["sonar"] < 0.5 * inlier.before
+
+
+def test_short_readings_and_max_range_glitches_are_told_apart(tmp_path: Path) -> None:
+    # outlier:uniform explains both at first; once glitch scores the max-range readings,
+    # outlier:short replaces it (one mixture at most, swapped only on held-out evidence).
+    res = _range(tmp_path, 1, Injected(sonar_short=SHORT, sonar_glitch=0.05))
+    assert {i.name for i in res.effects} == {"glitch", "outlier:short"}
 
 
 def test_robust_loss_keeps_a_spurious_scale_out_without_the_outlier_effect(
@@ -121,7 +139,7 @@ def test_readings_at_any_range_are_uniform_outliers(tmp_path: Path) -> None:
     )
     params = _params(res)
     assert set(params) == {"outlier:uniform"}
-    n_fit = res.problem.part("fit").y.size  # type: ignore[attr-defined]
+    n_fit = res.problem.readings("fit").size
     # Spurious readings within a few sigma of the truth cannot be told from inliers:
     # about 2 * 3 sigma / (max - min) of them, a bias far below the bound.
     assert abs(params["outlier:uniform"]["probability"] - 0.05) <= _fraction_bound(0.05, n_fit)

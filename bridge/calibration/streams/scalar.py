@@ -208,6 +208,9 @@ class ScalarProblem(StreamProblem):
     def noise_shape(self, part: Part | str) -> FloatArray | None:
         return self._shape.get(part)
 
+    def readings(self, part: Part | str) -> FloatArray:
+        return self._parts[part].y
+
     def tail_residual(self) -> FloatArray:
         """The declared model's fit-part residual (over the declared noise sigma, when there is
         one) without the readings at a repeated extreme value (max range, no echo: the
