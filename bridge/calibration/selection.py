@@ -82,6 +82,8 @@ class Fit:
     mixture: tuple[float, float] | None = None
     #: the declared relative noise level per reading, (fit, score) (StreamProblem.noise_shape)
     shape: tuple[FloatArray | None, FloatArray | None] = (None, None)
+    #: the soft-L1 loss's scale when the fit used one (a heavy-tailed stream)
+    robust_scale: float | None = None
 
     @property
     def rss_fit(self) -> float:
@@ -246,6 +248,7 @@ def fit_model(problem: StreamProblem, insts: Sequence[EffectInstance], x0: Float
         insts, x, jac, _ = _fit_mixture(problem, insts, x, at)
     else:
         x, jac = _least_squares(problem, insts, x, f_scale=problem.robust_scale())
+    robust = problem.robust_scale() if at is None and x.size else None
     log_g = mixture = None
     if at is not None:
         mix = insts[at]
@@ -276,6 +279,7 @@ def fit_model(problem: StreamProblem, insts: Sequence[EffectInstance], x0: Float
         log_g,
         mixture,
         shape,
+        robust,
     )
 
 
@@ -287,6 +291,8 @@ def parameter_se(problem: StreamProblem, fit: Fit) -> FloatArray:
     dof = max(n - fit.x.size, 1)
     rho = problem.autocorrelation(fit.r_fit)
     s2 = fit.rss_fit / dof * n / effective_size(n, rho)
+    if fit.robust_scale is not None:
+        return _sandwich_se(problem, fit, fit.robust_scale, n / dof * n / effective_size(n, rho))
     w = fit.inlier_weights()
     if w is not None:  # the Jacobian is of the weighted residual: the inliers' variance
         z = fit.r_fit if fit.shape[0] is None else fit.r_fit / fit.shape[0]
@@ -295,6 +301,26 @@ def parameter_se(problem: StreamProblem, fit: Fit) -> FloatArray:
         cov = np.linalg.pinv(fit.jac.T @ fit.jac) * s2
     except np.linalg.LinAlgError:
         return np.full(fit.x.size, np.nan)
+    return np.sqrt(np.clip(np.diag(cov), 0, None))
+
+
+def _sandwich_se(problem: StreamProblem, fit: Fit, c: float, inflation: float) -> FloatArray:
+    """Standard errors of a soft-L1 fit (M-estimator, Huber 1967): ``H^-1 M H^-1`` with ``H``
+    the cost's Gauss-Newton Hessian and ``M = sum psi_i^2 J_i J_i^T``. scipy returns the
+    Jacobian scaled so that ``J~^T J~ = H``: for soft-L1 (``rho(z) = 2 (sqrt(1 + z) - 1)``,
+    ``z = (r / c)^2``) its rows are ``J_i (1 + z_i)^(-3/4)`` and ``psi_i = r_i / sqrt(1 + z_i)``,
+    so ``M = sum r_i^2 sqrt(1 + z_i) J~_i J~_i^T``."""
+    assert fit.jac is not None
+    r = problem.residuals(fit.insts, fit.x, "fit", for_fit=True)
+    jt = np.asarray(fit.jac, dtype=float)
+    if jt.shape[0] != r.size:
+        return np.full(fit.x.size, np.nan)
+    q = r**2 * np.sqrt(1.0 + (r / c) ** 2)
+    try:
+        h_inv = np.linalg.pinv(jt.T @ jt)
+    except np.linalg.LinAlgError:
+        return np.full(fit.x.size, np.nan)
+    cov = h_inv @ ((jt * q[:, None]).T @ jt) @ h_inv * inflation
     return np.sqrt(np.clip(np.diag(cov), 0, None))
 
 

@@ -335,7 +335,9 @@ class ScalarProblem(StreamProblem):
         if self.noise_key is None or self.integrate_window_s is not None or self.t.size < 3:
             return None, None
         r = self._residual(insts, x, "all", False)
-        sigma = float(np.std(r))
+        w = self.inlier_weights(insts, x, "all")
+        # with spurious readings in the model, the noise is the inliers'
+        sigma = float(np.std(r)) if w is None else weighted_rms(r - np.average(r, weights=w), w)
         if self.noise_key == "gyroscope_noise_density":
             # Kalibr: sample sigma = density / sqrt(dt), dt the mean interval (the sensor's
             # rate): a logger's irregular stamps make the median far shorter than the rate.
