@@ -17,7 +17,8 @@ so the floor, a table edge or anything else inside the cone nearer than the targ
 the simulator's glitch (``sim/models/sonar.py``: ``U(min_range_m, max_range_m)``) are readings
 at any range: ``uniform``, on the declared range limits, else on the fit part's reading span
 widened by 10 % each side; on an angle stream (bearing) ``uniform`` is the whole circle.
-Range streams get both, other scalar streams ``uniform`` only; one of them at most is added.
+Range streams get both, other scalar streams ``uniform`` only. A model holds one at most: the
+loop tries a second in place of the first (:func:`calibration.selection.select_effects`).
 
 Proposed only when the declared model's fit-part residual is heavy-tailed beyond the outliers the
 declared model already has (:meth:`ScalarProblem.robust_scale`); judged by the mixture's held-out
