@@ -371,7 +371,8 @@ def judge(
 def _judge_likelihood(old: Fit, new: Fit, k: int, n_candidates: int, rho: float) -> Trial:
     """The stopping rule when either model is a mixture (``outlier``): the same three tests on
     log-likelihoods with the fit part's parameters instead of residual sums. For Gaussian models
-    ``-2 dl = n ln(RSS_new / RSS_old)``, so the statistics keep their meaning: BIC
+    with the variance profiled on the same part ``-2 dl = n ln(RSS_new / RSS_old)``, so the
+    statistics keep their meaning: BIC
     ``-2 (l_f,new - l_f,old) + k ln n_f``; held-out ``L = 2 (l_s,new - l_s,old)`` against the
     same chi-square quantile; practical size ``1 - exp(-(l_s,new - l_s,old) / n_s)``, the drop of
     the geometric mean held-out density's scale (``1 - sqrt(RSS_new / RSS_old)`` for Gaussians).
