@@ -456,12 +456,6 @@ def build_ranges(bundle: Bundle, model: DeclaredModel) -> list[ScalarProblem]:
         sub = sub.select(ok)
         if len(sub) < 10:
             continue
-        noise_sigma = None
-        if not counts and model.sonar_distance_error is not None:
-            from koala_bridge.sim.models.sonar import distance_sigma
-
-            xs, ys = model.sonar_distance_error
-            noise_sigma = distance_sigma(sub["true_range"], np.asarray(xs), np.asarray(ys))
         t = sub["t"]
         split = Split.of(t)
         section_kind = kind or ("ir" if counts else "sonar")
@@ -502,9 +496,15 @@ def build_ranges(bundle: Bundle, model: DeclaredModel) -> list[ScalarProblem]:
                 k for k in sorted(extras) if categorical_levels(extras[k][fit]) is not None
             ),
             is_range=True,
-            range_limits=None if counts else model.sonar_range_m,
-            declared_outlier_probability=0.0 if counts else model.sonar_glitch_probability,
-            noise_sigma=noise_sigma,
+            # The declared sonar's spurious readings (effects/outlier.py): its range limits,
+            # glitch share and noise sigma per reading; the sonar's only, not another kind's.
+            range_limits=model.sonar_range_m if _is_sonar(counts, section_kind) else None,
+            declared_outlier_probability=model.sonar_glitch_probability
+            if _is_sonar(counts, section_kind)
+            else 0.0,
+            noise_sigma=_declared_sonar_sigma(model, sub["true_range"])
+            if _is_sonar(counts, section_kind)
+            else None,
             curve_points=curve,
             curve_fitted=fitted,
             base_add=base_add,
@@ -544,6 +544,20 @@ def build_ranges(bundle: Bundle, model: DeclaredModel) -> list[ScalarProblem]:
             )
         out.append(problem)
     return out
+
+
+def _is_sonar(counts: bool, section_kind: str) -> bool:
+    return not counts and section_kind == "sonar"
+
+
+def _declared_sonar_sigma(model: DeclaredModel, true_range: FloatArray) -> FloatArray | None:
+    """The declared sonar's noise sigma at each true range (its distance-error table), if any."""
+    if model.sonar_distance_error is None:
+        return None
+    from koala_bridge.sim.models.sonar import distance_sigma
+
+    xs, ys = model.sonar_distance_error
+    return np.asarray(distance_sigma(true_range, np.asarray(xs), np.asarray(ys)), dtype=float)
 
 
 def build_landmarks(bundle: Bundle, model: DeclaredModel) -> list[ScalarProblem]:
