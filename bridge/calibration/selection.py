@@ -392,6 +392,19 @@ def _judge_likelihood(old: Fit, new: Fit, k: int, n_candidates: int, rho: float)
     return Trial(name, k, float(dbic), float(lr), thr, gain, passed, new)
 
 
+def heldout_score(problem: StreamProblem, fit: Fit, likelihood: bool = False) -> float:
+    """How well ``fit`` predicts the held-out part, lower is better, for comparing fits of one
+    stream after the selection (a backward check, before against after): the stream's held-out
+    metric, or, when a mixture effect (``outlier``) is among the fits compared
+    (``likelihood``), the held-out negative log-likelihood per reading with the fit part's
+    parameters (:meth:`Fit.loglik`), the quantity :func:`_judge_likelihood` selected it by. The
+    metric (the RMS of every reading) cannot judge an outlier effect: it leaves the prediction
+    as it was and changes which readings the model expects."""
+    if likelihood:
+        return -fit.loglik()[1] / max(fit.r_score.size, 1)
+    return float(problem.metric_value(fit.insts, fit.x, "score"))
+
+
 def noise_autocorrelation(
     problem: StreamProblem, start: Fit, candidates: Sequence[EffectInstance]
 ) -> float:

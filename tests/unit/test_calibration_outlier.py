@@ -30,7 +30,7 @@ from koala_bridge.calibration.robust import (
     mad_sigma,
     mixture_loglik,
 )
-from koala_bridge.calibration.selection import select_effects
+from koala_bridge.calibration.selection import heldout_score, select_effects
 from koala_bridge.calibration.streams import build_ranges
 from koala_bridge.calibration.synthetic import (
     DECLARED,
@@ -185,6 +185,22 @@ def test_forced_outlier_candidate_is_rejected_on_clean_streams(tmp_path: Path) -
         for trial in sel.rounds[0]:
             assert trial.lr < trial.lr_threshold or trial.relative_gain < 0.01, trial
     assert added == 0
+
+
+def test_heldout_score_ranks_the_outlier_model_by_likelihood(tmp_path: Path) -> None:
+    # For a backward check (before vs after): the RMS of every reading is the same with and
+    # without the outlier effect, the held-out likelihood is not.
+    res = _range(tmp_path, 1, Injected(sonar_short=SHORT))
+    sel, problem = res.selection, res.problem
+    assert heldout_score(problem, sel.after) == pytest.approx(heldout_score(problem, sel.before))
+    before, after = (heldout_score(problem, f, likelihood=True) for f in (sel.before, sel.after))
+    n_s = problem.readings("score").size
+    # the selection's held-out statistic L = 2 n_s (before - after), scaled by the residuals'
+    # effective share (1 - rho) / (1 + rho), passed its threshold
+    ((_, trial),) = sel.added
+    c = (1 - sel.rho) / (1 + sel.rho) if sel.rho > 0 else 1.0
+    assert 2 * c * n_s * (before - after) == pytest.approx(trial.lr, rel=1e-6)
+    assert trial.lr > trial.lr_threshold
 
 
 def test_mixture_with_no_spurious_share_is_the_gaussian_likelihood() -> None:
