@@ -244,7 +244,6 @@ def refit_full(full: StreamProblem, small: StreamResult) -> StreamResult:
     )
     added = list(sel.added)
     result = Selection(full, before, after, added, sel.rounds, sel.rho)
-    result.sync_added()
     b = full.metric_value(before.insts, before.x, "score")
     a = full.metric_value(after.insts, after.x, "score")
     secondary = full.secondary_metrics((before.insts, before.x), (after.insts, after.x))

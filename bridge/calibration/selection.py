@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -80,6 +80,9 @@ class Fit:
     log_g: tuple[FloatArray, FloatArray] | None = None
     #: with a mixture effect: (spurious fraction p, inlier sigma)
     mixture: tuple[float, float] | None = None
+    #: with a mixture effect: the slice of ``x`` its parameters hold (EM's, not least squares';
+    #: ``jac`` has no columns for them)
+    em_slice: slice | None = None
     #: the declared relative noise level per reading, (fit, score) (StreamProblem.noise_shape)
     shape: tuple[FloatArray | None, FloatArray | None] = (None, None)
     #: the soft-L1 loss's scale when the fit used one (a heavy-tailed stream)
@@ -151,12 +154,6 @@ class Selection:
     def params_of(self, fit: Fit) -> list[FloatArray]:
         return split_params(self.problem, fit.insts, fit.x)
 
-    def sync_added(self) -> None:
-        """Point ``added`` at the instances of ``after``: a refit replaces a mixture effect's
-        instance by one holding its refitted parameters (:func:`fit_model`)."""
-        by_name = {i.name: i for i in self.after.insts}
-        self.added = [(by_name.get(i.name, i), t) for i, t in self.added]
-
 
 def _r(v: float) -> float:
     return float(f"{v:.6g}") if np.isfinite(v) else float(v)
@@ -169,73 +166,87 @@ def _least_squares(
     weights: FloatArray | None = None,
     f_scale: float | None = None,
     max_nfev: int = 200,
+    hold: slice | None = None,
 ) -> tuple[FloatArray, FloatArray | None]:
     """``(x, jac)`` of least squares on the fit part: weighted (EM's M step) when ``weights``
-    are given, with a soft-L1 loss of scale ``f_scale`` when one is given."""
-    if not x.size:
+    are given, with a soft-L1 loss of scale ``f_scale`` when one is given; the entries of ``x``
+    in ``hold`` (a mixture's, EM's own) are held and have no Jacobian column."""
+    keep = np.ones(x.size, dtype=bool)
+    if hold is not None:
+        keep[hold] = False
+    if not keep.any():
         return x, None
     sw = None if weights is None else np.sqrt(weights)
+    full = x.copy()
 
     def fun(v: FloatArray) -> FloatArray:
-        r = problem.residuals(insts, v, "fit", for_fit=True)
+        full[keep] = v
+        r = problem.residuals(insts, full, "fit", for_fit=True)
         return r if sw is None else sw * r
 
     try:
         sol = optimize.least_squares(
             fun,
-            x,
+            x[keep],
             x_scale="jac",
             method="trf",
             max_nfev=max_nfev,
             loss="soft_l1" if f_scale else "linear",
             f_scale=f_scale or 1.0,
         )
-        return sol.x, sol.jac
     except ValueError as e:  # degenerate data (e.g. no samples): keep the start values
         log.warning("%s: fit of %s failed: %s", problem.name, [i.name for i in insts], e)
         return x, None
+    out = x.copy()
+    out[keep] = sol.x
+    return out, sol.jac
+
+
+def _param_slice(problem: StreamProblem, insts: Sequence[EffectInstance], at: int) -> slice:
+    """The slice of the packed parameter vector holding ``insts[at]``'s free parameters."""
+    k = len(problem.nuisance_x0()) + sum(i.n_free for i in insts[:at])
+    return slice(k, k + insts[at].n_free)
 
 
 def _fit_mixture(
     problem: StreamProblem, insts: list[EffectInstance], x0: FloatArray, at: int
-) -> tuple[list[EffectInstance], FloatArray, FloatArray | None, FloatArray]:
+) -> tuple[FloatArray, FloatArray | None]:
     """EM for a model whose instance ``insts[at]`` is a mixture effect: the spurious fraction
-    ``p``, the inlier sigma and the model's free parameters jointly, maximising the fit part's
+    ``p``, the inlier sigma and the model's other parameters jointly, maximising the fit part's
     mixture likelihood (:mod:`koala_bridge.calibration.robust`). Starts from a soft-L1 fit (so
     the spurious readings do not pull the start), then alternates responsibilities (E) with
     ``p``, ``sigma`` and a weighted least-squares refit (M) until the likelihood stops rising.
-    Returns the instances (the mixture's with its fitted parameters), ``x``, the Jacobian of
-    the weighted residual and the final weights."""
+    The mixture's parameters (``p``, ``sigma``, its support) are its slice of ``x``; returns
+    ``x`` and the Jacobian of the weighted residual (columns: every other parameter)."""
     mix = insts[at]
-    params = np.asarray(mix.x0, dtype=float)
-    p, sigma = float(params[0]), float(params[1])
+    em = _param_slice(problem, insts, at)
+    x = np.asarray(x0, dtype=float).copy()
+    p, sigma = float(x[em][0]), float(x[em][1])
     y = problem.readings("fit")
     shape = problem.noise_shape("fit")
     s = np.ones_like(y) if shape is None else shape
-    x = np.asarray(x0, dtype=float)
     scale = problem.robust_scale() or mad_sigma(problem.residuals(insts, x, "fit"))
-    x, jac = _least_squares(problem, insts, x, f_scale=scale or None)
+    x, jac = _least_squares(problem, insts, x, f_scale=scale or None, hold=em)
     r = problem.residuals(insts, x, "fit")
     sigma = mad_sigma(r / s) or max(sigma, 1e-12)
-    w = np.ones_like(r)
+
+    def log_g(r: FloatArray) -> FloatArray:
+        return mix.effect.log_density(mix, x[em], y, r)
+
     prev = -np.inf
     for _ in range(EM_MAX_ITERATIONS):
-        log_g = mix.effect.log_density(mix, params, y, r)
-        w = inlier_responsibility(r, sigma, p, log_g, shape)
+        w = inlier_responsibility(r, sigma, p, log_g(r), shape)
         p = float(np.clip(1.0 - np.mean(w), 1e-6, MAX_SPURIOUS_FRACTION))
         sigma = max(weighted_rms(r / s, w), 1e-12)
-        if x.size:
-            x, jac = _least_squares(problem, insts, x, weights=w / s**2, max_nfev=50)
+        x[em.start], x[em.start + 1] = p, sigma
+        if x.size > em.stop - em.start:
+            x, jac = _least_squares(problem, insts, x, weights=w / s**2, max_nfev=50, hold=em)
             r = problem.residuals(insts, x, "fit")
-            log_g = mix.effect.log_density(mix, params, y, r)
-        ll = mixture_loglik(r, sigma, p, log_g, shape)
+        ll = mixture_loglik(r, sigma, p, log_g(r), shape)
         if ll - prev < EM_TOLERANCE * max(r.size, 1):
             break
         prev = ll
-    params[0], params[1] = p, sigma
-    fitted = replace(mix, x0=tuple(float(v) for v in params))
-    w = inlier_responsibility(r, sigma, p, mix.effect.log_density(mix, params, y, r), shape)
-    return [*insts[:at], fitted, *insts[at + 1 :]], x, jac, w
+    return x, jac
 
 
 def fit_model(problem: StreamProblem, insts: Sequence[EffectInstance], x0: FloatArray) -> Fit:
@@ -244,24 +255,22 @@ def fit_model(problem: StreamProblem, insts: Sequence[EffectInstance], x0: Float
     insts = list(insts)
     x = np.asarray(x0, dtype=float)
     at = next((k for k, i in enumerate(insts) if i.effect.mixture), None)
+    log_g = mixture = em = None
     if at is not None:
-        insts, x, jac, _ = _fit_mixture(problem, insts, x, at)
+        x, jac = _fit_mixture(problem, insts, x, at)
+        mix, em = insts[at], _param_slice(problem, insts, at)
+        log_g = (
+            mix.effect.log_density(
+                mix, x[em], problem.readings("fit"), problem.residuals(insts, x, "fit")
+            ),
+            mix.effect.log_density(
+                mix, x[em], problem.readings("score"), problem.residuals(insts, x, "score")
+            ),
+        )
+        mixture = (float(x[em][0]), float(x[em][1]))
     else:
         x, jac = _least_squares(problem, insts, x, f_scale=problem.robust_scale())
     robust = problem.robust_scale() if at is None and x.size else None
-    log_g = mixture = None
-    if at is not None:
-        mix = insts[at]
-        params = np.asarray(mix.x0, dtype=float)
-        log_g = (
-            mix.effect.log_density(
-                mix, params, problem.readings("fit"), problem.residuals(insts, x, "fit")
-            ),
-            mix.effect.log_density(
-                mix, params, problem.readings("score"), problem.residuals(insts, x, "score")
-            ),
-        )
-        mixture = (float(params[0]), float(params[1]))
     shape = (problem.noise_shape("fit"), problem.noise_shape("score"))
     smooth = None
     if any(i.effect.output_transform for i in insts):
@@ -278,6 +287,7 @@ def fit_model(problem: StreamProblem, insts: Sequence[EffectInstance], x0: Float
         smooth,
         log_g,
         mixture,
+        em,
         shape,
         robust,
     )
@@ -285,6 +295,8 @@ def fit_model(problem: StreamProblem, insts: Sequence[EffectInstance], x0: Float
 
 def parameter_se(problem: StreamProblem, fit: Fit) -> FloatArray:
     """Standard errors of the free parameters, inflated by n / n_eff for correlated residuals."""
+    if fit.em_slice is not None:
+        return _mixture_se(problem, fit)
     if fit.jac is None or fit.x.size == 0:
         return np.zeros(fit.x.size)
     n = fit.r_fit.size
@@ -293,15 +305,36 @@ def parameter_se(problem: StreamProblem, fit: Fit) -> FloatArray:
     s2 = fit.rss_fit / dof * n / effective_size(n, rho)
     if fit.robust_scale is not None:
         return _sandwich_se(problem, fit, fit.robust_scale, n / dof * n / effective_size(n, rho))
-    w = fit.inlier_weights()
-    if w is not None:  # the Jacobian is of the weighted residual: the inliers' variance
-        z = fit.r_fit if fit.shape[0] is None else fit.r_fit / fit.shape[0]
-        s2 = float(np.sum(w * z**2)) / max(float(np.sum(w)) - fit.x.size, 1.0)
     try:
         cov = np.linalg.pinv(fit.jac.T @ fit.jac) * s2
     except np.linalg.LinAlgError:
         return np.full(fit.x.size, np.nan)
     return np.sqrt(np.clip(np.diag(cov), 0, None))
+
+
+def _mixture_se(problem: StreamProblem, fit: Fit) -> FloatArray:
+    """Standard errors of a mixture fit: the other parameters from the Jacobian of the
+    weighted residual with the inliers' variance; ``p`` binomial, ``sqrt(p (1 - p) / n_f)``;
+    sigma ``sigma / sqrt(2 n_inliers)``; the support is declared, not fitted (0)."""
+    assert fit.em_slice is not None and fit.mixture is not None
+    se = np.zeros(fit.x.size)
+    em = fit.em_slice
+    w = fit.inlier_weights()
+    p, sigma = fit.mixture
+    n_in = float(np.sum(w)) if w is not None else float(fit.r_fit.size)
+    se[em.start] = np.sqrt(p * (1 - p) / max(fit.r_fit.size, 1))
+    se[em.start + 1] = sigma / np.sqrt(2 * max(n_in, 1.0))
+    keep = np.ones(fit.x.size, dtype=bool)
+    keep[em] = False
+    if fit.jac is not None and keep.any() and w is not None:
+        z = fit.r_fit if fit.shape[0] is None else fit.r_fit / fit.shape[0]
+        s2 = float(np.sum(w * z**2)) / max(n_in - int(keep.sum()), 1.0)
+        try:
+            cov = np.linalg.pinv(fit.jac.T @ fit.jac) * s2
+            se[keep] = np.sqrt(np.clip(np.diag(cov), 0, None))
+        except np.linalg.LinAlgError:
+            se[keep] = np.nan
+    return se
 
 
 def _sandwich_se(problem: StreamProblem, fit: Fit, c: float, inflation: float) -> FloatArray:
@@ -481,5 +514,4 @@ def select_effects(
             100 * best.relative_gain,
         )
     result.after = current
-    result.sync_added()
     return result

@@ -168,7 +168,6 @@ def test_forced_outlier_candidate_is_rejected_on_clean_streams(tmp_path: Path) -
                 outlier,
                 ("probability", "inlier_sigma", "low"),
                 (0.01, NOISE["sonar"], 0.0),
-                fixed=True,
                 data={"support": "short"},
             ),
             EffectInstance(
@@ -176,7 +175,6 @@ def test_forced_outlier_candidate_is_rejected_on_clean_streams(tmp_path: Path) -
                 outlier,
                 ("probability", "inlier_sigma", "low", "high"),
                 (0.01, NOISE["sonar"], 0.0, 4.0),
-                fixed=True,
                 data={"support": "uniform"},
             ),
         ]

@@ -5,8 +5,8 @@ follow the model (a two-component mixture, :mod:`koala_bridge.calibration.robust
     short:    g = U(low, y_hat)     a first echo from nearer than the target
     uniform:  g = U(low, high)      a reading unrelated to the target
 
-params (fixed, estimated by EM with the model): ``probability`` p, ``inlier_sigma`` sigma, the
-support ``low`` (and ``high``).
+params (estimated by EM with the model, not by least squares): ``probability`` p,
+``inlier_sigma`` sigma, the support ``low`` (and ``high``, both declared, held).
 
 The physical reading (seeds/004 "Sensor Models"): a sonar's beam is a 22.9 deg cone (Webots
 ``Khepera3_USSensor`` aperture 0.4, two of its rays aimed up and down), and "when an object is
@@ -77,7 +77,6 @@ class Outlier(Effect):
                     self,
                     ("probability", sigma_name, "low"),
                     (p0, sigma, float(low)),
-                    fixed=True,
                     data={"support": "short"},
                 )
             )
@@ -87,7 +86,6 @@ class Outlier(Effect):
                 self,
                 ("probability", sigma_name, "low", "high"),
                 (p0, sigma, float(lo), float(hi)),
-                fixed=True,
                 data={"support": "uniform", "angle": bool(problem.angle)},
             )
         )
