@@ -16,9 +16,16 @@ so the floor, a table edge or anything else inside the cone nearer than the targ
 ``short``, with ``low`` the declared ``min_range_m`` (0 when none is declared). Crosstalk and
 the simulator's glitch (``sim/models/sonar.py``: ``U(min_range_m, max_range_m)``) are readings
 at any range: ``uniform``, on the declared range limits, else on the fit part's reading span
-widened by 10 % each side; on an angle stream (bearing) ``uniform`` is the whole circle.
-Range streams get both, other scalar streams ``uniform`` only. A model holds one at most: the
-loop tries a second in place of the first (:func:`calibration.selection.select_effects`).
+widened by 10 % each side. Sonar streams get both, other metric range streams (UWB, lidar,
+landmark ranges) ``uniform`` only: a UWB's spurious readings (non-line-of-sight) are long, not
+short. A model holds one at most: the loop tries a second in place of the first
+(:func:`calibration.selection.select_effects`).
+
+Not proposed for other scalar streams (gyro, bearings, IR counts): the heavy tails of those in
+the recordings tried came from the model, not from spurious readings (a gyro's reference rate
+interpolated across step commands, IR counts clipped against a wall the simulator's robot
+pushed into: ``test_calibration_wall_slip``), and naming them outliers would hide the model
+error. Their fits still use the robust loss (``ScalarProblem.robust_scale``).
 
 Proposed only when the declared model's fit-part residual is heavy-tailed beyond the outliers the
 declared model already has (:meth:`ScalarProblem.robust_scale`); judged by the mixture's held-out
@@ -48,7 +55,10 @@ class Outlier(Effect):
     mixture = True
 
     def _propose(self, problem: Any) -> list[EffectInstance]:
-        if problem.integrate_window_s is not None or problem.robust_scale() is None:
+        metric_range = problem.is_range and problem.curve_points is None and not problem.angle
+        if not metric_range or problem.integrate_window_s is not None:
+            return []
+        if problem.robust_scale() is None:
             return []
         fit = problem.part("fit")
         r = problem.tail_residual()
@@ -59,17 +69,13 @@ class Outlier(Effect):
         # start: the excess over the Gaussian share beyond 3 sigma, at least 1 %
         p0 = float(np.clip(k / max(n, 1) - 2 * stats.norm.sf(3.0), 0.01, 0.3))
         out = []
-        if problem.angle:
-            lo, hi = -np.pi, np.pi
-        elif problem.range_limits is not None:
+        if problem.range_limits is not None:
             lo, hi = problem.range_limits
         else:
             y_min, y_max = float(np.min(fit.y)), float(np.max(fit.y))
             pad = 0.1 * (y_max - y_min)
-            lo, hi = y_min - pad, y_max + pad
-            if problem.is_range:
-                lo = max(lo, 0.0)
-        if problem.is_range and not problem.angle:
+            lo, hi = max(y_min - pad, 0.0), y_max + pad
+        if problem.section == "sensors.sonar":
             low = problem.range_limits[0] if problem.range_limits is not None else 0.0
             out.append(
                 EffectInstance(
@@ -86,7 +92,7 @@ class Outlier(Effect):
                 self,
                 ("probability", sigma_name, "low", "high"),
                 (p0, sigma, float(lo), float(hi)),
-                data={"support": "uniform", "angle": bool(problem.angle)},
+                data={"support": "uniform"},
             )
         )
         return out
@@ -111,8 +117,6 @@ class Outlier(Effect):
             with np.errstate(divide="ignore", invalid="ignore"):
                 return np.where(ok, -np.log(np.where(ok, width, 1.0)), -np.inf)
         high = float(params[3])
-        if inst.data.get("angle"):
-            return np.full(y.shape, -np.log(2 * np.pi))
         ok = (y >= low) & (y <= high)
         return np.where(ok, -np.log(max(high - low, 1e-300)), -np.inf)
 
