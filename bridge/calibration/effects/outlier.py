@@ -97,6 +97,12 @@ class Outlier(Effect):
         )
         return out
 
+    def absent(self, inst: EffectInstance) -> NDArray[np.float64]:
+        """No spurious readings: ``p = 0``; sigma and the support are not the effect's size (main's
+        ``Effect.absent`` hook, which ``--write-config`` holds the size against its SE with):
+        their starting values, so the size is ``p`` and how far EM moved sigma."""
+        return np.asarray([0.0, *inst.x0[1:]], dtype=float)
+
     def n_tested(self, inst: EffectInstance) -> int:
         return 1  # p; sigma replaces the Gaussian model's own, the support is not fitted
 
