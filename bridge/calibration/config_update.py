@@ -176,6 +176,14 @@ def config_diff(base: Mapping[str, Any], new: Mapping[str, Any], name: str = "MO
     )
 
 
+def _inline(value: Any) -> str:
+    """``value`` as a one-line TOML value: a table inline (``{ a = 1, b = 2 }``), since the
+    comment block is one ``#`` line per key (a multi-line table there would become keys)."""
+    if isinstance(value, Mapping):
+        return "{ " + ", ".join(f"{k} = {_inline(v)}" for k, v in value.items()) + " }"
+    return tomli_w.dumps({"v": value})[4:].strip()
+
+
 def write_config(
     path: Path, doc: Mapping[str, Any], unsimulated: Mapping[str, Any] = {}, fragment: bool = False
 ) -> None:
@@ -199,6 +207,6 @@ def write_config(
             "# (docs/calibration.md, 'What the simulator reproduces'):",
         ]
         for k, v in unsimulated.items():
-            lines.append(f"#   {k} = {tomli_w.dumps({'v': v})[4:].strip()}")
+            lines.append(f"#   {k} = {_inline(v)}")
         tail = "\n".join(lines) + "\n"
     Path(path).write_text(header + dumps(doc) + tail, encoding="utf-8")

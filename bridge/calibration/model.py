@@ -101,6 +101,8 @@ class DeclaredModel:
     #: ([range_m, sigma_m] rows): readings that could be censored there are not residuals
     sonar_range_m: tuple[float, float] | None = None
     sonar_distance_error: tuple[tuple[float, ...], tuple[float, ...]] | None = None
+    #: share of sonar readings the declared model makes spurious (glitch_probability: U(min, max))
+    sonar_glitch_probability: float = 0.0
     sources: Mapping[str, str] = field(default_factory=dict)
 
 
@@ -281,8 +283,10 @@ def declared_model(config: Mapping[str, Any], meta: Mapping[str, Any]) -> Declar
     critical = None
     sonar_range = None
     sonar_table = None
+    sonar_glitch = 0.0
     if typed is not None and not typed.sensors.sonar.ideal:
         sonar = typed.sensors.sonar
+        sonar_glitch = float(sonar.errors.glitch_probability)  # what the simulator draws
         if stated("sensors", "sonar", "critical_angle_deg"):
             critical = float(np.deg2rad(sonar.errors.critical_angle_deg))
         if stated("sensors", "sonar", "min_range_m") and stated("sensors", "sonar", "max_range_m"):
@@ -320,6 +324,7 @@ def declared_model(config: Mapping[str, Any], meta: Mapping[str, Any]) -> Declar
         sonar_critical_angle_rad=critical,
         sonar_range_m=sonar_range,
         sonar_distance_error=sonar_table,
+        sonar_glitch_probability=sonar_glitch,
         camera_wrong_ids=wrong_ids,
         camera_far=far,
         camera_bearing_sigma_rad=bearing_sigma,

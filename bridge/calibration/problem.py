@@ -161,6 +161,23 @@ class StreamProblem(ABC):
         than an AR(1) model does (None: prewhiten and count residuals)."""
         return None
 
+    def readings(self, part: Part) -> FloatArray:
+        """The measured value of each reading of ``part``, one per residual (the density of a
+        spurious reading depends on it; streams without one reading per residual have none)."""
+        raise NotImplementedError(f"{self.name}: no single reading per residual")
+
+    def noise_shape(self, part: Part) -> FloatArray | None:
+        """The declared relative noise level of each reading of ``part`` (a sonar's distance
+        error grows with the range); None (the default): the same for every reading."""
+        return None
+
+    def robust_scale(self) -> float | None:
+        """The robust noise scale (1.4826 MAD) of the declared model's fit-part residual when
+        that residual is heavy-tailed (:func:`koala_bridge.calibration.robust.heavy_tailed`):
+        least squares then uses a soft-L1 loss with this scale, so spurious readings cannot pull
+        the parameters. None (the default): plain least squares."""
+        return None
+
     def config_values(self, insts: Sequence[EffectInstance], x: FloatArray) -> dict[str, Any]:
         """Config keys written for the declared model's own fitted parts (default: none)."""
         return {}

@@ -23,6 +23,12 @@ Per stream, starting from the declared model (nuisance parameters fitted):
 3. the passing candidate with the largest held-out statistic ``L`` is added; repeat until none
    passes (or ``max_effects``).
 
+Heavy-tailed streams (:meth:`StreamProblem.robust_scale`, :mod:`koala_bridge.calibration.robust`)
+are fitted with a soft-L1 loss of scale 1.4826 MAD. With a mixture effect in the model
+(``outlier``: a share of spurious readings) the fit is EM (:func:`_fit_mixture`) and candidates
+are judged by the same three tests on log-likelihoods with the fit part's parameters
+(:func:`_judge_likelihood`): every reading counts, none is dropped, so *after* is not flattered.
+
 Because the held-out part was not used to fit, an effect that only fits noise makes the held-out
 RSS larger on average: the test is one-sided and conservative.
 """
@@ -37,6 +43,13 @@ from typing import Any
 import numpy as np
 from koala_bridge.calibration.effects.base import EffectInstance
 from koala_bridge.calibration.problem import FloatArray, StreamProblem, effective_size, split_params
+from koala_bridge.calibration.robust import (
+    gaussian_logpdf,
+    inlier_responsibility,
+    mad_sigma,
+    mixture_loglik,
+    weighted_rms,
+)
 from scipy import optimize, stats
 
 log = logging.getLogger(__name__)
@@ -44,6 +57,12 @@ log = logging.getLogger(__name__)
 ALPHA = 0.01
 MIN_RELATIVE_GAIN = 0.01
 MAX_EFFECTS = 6
+#: EM (mixture effects): iterations at most, and the stop when the fit part's log-likelihood
+#: rises by less than this per reading
+EM_MAX_ITERATIONS = 30
+EM_TOLERANCE = 1e-7
+#: the largest spurious fraction EM may reach: beyond one half the "outliers" are the model
+MAX_SPURIOUS_FRACTION = 0.5
 
 
 @dataclass
@@ -57,10 +76,45 @@ class Fit:
     jac: FloatArray | None = None
     #: unrounded residuals, when the model holds an output transform (quantisation)
     smooth: tuple[FloatArray, FloatArray] | None = None
+    #: with a mixture effect: log density of a spurious reading per reading, (fit, score)
+    log_g: tuple[FloatArray, FloatArray] | None = None
+    #: with a mixture effect: (spurious fraction p, inlier sigma)
+    mixture: tuple[float, float] | None = None
+    #: with a mixture effect: the slice of ``x`` its parameters hold (EM's, not least squares';
+    #: ``jac`` has no columns for them)
+    em_slice: slice | None = None
+    #: the declared relative noise level per reading, (fit, score) (StreamProblem.noise_shape)
+    shape: tuple[FloatArray | None, FloatArray | None] = (None, None)
+    #: the soft-L1 loss's scale when the fit used one (a heavy-tailed stream)
+    robust_scale: float | None = None
 
     @property
     def rss_fit(self) -> float:
         return float(np.sum(self.r_fit**2))
+
+    def loglik(self) -> tuple[float, float]:
+        """Log-likelihood of the fit and the score part with the parameters of the fit part:
+        the mixture's (module docstring), or Gaussian with the fit part's ML variance."""
+        sf, ss = self.shape
+        if self.mixture is not None and self.log_g is not None:
+            p, sigma = self.mixture
+            return (
+                mixture_loglik(self.r_fit, sigma, p, self.log_g[0], sf),
+                mixture_loglik(self.r_score, sigma, p, self.log_g[1], ss),
+            )
+        z = self.r_fit if sf is None else self.r_fit / sf
+        sigma = float(np.sqrt(np.mean(z**2))) if z.size else 0.0
+        return (
+            float(np.sum(gaussian_logpdf(self.r_fit, sigma, sf))),
+            float(np.sum(gaussian_logpdf(self.r_score, sigma, ss))),
+        )
+
+    def inlier_weights(self) -> FloatArray | None:
+        """Posterior inlier probability of each fit-part reading (None without a mixture)."""
+        if self.mixture is None or self.log_g is None:
+            return None
+        p, sigma = self.mixture
+        return inlier_responsibility(self.r_fit, sigma, p, self.log_g[0], self.shape[0])
 
 
 @dataclass
@@ -105,21 +159,119 @@ def _r(v: float) -> float:
     return float(f"{v:.6g}") if np.isfinite(v) else float(v)
 
 
+def _least_squares(
+    problem: StreamProblem,
+    insts: list[EffectInstance],
+    x: FloatArray,
+    weights: FloatArray | None = None,
+    f_scale: float | None = None,
+    max_nfev: int = 200,
+    hold: slice | None = None,
+) -> tuple[FloatArray, FloatArray | None]:
+    """``(x, jac)`` of least squares on the fit part: weighted (EM's M step) when ``weights``
+    are given, with a soft-L1 loss of scale ``f_scale`` when one is given; the entries of ``x``
+    in ``hold`` (a mixture's, EM's own) are held and have no Jacobian column."""
+    keep = np.ones(x.size, dtype=bool)
+    if hold is not None:
+        keep[hold] = False
+    if not keep.any():
+        return x, None
+    sw = None if weights is None else np.sqrt(weights)
+    full = x.copy()
+
+    def fun(v: FloatArray) -> FloatArray:
+        full[keep] = v
+        r = problem.residuals(insts, full, "fit", for_fit=True)
+        return r if sw is None else sw * r
+
+    try:
+        sol = optimize.least_squares(
+            fun,
+            x[keep],
+            x_scale="jac",
+            method="trf",
+            max_nfev=max_nfev,
+            loss="soft_l1" if f_scale else "linear",
+            f_scale=f_scale or 1.0,
+        )
+    except ValueError as e:  # degenerate data (e.g. no samples): keep the start values
+        log.warning("%s: fit of %s failed: %s", problem.name, [i.name for i in insts], e)
+        return x, None
+    out = x.copy()
+    out[keep] = sol.x
+    return out, sol.jac
+
+
+def _param_slice(problem: StreamProblem, insts: Sequence[EffectInstance], at: int) -> slice:
+    """The slice of the packed parameter vector holding ``insts[at]``'s free parameters."""
+    k = len(problem.nuisance_x0()) + sum(i.n_free for i in insts[:at])
+    return slice(k, k + insts[at].n_free)
+
+
+def _fit_mixture(
+    problem: StreamProblem, insts: list[EffectInstance], x0: FloatArray, at: int
+) -> tuple[FloatArray, FloatArray | None]:
+    """EM for a model whose instance ``insts[at]`` is a mixture effect: the spurious fraction
+    ``p``, the inlier sigma and the model's other parameters jointly, maximising the fit part's
+    mixture likelihood (:mod:`koala_bridge.calibration.robust`). Starts from a soft-L1 fit (so
+    the spurious readings do not pull the start), then alternates responsibilities (E) with
+    ``p``, ``sigma`` and a weighted least-squares refit (M) until the likelihood stops rising.
+    The mixture's parameters (``p``, ``sigma``, its support) are its slice of ``x``; returns
+    ``x`` and the Jacobian of the weighted residual (columns: every other parameter)."""
+    mix = insts[at]
+    em = _param_slice(problem, insts, at)
+    x = np.asarray(x0, dtype=float).copy()
+    p, sigma = float(x[em][0]), float(x[em][1])
+    y = problem.readings("fit")
+    shape = problem.noise_shape("fit")
+    s = np.ones_like(y) if shape is None else shape
+    scale = problem.robust_scale() or mad_sigma(problem.residuals(insts, x, "fit"))
+    x, jac = _least_squares(problem, insts, x, f_scale=scale or None, hold=em)
+    r = problem.residuals(insts, x, "fit")
+    sigma = mad_sigma(r / s) or max(sigma, 1e-12)
+
+    def log_g(r: FloatArray) -> FloatArray:
+        return mix.effect.log_density(mix, x[em], y, r)
+
+    prev = -np.inf
+    for _ in range(EM_MAX_ITERATIONS):
+        w = inlier_responsibility(r, sigma, p, log_g(r), shape)
+        p = float(np.clip(1.0 - np.mean(w), 1e-6, MAX_SPURIOUS_FRACTION))
+        sigma = max(weighted_rms(r / s, w), 1e-12)
+        x[em.start], x[em.start + 1] = p, sigma
+        if x.size > em.stop - em.start:
+            x, jac = _least_squares(problem, insts, x, weights=w / s**2, max_nfev=50, hold=em)
+            r = problem.residuals(insts, x, "fit")
+        ll = mixture_loglik(r, sigma, p, log_g(r), shape)
+        if ll - prev < EM_TOLERANCE * max(r.size, 1):
+            break
+        prev = ll
+    return x, jac
+
+
 def fit_model(problem: StreamProblem, insts: Sequence[EffectInstance], x0: FloatArray) -> Fit:
-    """Least-squares fit of all free parameters on the fit part."""
+    """Fit of all free parameters on the fit part: least squares; with a soft-L1 loss when the
+    stream is heavy-tailed (:meth:`StreamProblem.robust_scale`); EM with a mixture effect."""
     insts = list(insts)
-    jac = None
     x = np.asarray(x0, dtype=float)
-    if x.size:
-
-        def fun(v: FloatArray) -> FloatArray:
-            return problem.residuals(insts, v, "fit", for_fit=True)
-
-        try:
-            sol = optimize.least_squares(fun, x, x_scale="jac", method="trf", max_nfev=200)
-            x, jac = sol.x, sol.jac
-        except ValueError as e:  # degenerate data (e.g. no samples): keep the start values
-            log.warning("%s: fit of %s failed: %s", problem.name, [i.name for i in insts], e)
+    at = next((k for k, i in enumerate(insts) if i.effect.mixture), None)
+    log_g = mixture = em = None
+    if at is not None:
+        x, jac = _fit_mixture(problem, insts, x, at)
+        mix, em = insts[at], _param_slice(problem, insts, at)
+        log_g = (
+            mix.effect.log_density(
+                mix, x[em], problem.readings("fit"), problem.residuals(insts, x, "fit")
+            ),
+            mix.effect.log_density(
+                mix, x[em], problem.readings("score"), problem.residuals(insts, x, "score")
+            ),
+        )
+        mixture = (float(x[em][0]), float(x[em][1]))
+    else:
+        x, jac = _least_squares(problem, insts, x, f_scale=problem.robust_scale())
+    robust = problem.robust_scale() if at is None and x.size else None
+    shape = (problem.noise_shape("fit"), problem.noise_shape("score"))
     smooth = None
     if any(i.effect.output_transform for i in insts):
         smooth = (
@@ -133,21 +285,75 @@ def fit_model(problem: StreamProblem, insts: Sequence[EffectInstance], x0: Float
         problem.residuals(insts, x, "score"),
         jac,
         smooth,
+        log_g,
+        mixture,
+        em,
+        shape,
+        robust,
     )
 
 
 def parameter_se(problem: StreamProblem, fit: Fit) -> FloatArray:
     """Standard errors of the free parameters, inflated by n / n_eff for correlated residuals."""
+    if fit.em_slice is not None:
+        return _mixture_se(problem, fit)
     if fit.jac is None or fit.x.size == 0:
         return np.zeros(fit.x.size)
     n = fit.r_fit.size
     dof = max(n - fit.x.size, 1)
     rho = problem.autocorrelation(fit.r_fit)
     s2 = fit.rss_fit / dof * n / effective_size(n, rho)
+    if fit.robust_scale is not None:
+        return _sandwich_se(problem, fit, fit.robust_scale, n / dof * n / effective_size(n, rho))
     try:
         cov = np.linalg.pinv(fit.jac.T @ fit.jac) * s2
     except np.linalg.LinAlgError:
         return np.full(fit.x.size, np.nan)
+    return np.sqrt(np.clip(np.diag(cov), 0, None))
+
+
+def _mixture_se(problem: StreamProblem, fit: Fit) -> FloatArray:
+    """Standard errors of a mixture fit: the other parameters from the Jacobian of the
+    weighted residual with the inliers' variance; ``p`` binomial, ``sqrt(p (1 - p) / n_f)``;
+    sigma ``sigma / sqrt(2 n_inliers)``; the support is declared, not fitted (0)."""
+    assert fit.em_slice is not None and fit.mixture is not None
+    se = np.zeros(fit.x.size)
+    em = fit.em_slice
+    w = fit.inlier_weights()
+    p, sigma = fit.mixture
+    n_in = float(np.sum(w)) if w is not None else float(fit.r_fit.size)
+    se[em.start] = np.sqrt(p * (1 - p) / max(fit.r_fit.size, 1))
+    se[em.start + 1] = sigma / np.sqrt(2 * max(n_in, 1.0))
+    keep = np.ones(fit.x.size, dtype=bool)
+    keep[em] = False
+    if fit.jac is not None and keep.any() and w is not None:
+        z = fit.r_fit if fit.shape[0] is None else fit.r_fit / fit.shape[0]
+        s2 = float(np.sum(w * z**2)) / max(n_in - int(keep.sum()), 1.0)
+        try:
+            cov = np.linalg.pinv(fit.jac.T @ fit.jac) * s2
+            se[keep] = np.sqrt(np.clip(np.diag(cov), 0, None))
+        except np.linalg.LinAlgError:
+            se[keep] = np.nan
+    return se
+
+
+def _sandwich_se(problem: StreamProblem, fit: Fit, c: float, inflation: float) -> FloatArray:
+    """Standard errors of a soft-L1 fit (M-estimator, Huber 1967): ``H^-1 M H^-1`` with ``H``
+    the cost's Gauss-Newton Hessian and ``M = sum psi_i^2 J_i J_i^T``. scipy returns the
+    Jacobian scaled so that ``J~^T J~ = H``: for soft-L1 (``rho(z) = 2 (sqrt(1 + z) - 1)``,
+    ``z = (r / c)^2``) its rows are ``J_i (1 + z_i)^(-3/4)`` and ``psi_i = r_i / sqrt(1 + z_i)``,
+    so ``M = sum r_i^2 sqrt(1 + z_i) J~_i J~_i^T``."""
+    assert fit.jac is not None
+    r = problem.residuals(fit.insts, fit.x, "fit", for_fit=True)
+    jt = np.asarray(fit.jac, dtype=float)
+    if jt.shape[0] != r.size:
+        return np.full(fit.x.size, np.nan)
+    q = r**2 * np.sqrt(1.0 + (r / c) ** 2)
+    try:
+        h_inv = np.linalg.pinv(jt.T @ jt)
+    except np.linalg.LinAlgError:
+        return np.full(fit.x.size, np.nan)
+    cov = h_inv @ ((jt * q[:, None]).T @ jt) @ h_inv * inflation
     return np.sqrt(np.clip(np.diag(cov), 0, None))
 
 
@@ -172,6 +378,8 @@ def judge(
     name = new.insts[-1].name
     if old.r_score.size == 0 or new.r_fit.size == 0:
         return Trial(name, k, np.nan, np.nan, np.nan, np.nan, False, new)
+    if old.mixture is not None or new.mixture is not None:
+        return _judge_likelihood(old, new, k, n_candidates, rho)
     tiny = 1e-300
     rf_old, rs_old, rf_new, rs_new = old.r_fit, old.r_score, new.r_fit, new.r_score
     if old.smooth is not None and new.smooth is not None:
@@ -191,6 +399,43 @@ def judge(
     gain = 1 - np.sqrt(ss_new / ss_old) if ss_old > 0 else 0.0
     passed = bool(dbic < 0 and lr > thr and gain >= MIN_RELATIVE_GAIN)
     return Trial(name, k, float(dbic), float(lr), thr, float(gain), passed, new)
+
+
+def _judge_likelihood(old: Fit, new: Fit, k: int, n_candidates: int, rho: float) -> Trial:
+    """The stopping rule when either model is a mixture (``outlier``): the same three tests on
+    log-likelihoods with the fit part's parameters instead of residual sums. For Gaussian models
+    with the variance profiled on the same part ``-2 dl = n ln(RSS_new / RSS_old)``, so the
+    statistics keep their meaning: BIC
+    ``-2 (l_f,new - l_f,old) + k ln n_f``; held-out ``L = 2 (l_s,new - l_s,old)`` against the
+    same chi-square quantile; practical size ``1 - exp(-(l_s,new - l_s,old) / n_s)``, the drop of
+    the geometric mean held-out density's scale (``1 - sqrt(RSS_new / RSS_old)`` for Gaussians).
+    Every reading counts, spurious ones by their probability under the mixture: no reading is
+    excluded. Correlated residuals: the statistics are scaled by ``(1 - rho) / (1 + rho)``
+    (:func:`koala_bridge.calibration.problem.effective_size`)."""
+    name = new.insts[-1].name
+    lf_old, ls_old = old.loglik()
+    lf_new, ls_new = new.loglik()
+    nf, ns = max(new.r_fit.size, 1), max(new.r_score.size, 1)
+    c = (1 - rho) / (1 + rho) if rho > 0 else 1.0
+    dbic = -2 * c * (lf_new - lf_old) + k * np.log(max(c * nf, 2.0))
+    lr = 2 * c * (ls_new - ls_old)
+    thr = float(stats.chi2.ppf(1 - ALPHA / max(n_candidates, 1), max(k, 1)))
+    gain = float(-np.expm1(-(ls_new - ls_old) / ns)) if np.isfinite(ls_new - ls_old) else np.nan
+    passed = bool(dbic < 0 and lr > thr and gain >= MIN_RELATIVE_GAIN)
+    return Trial(name, k, float(dbic), float(lr), thr, gain, passed, new)
+
+
+def heldout_score(problem: StreamProblem, fit: Fit, likelihood: bool = False) -> float:
+    """How well ``fit`` predicts the held-out part, lower is better, for comparing fits of one
+    stream after the selection (a backward check, before against after): the stream's held-out
+    metric, or, when a mixture effect (``outlier``) is among the fits compared
+    (``likelihood``), the held-out negative log-likelihood per reading with the fit part's
+    parameters (:meth:`Fit.loglik`), the quantity :func:`_judge_likelihood` selected it by. The
+    metric (the RMS of every reading) cannot judge an outlier effect: it leaves the prediction
+    as it was and changes which readings the model expects."""
+    if likelihood:
+        return -fit.loglik()[1] / max(fit.r_score.size, 1)
+    return float(problem.metric_value(fit.insts, fit.x, "score"))
 
 
 def noise_autocorrelation(
@@ -220,10 +465,14 @@ def select_effects(
     while remaining and len(result.added) < max_effects:
         trials: list[Trial] = []
         for cand in remaining:
-            insts = [*current.insts, cand]
+            # One mixture at most: another spurious-reading model is tried *in place of* the
+            # one in the model (outlier:uniform chosen first may give way to outlier:short once
+            # glitch explains the max-range readings), judged like any candidate.
+            keep = [i for i in current.insts if not (cand.effect.mixture and i.effect.mixture)]
+            insts = [*keep, cand]
             x0 = problem.initial_vector(insts, current.x, current.insts)
             new = fit_model(problem, insts, x0)
-            trial = judge(current, new, len(cand.param_names), len(remaining), rho, counts)
+            trial = judge(current, new, cand.effect.n_tested(cand), len(remaining), rho, counts)
             if trial.passed and not cand.effect.plausible(
                 cand, split_params(problem, new.insts, new.x)[-1]
             ):
@@ -253,7 +502,10 @@ def select_effects(
         assert best.fit is not None
         current = best.fit
         chosen = current.insts[-1]
+        if chosen.effect.mixture:  # replaced, not added: see the loop above
+            result.added = [(i, t) for i, t in result.added if not i.effect.mixture]
         result.added.append((chosen, best))
+        # each candidate enters once: a replaced mixture does not come back, so no cycles
         remaining = [c for c in remaining if c.name != chosen.name]
         log.info(
             "%s: added %s (held-out gain %.1f %%)",

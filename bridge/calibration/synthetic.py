@@ -34,6 +34,7 @@ NOISE = {
 }
 EARTH_UT = (0.0, 20.0, -43.0)  # horizontal field pointing along +y (north), vertical down
 SONAR_MAX_M = 5.0
+SONAR_MIN_M = 0.1
 
 
 @dataclass(frozen=True)
@@ -56,6 +57,9 @@ class Injected:
     sonar_quantisation: float = 0.0  # m
     sonar_per_sensor: tuple[float, ...] = field(default_factory=tuple)  # m, one per sensor
     sonar_noise: float | None = None  # m; None: NOISE["sonar"]
+    # probability of a short reading U(SONAR_MIN_M, true range): a floor or beam-edge echo
+    sonar_short: float = 0.0
+    sonar_temperature: bool = False  # a temperature_c column in range.csv (no effect of its own)
 
 
 def _trajectory(t: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -151,7 +155,16 @@ def make_bundle(
         meas = inj.sonar_quantisation * np.round(meas / inj.sonar_quantisation)
     glitch = rng_son.random(ts.size) < inj.sonar_glitch
     meas = np.where(glitch, SONAR_MAX_M, meas)
-    _write(out / "range.csv", "t,sensor,measured,true_range", [ts, sensor, meas, true_r])
+    # Drawn whatever is injected (after every other sonar variate), so the rest stays the same.
+    short = rng_son.random(ts.size) < inj.sonar_short
+    short_r = SONAR_MIN_M + (true_r - SONAR_MIN_M) * rng_son.random(ts.size)
+    meas = np.where(short & ~glitch, short_r, meas)
+    cols, header = [ts, sensor, meas, true_r], "t,sensor,measured,true_range"
+    if inj.sonar_temperature:
+        # a room warming over the run, as a sonar logged against a ruler would see it
+        cols.append(25 + 3 * np.sin(2 * np.pi * ts / (0.8 * duration_s) + rng_son.uniform(0, 6.28)))
+        header += ",temperature_c"
+    _write(out / "range.csv", header, cols)
 
     # Landmarks: 3 mapped landmarks, one observation each per 0.5 s.
     lm = np.array([[1, 4.0, 4.0], [2, -2.0, 3.0], [3, 2.0, -3.0]])

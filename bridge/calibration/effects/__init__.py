@@ -37,6 +37,7 @@ BUILTIN_MODULES: tuple[str, ...] = (
     "time_offset",
     "glitch",
     "quantisation",
+    "outlier",
 )
 
 _REGISTRY: dict[str, type[Effect]] = {}

@@ -68,6 +68,10 @@ class Effect(ABC):
     #: model, further candidates are judged on the smooth (unrounded) residual, see
     #: :func:`koala_bridge.calibration.selection.judge`
     output_transform: ClassVar[bool] = False
+    #: the effect is a second component of the likelihood (spurious readings,
+    #: :mod:`koala_bridge.calibration.effects.outlier`): with it in the model the fit is EM and
+    #: candidates are judged by the mixture's likelihood (:func:`calibration.selection.judge`)
+    mixture: ClassVar[bool] = False
 
     def propose(self, problem: StreamProblem) -> list[EffectInstance]:
         """Instances of this effect that make sense for ``problem`` (empty: not applicable)."""
@@ -77,6 +81,21 @@ class Effect(ABC):
 
     @abstractmethod
     def _propose(self, problem: StreamProblem) -> list[EffectInstance]: ...
+
+    def n_tested(self, inst: EffectInstance) -> int:
+        """Parameters the stopping rule counts for this instance (default: all of them)."""
+        return len(inst.param_names)
+
+    def log_density(
+        self,
+        inst: EffectInstance,
+        params: NDArray[np.float64],
+        y: NDArray[np.float64],
+        r: NDArray[np.float64],
+    ) -> NDArray[np.float64]:
+        """A ``mixture`` effect's log density of a spurious reading, per reading ``y`` with
+        residual ``r`` under the model."""
+        raise NotImplementedError(f"{self.name} is not a mixture effect")
 
     def plausible(self, inst: EffectInstance, params: NDArray[np.float64]) -> bool:
         """Whether fitted ``params`` describe this effect at all (default: always). A fit that

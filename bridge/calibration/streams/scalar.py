@@ -27,6 +27,13 @@ from koala_bridge.calibration.problem import (
     SecondaryMetric,
     StreamProblem,
     apply_all,
+    split_params,
+)
+from koala_bridge.calibration.robust import (
+    heavy_tailed,
+    inlier_responsibility,
+    mad_sigma,
+    weighted_rms,
 )
 from koala_bridge.core.geometry import wrap_angle
 
@@ -97,6 +104,15 @@ class ScalarProblem(StreamProblem):
     #: a known net rotation (t0, t1, rad) the bundle declares (meta.json reference): reported as
     #: the error of the rotation the model's corrected rate integrates to; not used to select
     known_rotation: tuple[float, float, float] | None = None
+    #: the declared reporting range (min, max) of a range sensor: the support of its spurious
+    #: readings (``calibration.effects.outlier``)
+    range_limits: tuple[float, float] | None = None
+    #: share of readings the declared model itself makes spurious (the simulator sonar's
+    #: ``glitch_probability``): tails that this explains are not evidence of an outlier effect
+    declared_outlier_probability: float = 0.0
+    #: the declared noise sigma of each reading (a sonar's distance-error table at the true
+    #: range), None: one sigma for all; used by the likelihood of spurious readings only
+    noise_sigma: FloatArray | None = None
 
     def __post_init__(self) -> None:
         fit = self.split.mask(self.t, "fit")
@@ -107,6 +123,13 @@ class ScalarProblem(StreamProblem):
         }
         base_add = np.broadcast_to(np.asarray(self.base_add, dtype=float), self.t.shape)
         self._base_add = {"fit": base_add[fit], "score": base_add[~fit], "all": base_add}
+        self._robust_scale: tuple[float | None] | None = None
+        self._shape: dict[str, FloatArray] = {}
+        if self.noise_sigma is not None:
+            sig = np.asarray(self.noise_sigma, dtype=float)
+            # a zero declared sigma (the table's first row) would make one reading decisive
+            sig = np.maximum(sig, 0.1 * float(np.median(sig[fit])) if fit.any() else 1e-9)
+            self._shape = {"fit": sig[fit], "score": sig[~fit], "all": sig}
 
     def _slice(self, m: np.ndarray) -> ScalarPart:
         return ScalarPart(
@@ -181,6 +204,55 @@ class ScalarProblem(StreamProblem):
         return self.t, r
 
     # ----- metrics -----------------------------------------------------------------------------
+    # ----- robust statistics -------------------------------------------------------------------
+    def noise_shape(self, part: Part | str) -> FloatArray | None:
+        return self._shape.get(part)
+
+    def readings(self, part: Part | str) -> FloatArray:
+        return self._parts[part].y
+
+    def tail_residual(self) -> FloatArray:
+        """The declared model's fit-part residual (over the declared noise sigma, when there is
+        one) without the readings at a repeated extreme value (max range, no echo: the
+        ``glitch`` effect's, which scores them apart)."""
+        r = self.residuals([], self.nuisance_x0(), "fit")
+        if "fit" in self._shape:
+            r = r / self._shape["fit"]
+        y = self._parts["fit"].y
+        keep = np.isfinite(r)
+        if y.size:
+            for g in (float(np.max(y)), float(np.min(y))):
+                hit = np.isclose(y, g, rtol=1e-9, atol=1e-12)
+                if hit.sum() >= 3:
+                    keep &= ~hit
+        return r[keep]
+
+    def robust_scale(self) -> float | None:
+        if self._robust_scale is None:
+            scale = None
+            if self.integrate_window_s is None and self.t.size:
+                if heavy_tailed(self.tail_residual(), self.declared_outlier_probability):
+                    scale = mad_sigma(self.residuals([], self.nuisance_x0(), "fit")) or None
+            self._robust_scale = (scale,)
+        return self._robust_scale[0]
+
+    def inlier_weights(
+        self, insts: Sequence[EffectInstance], x: FloatArray, part: str
+    ) -> FloatArray | None:
+        """Posterior inlier probability of each reading of ``part`` under the model's mixture
+        effect (``calibration.effects.outlier``); None without one."""
+        mix = [
+            (i, p)
+            for i, p in zip(insts, split_params(self, insts, x), strict=True)
+            if i.effect.mixture
+        ]
+        if not mix:
+            return None
+        inst, p = mix[-1]
+        r = self._residual(insts, x, part, False)
+        log_g = inst.effect.log_density(inst, p, self._parts[part].y, r)
+        return inlier_responsibility(r, float(p[1]), float(p[0]), log_g, self._shape.get(part))
+
     def heading_window_error(
         self, insts: Sequence[EffectInstance], x: FloatArray, window_s: float
     ) -> float:
@@ -224,6 +296,18 @@ class ScalarProblem(StreamProblem):
         after: tuple[Sequence[EffectInstance], FloatArray],
     ) -> list[SecondaryMetric]:
         out = []
+        w = self.inlier_weights(*after, "score")
+        if w is not None:
+            # Both on the readings the final model holds as inliers (posterior weights), so
+            # before and after are compared on the same readings; rms_error keeps all of them.
+            out.append(
+                SecondaryMetric(
+                    "inlier_rms_error",
+                    self.unit,
+                    weighted_rms(self._residual(*before, "score", False), w),
+                    weighted_rms(self._residual(*after, "score", False), w),
+                )
+            )
         if self.heading_window_s is not None:
             w = self.heading_window_s
             out.append(
@@ -252,7 +336,9 @@ class ScalarProblem(StreamProblem):
         if self.noise_key is None or self.integrate_window_s is not None or self.t.size < 3:
             return None, None
         r = self._residual(insts, x, "all", False)
-        sigma = float(np.std(r))
+        w = self.inlier_weights(insts, x, "all")
+        # with spurious readings in the model, the noise is the inliers'
+        sigma = float(np.std(r)) if w is None else weighted_rms(r - np.average(r, weights=w), w)
         if self.noise_key == "gyroscope_noise_density":
             # Kalibr: sample sigma = density / sqrt(dt), dt the mean interval (the sensor's
             # rate): a logger's irregular stamps make the median far shorter than the rate.

@@ -1,0 +1,110 @@
+"""Robust statistics for the residual loop: a robust noise scale, a heavy-tail test, and the
+two-component likelihood of a stream with spurious readings.
+
+A stream whose readings are partly spurious (a sonar's floor and beam echoes, seeds/004 "Sensor
+Models", 1. Beam-width Error and "noise (invalid data)") is a mixture::
+
+    f(y_i) = (1 - p) N(r_i; 0, sigma^2) + p g(y_i | y_hat_i)
+
+``r_i = y_i - y_hat_i`` the residual under the model, ``p`` the spurious fraction and ``g`` the
+density of a spurious reading (``calibration.effects.outlier``). The functions here are pure: they
+take residuals and log-densities and return numbers; the loop that fits ``p``, ``sigma`` and the
+model jointly (EM) is :func:`koala_bridge.calibration.selection.fit_model`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import stats
+
+FloatArray = NDArray[np.float64]
+
+#: 1 / Phi^-1(3/4): the MAD of a Gaussian times this is its standard deviation.
+MAD_TO_SIGMA = 1.4826
+#: A residual beyond this many robust standard deviations is in the tail (Gaussian share 6.3e-5).
+TAIL_Z = 4.0
+#: False-alarm probability of the heavy-tail test on one stream.
+TAIL_ALPHA = 0.01
+_LOG_SQRT_2PI = 0.5 * np.log(2 * np.pi)
+
+
+def mad_sigma(r: FloatArray) -> float:
+    """1.4826 * median |r - median r|: the standard deviation of the Gaussian core of ``r``,
+    unmoved by up to half the readings being spurious (Hampel 1974)."""
+    r = np.asarray(r, dtype=float)
+    r = r[np.isfinite(r)]
+    if r.size == 0:
+        return 0.0
+    return MAD_TO_SIGMA * float(np.median(np.abs(r - np.median(r))))
+
+
+def tail_count(r: FloatArray, z: float = TAIL_Z) -> tuple[int, int]:
+    """``(k, n)``: how many of the ``n`` finite residuals lie beyond ``z`` robust standard
+    deviations of their median."""
+    r = np.asarray(r, dtype=float)
+    r = r[np.isfinite(r)]
+    s = mad_sigma(r)
+    if r.size == 0 or s <= 0:
+        return 0, int(r.size)
+    return int(np.sum(np.abs(r - np.median(r)) > z * s)), int(r.size)
+
+
+def heavy_tailed(
+    r: FloatArray, declared_fraction: float = 0.0, z: float = TAIL_Z, alpha: float = TAIL_ALPHA
+) -> bool:
+    """Whether ``r`` holds more readings beyond ``z`` robust sigmas than Gaussian noise plus a
+    declared share of spurious readings explains: the binomial tail
+    ``P(K >= k | n, 2 Phi(-z) + declared_fraction) < alpha``. Every declared spurious reading is
+    counted as if it fell in the tail, so the test is conservative against the declared model."""
+    k, n = tail_count(r, z)
+    if n < 20 or k == 0:
+        return False
+    p0 = min(2 * float(stats.norm.sf(z)) + max(declared_fraction, 0.0), 1.0)
+    return bool(stats.binom.sf(k - 1, n, p0) < alpha)
+
+
+def gaussian_logpdf(r: FloatArray, sigma: float, shape: FloatArray | None = None) -> FloatArray:
+    """``log N(r; 0, (sigma shape)^2)`` per reading; ``shape`` the declared relative noise level
+    per reading (a sonar's distance-error table), None: 1."""
+    s = max(float(sigma), 1e-300)
+    r = np.asarray(r, dtype=float)
+    if shape is None:
+        return np.asarray(-0.5 * (r / s) ** 2 - np.log(s) - _LOG_SQRT_2PI, dtype=float)
+    return np.asarray(
+        -0.5 * (r / (s * shape)) ** 2 - np.log(s * shape) - _LOG_SQRT_2PI, dtype=float
+    )
+
+
+def _components(
+    r: FloatArray, sigma: float, p: float, log_g: FloatArray, shape: FloatArray | None
+) -> tuple[FloatArray, FloatArray]:
+    p = float(np.clip(p, 0.0, 1.0))
+    with np.errstate(divide="ignore"):
+        a = np.log1p(-p) + gaussian_logpdf(r, sigma, shape)
+        b = np.log(p) + np.asarray(log_g, dtype=float)
+    return a, b
+
+
+def mixture_loglik(
+    r: FloatArray, sigma: float, p: float, log_g: FloatArray, shape: FloatArray | None = None
+) -> float:
+    """Sum over readings of ``log[(1 - p) N(r; 0, (sigma shape)^2) + p g]``, ``log_g`` = log g per
+    reading (``-inf`` where a reading cannot be spurious). ``p = 0`` is the Gaussian likelihood."""
+    a, b = _components(r, sigma, p, log_g, shape)
+    return float(np.sum(np.logaddexp(a, b)))
+
+
+def inlier_responsibility(
+    r: FloatArray, sigma: float, p: float, log_g: FloatArray, shape: FloatArray | None = None
+) -> FloatArray:
+    """Posterior probability that each reading follows the model (the E step of EM,
+    Dempster, Laird & Rubin 1977): ``(1 - p) N / ((1 - p) N + p g)``."""
+    a, b = _components(r, sigma, p, log_g, shape)
+    return np.asarray(np.exp(a - np.logaddexp(a, b)), dtype=float)
+
+
+def weighted_rms(r: FloatArray, w: FloatArray) -> float:
+    """``sqrt(sum w r^2 / sum w)``: the RMS of the readings a classification holds as inliers."""
+    sw = float(np.sum(w))
+    return float(np.sqrt(np.sum(w * np.asarray(r) ** 2) / sw)) if sw > 0 else float("nan")

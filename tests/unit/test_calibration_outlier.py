@@ -1,0 +1,250 @@
+"""Spurious readings (issue 16, "Robust statistics"): the ``outlier`` mixture effect and robust
+least squares.
+
+A sonar logged against its truth with 9 % short readings (floor and beam echoes, seeds/004:
+``U(0.1 m, true range)``) and a temperature column that has no effect: the tool must name
+``outlier:short`` and nothing else there, estimate the fraction within a binomial bound, and
+report an inlier error at the noise sigma. Without the effect (plain least squares and the RSS
+test) it named a spurious ``scale`` of about -4 % on every seed: the mean of the short readings,
+``-p (r - 0.1) / 2``, grows with the range. Clean streams never get the effect.
+"""
+
+from __future__ import annotations
+
+import csv
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+from koala_bridge.calibration.bundle import load_bundle
+from koala_bridge.calibration.config_update import write_config
+from koala_bridge.calibration.effects import available_effects, get_effect
+from koala_bridge.calibration.effects.base import EffectInstance
+from koala_bridge.calibration.model import declared_model
+from koala_bridge.calibration.pipeline import Options, StreamResult, calibrate
+from koala_bridge.calibration.robust import (
+    gaussian_logpdf,
+    heavy_tailed,
+    inlier_responsibility,
+    mad_sigma,
+    mixture_loglik,
+)
+from koala_bridge.calibration.selection import heldout_score, select_effects
+from koala_bridge.calibration.streams import build_ranges
+from koala_bridge.calibration.synthetic import (
+    DECLARED,
+    NOISE,
+    SONAR_MAX_M,
+    SONAR_MIN_M,
+    Injected,
+    make_bundle,
+)
+from scipy import stats
+
+SHORT = 0.09
+#: two-sided 1e-3: the bound of every statistical check here
+Z = float(stats.norm.ppf(1 - 5e-4))
+
+
+def _range(
+    tmp_path: Path, seed: int, inj: Injected, options: Options | None = None
+) -> StreamResult:
+    bundle = load_bundle(make_bundle(tmp_path / f"b{seed}", seed, inj))
+    results = calibrate(bundle, declared_model(DECLARED, bundle.meta), options)
+    return next(r for r in results if r.problem.name == "range")
+
+
+def _params(res: StreamResult) -> dict[str, dict[str, float]]:
+    return {i.name: p for i, (p, _) in zip(res.effects, res.effect_params(), strict=True)}
+
+
+def _fraction_bound(p: float, n: int) -> float:
+    """Z binomial standard errors of a fraction p estimated from n readings."""
+    return Z * float(np.sqrt(p * (1 - p) / n))
+
+
+@pytest.mark.parametrize("seed", (1, 2, 3))
+def test_short_readings_are_named_as_outliers_and_nothing_else(tmp_path: Path, seed: int) -> None:
+    res = _range(tmp_path, seed, Injected(sonar_short=SHORT, sonar_temperature=True))
+    assert "temperature_c" in res.problem.covariate_names  # the covariate was a candidate
+    params = _params(res)
+    assert set(params) == {"outlier:short"}
+    n_fit = res.problem.readings("fit").size
+    p = params["outlier:short"]["probability"]
+    assert abs(p - SHORT) <= _fraction_bound(SHORT, n_fit), (p, n_fit)
+    # Inlier error on the held-out part at the noise sigma: the chi-square interval of the
+    # inliers' RMS (about (1 - p) n_s of them) at two-sided 1e-3.
+    (inlier,) = [m for m in res.secondary if m.metric == "inlier_rms_error"]
+    n_in = (1 - SHORT) * res.problem.readings("score").size
+    lo, hi = (np.sqrt(stats.chi2.ppf(q, n_in) / n_in) for q in (5e-4, 1 - 5e-4))
+    assert lo * NOISE["sonar"] <= inlier.after <= hi * NOISE["sonar"], inlier
+    # "after" is the RMS of every held-out reading: not flattered by the classification
+    assert res.after > 10 * inlier.after
+    assert res.after == pytest.approx(res.before)
+
+
+def test_outliers_and_an_effect_are_fitted_jointly(tmp_path: Path) -> None:
+    # EM refits the effect on the readings the mixture holds as inliers: recovered within the
+    # synthetic cases' 10 % (>= 20 SE), the inlier error falls to the noise.
+    res = _range(tmp_path, 1, Injected(sonar_short=SHORT, sonar_range_dependent=0.02))
+    params = _params(res)
+    assert set(params) == {"outlier:short", "range_dependent"}
+    assert params["range_dependent"]["k_per_m2"] == pytest.approx(0.02, abs=0.002)
+    (inlier,) = [m for m in res.secondary if m.metric == "inlier_rms_error"]
+    assert inlier.after < 1.1 * NOISE["sonar"] < 0.5 * inlier.before
+
+
+def test_short_readings_and_max_range_glitches_are_told_apart(tmp_path: Path) -> None:
+    # outlier:uniform explains both at first; once glitch scores the max-range readings,
+    # outlier:short replaces it (one mixture at most, swapped only on held-out evidence).
+    res = _range(tmp_path, 1, Injected(sonar_short=SHORT, sonar_glitch=0.05))
+    assert {i.name for i in res.effects} == {"glitch", "outlier:short"}
+
+
+def test_robust_loss_keeps_a_spurious_scale_out_without_the_outlier_effect(
+    tmp_path: Path,
+) -> None:
+    # Plain least squares named scale ~ -0.04 here (the short readings' mean grows with range).
+    names = [n for n in available_effects() if n != "outlier"]
+    res = _range(
+        tmp_path,
+        1,
+        Injected(sonar_short=SHORT, sonar_temperature=True),
+        Options(effects=names),
+    )
+    assert res.problem.robust_scale() is not None
+    assert res.effects == []
+
+
+def test_readings_at_any_range_are_uniform_outliers(tmp_path: Path) -> None:
+    # The simulator's sonar glitch: U(min, max) whatever the true range.
+    d = make_bundle(tmp_path / "b", 4, Injected())
+    rows = list(csv.DictReader((d / "range.csv").open()))
+    rng = np.random.default_rng(4)
+    hit = rng.random(len(rows)) < 0.05
+    value = rng.uniform(SONAR_MIN_M, SONAR_MAX_M, len(rows))
+    for row, h, v in zip(rows, hit, value, strict=True):
+        if h:
+            row["measured"] = repr(float(v))
+    with (d / "range.csv").open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    bundle = load_bundle(d)
+    res = next(
+        r
+        for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
+        if r.problem.name == "range"
+    )
+    params = _params(res)
+    assert set(params) == {"outlier:uniform"}
+    n_fit = res.problem.readings("fit").size
+    # Spurious readings within a few sigma of the truth cannot be told from inliers:
+    # about 2 * 3 sigma / (max - min) of them, a bias far below the bound.
+    assert abs(params["outlier:uniform"]["probability"] - 0.05) <= _fraction_bound(0.05, n_fit)
+
+
+@pytest.mark.parametrize("seed", (21, 22, 23, 24))
+def test_clean_bundle_gets_no_outlier_effect(tmp_path: Path, seed: int) -> None:
+    bundle = load_bundle(make_bundle(tmp_path / "b", seed, Injected(sonar_temperature=True)))
+    for res in calibrate(bundle, declared_model(DECLARED, bundle.meta)):
+        assert not any(i.effect.mixture for i in res.effects), (res.problem.name, res.effects)
+
+
+def test_forced_outlier_candidate_is_rejected_on_clean_streams(tmp_path: Path) -> None:
+    """The heavy-tail gate aside: the held-out mixture likelihood itself rejects an outlier
+    fraction on clean data. Under the null, p = 0 is on the boundary, so the statistic is
+    1/2 chi2_0 + 1/2 chi2_1 and its 1 % quantile is passed with probability 0.005; the practical
+    size (1 % of the density's scale, about 0.02 n_s in L) is far beyond it: 0 of 12 expected."""
+    outlier = get_effect("outlier")
+    added = 0
+    for seed in range(30, 42):
+        bundle = load_bundle(make_bundle(tmp_path / f"b{seed}", seed, Injected()))
+        (problem,) = build_ranges(bundle, declared_model(DECLARED, bundle.meta))
+        cands = [
+            EffectInstance(
+                "outlier:short",
+                outlier,
+                ("probability", "inlier_sigma", "low"),
+                (0.01, NOISE["sonar"], 0.0),
+                data={"support": "short"},
+            ),
+            EffectInstance(
+                "outlier:uniform",
+                outlier,
+                ("probability", "inlier_sigma", "low", "high"),
+                (0.01, NOISE["sonar"], 0.0, 4.0),
+                data={"support": "uniform"},
+            ),
+        ]
+        sel = select_effects(problem, cands)
+        added += len(sel.added)
+        for trial in sel.rounds[0]:
+            assert trial.lr < trial.lr_threshold or trial.relative_gain < 0.01, trial
+    assert added == 0
+
+
+def test_heldout_score_ranks_the_outlier_model_by_likelihood(tmp_path: Path) -> None:
+    # For a backward check (before vs after): the RMS of every reading is the same with and
+    # without the outlier effect, the held-out likelihood is not.
+    res = _range(tmp_path, 1, Injected(sonar_short=SHORT))
+    sel, problem = res.selection, res.problem
+    assert heldout_score(problem, sel.after) == pytest.approx(heldout_score(problem, sel.before))
+    before, after = (heldout_score(problem, f, likelihood=True) for f in (sel.before, sel.after))
+    n_s = problem.readings("score").size
+    # the selection's held-out statistic L = 2 n_s (before - after), scaled by the residuals'
+    # effective share (1 - rho) / (1 + rho), passed its threshold
+    ((_, trial),) = sel.added
+    c = (1 - sel.rho) / (1 + sel.rho) if sel.rho > 0 else 1.0
+    assert 2 * c * n_s * (before - after) == pytest.approx(trial.lr, rel=1e-6)
+    assert trial.lr > trial.lr_threshold
+
+
+def test_mixture_with_no_spurious_share_is_the_gaussian_likelihood() -> None:
+    rng = np.random.default_rng(0)
+    r = rng.normal(0, 0.3, 500)
+    log_g = np.full(r.size, -np.log(4.0))
+    assert mixture_loglik(r, 0.3, 0.0, log_g) == pytest.approx(
+        float(np.sum(gaussian_logpdf(r, 0.3))), rel=1e-12
+    )
+    assert np.all(inlier_responsibility(r, 0.3, 0.0, log_g) == 1.0)
+    # a reading that cannot be spurious (g = 0) is an inlier whatever p
+    assert inlier_responsibility(np.array([5.0]), 0.3, 0.4, np.array([-np.inf]))[0] == 1.0
+
+
+def test_mad_scale_ignores_a_spurious_share() -> None:
+    rng = np.random.default_rng(1)
+    n = 20_000
+    r = rng.normal(0, 1.0, n)
+    r[: n // 10] = rng.uniform(-50, 0, n // 10)
+    # MAD's asymptotic relative SE is 1.166 / sqrt(n) (Rousseeuw & Croux 1993); the 10 %
+    # contamination moves the median and the MAD by O(p): within 15 %.
+    assert 0.97 < mad_sigma(r[n // 10 :]) < 1.03
+    assert 0.9 < mad_sigma(r) < 1.25
+
+
+def test_heavy_tail_test_false_alarm_rate() -> None:
+    """On Gaussian samples the test alarms at most at its level 0.01: over 100 samples
+    P(X >= 6 | 100, 0.01) = 5e-4."""
+    rng = np.random.default_rng(2)
+    alarms = sum(heavy_tailed(rng.normal(0, 1, 3000)) for _ in range(100))
+    assert alarms < 6
+    # ... and finds a 1 % share of far readings every time
+    x = rng.normal(0, 1, 3000)
+    x[:30] = 20.0
+    assert heavy_tailed(x)
+    # ... unless the declared model already has that share
+    assert not heavy_tailed(x, declared_fraction=0.012)
+
+
+def test_unsimulated_tables_are_written_as_one_comment_line_each(tmp_path: Path) -> None:
+    # An effect with several named parameters (outlier, covariate) once left its second and
+    # later parameters as bare keys at the end of the written config.
+    path = tmp_path / "new.toml"
+    found = {"sensors.sonar.calibration.outlier_short": {"probability": 0.09, "low": 0.25}}
+    write_config(path, {"robot": {"wheel_base_m": 0.3}}, found)
+    text = path.read_text()
+    assert tomllib.loads(text) == {"robot": {"wheel_base_m": 0.3}}
+    (line,) = [ln for ln in text.splitlines() if "outlier_short" in ln]
+    assert line.startswith("#") and "probability = 0.09" in line and "low = 0.25" in line
