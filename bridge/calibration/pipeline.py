@@ -32,6 +32,7 @@ from koala_bridge.calibration.selection import (
     Selection,
     Trial,
     fit_model,
+    heldout_score,
     parameter_se,
     select_effects,
 )
@@ -259,8 +260,11 @@ def keep_only_helpful(problem: StreamProblem, sel: Selection) -> None:
     than ``sel.before`` on held-out data is no model: "after" is never worse than "before"
     (issue 16: on a still gyro the held-out error once got worse after calibration). Each drop
     is noted in the report."""
+    # an outlier effect is judged by the held-out likelihood it was selected by
+    likelihood = any(i.effect.mixture for i in sel.after.insts)
+
     def score(fit: Fit) -> float:
-        return float(problem.metric_value(fit.insts, fit.x, "score"))
+        return heldout_score(problem, fit, likelihood)
 
     while sel.added:
         current = score(sel.after)
