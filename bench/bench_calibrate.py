@@ -7,6 +7,11 @@ the time of the whole calibration including that load, and their ratio. Target: 
 
 ``--rates N``: runs every case of ``koala_bridge.calibration.synthetic.CASES`` plus clean bundles on
 N seeds each and prints the detection and false-positive rates quoted in docs/calibration.md.
+``--study N``: issue 16's random study: N random cases (1-3 of the families of
+``synthetic.STUDY_FAMILIES`` on different streams at once -- outliers, drift, temperature, bias,
+scale, odometry geometry -- magnitudes and signs drawn) and N clean bundles; prints the share with
+exactly the injected effects named (target >= 95 %) and the share of clean bundles with any
+effect (target <= 5 %). Runs on every core (processes).
 ``--sim N``: records the simulator under ``config/default.toml`` (every model on, 30 s,
 ``koala_bridge.tools.sim_recording``) on N seeds, calibrates each ``.mcap`` against that config and
 prints how many got any effect (the declared model is the config itself: expected none).
@@ -14,6 +19,7 @@ prints how many got any effect (the declared model is the config itself: expecte
     .venv/bin/python bench/bench_calibrate.py            # the 1-hour bench
     .venv/bin/python bench/bench_calibrate.py --rates 50
     .venv/bin/python bench/bench_calibrate.py --sim 40
+    .venv/bin/python bench/bench_calibrate.py --study 200
 """
 
 from __future__ import annotations
@@ -95,6 +101,49 @@ def rates(n: int, workdir: Path) -> int:
     return 0
 
 
+def _study_one(args: tuple[int, bool, str]) -> tuple[int, list[str], dict[str, list[str]], bool]:
+    """One case of the random study (seed, clean?, workdir): the families, what was named per
+    stream, and whether it matches the injection exactly."""
+    import numpy as np
+    from koala_bridge.calibration.synthetic import random_case
+
+    seed, clean, workdir = args
+    rng = np.random.default_rng(seed)
+    families, inj, expect = ([], Injected(), {}) if clean else random_case(rng)
+    out = Path(workdir) / f"s{seed}{'c' if clean else ''}"
+    bundle = load_bundle(make_bundle(out, seed, inj))
+    results = calibrate(bundle, declared_model(DECLARED, bundle.meta))
+    named = {r.problem.name: sorted(i.name for i in r.effects) for r in results}
+    ok = all(set(named.get(k, [])) == expect.get(k, set()) for k in set(named) | set(expect))
+    return seed, families, {k: v for k, v in named.items() if v}, ok
+
+
+def study(n: int, workdir: Path) -> int:
+    from concurrent.futures import ProcessPoolExecutor
+
+    jobs = [(5000 + i, False, str(workdir)) for i in range(n)]
+    jobs += [(7000 + i, True, str(workdir)) for i in range(n)]
+    right = fp = 0
+    misses: list[str] = []
+    with ProcessPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+        for (seed, clean, _), (_, families, named, ok) in zip(
+                jobs, pool.map(_study_one, jobs, chunksize=4), strict=True):
+            if clean:
+                fp += bool(named)
+                if named:
+                    misses.append(f"clean seed {seed}: {named}")
+            else:
+                right += ok
+                if not ok:
+                    misses.append(f"seed {seed} {families}: named {named}")
+    for m in misses:
+        print("  " + m)
+    print(f"random cases with exactly the injected effects named: {right}/{n} = "
+          f"{100 * right / n:.1f} % (target >= 95 %)")
+    print(f"clean bundles with any effect: {fp}/{n} = {100 * fp / n:.1f} % (target <= 5 %)")
+    return 0
+
+
 def sim_recordings(n: int, workdir: Path) -> int:
     import tomllib
 
@@ -132,7 +181,17 @@ def main() -> int:
         metavar="N",
         help="false positives on N recordings of the simulator against its own config",
     )
+    parser.add_argument(
+        "--study",
+        type=int,
+        default=0,
+        metavar="N",
+        help="issue 16's random study: N random cases and N clean bundles (every core)",
+    )
     args = parser.parse_args()
+    if args.study:
+        with tempfile.TemporaryDirectory(prefix="bench-calibrate-") as tmp:
+            return study(args.study, Path(tmp))
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
     with tempfile.TemporaryDirectory(prefix="bench-calibrate-") as tmp:

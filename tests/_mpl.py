@@ -16,4 +16,17 @@ def fonts_loaded(tmp_path_factory: pytest.TempPathFactory) -> None:
         landmarks=(), magnetic_sources=(), earth_field=EarthFieldInfo(20.0, 40.0, 90.0),
         start=None, robot={},
     ).to_json()
-    render_scene(Scene(world=world), tmp_path_factory.mktemp("fonts") / "warm.png")
+    out = tmp_path_factory.mktemp("fonts")
+    render_scene(Scene(world=world), out / "warm.png")
+    # log axes (the calibration report's Allan plot) draw their ticks in math text, with fonts
+    # of their own
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots()
+    ax.loglog([1e-3, 1.0, 1e3], [1e-3, 1.0, 1e3], label=r"$\sigma$ (rad/s)")
+    ax.legend()
+    fig.savefig(out / "warm-log.png")
+    plt.close(fig)

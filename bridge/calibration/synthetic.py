@@ -322,3 +322,54 @@ def check_case(case: Case, results: Any) -> list[str]:
         if expected and not res.after <= 0.5 * res.before:
             problems.append(f"{name}: held-out {res.before:.4g} -> {res.after:.4g} not halved")
     return problems
+
+
+#: The random study's families (issue 16: "outliers, drift, tilt, temperature, bias, scale,
+#: several at once"): per family, the stream it acts on, the effect the tool must name, and the
+#: Injected field with its magnitude range. Each range starts at the CASES value (>= 20 SE, see
+#: the Case docstring) and reaches twice it; signs are drawn. Tilt is not in this generator (a
+#: planar robot): tests/unit/test_calibration_level.py covers it.
+STUDY_FAMILIES: Mapping[str, tuple[str, str, str, tuple[float, float]]] = {
+    "gyro bias": ("gyro", "bias", "gyro_bias", (0.02, 0.04)),
+    "gyro scale": ("gyro", "scale", "gyro_scale", (0.05, 0.10)),
+    "gyro drift": ("gyro", "bias_drift", "gyro_drift", (5e-4, 1e-3)),
+    "gyro temperature": ("gyro", "covariate:temperature_c", "gyro_temperature", (0.004, 0.008)),
+    "hard iron": ("compass", "hard_iron", "hard_iron", (8.0, 16.0)),
+    "tick scale": ("odometry", "tick_scale", "tick_scale", (0.05, 0.10)),
+    "wheel base": ("odometry", "wheel_base", "wheel_base", (0.10, 0.20)),
+    "heading drift": ("odometry", "heading_drift", "heading_drift", (0.03, 0.06)),
+    "sonar outliers": ("range", "outlier:short", "sonar_short", (0.05, 0.12)),
+    "sonar range-dependent": ("range", "range_dependent", "sonar_range_dependent", (0.02, 0.04)),
+}
+
+
+def random_case(rng: np.random.Generator) -> tuple[list[str], Injected, dict[str, set[str]]]:
+    """One case of the random study: 1-3 families on different streams (several at once),
+    magnitudes and signs drawn. Returns the families, the injection and the expected effect
+    names per stream (streams not named: none expected)."""
+    names = list(STUDY_FAMILIES)
+    order = rng.permutation(len(names))
+    k = int(rng.integers(1, 4))
+    chosen: list[str] = []
+    streams: set[str] = set()
+    for i in order:
+        stream = STUDY_FAMILIES[names[i]][0]
+        if stream not in streams:
+            chosen.append(names[i])
+            streams.add(stream)
+        if len(chosen) == k:
+            break
+    fields: dict[str, Any] = {}
+    expect: dict[str, set[str]] = {}
+    for name in chosen:
+        stream, effect, attr, (lo, hi) = STUDY_FAMILIES[name]
+        size = float(rng.uniform(lo, hi))
+        sign = 1.0 if attr in ("sonar_short", "sonar_range_dependent", "gyro_drift") \
+            else float(rng.choice((-1.0, 1.0)))
+        if attr == "hard_iron":
+            a = rng.uniform(0, 2 * np.pi)
+            fields[attr] = (size * float(np.cos(a)), size * float(np.sin(a)))
+        else:
+            fields[attr] = sign * size
+        expect.setdefault(stream, set()).add(effect)
+    return chosen, Injected(**fields), expect

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _mpl import fonts_loaded  # noqa: F401 - autouse fixture: fonts open before the leak check
 from koala_bridge.calibration.bundle import load_input
 from koala_bridge.calibration.effects import Effect, available_effects, register_effect
 from koala_bridge.calibration.effects.quantisation import lattice_step

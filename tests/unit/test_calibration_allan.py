@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _mpl import fonts_loaded  # noqa: F401 - autouse fixture: fonts open before the leak check
 from koala_bridge.calibration.allan import (
     FLICKER_FACTOR,
     allan_noise,

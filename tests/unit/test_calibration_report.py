@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import tomli_w
+from _mpl import fonts_loaded  # noqa: F401 - autouse fixture: fonts open before the leak check
 from koala_bridge.calibration.bundle import load_bundle
 from koala_bridge.calibration.config_update import found_keys
 from koala_bridge.calibration.effects import get_effect
