@@ -36,6 +36,15 @@ REQUIRED_COLUMNS: Mapping[str, tuple[str, ...]] = {
     "landmark_map": ("id", "x", "y"),
 }
 
+#: Optional columns of the format that hold numbers when present: a text cell in one is an
+#: error naming its line (kept as text, the column looked absent: "no theta column").
+OPTIONAL_NUMERIC: Mapping[str, tuple[str, ...]] = {
+    "truth_pose": ("theta",),
+    "odometry": ("left_ticks", "right_ticks", "v", "omega", "x", "y", "theta"),
+    "gyro": ("rate_x", "rate_y", "acc_x", "acc_y", "acc_z"),
+    "compass": ("mz",),
+}
+
 #: Files that need at least one of these columns (a range beacon gives no bearing, a
 #: bearing-only camera no range).
 ONE_OF_COLUMNS: Mapping[str, tuple[str, ...]] = {"landmarks": ("range", "bearing")}
@@ -237,7 +246,7 @@ def load_bundle(directory: Path) -> Bundle:
         if either and not any(c in table for c in either):
             raise BundleError(f"{csv_path} lacks a {' or '.join(either)} column")
         required = required + tuple(c for c in either if c in table)
-        for c in required:
+        for c in required + tuple(c for c in OPTIONAL_NUMERIC.get(name, ()) if c in table):
             if c in table.text:
                 cells = table.text[c]
                 row = next(i for i, v in enumerate(cells) if not _is_number(v))

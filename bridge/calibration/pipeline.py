@@ -318,7 +318,10 @@ def _turn_on_bias_check(problem: StreamProblem, sel: Selection) -> None:
     inst = EffectInstance("bias", get_effect("bias"), ("bias",), (b,), fixed=True)
     insts = [*fit.insts, inst]
     new = fit_model(problem, insts, problem.initial_vector(insts, fit.x, fit.insts))
-    trial = Trial("bias", 1, float("nan"), z * z, threshold**2, 0.0, True, new)
+    declared = declared_fit(problem, fit)
+    before = problem.metric_value(declared.insts, declared.x, "score")
+    gain = 1.0 - problem.metric_value(new.insts, new.x, "score") / before if before else 0.0
+    trial = Trial("bias", 1, float("nan"), z * z, threshold**2, gain, True, new)
     sel.added.append((inst, trial))
     sel.after = new
 

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -393,10 +394,23 @@ def report_markdown(stages: Sequence[Stage], diff: str, plots: bool) -> str:
     return "\n".join(lines)
 
 
+def _finite(v: Any) -> Any:
+    """``v`` with every NaN or infinity as ``null``: report.json is strict JSON, which has no
+    NaN (a statistic that does not apply, e.g. the BIC of an effect fixed when proposed)."""
+    if isinstance(v, float):
+        return v if math.isfinite(v) else None
+    if isinstance(v, dict):
+        return {k: _finite(x) for k, x in v.items()}
+    if isinstance(v, list | tuple):
+        return [_finite(x) for x in v]
+    return v
+
+
 def write_report(out: Path, stages: Sequence[Stage], diff: str, plots: bool = True) -> None:
     out.mkdir(parents=True, exist_ok=True)
     (out / "report.json").write_text(
-        json.dumps(report_json(stages), indent=2) + "\n", encoding="utf-8"
+        json.dumps(_finite(report_json(stages)), indent=2, allow_nan=False) + "\n",
+        encoding="utf-8",
     )
     staged = len(stages) > 1
     if plots:

@@ -19,12 +19,14 @@ import logging
 import sys
 import tempfile
 from pathlib import Path
+from typing import Any
 
 from koala_bridge.calibration.config_update import config_diff, not_simulated, write_config
 from koala_bridge.calibration.model import read_config
 from koala_bridge.calibration.pipeline import Options, check_effect_names
 from koala_bridge.calibration.report import metric_lines, write_report
 from koala_bridge.calibration.stages import all_keys, calibrate_stages
+from koala_bridge.runtime.settings import PATH_KEYS
 
 log = logging.getLogger(__name__)
 
@@ -131,9 +133,38 @@ def _progress_bar(enabled: bool):  # type: ignore[no-untyped-def]
     )
 
 
+def _paths_for(config: dict[str, Any], source: Path, target: Path) -> dict[str, Any]:
+    """``config`` with its relative file paths (the DBC, a signing key: relative to the folder of
+    the file they were read from, ``source``) made relative to ``target``, where the new file
+    goes: a config from ``config init`` names ``koala.dbc`` beside itself."""
+    import copy
+    import os
+
+    out = copy.deepcopy(config)
+    for keys in PATH_KEYS:
+        table: Any = out
+        for k in keys[:-1]:
+            table = table.get(k) if isinstance(table, dict) else None
+        value = table.get(keys[-1]) if isinstance(table, dict) else None
+        if isinstance(value, str) and value and not Path(value).expanduser().is_absolute():
+            table[keys[-1]] = os.path.relpath((source / value).resolve(), target.resolve())
+    return out
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the calibration; 0 on success, 1 when the output cannot be written. A bad input or
     config raises a CalibrationError, which cli/main.py reports in one line (exit 2)."""
+    if args.write_config is not None:
+        # checked before the work: a wrong path found after minutes of fitting is lost work
+        if args.write_config.is_dir():
+            print(f"koala-bridge calibrate: --write-config {args.write_config} is a directory; "
+                  f"give a file name, e.g. {args.write_config}/calibrated.toml", file=sys.stderr)
+            return 2
+        if args.config is not None and args.write_config.resolve() == args.config.resolve():
+            print(f"koala-bridge calibrate: --write-config would overwrite --config "
+                  f"{args.config} (its comments and layout would be lost); write a new file "
+                  "and compare them", file=sys.stderr)
+            return 2
     try:
         config = read_config(args.config)
         effects = (
@@ -168,6 +199,8 @@ def run(args: argparse.Namespace) -> int:
         write_report(args.out, stages, diff, plots=not args.no_plots)
         if args.write_config is not None:
             args.write_config.parent.mkdir(parents=True, exist_ok=True)
+            if args.config is not None:
+                new_config = _paths_for(new_config, args.config.parent, args.write_config.parent)
             write_config(
                 args.write_config,
                 new_config,

@@ -38,7 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "init",
         help="write an editable copy of the shipped configuration into DIR",
         description="Write default.toml, ideal.toml, koala25.toml (a Koala 2.5), worlds/*.toml,\n"
-        "koala.dbc and README.md"
+        "koala.dbc and README.md "
         "into DIR (created if needed). Existing files are not overwritten unless --force.",
         epilog="example:\n  koala-bridge config init my-koala\n"
         "  koala-bridge run --config my-koala/default.toml",

@@ -275,3 +275,26 @@ def test_a_singular_soft_iron_is_not_plausible() -> None:
     soft = available_effects()["soft_iron"]
     assert soft.plausible(None, np.array([0.2, 0.05]))  # type: ignore[arg-type]
     assert not soft.plausible(None, np.array([-0.9996, 0.0]))  # type: ignore[arg-type]
+
+
+def test_written_config_finds_its_dbc_and_never_overwrites_the_model(tmp_path: Path) -> None:
+    """A config from `config init` names koala.dbc beside itself: the calibrated copy written
+    elsewhere must still find it; --write-config onto --config itself is refused (its comments
+    would be lost); report.json is strict JSON (no NaN)."""
+    model_dir, out = tmp_path / "mine", tmp_path / "out"
+    model_dir.mkdir()
+    (model_dir / "koala.dbc").write_text("VERSION \"\"\n", encoding="utf-8")
+    model = model_dir / "model.toml"
+    model.write_text('[robot]\nwheel_base_m = 0.15\n[buses.can]\ndbc = "koala.dbc"\n',
+                     encoding="utf-8")
+    new = tmp_path / "elsewhere" / "new.toml"
+    argv = (str(DATA / "lego_brenner"), "--config", str(model), "--out", str(out), "--quiet")
+    assert cli.run(_args(*argv, "--write-config", str(new))) == 0
+    dbc = tomllib.loads(new.read_text())["buses"]["can"]["dbc"]
+    assert (new.parent / dbc).resolve() == (model_dir / "koala.dbc").resolve()
+    json.loads((out / "report.json").read_text(),
+               parse_constant=lambda c: pytest.fail(f"report.json holds {c}"))
+    before = model.read_text()
+    assert cli.run(_args(*argv, "--write-config", str(model))) == 2
+    assert cli.run(_args(*argv, "--write-config", str(tmp_path))) == 2    # a directory
+    assert model.read_text() == before

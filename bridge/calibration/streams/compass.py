@@ -78,6 +78,21 @@ class CompassProblem(StreamProblem):
     def __post_init__(self) -> None:
         fit = self.split.mask(self.t, "fit")
         self._masks = {"fit": fit, "score": ~fit, "all": np.ones_like(fit)}
+        # the readings of each part with the declared motor field removed, and the nuisance
+        # start values: computed once (every fit evaluates them; a 1-hour recording's masks
+        # took most of its calibration time)
+        self._m_parts: dict[str, FloatArray] = {}
+        self._nuisance0: FloatArray | None = None
+
+    def _m(self, part: str) -> FloatArray:
+        m = self._m_parts.get(part)
+        if m is None:
+            mask = self._masks[part]
+            m = self.m[mask]
+            if self.disturbance is not None:
+                m = m - self.disturbance[mask]
+            self._m_parts[part] = m
+        return m
 
     @property
     def dims(self) -> int:
@@ -89,11 +104,7 @@ class CompassProblem(StreamProblem):
     def corrected(self, insts: Sequence[EffectInstance], x: FloatArray, part: str) -> FloatArray:
         st = self.state()
         apply_all(st, self, insts, x)
-        mask = self._masks[part]
-        m = self.m[mask]
-        if self.disturbance is not None:
-            m = m - self.disturbance[mask]
-        return (m - st.h) @ st.C.T
+        return (self._m(part) - st.h) @ st.C.T
 
     def _theta_field(self, mask: np.ndarray) -> FloatArray:
         """Reference heading minus the declared field direction (0 without one)."""
@@ -103,13 +114,17 @@ class CompassProblem(StreamProblem):
         return self.theta_ref[mask] - self.field_direction[mask]
 
     def nuisance_x0(self) -> FloatArray:
-        fit = self._masks["fit"]
-        m = self.m[fit] - (0.0 if self.disturbance is None else self.disturbance[fit])
-        m = (m - self.h_declared) @ self.C_declared.T
-        if self.mode == "heading":
-            a = self._theta_field(fit) + np.arctan2(m[:, 1], m[:, 0])
-            return np.array([float(np.arctan2(np.mean(np.sin(a)), np.mean(np.cos(a))))])
-        return np.array([float(np.mean(np.linalg.norm(m[:, : self.dims], axis=1)))])
+        if self._nuisance0 is None:
+            fit = self._masks["fit"]
+            m = (self._m("fit") - self.h_declared) @ self.C_declared.T
+            if self.mode == "heading":
+                a = self._theta_field(fit) + np.arctan2(m[:, 1], m[:, 0])
+                self._nuisance0 = np.array(
+                    [float(np.arctan2(np.mean(np.sin(a)), np.mean(np.cos(a))))])
+            else:
+                self._nuisance0 = np.array(
+                    [float(np.mean(np.linalg.norm(m[:, : self.dims], axis=1)))])
+        return self._nuisance0.copy()
 
     def orientation_spread(self, harmonic: int = 1) -> float:
         """How well the fit part's orientations determine an iron effect: the smallest standard

@@ -316,8 +316,9 @@ class OdometryProblem(StreamProblem):
         first_of_piece = np.r_[0, np.flatnonzero(np.diff(piece)) + 1]
         t_start = t[first_of_piece][np.cumsum(np.r_[0, np.diff(piece) != 0])]
         label = np.floor((t - t_start) / self.window_s).astype(np.intp)
-        _, label = np.unique(np.column_stack([piece, label]), axis=0, return_inverse=True)
-        label = label.ravel()
+        # (piece, window) pairs are non-decreasing in time: a new label at every change (what
+        # np.unique(..., axis=0) gave, without its sort)
+        label = np.cumsum(np.r_[True, (np.diff(piece) != 0) | (np.diff(label) != 0)]) - 1
         first = np.r_[0, np.flatnonzero(np.diff(label)) + 1]
         anchor = idx[first][label]
         return _Windows(idx, anchor, label, int(label.max()) + 1)
