@@ -206,6 +206,16 @@ def metric_lines(stage: Stage, res: StreamResult) -> list[str]:
         out.append(
             f"{res.problem.name} {name}: {before} -> {after} {m.unit}, {ch} [{effects or '-'}]"
         )
+    if any(i.effect.mixture for i in res.effects):
+        # an outlier effect leaves the prediction (and so the RMS) as it was: what it improves
+        # is how well the model expects the readings, the criterion it was selected by
+        from koala_bridge.calibration.selection import heldout_score
+
+        sel = res.selection
+        b, a = (heldout_score(res.problem, f, True) for f in (sel.before, sel.after))
+        out.append(f"{res.problem.name} held-out negative log-likelihood per reading: "
+                   f"{b:.4g} -> {a:.4g} (lower is better; the outlier effect's criterion) "
+                   f"[{effects}]")
     return out
 
 

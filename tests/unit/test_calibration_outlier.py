@@ -248,3 +248,16 @@ def test_unsimulated_tables_are_written_as_one_comment_line_each(tmp_path: Path)
     assert tomllib.loads(text) == {"robot": {"wheel_base_m": 0.3}}
     (line,) = [ln for ln in text.splitlines() if "outlier_short" in ln]
     assert line.startswith("#") and "probability = 0.09" in line and "low = 0.25" in line
+
+
+def test_the_log_shows_what_an_outlier_effect_improves(tmp_path: Path) -> None:
+    """The RMS of every reading is unchanged by an outlier effect (it leaves the prediction as
+    it was), so the log says what it improves: the held-out likelihood it was selected by."""
+    from koala_bridge.calibration.report import metric_lines
+    from koala_bridge.calibration.stages import Stage
+
+    res = _range(tmp_path, 1, Injected(sonar_short=SHORT))
+    lines = metric_lines(Stage(1, str(tmp_path), [res]), res)
+    (line,) = [x for x in lines if "log-likelihood" in x]
+    before, after = (float(v) for v in line.split(": ", 1)[1].split(" (")[0].split(" -> "))
+    assert after < before

@@ -595,10 +595,14 @@ def build_ranges(
         section_kind = kind or ("ir" if counts else "sonar")
         name = _range_name(str(kind))
         if not np.isfinite(sub["true_range"]).any():
+            recorded = str(bundle.meta.get("source", "")).startswith("koala-bridge recording")
             _skip(
                 skipped,
                 name,
-                "true_range is empty in every row: nothing says what it should have read",
+                "true_range is empty in every row: nothing says what it should have read"
+                + (" (a recording of this bridge leaves it empty where no wall was within the "
+                   "sensor's range: it saw nothing all run)" if recorded else ""),
+                "record a run that drives near walls" if recorded else
                 "add true_range (m) per row, the distance to what the sensor faces (from the "
                 f"truth pose and a map, or measured); see {FORMAT_DOC}",
             )
