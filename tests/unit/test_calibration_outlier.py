@@ -261,3 +261,33 @@ def test_the_log_shows_what_an_outlier_effect_improves(tmp_path: Path) -> None:
     (line,) = [x for x in lines if "log-likelihood" in x]
     before, after = (float(v) for v in line.split(": ", 1)[1].split(" (")[0].split(" -> "))
     assert after < before
+
+
+def test_short_readings_below_the_declared_minimum_are_still_outliers(tmp_path: Path) -> None:
+    """default.toml declares the sonar's min_range_m = 0.25; a sensor whose short echoes read
+    down to 0.1 m broke the mixture (those readings were impossible under it): p came out a
+    third of the truth and a spurious scale passed. The support now reaches 0 when the data
+    read below the declared minimum."""
+    import tomllib
+
+    from conftest import REPO
+
+    rng = np.random.default_rng(2)
+    n = 3000
+    true = rng.uniform(0.35, 2.0, n)
+    measured = true + rng.normal(0.0, 0.01, n)
+    short = rng.random(n) < SHORT
+    measured[short] = rng.uniform(0.1, true[short])
+    bundle_dir = tmp_path / "sonar"
+    bundle_dir.mkdir()
+    np.savetxt(bundle_dir / "range.csv",
+               np.column_stack([np.arange(n) * 0.05, np.zeros(n), measured, true]),
+               delimiter=",", header="t,sensor,measured,true_range", comments="", fmt="%.6f")
+    config = tomllib.loads((REPO / "config" / "default.toml").read_text())
+    bundle = load_bundle(bundle_dir)
+    (res,) = calibrate(bundle, declared_model(config, bundle.meta))
+    names = [i.name for i in res.effects]
+    assert len(names) == 1 and names[0].startswith("outlier:"), names
+    params = _params(res)[names[0]]
+    assert params["low"] == 0.0
+    assert abs(params["probability"] - SHORT) < 0.05

@@ -13,7 +13,8 @@ The physical reading (seeds/004 "Sensor Models"): a sonar's beam is a 22.9 deg c
 detected ... it can actually be anywhere within the beam arc": the reading is the *first* echo,
 so the floor, a table edge or anything else inside the cone nearer than the target gives a reading
 *shorter* than the true range, anywhere between the sonar's minimum range and the target. That is
-``short``, with ``low`` the declared ``min_range_m`` (0 when none is declared). Crosstalk and
+``short``, with ``low`` the declared ``min_range_m`` (0 when none is declared), 0 when the data read
+below it (the declared limit is then not this sensor's). Crosstalk and
 the simulator's glitch (``sim/models/sonar.py``: ``U(min_range_m, max_range_m)``) are readings
 at any range: ``uniform``, on the declared range limits, else on the fit part's reading span
 widened by 10 % each side. Sonar streams get both, other metric range streams (UWB, lidar,
@@ -69,14 +70,21 @@ class Outlier(Effect):
         # start: the excess over the Gaussian share beyond 3 sigma, at least 1 %
         p0 = float(np.clip(k / max(n, 1) - 2 * stats.norm.sf(3.0), 0.01, 0.3))
         out = []
+        y_min, y_max = float(np.min(fit.y)), float(np.max(fit.y))
         if problem.range_limits is not None:
+            # the declared limits, widened to the readings: a reading outside them proves the
+            # sensor reads there (another sensor than the one declared, a limit stated loosely);
+            # a support that excluded it would make it impossible and the fit would call it noise
             lo, hi = problem.range_limits
+            if y_min < lo:
+                lo = 0.0        # below the declared minimum: where it really ends is unknown
+            if y_max > hi:
+                hi = y_max + 0.1 * (y_max - y_min)
         else:
-            y_min, y_max = float(np.min(fit.y)), float(np.max(fit.y))
             pad = 0.1 * (y_max - y_min)
             lo, hi = max(y_min - pad, 0.0), y_max + pad
         if problem.section == "sensors.sonar":
-            low = problem.range_limits[0] if problem.range_limits is not None else 0.0
+            low = lo if problem.range_limits is not None else 0.0
             out.append(
                 EffectInstance(
                     f"{self.name}:short",
