@@ -226,15 +226,6 @@ class MapModel:
         dist = float(d[m])
         return (dist, dx / dist, dy / dist) if dist > 0 else (0.0, 0.0, 0.0)
 
-    def away_from_walls(self, x: float, y: float) -> tuple[float, float]:
-        """Unit direction in which the clearance grows fastest at ``(x, y)`` (central differences
-        of the distance field; ``(0, 0)`` where it is flat)."""
-        h = self.resolution_m
-        gx = self.clearance(x + h, y) - self.clearance(x - h, y)
-        gy = self.clearance(x, y + h) - self.clearance(x, y - h)
-        n = math.hypot(gx, gy)
-        return (gx / n, gy / n) if n > 0 else (0.0, 0.0)
-
     def inside(self, x: FloatArray, y: FloatArray) -> NDArray[np.bool_]:
         """Whether each point lies inside the map's outer bounds."""
         return (x >= 0) & (y >= 0) & (x <= self.world.width_m) & (y <= self.world.height_m)

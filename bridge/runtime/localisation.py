@@ -805,6 +805,11 @@ class LocalisationNode:
         # believes itself near a wall is no evidence of contact)
         if max(P[0, 0], P[1, 1]) > reach * reach:
             return
+        # the raster field first (a lookup; its error is under two cells): the exact distance to
+        # every segment only when the body may touch
+        near = self._body_radius + MAP_CONTACT_GAP_M + 2 * self.map_model.resolution_m
+        if self.map_model.clearance(x, y) > near:
+            return
         clearance, gx, gy = self.map_model.nearest_wall(x, y)
         if clearance > self._body_radius + MAP_CONTACT_GAP_M:
             return
