@@ -11,7 +11,6 @@ replaced by a short reading ``U(min_range_m, true range)`` (floor and beam echoe
 from __future__ import annotations
 
 import shutil
-import tomllib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -19,6 +18,7 @@ from typing import Any
 import numpy as np
 import pytest
 from _sim_inject import _sonar
+from _sim_support import default_config
 from koala_bridge.calibration.bundle import load_bundle
 from koala_bridge.calibration.config_update import found_keys
 from koala_bridge.calibration.model import declared_model
@@ -27,7 +27,6 @@ from koala_bridge.recording.export import export_bundle
 from koala_bridge.tools.sim_recording import record_simulator
 from scipy import stats
 
-ROOT = Path(__file__).parents[2]
 SHARE = 0.09
 MIN_M, MAX_M = 0.25, 2.5  # [sensors.sonar] min_range_m, max_range_m of default.toml
 Z = float(stats.norm.ppf(1 - 5e-4))  # two-sided 1e-3 per check
@@ -35,8 +34,7 @@ Z = float(stats.norm.ppf(1 - 5e-4))  # two-sided 1e-3 per check
 
 @pytest.fixture(scope="module")
 def config() -> dict[str, Any]:
-    with (ROOT / "config" / "default.toml").open("rb") as fh:
-        return tomllib.load(fh)
+    return default_config()
 
 
 @pytest.fixture(scope="module")

@@ -22,13 +22,13 @@ of the injected change, at >= 20 standard errors, and the held-out window error 
 from __future__ import annotations
 
 import shutil
-import tomllib
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 from _sim_inject import tick_scale
+from _sim_support import default_config
 from koala_bridge.calibration.bundle import load_bundle
 from koala_bridge.calibration.model import declared_model
 from koala_bridge.calibration.pipeline import StreamResult, calibrate
@@ -36,7 +36,6 @@ from koala_bridge.calibration.streams import odometry
 from koala_bridge.recording.export import export_bundle
 from koala_bridge.tools.sim_recording import CommandSchedule, record_simulator, weave_command
 
-ROOT = Path(__file__).parents[2]
 SEED = 3
 DURATION_S = 90.0
 TPM = 22222.222  # [robot] ticks_per_metre of config/default.toml
@@ -63,8 +62,7 @@ def wall_pushes(cycle_s: float = 30.0) -> CommandSchedule:
 
 @pytest.fixture(scope="module")
 def config() -> dict[str, Any]:
-    with (ROOT / "config" / "default.toml").open("rb") as fh:
-        return tomllib.load(fh)
+    return default_config()
 
 
 @pytest.fixture(scope="module")

@@ -268,9 +268,7 @@ def test_short_readings_below_the_declared_minimum_are_still_outliers(tmp_path: 
     down to 0.1 m broke the mixture (those readings were impossible under it): p came out a
     third of the truth and a spurious scale passed. The support now reaches 0 when the data
     read below the declared minimum."""
-    import tomllib
-
-    from conftest import REPO
+    from _sim_support import default_config
 
     rng = np.random.default_rng(2)
     n = 3000
@@ -283,7 +281,7 @@ def test_short_readings_below_the_declared_minimum_are_still_outliers(tmp_path: 
     np.savetxt(bundle_dir / "range.csv",
                np.column_stack([np.arange(n) * 0.05, np.zeros(n), measured, true]),
                delimiter=",", header="t,sensor,measured,true_range", comments="", fmt="%.6f")
-    config = tomllib.loads((REPO / "config" / "default.toml").read_text())
+    config = default_config()
     bundle = load_bundle(bundle_dir)
     (res,) = calibrate(bundle, declared_model(config, bundle.meta))
     names = [i.name for i in res.effects]
