@@ -15,7 +15,9 @@ and optionally the model with the found effects.
 from __future__ import annotations
 
 import argparse
+import copy
 import logging
+import os
 import sys
 import tempfile
 from pathlib import Path
@@ -26,7 +28,7 @@ from koala_bridge.calibration.model import read_config
 from koala_bridge.calibration.pipeline import Options, check_effect_names
 from koala_bridge.calibration.report import metric_lines, write_report
 from koala_bridge.calibration.stages import all_keys, calibrate_stages
-from koala_bridge.runtime.settings import PATH_KEYS
+from koala_bridge.runtime.settings import map_relative_paths
 
 log = logging.getLogger(__name__)
 
@@ -137,18 +139,9 @@ def _paths_for(config: dict[str, Any], source: Path, target: Path) -> dict[str, 
     """``config`` with its relative file paths (the DBC, a signing key: relative to the folder of
     the file they were read from, ``source``) made relative to ``target``, where the new file
     goes: a config from ``config init`` names ``koala.dbc`` beside itself."""
-    import copy
-    import os
-
-    out = copy.deepcopy(config)
-    for keys in PATH_KEYS:
-        table: Any = out
-        for k in keys[:-1]:
-            table = table.get(k) if isinstance(table, dict) else None
-        value = table.get(keys[-1]) if isinstance(table, dict) else None
-        if isinstance(value, str) and value and not Path(value).expanduser().is_absolute():
-            table[keys[-1]] = os.path.relpath((source / value).resolve(), target.resolve())
-    return out
+    return map_relative_paths(
+        copy.deepcopy(config),
+        lambda value: os.path.relpath((source / value).resolve(), target.resolve()))
 
 
 def run(args: argparse.Namespace) -> int:

@@ -20,7 +20,7 @@ import logging
 import math
 import re
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
@@ -117,16 +117,22 @@ def load_config(path: str | Path) -> dict[str, Any]:
     return _paths_beside(_parse_toml(text, str(p)), p.parent)
 
 
-def _paths_beside(config: dict[str, Any], folder: Path) -> dict[str, Any]:
-    """``config`` with each relative path of :data:`PATH_KEYS` joined to ``folder``."""
+def map_relative_paths(config: dict[str, Any], change: Callable[[str], str]) -> dict[str, Any]:
+    """``config`` (changed in place) with each relative path of :data:`PATH_KEYS` replaced by
+    ``change(path)``."""
     for keys in PATH_KEYS:
         table: Any = config
         for k in keys[:-1]:
             table = table.get(k) if isinstance(table, dict) else None
         value = table.get(keys[-1]) if isinstance(table, dict) else None
         if isinstance(value, str) and value and not Path(value).expanduser().is_absolute():
-            table[keys[-1]] = str(folder / value)
+            table[keys[-1]] = change(value)
     return config
+
+
+def _paths_beside(config: dict[str, Any], folder: Path) -> dict[str, Any]:
+    """``config`` with each relative path of :data:`PATH_KEYS` joined to ``folder``."""
+    return map_relative_paths(config, lambda value: str(folder / value))
 
 
 #: Larger than any configuration (default.toml is ~20 kB); a bigger file is the wrong file.
