@@ -14,13 +14,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from koala_bridge.calibration.robust import MAD_TO_SIGMA
 from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
 
-#: MAD -> standard deviation of a normal distribution (1 / Phi^-1(3/4)); Huber, Robust
-#: Statistics (1981), sec. 5.1.
-MAD_TO_SIGMA = 1.4826
 #: An error is an outlier when it lies beyond this many robust sigmas from its set's median.
 OUTLIER_SIGMAS = 5.0
 #: Percentile of the absolute error reported beside the RMS and the median.

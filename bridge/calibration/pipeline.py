@@ -52,9 +52,10 @@ from scipy import stats
 
 log = logging.getLogger(__name__)
 
-#: ``--write-config`` writes a fitted effect only when it is at least this many standard errors
-#: from the declared model, ``z(1 - ALPHA / 2)`` (2.58): the declared value outside the effect's
-#: 99 % interval, as for the turn-on bias. A slipping wheel once proposed ticks_per_metre
+#: ``z(1 - ALPHA / 2)`` (2.58): the two-sided bar of the turn-on bias test, of the declared
+#: turn-on spread "before" may fit, and of writing: ``--write-config`` writes a fitted effect
+#: only when it is at least this many standard errors from the declared model (the declared
+#: value outside the effect's 99 % interval). A slipping wheel once proposed ticks_per_metre
 #: 22 222 -> 70 968 with an SE of 32 500 (1.5 SE), which ``|d| < SE`` alone would have written.
 WRITE_Z = float(stats.norm.ppf(1 - ALPHA / 2))
 
@@ -245,7 +246,7 @@ def declared_fit(problem: StreamProblem, fit: Fit) -> Fit:
     sigma = float(getattr(problem, "turn_on_bias_sigma", 0.0))
     if sigma <= 0 or not len(fit.x):
         return fit
-    bound = float(stats.norm.ppf(1 - ALPHA / 2)) * sigma
+    bound = WRITE_Z * sigma
     if abs(fit.x[0]) <= bound:
         return fit
     x = fit.x.copy()
@@ -308,7 +309,7 @@ def _turn_on_bias_check(problem: StreamProblem, sel: Selection) -> None:
     b = float(fit.x[0])
     se = float(parameter_se(problem, fit)[0])
     z = abs(b) / float(np.hypot(sigma, se))
-    threshold = float(stats.norm.ppf(1 - ALPHA / 2))
+    threshold = WRITE_Z
     problem.notes.append(
         f"turn-on bias fitted: {b:+.4g} (declared sigma {sigma:g}, SE {se:.2g}, z = {z:.2f}: "
         + ("within the declared spread: this run's turn-on bias, part of the declared model)"

@@ -45,6 +45,7 @@ from koala_bridge.calibration.metrics import (
     OUTLIER_SIGMAS,
     ErrorStatistics,
     HeldOutStatistics,
+    _num,
     change,
 )
 from koala_bridge.calibration.noise import noise_json, noise_markdown, plot_allan
@@ -53,10 +54,6 @@ from koala_bridge.calibration.problem import SecondaryMetric
 from koala_bridge.calibration.stages import Stage
 
 log = logging.getLogger(__name__)
-
-
-def _num(v: float) -> float | None:
-    return float(f"{v:.6g}") if np.isfinite(v) else None
 
 
 def _carried(stage: Stage, res: StreamResult) -> list[dict[str, Any]]:

@@ -20,7 +20,8 @@ from scipy import stats
 
 FloatArray = NDArray[np.float64]
 
-#: 1 / Phi^-1(3/4): the MAD of a Gaussian times this is its standard deviation.
+#: 1 / Phi^-1(3/4): the MAD of a Gaussian times this is its standard deviation (Huber, Robust
+#: Statistics (1981), sec. 5.1).
 MAD_TO_SIGMA = 1.4826
 #: A residual beyond this many robust standard deviations is in the tail (Gaussian share 6.3e-5).
 TAIL_Z = 4.0

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 from koala_bridge.calibration.effects import register_effect
 from koala_bridge.calibration.effects.base import Effect, EffectInstance
+from koala_bridge.calibration.robust import mad_sigma
 
 
 @register_effect("glitch")
@@ -30,7 +31,7 @@ class Glitch(Effect):
         if y.size < 20:
             return []
         r = problem.residuals([], problem.nuisance_x0(), "fit")
-        mad = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+        mad = mad_sigma(r)
         best: tuple[int, float] | None = None
         for g in (float(np.max(y)), float(np.min(y))):
             hit = np.isclose(y, g, rtol=1e-9, atol=1e-12)

@@ -283,10 +283,6 @@ def _known_rotation(meta: Mapping[str, Any]) -> tuple[float, float, float] | Non
     return (float(vals[0]), float(vals[1]), float(vals[2]))  # type: ignore[arg-type]
 
 
-def _is_sonar(counts: bool, section_kind: str) -> bool:
-    return not counts and section_kind == "sonar"
-
-
 def _declared_sonar_sigma(model: DeclaredModel, true_range: FloatArray) -> FloatArray | None:
     """The declared sonar's noise sigma at each true range (its distance-error table), if any."""
     if model.sonar_distance_error is None:
@@ -694,13 +690,9 @@ def build_ranges(
             is_range=True,
             # The declared sonar's spurious readings (effects/outlier.py): its range limits,
             # glitch share and noise sigma per reading; the sonar's only, not another kind's.
-            range_limits=model.sonar_range_m if _is_sonar(counts, section_kind) else None,
-            declared_outlier_probability=model.sonar_glitch_probability
-            if _is_sonar(counts, section_kind)
-            else 0.0,
-            noise_sigma=_declared_sonar_sigma(model, sub["true_range"])
-            if _is_sonar(counts, section_kind)
-            else None,
+            range_limits=model.sonar_range_m if sonar else None,
+            declared_outlier_probability=model.sonar_glitch_probability if sonar else 0.0,
+            noise_sigma=_declared_sonar_sigma(model, sub["true_range"]) if sonar else None,
             curve_points=curve,
             curve_fitted=fitted,
             base_add=base_add,

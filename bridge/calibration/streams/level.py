@@ -31,6 +31,7 @@ ones in each of the fit and score parts.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import replace
 from typing import Any
@@ -38,6 +39,7 @@ from typing import Any
 import numpy as np
 from koala_bridge.calibration.bundle import Bundle, Table
 from koala_bridge.calibration.model import DeclaredModel
+from koala_bridge.calibration.robust import mad_sigma
 from koala_bridge.calibration.streams.scalar import ScalarProblem
 from numpy.typing import NDArray
 
@@ -66,8 +68,7 @@ def tilt_from_accelerometer(acc: NDArray[np.float64]) -> NDArray[np.float64]:
 
 def _noise_sigma(v: NDArray[np.float64]) -> float:
     """White-noise sigma from first differences (MAD, robust to the motion's steps)."""
-    d = np.diff(v[np.isfinite(v)])
-    return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2)) if d.size else 0.0
+    return mad_sigma(np.diff(v[np.isfinite(v)])) / math.sqrt(2)
 
 
 def _long_runs(mask: NDArray[np.bool_], t: NDArray[np.float64], min_s: float) -> NDArray[np.bool_]:
