@@ -89,9 +89,10 @@ def test_white_noise_and_rate_random_walk_recovered(seed: int) -> None:
     assert bound_n < 0.01 and bound_k < 0.5  # bounds that a wrong estimate can fail
     assert abs(fit.angle_random_walk / N_TRUE - 1) < bound_n
     assert abs(fit.rate_random_walk / K_TRUE - 1) < bound_k
-    # the code's standard errors are the same reading, on the fitted values (within 2x)
-    assert fit.angle_random_walk_se / N_TRUE == pytest.approx(bound_n / Z, rel=1.0)
-    assert fit.rate_random_walk_se / K_TRUE == pytest.approx(bound_k / Z, rel=1.0)
+    # the code's standard errors are the same reading, on the fitted values (within 2x either
+    # way; approx(rel=1) let a zero standard error through)
+    assert 0.5 < (fit.angle_random_walk_se / N_TRUE) / (bound_n / Z) < 2.0
+    assert 0.5 < (fit.rate_random_walk_se / K_TRUE) / (bound_k / Z) < 2.0
     # the minimum lies near the crossing, sqrt(3) N / K = 17 s (within an octave either way),
     # where the curve is sqrt(2 N K / sqrt(3)): B read there is that / 0.664
     assert 17.3 / 2 < fit.bias_instability_tau < 17.3 * 2

@@ -24,6 +24,7 @@ from koala_bridge.calibration.effects.base import EffectInstance
 from koala_bridge.calibration.model import declared_model
 from koala_bridge.calibration.pipeline import Options, StreamResult, calibrate
 from koala_bridge.calibration.robust import (
+    MAD_TO_SIGMA,
     gaussian_logpdf,
     heavy_tailed,
     inlier_responsibility,
@@ -219,9 +220,19 @@ def test_mad_scale_ignores_a_spurious_share() -> None:
     r = rng.normal(0, 1.0, n)
     r[: n // 10] = rng.uniform(-50, 0, n // 10)
     # MAD's asymptotic relative SE is 1.166 / sqrt(n) (Rousseeuw & Croux 1993); the 10 %
-    # contamination moves the median and the MAD by O(p): within 15 %.
-    assert 0.97 < mad_sigma(r[n // 10 :]) < 1.03
-    assert 0.9 < mad_sigma(r) < 1.25
+    # contamination moves the median and the MAD by O(p): the population values of the mixture
+    # 0.9 N(0, 1) + 0.1 U(-50, 0), solved below, within 5 SE.
+    from scipy import optimize
+
+    def cdf(x: float) -> float:
+        return 0.9 * stats.norm.cdf(x) + 0.1 * min(max((x + 50) / 50, 0.0), 1.0)
+
+    med = optimize.brentq(lambda m: cdf(m) - 0.5, -5, 5)
+    mad = optimize.brentq(lambda d: cdf(med + d) - cdf(med - d) - 0.5, 1e-6, 10)
+    se = 1.166 / np.sqrt(n)
+    assert abs(mad_sigma(r[n // 10 :]) - 1) < 5 * se * np.sqrt(n / (n - n // 10))
+    assert abs(mad_sigma(r) / (MAD_TO_SIGMA * mad) - 1) < 5 * se
+    assert MAD_TO_SIGMA * mad > 1.05        # the contamination does move it
 
 
 def test_heavy_tail_test_false_alarm_rate() -> None:
@@ -263,11 +274,9 @@ def test_the_log_shows_what_an_outlier_effect_improves(tmp_path: Path) -> None:
     assert after < before
 
 
-def test_short_readings_below_the_declared_minimum_are_still_outliers(tmp_path: Path) -> None:
-    """default.toml declares the sonar's min_range_m = 0.25; a sensor whose short echoes read
-    down to 0.1 m broke the mixture (those readings were impossible under it): p came out a
-    third of the truth and a spurious scale passed. The support now reaches 0 when the data
-    read below the declared minimum."""
+def _below_minimum(tmp_path: Path) -> StreamResult:
+    """9 % short echoes down to 0.1 m under default.toml, which declares the sonar's
+    min_range_m = 0.25 (a new user's trial)."""
     from _sim_support import default_config
 
     rng = np.random.default_rng(2)
@@ -281,11 +290,28 @@ def test_short_readings_below_the_declared_minimum_are_still_outliers(tmp_path: 
     np.savetxt(bundle_dir / "range.csv",
                np.column_stack([np.arange(n) * 0.05, np.zeros(n), measured, true]),
                delimiter=",", header="t,sensor,measured,true_range", comments="", fmt="%.6f")
-    config = default_config()
     bundle = load_bundle(bundle_dir)
-    (res,) = calibrate(bundle, declared_model(config, bundle.meta))
+    (res,) = calibrate(bundle, declared_model(default_config(), bundle.meta))
+    return res
+
+
+def test_short_readings_below_the_declared_minimum_are_still_outliers(tmp_path: Path) -> None:
+    """Readings below the declared minimum were impossible under the mixture: p came out at a
+    third of the truth and a spurious scale passed. The support now reaches 0 when the data read
+    below the declared minimum: one outlier effect, nothing else."""
+    res = _below_minimum(tmp_path)
     names = [i.name for i in res.effects]
     assert len(names) == 1 and names[0].startswith("outlier:"), names
-    params = _params(res)[names[0]]
-    assert params["low"] == 0.0
-    assert abs(params["probability"] - SHORT) < 0.05
+    assert _params(res)[names[0]]["low"] == 0.0
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "with default.toml's sonar noise table (6.6 % of the range, the data's is 1 cm) the uniform "
+    "support wins over the short one (held-out LR 4480 vs 4394) and its p is 0.121, 3.3 binomial "
+    "SE over the injected 0.09"))
+def test_short_readings_below_the_declared_minimum_are_named_short(tmp_path: Path) -> None:
+    res = _below_minimum(tmp_path)
+    params = _params(res)
+    assert set(params) == {"outlier:short"}
+    n_fit = res.problem.readings("fit").size
+    assert abs(params["outlier:short"]["probability"] - SHORT) <= _fraction_bound(SHORT, n_fit)
