@@ -10,6 +10,7 @@ fitted in every model, including the one reported as *before*.
 
 from __future__ import annotations
 
+import logging
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -70,6 +71,19 @@ class SkippedStream:
 
     def line(self) -> str:
         return f"{self.stream}: {self.missing}: {self.fix}"
+
+
+#: Fewest usable rows a stream is calibrated on: both the fit and the held-out part need data.
+MIN_ROWS = 10
+#: Where a bundle's files and columns are described, for the report's "how to add it".
+FORMAT_DOC = "docs/bundle-format.md"
+
+
+def skip_stream(skipped: list[SkippedStream] | None, stream: str, missing: str, fix: str) -> None:
+    """Record that ``stream`` cannot be calibrated; the report and the CLI say so."""
+    logging.getLogger(__name__).debug("%s not calibrated: %s", stream, missing)
+    if skipped is not None:
+        skipped.append(SkippedStream(stream, missing, fix))
 
 
 @dataclass

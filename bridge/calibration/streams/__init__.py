@@ -21,7 +21,14 @@ import numpy as np
 from koala_bridge.calibration.bundle import REQUIRED_COLUMNS, Bundle, Table
 from koala_bridge.calibration.effects.common import categorical_levels
 from koala_bridge.calibration.model import DeclaredModel
-from koala_bridge.calibration.problem import FloatArray, SkippedStream, Split
+from koala_bridge.calibration.problem import (
+    FORMAT_DOC,
+    MIN_ROWS,
+    FloatArray,
+    SkippedStream,
+    Split,
+)
+from koala_bridge.calibration.problem import skip_stream as _skip
 from koala_bridge.calibration.streams.beacons import (
     beacon_rows,
     beacon_streams,
@@ -55,17 +62,6 @@ __all__ = [
 HEADING_WINDOW_S = 10.0
 #: Smoothing of a compass-derived heading before it is differentiated into a reference rate.
 COMPASS_SMOOTHING_S = 0.25
-#: Fewest usable rows a stream is calibrated on: both the fit and the held-out part need data.
-MIN_ROWS = 10
-#: Where a bundle's files and columns are described, for the report's "how to add it".
-FORMAT_DOC = "docs/bundle-format.md"
-
-
-def _skip(skipped: list[SkippedStream] | None, stream: str, missing: str, fix: str) -> None:
-    """Record that ``stream`` cannot be calibrated; the report and the CLI say so."""
-    log.debug("%s not calibrated: %s", stream, missing)
-    if skipped is not None:
-        skipped.append(SkippedStream(stream, missing, fix))
 
 
 def _range_kinds(table: Table) -> NDArray[np.str_]:

@@ -20,24 +20,17 @@ no bearing at all (no ``bearing`` column, or all empty): kind ``uwb``.
 
 from __future__ import annotations
 
-import logging
-
 import numpy as np
 from koala_bridge.calibration.bundle import Bundle, Table
 from koala_bridge.calibration.effects.common import categorical_levels
 from koala_bridge.calibration.model import DeclaredModel
-from koala_bridge.calibration.problem import SkippedStream, Split
+from koala_bridge.calibration.problem import FORMAT_DOC, MIN_ROWS, SkippedStream, Split
+from koala_bridge.calibration.problem import skip_stream as _skip
 from koala_bridge.calibration.streams.scalar import ScalarProblem
 from numpy.typing import NDArray
 
-log = logging.getLogger(__name__)
-
-#: Where the bundle format is described, for a skipped stream's "how to add it"
-FORMAT_DOC = "docs/bundle-format.md"
 #: The kind of range-only ``landmarks.csv`` readings without a ``kind`` column.
 DEFAULT_BEACON_KIND = "uwb"
-#: Fewer readings than this make no stream.
-MIN_READINGS = 10
 
 
 def beacon_rows(obs: Table) -> NDArray[np.bool_]:
@@ -79,12 +72,6 @@ def beacon_streams(bundle: Bundle) -> list[str]:
     return [_stream_name(k, range_kinds) for k in sorted(set(_kinds(obs)[rows].tolist()))]
 
 
-def _skip(skipped: list[SkippedStream] | None, stream: str, missing: str, fix: str) -> None:
-    log.debug("%s not calibrated: %s", stream, missing)
-    if skipped is not None:
-        skipped.append(SkippedStream(stream, missing, fix))
-
-
 def build_beacons(
     bundle: Bundle, model: DeclaredModel, skipped: list[SkippedStream] | None = None
 ) -> list[ScalarProblem]:
@@ -124,12 +111,12 @@ def build_beacons(
     for kind in sorted(set(kinds[np.isfinite(obs["range"])].tolist())):
         name = _stream_name(kind, range_kinds)
         m = use & (kinds == kind)
-        if int(m.sum()) < MIN_READINGS:
+        if int(m.sum()) < MIN_ROWS:
             of_kind = kinds == kind
             _skip(
                 skipped,
                 name,
-                f"{int(m.sum())} usable readings, at least {MIN_READINGS} needed: "
+                f"{int(m.sum())} usable readings, at least {MIN_ROWS} needed: "
                 f"{int((of_kind & ~known).sum())} name a landmark_id not in landmark_map.csv, "
                 f"{int((of_kind & known & ~during).sum())} lie outside truth_pose.csv's time span",
                 "give every beacon its row in landmark_map.csv and stamp every file on one "
