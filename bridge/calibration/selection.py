@@ -234,15 +234,17 @@ def _fit_mixture(
         return mix.effect.log_density(mix, x[em], y, r)
 
     prev = -np.inf
+    lg = log_g(r)
     for _ in range(EM_MAX_ITERATIONS):
-        w = inlier_responsibility(r, sigma, p, log_g(r), shape)
+        w = inlier_responsibility(r, sigma, p, lg, shape)
         p = float(np.clip(1.0 - np.mean(w), 1e-6, MAX_SPURIOUS_FRACTION))
         sigma = max(weighted_rms(r / s, w), 1e-12)
         x[em.start], x[em.start + 1] = p, sigma
         if x.size > em.stop - em.start:
             x, jac = _least_squares(problem, insts, x, weights=w / s**2, max_nfev=50, hold=em)
             r = problem.residuals(insts, x, "fit")
-        ll = mixture_loglik(r, sigma, p, log_g(r), shape)
+            lg = log_g(r)       # (the log density depends on the residual, not on p or sigma)
+        ll = mixture_loglik(r, sigma, p, lg, shape)
         if ll - prev < EM_TOLERANCE * max(r.size, 1):
             break
         prev = ll
@@ -255,22 +257,23 @@ def fit_model(problem: StreamProblem, insts: Sequence[EffectInstance], x0: Float
     insts = list(insts)
     x = np.asarray(x0, dtype=float)
     at = next((k for k, i in enumerate(insts) if i.effect.mixture), None)
-    log_g = mixture = em = None
+    log_g = mixture = em = robust = None
     if at is not None:
         x, jac = _fit_mixture(problem, insts, x, at)
+    else:
+        robust = problem.robust_scale()
+        x, jac = _least_squares(problem, insts, x, f_scale=robust)
+        if not x.size:
+            robust = None
+    r_fit = problem.residuals(insts, x, "fit")
+    r_score = problem.residuals(insts, x, "score")
+    if at is not None:
         mix, em = insts[at], _param_slice(problem, insts, at)
         log_g = (
-            mix.effect.log_density(
-                mix, x[em], problem.readings("fit"), problem.residuals(insts, x, "fit")
-            ),
-            mix.effect.log_density(
-                mix, x[em], problem.readings("score"), problem.residuals(insts, x, "score")
-            ),
+            mix.effect.log_density(mix, x[em], problem.readings("fit"), r_fit),
+            mix.effect.log_density(mix, x[em], problem.readings("score"), r_score),
         )
         mixture = (float(x[em][0]), float(x[em][1]))
-    else:
-        x, jac = _least_squares(problem, insts, x, f_scale=problem.robust_scale())
-    robust = problem.robust_scale() if at is None and x.size else None
     shape = (problem.noise_shape("fit"), problem.noise_shape("score"))
     smooth = None
     if any(i.effect.output_transform for i in insts):
@@ -281,8 +284,8 @@ def fit_model(problem: StreamProblem, insts: Sequence[EffectInstance], x0: Float
     return Fit(
         insts,
         x,
-        problem.residuals(insts, x, "fit"),
-        problem.residuals(insts, x, "score"),
+        r_fit,
+        r_score,
         jac,
         smooth,
         log_g,
