@@ -70,7 +70,8 @@ def _trajectory(t: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np
     return v, w
 
 
-def _write(path: Path, header: str, cols: list[np.ndarray], fmt: str = "%.9g") -> None:
+def write_columns(path: Path, header: str, cols: list[np.ndarray], fmt: str = "%.9g") -> None:
+    """One bundle CSV from equal-length columns (the synthetic bundles' writer)."""
     np.savetxt(path, np.column_stack(cols), delimiter=",", header=header, comments="", fmt=fmt)
 
 
@@ -95,7 +96,7 @@ def make_bundle(
     ds = 0.5 * (v[1:] + v[:-1]) * dt
     x = np.r_[0.0, np.cumsum(ds * np.cos(mid))] + 1.0
     y = np.r_[0.0, np.cumsum(ds * np.sin(mid))] + 1.0
-    _write(out / "truth_pose.csv", "t,x,y,theta", [t, x, y, theta])
+    write_columns(out / "truth_pose.csv", "t,x,y,theta", [t, x, y, theta])
 
     # Odometry: true wheel distances from the true geometry, counted with the true tick size.
     tpm = DECLARED["robot"]["ticks_per_metre"]
@@ -113,7 +114,8 @@ def make_bundle(
     cum_r = np.cumsum((s_r + slip[1]) * tpm_true * (1 + rho) / 2)
     ticks_l = np.rint(np.concatenate([[0.0], cum_l]))
     ticks_r = np.rint(np.concatenate([[0.0], cum_r]))
-    _write(out / "odometry.csv", "t,left_ticks,right_ticks", [t, ticks_l, ticks_r], fmt="%.10g")
+    write_columns(out / "odometry.csv", "t,left_ticks,right_ticks", [t, ticks_l, ticks_r],
+                  fmt="%.10g")
 
     # Gyro with a temperature covariate.
     t_mid_fit = 0.3 * duration_s
@@ -126,7 +128,7 @@ def make_bundle(
         + inj.gyro_temperature * (temp - temp[t < 0.6 * duration_s].mean())
         + rng_gyro.normal(0, NOISE["gyro"], t.size)
     )
-    _write(out / "gyro.csv", "t,yaw_rate,temperature_c", [t, rate, temp])
+    write_columns(out / "gyro.csv", "t,yaw_rate,temperature_c", [t, rate, temp])
 
     # Compass: body-frame field m = R(-theta) b_world; measured = S m + h + noise.
     bx, by, bz = EARTH_UT
@@ -136,7 +138,7 @@ def make_bundle(
     S = np.array([[1 + e_xx, e_xy], [e_xy, 1 - e_xx]])
     m = m @ S.T + np.asarray(inj.hard_iron) + rng_comp.normal(0, NOISE["compass_uT"], m.shape)
     mz = bz + rng_comp.normal(0, NOISE["compass_uT"], t.size)
-    _write(out / "compass.csv", "t,mx,my,mz", [t, m[:, 0], m[:, 1], mz])
+    write_columns(out / "compass.csv", "t,mx,my,mz", [t, m[:, 0], m[:, 1], mz])
 
     # Sonar: 4 sensors, true range to a moving obstacle, 0.2..3 m.
     n_s = 4
@@ -164,11 +166,11 @@ def make_bundle(
         # a room warming over the run, as a sonar logged against a ruler would see it
         cols.append(25 + 3 * np.sin(2 * np.pi * ts / (0.8 * duration_s) + rng_son.uniform(0, 6.28)))
         header += ",temperature_c"
-    _write(out / "range.csv", header, cols)
+    write_columns(out / "range.csv", header, cols)
 
     # Landmarks: 3 mapped landmarks, one observation each per 0.5 s.
     lm = np.array([[1, 4.0, 4.0], [2, -2.0, 3.0], [3, 2.0, -3.0]])
-    _write(out / "landmark_map.csv", "id,x,y", [lm[:, 0], lm[:, 1], lm[:, 2]])
+    write_columns(out / "landmark_map.csv", "id,x,y", [lm[:, 0], lm[:, 1], lm[:, 2]])
     step = max(1, int(round(0.5 * rate_hz)))
     idx = np.arange(0, t.size, step)
     ti = np.repeat(t[idx], 3)
@@ -178,7 +180,7 @@ def make_bundle(
     rng_ = np.hypot(dx, dy) + rng_lm.normal(0, NOISE["landmark_range"], ti.size)
     brg = np.arctan2(dy, dx) - pth + rng_lm.normal(0, NOISE["landmark_bearing"], ti.size)
     brg = wrap_angle(brg)
-    _write(out / "landmarks.csv", "t,landmark_id,range,bearing", [ti, lm[li, 0], rng_, brg])
+    write_columns(out / "landmarks.csv", "t,landmark_id,range,bearing", [ti, lm[li, 0], rng_, brg])
 
     meta = {
         "name": f"synthetic-{seed}",

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from koala_bridge.calibration.synthetic import write_columns
 from numpy.typing import NDArray
 
 
@@ -64,22 +65,8 @@ def make_uwb_bundle(out: Path, seed: int, case: UwbCase, form: str = "landmarks"
         return out
     if form != "landmarks":
         raise ValueError(f"unknown form {form!r}: 'landmarks' or 'range'")
-    np.savetxt(
-        out / "truth_pose.csv",
-        np.column_stack([t, x, y]),
-        delimiter=",",
-        header="t,x,y",
-        comments="",
-        fmt="%.9g",
-    )
+    write_columns(out / "truth_pose.csv", "t,x,y", [t, x, y])
     lines = ["t,landmark_id,range"] + [f"{a:.4f},{int(b)},{c:.6f}" for a, b, c, _ in table]
     (out / "landmarks.csv").write_text("\n".join(lines) + "\n", encoding="utf-8")
-    np.savetxt(
-        out / "landmark_map.csv",
-        np.column_stack([np.arange(len(beacons)), beacons]),
-        delimiter=",",
-        header="id,x,y",
-        comments="",
-        fmt="%.9g",
-    )
+    write_columns(out / "landmark_map.csv", "id,x,y", [np.arange(len(beacons)), beacons])
     return out

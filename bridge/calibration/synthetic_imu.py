@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from koala_bridge.calibration.synthetic import write_columns
 from numpy.typing import NDArray
 
 GRAVITY = 9.80665
@@ -79,21 +80,7 @@ def make_tilt_bundle(out: Path, seed: int, case: TiltCase, accelerometer: bool =
         )
         gyro += list((f + rng.normal(0, case.acc_noise, f.shape)).T)
         header += ",acc_x,acc_y,acc_z"
-    np.savetxt(
-        out / "gyro.csv",
-        np.column_stack(gyro),
-        delimiter=",",
-        header=header,
-        comments="",
-        fmt="%.9g",
-    )
+    write_columns(out / "gyro.csv", header, gyro)
     zeros = np.zeros_like(t)
-    np.savetxt(
-        out / "truth_pose.csv",
-        np.column_stack([t, zeros, zeros, psi]),
-        delimiter=",",
-        header="t,x,y,theta",
-        comments="",
-        fmt="%.9g",
-    )
+    write_columns(out / "truth_pose.csv", "t,x,y,theta", [t, zeros, zeros, psi])
     return out
