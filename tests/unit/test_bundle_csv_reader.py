@@ -1,0 +1,68 @@
+"""The bundle CSV reader's C fast path (``numpy.loadtxt``) and its general path agree.
+
+``read_csv_table`` tries ``loadtxt`` first and falls back to the csv module for anything it does
+not accept. Each file below is read both ways (the general path by forcing the fallback): the
+columns, the text columns and the line numbers (which error messages and the report quote) must
+be the same -- a blank or comment line skipped silently by the fast path would shift every line
+number after it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from koala_bridge.calibration import bundle
+from koala_bridge.calibration.bundle import BundleError, read_csv_table
+
+CASES = {
+    "plain": "t,a\n0,1\n0.5,2\n1,3\n",
+    "crlf": "t,a\r\n0,1\r\n0.5,2\r\n",
+    "no final newline": "t,a\n0,1\n1,2",
+    "trailing blank lines": "t,a\n0,1\n1,2\n\n\n",
+    "blank line inside": "t,a\n0,1\n\n1,2\n",
+    "whitespace line inside": "t,a\n0,1\n   \n1,2\n",
+    "comment line": "t,a\n0,1\n# pause\n1,2\n",
+    "empty cell": "t,a\n0,\n1,2\n",
+    "quoted number": 't,a\n0,"1"\n1,2\n',
+    "text column": "t,name\n0,left\n1,right\n",
+    "nan cell": "t,a\n0,nan\n1,2\n",
+    "spaces around cells": "t , a\n0 , 1\n 1, 2\n",
+    "one row": "t,a\n0,1\n",
+    "one column": "t\n0\n1\n2\n",
+}
+
+
+def _slow(monkeypatch: pytest.MonkeyPatch, path: Path) -> bundle.Table:
+    with monkeypatch.context() as m:
+        m.setattr(bundle, "_read_numeric_fast", lambda *_: None)
+        return read_csv_table(path)
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_fast_and_general_readers_agree(
+    name: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = tmp_path / "gyro.csv"
+    path.write_text(CASES[name], encoding="utf-8", newline="")
+    fast, slow = read_csv_table(path), _slow(monkeypatch, path)
+    assert fast.columns.keys() == slow.columns.keys()
+    for k in fast.columns:
+        np.testing.assert_array_equal(fast.columns[k], slow.columns[k])
+    assert fast.text.keys() == slow.text.keys()
+    np.testing.assert_array_equal(fast.lines, slow.lines)
+
+
+def test_the_line_after_a_blank_line_is_numbered_as_in_the_file(tmp_path: Path) -> None:
+    path = tmp_path / "gyro.csv"
+    path.write_text("t,a\n0,1\n\n1,1e300\n", encoding="utf-8")
+    with pytest.raises(BundleError, match="line 4"):
+        read_csv_table(path)
+
+
+def test_a_row_of_another_width_is_named_by_its_line(tmp_path: Path) -> None:
+    path = tmp_path / "gyro.csv"
+    path.write_text("t,a\n0,1\n1,2,3\n", encoding="utf-8")
+    with pytest.raises(BundleError, match="line 3: 3 cell"):
+        read_csv_table(path)
