@@ -3,7 +3,8 @@
 Default: a 1-hour, 100 Hz synthetic recording of all streams (odometry, gyro, compass, 4 sonars,
 landmarks at 2 Hz) with a few injected effects is written once, then calibrated on one core
 (BLAS threads 1, CPU affinity one core). Prints the time to load/parse the bundle (the floor),
-the time of the whole calibration including that load, and their ratio. Target: <= 10 s.
+the time of the whole calibration including that load (and the declared model), and their
+ratio. Target (issue 16): <= 3 s on one core of this 2-core machine.
 
 ``--rates N``: runs every case of ``koala_bridge.calibration.synthetic.CASES`` plus clean bundles on
 N seeds each and prints the detection and false-positive rates quoted in docs/calibration.md.
@@ -46,6 +47,9 @@ from koala_bridge.calibration.synthetic import (  # noqa: E402
     make_bundle,
 )
 
+#: issue 16, point 7: a 1 h, 100 Hz recording of every stream calibrates in <= 3 s
+TARGET_S = 3.0
+
 
 def bench_hour(workdir: Path) -> int:
     inj = Injected(gyro_bias=0.01, hard_iron=(5.0, -3.0), wheel_base=0.05, sonar_glitch=0.02)
@@ -68,9 +72,10 @@ def bench_hour(workdir: Path) -> int:
         )
     print(
         f"load/parse floor {floor:.2f} s; calibrate (incl. load) {total:.2f} s; "
-        f"ratio {total / floor:.1f}x; target <= 10 s: {'ok' if total <= 10 else 'MISSED'}"
+        f"ratio {total / floor:.1f}x; target <= {TARGET_S:g} s: "
+        f"{'ok' if total <= TARGET_S else 'MISSED'}"
     )
-    return 0 if total <= 10 else 1
+    return 0 if total <= TARGET_S else 1
 
 
 def rates(n: int, workdir: Path) -> int:

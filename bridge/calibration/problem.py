@@ -209,6 +209,34 @@ class StreamProblem(ABC):
         return {}
 
 
+class LastResult:
+    """The last value a model evaluation returned for each part, kept while the same
+    instances and parameter vector come again.
+
+    The search, its backward check, the refit on the full stream and the report evaluate the
+    same model with the same ``x`` several times in a row (``fit_model``'s residuals, then
+    ``metric_value``, then the secondary metrics); on a 1-hour odometry stream each evaluation
+    is a dead reckoning of 360 000 samples. Instances are compared by identity (they hold
+    dicts, so they are not hashable) and held, so an id cannot be reused while its entry
+    lives; ``x`` by its bytes. Callers must not modify a returned array.
+    """
+
+    def __init__(self) -> None:
+        self._last: dict[str, tuple[tuple[EffectInstance, ...], bytes, Any]] = {}
+
+    def get(self, insts: Sequence[EffectInstance], x: FloatArray, part: str) -> Any:
+        hit = self._last.get(part)
+        if hit is None or len(hit[0]) != len(insts) or hit[1] != np.asarray(x).tobytes():
+            return None
+        if any(a is not b for a, b in zip(hit[0], insts, strict=True)):
+            return None
+        return hit[2]
+
+    def put(self, insts: Sequence[EffectInstance], x: FloatArray, part: str, value: Any) -> Any:
+        self._last[part] = (tuple(insts), np.asarray(x).tobytes(), value)
+        return value
+
+
 def lag1_autocorrelation(r: FloatArray) -> float:
     """Lag-1 autocorrelation of the noise in ``r``, from its first differences, in [0, 0.999].
 

@@ -105,10 +105,13 @@ def heading_reference(bundle: Bundle) -> tuple[FloatArray, FloatArray] | None:
     truth = bundle.get("truth_pose")
     if truth is None or "theta" not in truth.columns:
         return None
-    ok = np.isfinite(truth["theta"])
-    if ok.sum() < 2:
-        return None
-    return truth["t"][ok], np.unwrap(truth["theta"][ok])
+    if "heading" not in truth.derived:  # unwrapped once per table (four builders ask)
+        ok = np.isfinite(truth["theta"])
+        truth.derived["heading"] = (
+            None if ok.sum() < 2 else (truth["t"][ok], np.unwrap(truth["theta"][ok]))
+        )
+    ref: tuple[FloatArray, FloatArray] | None = truth.derived["heading"]
+    return ref
 
 
 def _rate_of(t: FloatArray, theta: FloatArray, t_out: FloatArray) -> FloatArray:

@@ -39,6 +39,7 @@ import numpy as np
 from koala_bridge.calibration.effects.base import EffectInstance
 from koala_bridge.calibration.problem import (
     FloatArray,
+    LastResult,
     Part,
     SecondaryMetric,
     StreamProblem,
@@ -76,6 +77,7 @@ class CompassProblem(StreamProblem):
     gyro_heading: FloatArray | None = None
 
     def __post_init__(self) -> None:
+        self._last = LastResult()
         fit = self.split.mask(self.t, "fit")
         self._masks = {"fit": fit, "score": ~fit, "all": np.ones_like(fit)}
         # the readings of each part with the declared motor field removed, and the nuisance
@@ -158,6 +160,15 @@ class CompassProblem(StreamProblem):
         return np.asarray(-np.arctan2(mc[:, 1], mc[:, 0]), dtype=float)
 
     def _residual(self, insts: Sequence[EffectInstance], x: FloatArray, part: str) -> FloatArray:
+        # a copy: least squares scales a robust loss's residual in place
+        hit = self._last.get(insts, x, part)
+        if hit is None:
+            hit = self._last.put(insts, x, part, self._compute_residual(insts, x, part))
+        return np.array(hit)
+
+    def _compute_residual(
+        self, insts: Sequence[EffectInstance], x: FloatArray, part: str
+    ) -> FloatArray:
         mc = self.corrected(insts, x, part)
         if self.mode == "heading":
             return wrap_angle(x[0] + self.heading(mc) - self._theta_field(self._masks[part]))

@@ -51,7 +51,13 @@ from typing import Any
 
 import numpy as np
 from koala_bridge.calibration.effects.base import EffectInstance
-from koala_bridge.calibration.problem import FloatArray, Part, StreamProblem, apply_all
+from koala_bridge.calibration.problem import (
+    FloatArray,
+    LastResult,
+    Part,
+    StreamProblem,
+    apply_all,
+)
 from numpy.typing import NDArray
 
 
@@ -236,6 +242,7 @@ class _Windows:
     anchor: NDArray[np.intp]  # index (into the reference) of each sample's window anchor
     label: NDArray[np.intp]  # window label per sample (0..n_windows-1)
     n: int
+    starts: NDArray[np.intp]  # index (into the reference) of each window's anchor (n,)
 
 
 @dataclass
@@ -256,6 +263,7 @@ class OdometryProblem(StreamProblem):
     start_pose: tuple[float, float, float] | None = None  # (t, theta) known at the start
 
     def __post_init__(self) -> None:
+        self._last = LastResult()
         self._counted: NDArray[np.bool_] | None = None  # odometry steps dead-reckoned
         self.set_aside = find_stalls(
             self.t_odo, self.dead_reckon(self.state()), self.t_ref, self.p_ref, self.theta_ref
@@ -311,7 +319,7 @@ class OdometryProblem(StreamProblem):
             piece = np.zeros(idx.size, dtype=np.intp)
         if idx.size == 0:
             e = np.empty(0, dtype=np.intp)
-            return _Windows(e, e, e, 0)
+            return _Windows(e, e, e, 0, e)
         t = self.t_ref[idx]
         first_of_piece = np.r_[0, np.flatnonzero(np.diff(piece)) + 1]
         t_start = t[first_of_piece][np.cumsum(np.r_[0, np.diff(piece) != 0])]
@@ -320,8 +328,8 @@ class OdometryProblem(StreamProblem):
         # np.unique(..., axis=0) gave, without its sort)
         label = np.cumsum(np.r_[True, (np.diff(piece) != 0) | (np.diff(label) != 0)]) - 1
         first = np.r_[0, np.flatnonzero(np.diff(label)) + 1]
-        anchor = idx[first][label]
-        return _Windows(idx, anchor, label, int(label.max()) + 1)
+        starts = idx[first]
+        return _Windows(idx, starts[label], label, int(label.max()) + 1, starts)
 
     def state(self) -> OdometryState:
         return OdometryState(self.tpm, self.wheel_base, self.ratio)
@@ -352,19 +360,30 @@ class OdometryProblem(StreamProblem):
     def _errors(
         self, insts: Sequence[EffectInstance], x: FloatArray, part: str
     ) -> tuple[FloatArray, _Windows]:
+        hit = self._last.get(insts, x, part)
+        if hit is not None:
+            return hit  # type: ignore[no-any-return]
+        return self._last.put(insts, x, part, self._compute_errors(insts, x, part))
+
+    def _compute_errors(
+        self, insts: Sequence[EffectInstance], x: FloatArray, part: str
+    ) -> tuple[FloatArray, _Windows]:
         st = self.state()
         apply_all(st, self, insts, x)
         w = self._windows[part]
         if w.ref_idx.size == 0:
             return np.empty((0, 2)), w
         X, Y, TH = self.dead_reckon(st)
-        tq = self.t_ref + st.tau
-        xi = np.interp(tq, self.t_odo, X)
-        yi = np.interp(tq, self.t_odo, Y)
-        thi = np.interp(tq, self.t_odo, TH)
+        # Dead-reckoned pose at the scored samples and at the windows' anchors only (the other
+        # part's samples are not needed: interpolating every reference sample cost twice this).
         j, a = w.ref_idx, w.anchor
-        c, s = np.cos(thi[a]), np.sin(thi[a])
-        dx, dy = xi[j] - xi[a], yi[j] - yi[a]
+        tq, tq_a = self.t_ref[j] + st.tau, self.t_ref[w.starts] + st.tau
+        xj, yj = np.interp(tq, self.t_odo, X), np.interp(tq, self.t_odo, Y)
+        xa = np.interp(tq_a, self.t_odo, X)[w.label]
+        ya = np.interp(tq_a, self.t_odo, Y)[w.label]
+        th_w = np.interp(tq_a, self.t_odo, TH)  # per window
+        c, s = np.cos(th_w)[w.label], np.sin(th_w)[w.label]
+        dx, dy = xj - xa, yj - ya
         d = np.column_stack([c * dx + s * dy, -s * dx + c * dy])  # in the anchor's body frame
         q = self.p_ref[j] - self.p_ref[a]
         if self.theta_ref is not None:
@@ -372,7 +391,7 @@ class OdometryProblem(StreamProblem):
         elif self.start_pose is not None:
             # Heading is not re-anchored: dead-reckoned from the declared start heading.
             t_s, th_s, _ = self.start_pose
-            phi = th_s + thi[a] - float(np.interp(t_s + st.tau, self.t_odo, TH))
+            phi = th_s + th_w[w.label] - float(np.interp(t_s + st.tau, self.t_odo, TH))
         else:
             cross = np.bincount(w.label, d[:, 0] * q[:, 1] - d[:, 1] * q[:, 0], w.n)
             dot = np.bincount(w.label, d[:, 0] * q[:, 0] + d[:, 1] * q[:, 1], w.n)
