@@ -633,8 +633,20 @@ def build_ranges(
             edge = (tr - 3 * sig < lo) | (tr + 3 * sig > hi)
             beyond += int((ok & edge).sum())
             ok &= ~edge
+        closer = 0
+        if counts and model.ir_curve is not None and min(model.ir_curve[0]) > 0:
+            # A response curve declared as a table from r0 > 0 says nothing closer than r0: an
+            # IR ranger's output there folds back (a Sharp GP2Y0A02's below ~15 cm) or
+            # saturates, and holding the table flat is the simulator's convention, not a
+            # declared response. Such readings are set aside, counted in the report, as the
+            # sonar's are outside its range limits (a far end held flat is the declared
+            # baseline -- nothing reflected -- and stays).
+            near = ok & (sub["true_range"] < min(model.ir_curve[0]))
+            closer = int(near.sum())
+            ok &= ~near
         if int(ok.sum()) < MIN_ROWS:
-            _skip(skipped, name, *_too_few_ranges(len(sub), int(ok.sum()), dropped, beyond))
+            _skip(skipped, name, *_too_few_ranges(len(sub), int(ok.sum()), dropped, beyond,
+                                                  closer))
             continue
         sub = sub.select(ok)
         t = sub["t"]
@@ -729,14 +741,28 @@ def build_ranges(
                 f"{beyond} readings beyond the declared critical incidence angle or within "
                 "3 sigma of the declared range limits dropped"
             )
+        if closer:
+            problem.notes.append(
+                f"{closer} readings at true ranges closer than the declared response curve's "
+                f"first point ({min(model.ir_curve[0]):g} m) set aside: the curve says nothing "
+                "there (declare it from 0 m to have them used)"
+            )
         out.append(problem)
     return out
 
 
-def _too_few_ranges(n: int, usable: int, dropped: int, beyond: int) -> tuple[str, str]:
+def _too_few_ranges(
+    n: int, usable: int, dropped: int, beyond: int, closer: int = 0
+) -> tuple[str, str]:
     """``(missing, fix)`` for a range stream left with fewer than :data:`MIN_ROWS` rows."""
     missing = f"{usable} usable rows of {n}, at least {MIN_ROWS} needed"
     fixes = []
+    if closer:
+        missing += f"; {closer} closer than the declared IR response curve's first point"
+        fixes.append(
+            "declare [sensors.ir] response_range_m / response_counts down to the closest "
+            "distance recorded"
+        )
     if dropped:
         missing += f"; {dropped} with measured or true_range empty, or true_range <= 0"
         fixes.append("fill measured and true_range (> 0 m) in every row")
