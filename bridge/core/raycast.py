@@ -82,6 +82,28 @@ class SegmentSet:
     def __len__(self) -> int:
         return int(self.segments.shape[0])
 
+    def extended(self, extra: np.ndarray) -> SegmentSet:
+        """These segments followed by ``extra`` ``(K, 4)`` (not merged): indices below
+        ``len(self)`` keep naming the same segments."""
+        extra = np.asarray(extra, dtype=float).reshape(-1, 4)
+        if extra.shape[0] == 0:
+            return self
+        return SegmentSet.from_segments(np.concatenate([self.segments, extra]), merge=False)
+
+
+def circle_polygons(circles: np.ndarray, sides: int) -> np.ndarray:
+    """``(K * sides, 4)`` segments: for each row ``x, y, r`` of ``circles`` ``(K, 3)``, the
+    regular polygon of ``sides`` sides circumscribed about the circle (apothem ``r``: its edges
+    touch the circle at their midpoints, its vertices lie at ``r / cos(pi / sides)``), with a
+    vertex at angle 0."""
+    c = np.asarray(circles, dtype=float).reshape(-1, 3)
+    a = np.linspace(0.0, 2.0 * math.pi, sides + 1)
+    ux, uy = np.cos(a), np.sin(a)
+    rv = c[:, 2:3] / math.cos(math.pi / sides)          # (K, 1) vertex radius
+    vx = c[:, 0:1] + rv * ux                            # (K, sides + 1)
+    vy = c[:, 1:2] + rv * uy
+    return np.stack([vx[:, :-1], vy[:, :-1], vx[:, 1:], vy[:, 1:]], axis=-1).reshape(-1, 4)
+
 
 def merge_collinear(segments: np.ndarray) -> np.ndarray:
     """Join horizontal and vertical segments that lie on one line and touch or overlap.
