@@ -42,7 +42,12 @@ class Fleet:
         self.robots = list(simulators)
         self.stream_keys = keys
         self.dt = simulators[0].dt
-        self._radii = np.array([s.config.robot.body_radius_m for s in simulators])
+        # Every body, rows x, y, radius, shared with each robot (Simulator.share_bodies) and
+        # moved in place as the robots move.
+        self._bodies = np.zeros((len(simulators), 3))
+        self._bodies[:, 2] = [s.config.robot.body_radius_m for s in simulators]
+        for i, sim in enumerate(self.robots):
+            sim.share_bodies(self._bodies, i)
 
     def __len__(self) -> int:
         return len(self.robots)
@@ -59,9 +64,7 @@ class Fleet:
     def reset(self, seed: int | None = None) -> list[Readings]:
         """Every robot at its start pose, reseeded; their step-0 readings."""
         seed = self.robots[0].config.sim.seed if seed is None else seed
-        starts = np.array([_start(s) for s in self.robots])
-        for i, sim in enumerate(self.robots):
-            sim.set_obstacles(self._others(starts, i))
+        self._bodies[:, :2] = [_start(s) for s in self.robots]
         return [sim.reset(seed, spawn_key=(key,))
                 for sim, key in zip(self.robots, self.stream_keys, strict=True)]
 
@@ -70,25 +73,15 @@ class Fleet:
         if len(commands) != len(self.robots):
             raise ValueError(f"{len(self.robots)} robots need as many commands, "
                              f"got {len(commands)}")
-        xy = self._positions()
+        bodies = self._bodies
+        for i, sim in enumerate(self.robots):      # where each is now (faults may teleport)
+            p = sim.pose
+            bodies[i, 0], bodies[i, 1] = p.x, p.y
         for i, (sim, command) in enumerate(zip(self.robots, commands, strict=True)):
-            sim.set_obstacles(self._others(xy, i))
             sim.move(command)
             p = sim.pose
-            xy[i] = (p.x, p.y)
-        out = []
-        for i, sim in enumerate(self.robots):
-            sim.set_obstacles(self._others(xy, i))
-            out.append(sim.sense())
-        return out
-
-    def _positions(self) -> np.ndarray:
-        return np.array([(s.pose.x, s.pose.y) for s in self.robots])
-
-    def _others(self, xy: np.ndarray, i: int) -> np.ndarray:
-        """``(N - 1, 3)`` body circles of every robot but ``i``."""
-        keep = np.arange(len(self.robots)) != i
-        return np.column_stack([xy[keep], self._radii[keep]])
+            bodies[i, 0], bodies[i, 1] = p.x, p.y
+        return [sim.sense() for sim in self.robots]
 
 
 def _start(sim: Simulator) -> tuple[float, float]:

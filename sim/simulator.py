@@ -48,7 +48,7 @@ from typing import Any
 
 import numpy as np
 from koala_bridge.core.geometry import wrap_angle
-from koala_bridge.core.raycast import SegmentSet, cast_fan_arrays, circle_polygons
+from koala_bridge.core.raycast import SegmentSet, cast_fan_arrays
 from koala_bridge.core.schema import ConfigError
 from koala_bridge.sim import robot as kin
 from koala_bridge.sim.battery import Battery
@@ -98,10 +98,12 @@ class Simulator:
         self._streams: dict[str, BlockStream] = {}
         self._traction = (1.0, 1.0)
         self._obstacles = np.empty((0, 3))
+        self._self_row = -1         # share_bodies: this robot's own row of the obstacles
+        self._near_cache: tuple[np.ndarray, SegmentSet] = (np.empty((0, 3)), self.walls)
         r = cfg.robot
-        # How far another body may be and still matter to one step's move (drive errors
-        # perturb the step by a few per cent; this is ten times the longest step and more).
-        self._move_reach = r.body_radius_m + 0.25 + 10.0 * r.max_wheel_speed_mps * self.dt
+        # How far another body may be and still matter to one step's move: three times the
+        # longest commanded step (drive errors perturb a step by a few per cent) and 1 cm.
+        self._move_reach = r.body_radius_m + 0.01 + 3.0 * r.max_wheel_speed_mps * self.dt
         s = cfg.sensors
         self._sense_reach = r.body_radius_m + max(s.ir.max_range_m, s.sonar.max_range_m,
                                                   s.camera.max_range_m)
@@ -179,16 +181,33 @@ class Simulator:
         if not np.all(np.isfinite(c)) or np.any(c[:, 2] <= 0):
             raise ValueError("obstacles must be finite (x, y, radius > 0) rows")
         self._obstacles = c
+        self._self_row = -1
+
+    def share_bodies(self, bodies: np.ndarray, row: int) -> None:
+        """Like :meth:`set_obstacles` with every body of a fleet, ``(N, 3)`` rows ``x, y,
+        radius``, of which row ``row`` is this robot's own (not an obstacle). The array is
+        shared, not copied: its owner (:class:`sim.fleet.Fleet`) moves the rows in place."""
+        self._obstacles = bodies
+        self._self_row = row
 
     def _walls_near(self, x: float, y: float, reach: float) -> SegmentSet:
         """The walls plus the obstacles whose circle comes within ``reach`` of ``(x, y)``."""
         obs = self._obstacles
         if obs.shape[0] == 0:
             return self.walls
-        near = obs[np.hypot(obs[:, 0] - x, obs[:, 1] - y) - obs[:, 2] <= reach]
+        gap = np.hypot(obs[:, 0] - x, obs[:, 1] - y) - obs[:, 2]
+        if self._self_row >= 0:
+            gap[self._self_row] = np.inf
+        near = obs[gap <= reach]
         if near.shape[0] == 0:
             return self.walls
-        return self.walls.extended(circle_polygons(near, OBSTACLE_SIDES))
+        # bodies pressed together stay where they are for many steps: reuse their polygons
+        cached_near, cached = self._near_cache
+        if cached_near.shape == near.shape and np.array_equal(cached_near, near):
+            return cached
+        walls = self.walls.with_circles(near, OBSTACLE_SIDES)
+        self._near_cache = (near, walls)
+        return walls
 
     @property
     def pose(self) -> Pose:

@@ -82,13 +82,35 @@ class SegmentSet:
     def __len__(self) -> int:
         return int(self.segments.shape[0])
 
-    def extended(self, extra: np.ndarray) -> SegmentSet:
-        """These segments followed by ``extra`` ``(K, 4)`` (not merged): indices below
-        ``len(self)`` keep naming the same segments."""
-        extra = np.asarray(extra, dtype=float).reshape(-1, 4)
-        if extra.shape[0] == 0:
+    def with_circles(self, circles: np.ndarray, sides: int) -> SegmentSet:
+        """These segments followed by the :func:`circle_polygons` of ``circles`` ``(K, 3)``
+        (``x, y, r``), built directly (a few array operations: once per robot and step in a
+        fleet). Indices below ``len(self)`` keep naming the same segments."""
+        c = np.asarray(circles, dtype=float).reshape(-1, 3)
+        if c.shape[0] == 0:
             return self
-        return SegmentSet.from_segments(np.concatenate([self.segments, extra]), merge=False)
+        a = np.arange(sides + 1) * (2.0 * math.pi / sides)
+        rv = c[:, 2:3] * (1.0 / math.cos(math.pi / sides))     # (K, 1) vertex radius
+        vx = c[:, 0:1] + rv * np.cos(a)                         # (K, sides + 1)
+        vy = c[:, 1:2] + rv * np.sin(a)
+        ax = vx[:, :-1].ravel()
+        ay = vy[:, :-1].ravel()
+        bx = vx[:, 1:].ravel()
+        by = vy[:, 1:].ravel()
+        ex = bx - ax
+        ey = by - ay
+        len2 = ex * ex + ey * ey
+        inv_len = 1.0 / np.sqrt(len2)
+        return SegmentSet(
+            segments=np.concatenate([self.segments, np.column_stack([ax, ay, bx, by])]),
+            ax=np.concatenate([self.ax, ax[None, :]], axis=1),
+            ay=np.concatenate([self.ay, ay[None, :]], axis=1),
+            ex=np.concatenate([self.ex, ex[None, :]], axis=1),
+            ey=np.concatenate([self.ey, ey[None, :]], axis=1),
+            inv_len=np.concatenate([self.inv_len, inv_len]),
+            inv_len2=np.concatenate([self.inv_len2, 1.0 / len2]),
+            packed=np.concatenate([self.packed, np.stack([ax, ay, ex, ey, inv_len])], axis=1),
+        )
 
 
 def circle_polygons(circles: np.ndarray, sides: int) -> np.ndarray:

@@ -37,6 +37,15 @@ def test_circumscribed_polygon_touches_the_circle_from_outside() -> None:
                                                     OBSTACLE_SIDES), merge=False)
     d = point_segment_distances(segs, 0.5, -0.2)
     assert d.min() == pytest.approx(0.19, abs=1e-12)    # edges touch at their midpoints
+    # the fast path a fleet uses builds the same set as from_segments
+    walls = SegmentSet.from_segments(np.array([[0.0, 0.0, 3.0, 0.0], [0.0, 0.0, 0.0, 3.0]]))
+    circles = np.array([[0.5, -0.2, 0.19], [2.0, 1.0, 0.25]])
+    fast = walls.with_circles(circles, OBSTACLE_SIDES)
+    slow = SegmentSet.from_segments(np.concatenate(
+        [walls.segments, circle_polygons(circles, OBSTACLE_SIDES)]), merge=False)
+    for name in ("segments", "ax", "ay", "ex", "ey", "inv_len", "inv_len2", "packed"):
+        np.testing.assert_allclose(getattr(fast, name), getattr(slow, name), rtol=1e-12,
+                                   atol=1e-12)
 
 
 def test_a_sees_b_with_its_forward_sonar() -> None:
