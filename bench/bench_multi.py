@@ -18,6 +18,18 @@ shared machine, the ``timeit`` convention), with the median beside it:
 
 The issue-18 target is N = 10 at >= 20x real time. Prints each figure and the ratios to the
 floors (N robots cost about N single robots when the ratio is ~N).
+
+Measured on the 2-core build machine (load average ~3.6 from other jobs), 2026-11-27,
+``python -m bench.bench_multi``::
+
+    1 robot: Simulator.step alone (floor)              189.9x  (188.5x)
+    10 robots: Fleet.step                               12.8x  (12.4x)
+    1 robot: whole bridge loop (floor)                  71.9x  (61.3x)
+    10 robots: whole bridge loop (FleetSource)           4.5x  (4.4x)
+    cost of 10 robots / 1 robot: simulator 14.8, bridge 15.9
+
+The target is not met: the buses' and Zenoh's work per robot on the one loop thread bounds ten
+robots near 8x (docs/multirobot.md "Speed").
 """
 
 from __future__ import annotations

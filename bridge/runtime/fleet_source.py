@@ -202,9 +202,13 @@ class FleetSource:
         if first.lockstep is None:
             return first.clock.wait_for_step(n, timeout=timeout)
         deadline = time.monotonic() + timeout
-        for robot in self.robots:
-            if robot.unpaced_step():
+        cut = [robot.firmware_cut() for robot in self.robots]
+        for robot, unpaced in zip(self.robots, cut, strict=True):
+            if unpaced:
                 continue
             if not robot.clock.wait_for_step(n, timeout=max(0.0, deadline - time.monotonic())):
                 return False
+        for robot, unpaced in zip(self.robots, cut, strict=True):
+            if unpaced:
+                robot.unpaced_step()        # counted once the step runs
         return True

@@ -343,10 +343,14 @@ class SimulatedRobotSource:
             return True
         return False
 
+    def firmware_cut(self) -> bool:
+        """Lockstep: whether a fault has cut the engaged firmware's command line."""
+        return self.lockstep is not None and self.lockstep.engaged and self._cycle_bus_cut()
+
     def unpaced_step(self) -> bool:
         """Lockstep: whether a fault has cut the firmware's command line, so that the next step
         runs without its grant (counted; docs/protocols.md §6)."""
-        if self.lockstep is not None and self.lockstep.engaged and self._cycle_bus_cut():
+        if self.firmware_cut():
             self._unpaced_steps += 1
             return True
         return False
