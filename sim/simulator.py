@@ -26,6 +26,16 @@ The rays of all range sensors due at a step go through one compiled cast
 (:func:`core.raycast.cast_fan_arrays`); each range sensor then reads its slice of it in one
 compiled call (truth and error model fused). The camera tests its lines of sight in its own
 compiled call.
+
+Other bodies (several robots in one world, :mod:`sim.fleet`): :meth:`Simulator.set_obstacles`
+gives the circles of the other robots' bodies. Each is added, for the step's collision test and
+ray casts (IR, sonar with its second legs, the camera's lines of sight), as a regular polygon of
+:data:`OBSTACLE_SIDES` sides circumscribed about the circle (its edges touch the circle at their
+midpoints: a body stops at or outside the circle, and a ray's range is at most
+``r (1 / cos(pi / OBSTACLE_SIDES) - 1)`` (1.9 % of r) long near a vertex). Only bodies within
+reach of the step (collisions) or of the longest range sensor (ray casts) are added. A step is
+:meth:`Simulator.move` then :meth:`Simulator.sense` (:meth:`Simulator.step` does both), so that a
+fleet moves every robot before any of them senses.
 """
 
 from __future__ import annotations
@@ -59,6 +69,9 @@ from koala_bridge.sim.types import Pose, Readings, WheelCommand
 # Fixed order of the per-sensor RNG streams (SeedSequence.spawn). Append only.
 RNG_STREAMS: tuple[str, ...] = ("drive", *SENSOR_NAMES)
 
+#: Sides of the polygon that stands for another robot's body circle (module docstring).
+OBSTACLE_SIDES = 16
+
 
 class Simulator:
     """One simulated Koala in one world. See the module docstring."""
@@ -84,6 +97,16 @@ class Simulator:
         self._rngs: dict[str, np.random.Generator] = {}
         self._streams: dict[str, BlockStream] = {}
         self._traction = (1.0, 1.0)
+        self._obstacles = np.empty((0, 3))
+        self._self_row = -1         # share_bodies: this robot's own row of the obstacles
+        self._near_cache: tuple[np.ndarray, SegmentSet] = (np.empty((0, 3)), self.walls)
+        r = cfg.robot
+        # How far another body may be and still matter to one step's move: three times the
+        # longest commanded step (drive errors perturb a step by a few per cent) and 1 cm.
+        self._move_reach = r.body_radius_m + 0.01 + 3.0 * r.max_wheel_speed_mps * self.dt
+        s = cfg.sensors
+        self._sense_reach = r.body_radius_m + max(s.ir.max_range_m, s.sonar.max_range_m,
+                                                  s.camera.max_range_m)
 
     # ------------------------------------------------------------------ public API
     @property
@@ -95,10 +118,14 @@ class Simulator:
     def step_count(self) -> int:
         return self._k
 
-    def reset(self, seed: int | None = None) -> Readings:
-        """Put the robot at the world's start pose, reseed every stream, return step-0 readings."""
+    def reset(self, seed: int | None = None, spawn_key: tuple[int, ...] = ()) -> Readings:
+        """Put the robot at the world's start pose, reseed every stream, return step-0 readings.
+
+        ``spawn_key``: the robot's streams come from ``SeedSequence(seed, spawn_key=spawn_key)``
+        (``(i,)`` is the ``i``-th child of ``SeedSequence(seed)``: one robot of a fleet); ``()``
+        is ``SeedSequence(seed)`` itself."""
         seed = self.config.sim.seed if seed is None else seed
-        children = np.random.SeedSequence(seed).spawn(len(RNG_STREAMS))
+        children = np.random.SeedSequence(seed, spawn_key=spawn_key).spawn(len(RNG_STREAMS))
         self._rngs = {name: np.random.Generator(np.random.PCG64(ss))
                       for name, ss in zip(RNG_STREAMS, children, strict=True)}
         self._streams = {name: BlockStream(rng) for name, rng in self._rngs.items()}
@@ -116,14 +143,24 @@ class Simulator:
 
     def step(self, command: WheelCommand) -> Readings:
         """Advance one step ``dt`` with the commanded wheel surface speeds (m/s)."""
+        self.move(command)
+        return self.sense()
+
+    def move(self, command: WheelCommand) -> None:
+        """The first half of :meth:`step`: move the robot (and its battery) by one step."""
         if self._state is None:
             raise RuntimeError("call reset() before step()")
         before = self._state
         drive: DriveErrorSeam | None = self._drive_error
         if self._traction != (1.0, 1.0):
             drive = _WheelSlip(self._traction, self.config.robot.wheel_base_m, self.dt, drive)
+        start = before
+        walls = self._walls_near(before.x, before.y, self._move_reach)
+        if walls is not self.walls:
+            # the clearance bound holds for the walls only: another body may have come closer
+            start = dataclasses.replace(before, clearance=-math.inf)
         self._state = kin.step(
-            self._state, command.left, command.right, self.dt, self.config.robot, self.walls,
+            start, command.left, command.right, self.dt, self.config.robot, walls,
             self._streams["drive"], drive,
         )
         self._k += 1
@@ -131,7 +168,46 @@ class Simulator:
         self.battery.step((st.left_speed, st.right_speed), (command.left, command.right), self.dt,
                           _ground_speeds(before, st, self.dt, self.config.robot.wheel_base_m)
                           if st.collided else None)
-        return self._readings(st)
+
+    def sense(self) -> Readings:
+        """The second half of :meth:`step`: the readings due after the last move (at ``t``)."""
+        return self._readings(self._require_state())
+
+    def set_obstacles(self, circles: np.ndarray) -> None:
+        """The other bodies in the world, ``(K, 3)`` rows ``x, y, radius`` (m), in force for
+        every :meth:`move` and :meth:`sense` (and :meth:`reset`) until set again; ``(0, 3)``:
+        none (module docstring, "Other bodies")."""
+        c = np.asarray(circles, dtype=float).reshape(-1, 3)
+        if not np.all(np.isfinite(c)) or np.any(c[:, 2] <= 0):
+            raise ValueError("obstacles must be finite (x, y, radius > 0) rows")
+        self._obstacles = c
+        self._self_row = -1
+
+    def share_bodies(self, bodies: np.ndarray, row: int) -> None:
+        """Like :meth:`set_obstacles` with every body of a fleet, ``(N, 3)`` rows ``x, y,
+        radius``, of which row ``row`` is this robot's own (not an obstacle). The array is
+        shared, not copied: its owner (:class:`sim.fleet.Fleet`) moves the rows in place."""
+        self._obstacles = bodies
+        self._self_row = row
+
+    def _walls_near(self, x: float, y: float, reach: float) -> SegmentSet:
+        """The walls plus the obstacles whose circle comes within ``reach`` of ``(x, y)``."""
+        obs = self._obstacles
+        if obs.shape[0] == 0:
+            return self.walls
+        gap = np.hypot(obs[:, 0] - x, obs[:, 1] - y) - obs[:, 2]
+        if self._self_row >= 0:
+            gap[self._self_row] = np.inf
+        near = obs[gap <= reach]
+        if near.shape[0] == 0:
+            return self.walls
+        # bodies pressed together stay where they are for many steps: reuse their polygons
+        cached_near, cached = self._near_cache
+        if cached_near.shape == near.shape and np.array_equal(cached_near, near):
+            return cached
+        walls = self.walls.with_circles(near, OBSTACLE_SIDES)
+        self._near_cache = (near, walls)
+        return walls
 
     @property
     def pose(self) -> Pose:
@@ -286,11 +362,16 @@ class Simulator:
         p = self.periods
         ir_due = k % p["ir"] == 0
         sonar_due = k % p["sonar"] == 0
+        camera_due = k % p["camera"] == 0
         ir = sonar = None
+        walls = self.walls
+        if self._obstacles.shape[0] and (ir_due or sonar_due or camera_due):
+            walls = self._walls_near(st.x, st.y, self._sense_reach)
+        self.sonar.walls = self.camera.walls = walls
         if ir_due or sonar_due:
             # One compiled cast for the rays of every range sensor due at this step.
             body, maxr, sonar_start = self._fan_for(ir_due, sonar_due)
-            rays, index = cast_fan_arrays(self.walls, body, maxr, st.x, st.y, st.theta)
+            rays, index = cast_fan_arrays(walls, body, maxr, st.x, st.y, st.theta)
             if ir_due:
                 ir = self.ir.measure(rays, index, 0, streams["ir"])
             if sonar_due:
@@ -305,7 +386,7 @@ class Simulator:
             self.encoders.measure(st) if k % p["encoders"] == 0 else None,
             self.gyro.measure(st, t, streams["gyro"]) if k % p["gyro"] == 0 else None,
             self.compass.measure(st, streams["compass"]) if k % p["compass"] == 0 else None,
-            self.camera.measure(st, streams["camera"]) if k % p["camera"] == 0 else None,
+            self.camera.measure(st, streams["camera"]) if camera_due else None,
             st.collided,
             battery=self.battery.reading,
         )

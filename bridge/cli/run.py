@@ -18,6 +18,8 @@ examples:
   koala-bridge run --clock lockstep --fault drop:can:start_s=5,end_s=10,probability=0.3
   koala-bridge run --fault kidnap:robot:start_s=20,x=1.0,y=0.5   # docs/faults.md
   koala-bridge run --set buses.can.wire_timing=true --set buses.can.bitrate=125000
+  koala-bridge run --config examples/two_robots.toml --endpoints-file ep.json  # [[robots]]:
+                    # several Koalas in one world, each with its own buses (docs/multirobot.md)
 
 lockstep is set in the config's [lockstep] table (cycle_bus, cycle_message, period_s, on_quiet,
 quiet_timeout_s); --set zenoh.remote_commands=true adds the lockstep/step and faults/schedule
@@ -28,6 +30,7 @@ named here are in the source repository (README.md "Documentation").
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 from typing import Any
@@ -124,14 +127,19 @@ def run(args: argparse.Namespace) -> int:
     if args.record is not None:
         from koala_bridge.recording.mcap_file import Recorder, RecordingError, run_metadata
 
+        metadata = run_metadata(
+            args.source, config, args.config,
+            # the K-Team frames' dialect: the real robot's, else the simulated pty's
+            getattr(source, "kteam_dialect", settings.buses.kteam_dialect),
+        )
+        robots = getattr(source, "robots_metadata", None)
+        if robots is not None:
+            # [[robots]]: each robot's keys and buses are recorded under its name
+            metadata["robots"] = json.dumps(robots())
         try:
             recorder = Recorder(
                 args.record,
-                metadata=run_metadata(
-                    args.source, config, args.config,
-                    # the K-Team frames' dialect: the real robot's, else the simulated pty's
-                    getattr(source, "kteam_dialect", settings.buses.kteam_dialect),
-                ),
+                metadata=metadata,
                 world=source.world_answer(),
             )
         except RecordingError as e:

@@ -82,6 +82,50 @@ class SegmentSet:
     def __len__(self) -> int:
         return int(self.segments.shape[0])
 
+    def with_circles(self, circles: np.ndarray, sides: int) -> SegmentSet:
+        """These segments followed by the :func:`circle_polygons` of ``circles`` ``(K, 3)``
+        (``x, y, r``), built directly (a few array operations: once per robot and step in a
+        fleet). Indices below ``len(self)`` keep naming the same segments."""
+        c = np.asarray(circles, dtype=float).reshape(-1, 3)
+        if c.shape[0] == 0:
+            return self
+        a = np.arange(sides + 1) * (2.0 * math.pi / sides)
+        rv = c[:, 2:3] * (1.0 / math.cos(math.pi / sides))     # (K, 1) vertex radius
+        vx = c[:, 0:1] + rv * np.cos(a)                         # (K, sides + 1)
+        vy = c[:, 1:2] + rv * np.sin(a)
+        ax = vx[:, :-1].ravel()
+        ay = vy[:, :-1].ravel()
+        bx = vx[:, 1:].ravel()
+        by = vy[:, 1:].ravel()
+        ex = bx - ax
+        ey = by - ay
+        len2 = ex * ex + ey * ey
+        inv_len = 1.0 / np.sqrt(len2)
+        return SegmentSet(
+            segments=np.concatenate([self.segments, np.column_stack([ax, ay, bx, by])]),
+            ax=np.concatenate([self.ax, ax[None, :]], axis=1),
+            ay=np.concatenate([self.ay, ay[None, :]], axis=1),
+            ex=np.concatenate([self.ex, ex[None, :]], axis=1),
+            ey=np.concatenate([self.ey, ey[None, :]], axis=1),
+            inv_len=np.concatenate([self.inv_len, inv_len]),
+            inv_len2=np.concatenate([self.inv_len2, 1.0 / len2]),
+            packed=np.concatenate([self.packed, np.stack([ax, ay, ex, ey, inv_len])], axis=1),
+        )
+
+
+def circle_polygons(circles: np.ndarray, sides: int) -> np.ndarray:
+    """``(K * sides, 4)`` segments: for each row ``x, y, r`` of ``circles`` ``(K, 3)``, the
+    regular polygon of ``sides`` sides circumscribed about the circle (apothem ``r``: its edges
+    touch the circle at their midpoints, its vertices lie at ``r / cos(pi / sides)``), with a
+    vertex at angle 0."""
+    c = np.asarray(circles, dtype=float).reshape(-1, 3)
+    a = np.linspace(0.0, 2.0 * math.pi, sides + 1)
+    ux, uy = np.cos(a), np.sin(a)
+    rv = c[:, 2:3] / math.cos(math.pi / sides)          # (K, 1) vertex radius
+    vx = c[:, 0:1] + rv * ux                            # (K, sides + 1)
+    vy = c[:, 1:2] + rv * uy
+    return np.stack([vx[:, :-1], vy[:, :-1], vx[:, 1:], vy[:, 1:]], axis=-1).reshape(-1, 4)
+
 
 def merge_collinear(segments: np.ndarray) -> np.ndarray:
     """Join horizontal and vertical segments that lie on one line and touch or overlap.

@@ -45,7 +45,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from koala_bridge.core.topics import JSON_SCHEMA_DIALECT
+from koala_bridge.core.topics import JSON_SCHEMA_DIALECT, TOPICS
 from koala_bridge.core.topics import json_schema as topic_json_schema
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import EndOfFile
@@ -122,8 +122,13 @@ BUS_FRAME_SCHEMA: dict[str, Any] = {
 
 
 def _topic_schema(topic: str) -> dict[str, Any]:
-    """The schema of the MCAP topic (``/sensors/ir``) of a Zenoh key."""
-    return topic_json_schema(topic[1:])
+    """The schema of the MCAP topic (``/sensors/ir``) of a Zenoh key; a robot's key of a fleet
+    (``/alpha/sensors/ir``, runtime/fleet_source.py) has the schema of its key below the name."""
+    key = topic[1:]
+    robot, _, below = key.partition("/")
+    if below and key not in TOPICS and below in TOPICS:
+        return topic_json_schema(below)
+    return topic_json_schema(key)
 
 
 def topic_name(channel: str) -> str:

@@ -7,7 +7,14 @@ The endpoints file is JSON with exactly this shape (issue 2, item 8)::
      "mavlink": {"url": PYMAVLINK_CONNECTION_STRING},
      "zenoh": {"endpoints": [...], "prefix": PREFIX}}
 
-A bus that is disabled in the configuration appears as ``null``. The file is written atomically
+A bus that is disabled in the configuration appears as ``null``.
+
+With several robots (``[[robots]]``, docs/multirobot.md) the file holds one such object per
+robot, under its name, in the configuration's order::
+
+    {"robots": {"alpha": {"serial": ..., "can": ..., "mavlink": ..., "zenoh": ...},
+                "beta": {...}}}
+ The file is written atomically
 (a temporary file in the same directory, then ``os.replace``), so a reader never sees half a file,
 and only after every endpoint accepts clients.
 """
@@ -111,6 +118,33 @@ class Endpoints:
         for name, where in sorted(self.extra.items()):
             lines.append(f"  {name:<23} {where}")
         return "\n".join(lines)
+
+
+@dataclass(frozen=True)
+class FleetEndpoints(Endpoints):
+    """Where each robot of ``[[robots]]`` takes clients: ``robots`` (name, its endpoints) in
+    the configuration's order (the fields of :class:`Endpoints` itself stay empty)."""
+
+    robots: tuple[tuple[str, Endpoints], ...] = ()
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """The endpoints file's content: ``{"robots": {name: one robot's object}}``."""
+        return {"robots": {name: ep.to_json_dict() for name, ep in self.robots}}
+
+    def describe(self) -> str:
+        """Each robot's lines of :meth:`Endpoints.describe`, under its name."""
+        lines = [f"koala-bridge is serving {len(self.robots)} robots in one world."]
+        for name, ep in self.robots:
+            lines.append(f"Robot {name}:")
+            lines += ["  " + line for line in ep.describe().splitlines()[1:]]
+        return "\n".join(lines)
+
+    def robot(self, name: str) -> Endpoints:
+        """The endpoints of robot ``name``."""
+        for n, ep in self.robots:
+            if n == name:
+                return ep
+        raise KeyError(name)
 
 
 def _serial_args(dialect_name: str) -> str:

@@ -133,10 +133,20 @@ def make_source(kind: str, config: Mapping[str, Any], settings: BridgeSettings) 
     ports of ``[real]``). Raises :class:`ConfigError` for a configuration it cannot serve."""
     # Imported here: a real-robot run does not load the simulation loop, nor a simulated one
     # the real robot's readers.
+    from koala_bridge.runtime.fleet_config import robot_entries
+
+    entries = robot_entries(config)
     if kind == "sim":
+        if entries is not None:
+            from koala_bridge.runtime.fleet_source import FleetSource
+
+            return FleetSource(config, settings, entries)
         from koala_bridge.runtime.sim_source import SimulatedRobotSource
 
         return SimulatedRobotSource(config, settings)
+    if entries is not None:
+        raise ConfigError("[[robots]] runs several simulated robots; --source real reads one "
+                          "real robot (drop [[robots]])")
     if kind == "real":
         if config.get("faults"):
             raise ConfigError("faults ([[faults]], --fault) are injected into the simulated "

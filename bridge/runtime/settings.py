@@ -81,7 +81,7 @@ _ZERO_PORT = re.compile(r":0+(?:[?#].*)?$")
 #: the others (``[real]``: runtime/real_source.py, for ``run --source real``; ``[localisation]``:
 #: bridge/runtime/localisation.py, the estimator node).
 SECTIONS = ("sim", "robot", "sensors", "world", "run", "buses", "zenoh", "real", "localisation",
-            "lockstep", "faults")
+            "lockstep", "faults", "robots")
 
 
 #: The keys that name an input file. A relative path in a config file is relative to that file's
@@ -801,7 +801,7 @@ def reject_unknown_sections(config: Mapping[str, Any]) -> None:
             near = difflib.get_close_matches(key, SECTIONS, n=1)
             hint = f"did you mean [{near[0]}]?" if near else f"valid: {', '.join(SECTIONS)}"
             raise ConfigError(f"unknown section [{key}]; {hint}")
-        if key == "faults":     # [[faults]]: an array of tables, checked by runtime/faults.py
+        if key in ("faults", "robots"):     # arrays of tables: runtime/faults.py, fleet_config.py
             continue
         if not isinstance(value, Mapping):
             raise ConfigError(f"[{key}] must be a table, got {value!r}")

@@ -67,7 +67,7 @@ from koala_bridge.runtime.source import READ_TIMEOUT_S, Tap, start_reader, until
 from koala_bridge.runtime.wire import CanWire, SerialWire, serial_time_s
 from koala_bridge.runtime.zenoh_io import ZENOH_BUS, ZenohLink, sensor_topics, truth_pose
 from koala_bridge.sim.simulator import Simulator
-from koala_bridge.sim.types import Readings
+from koala_bridge.sim.types import Readings, WheelCommand
 
 log = logging.getLogger(__name__)
 
@@ -86,6 +86,8 @@ class SimulatedRobotSource:
         seed: the run's seed; None uses ``[sim] seed``.
         clock: paces the loop; by default the clock named in ``[run] clock``.
         tap: optional recorder of Zenoh messages and bus frames.
+        zenoh_session: an open Zenoh session to publish through (a fleet's robots share one);
+            None opens one from ``[zenoh]``.
     """
 
     def __init__(
@@ -95,9 +97,11 @@ class SimulatedRobotSource:
         seed: int | None = None,
         clock: Clock | None = None,
         tap: Tap | None = None,
+        zenoh_session: Any = None,
     ) -> None:
         self.settings = settings
         self.sim = Simulator(config)
+        self.zenoh_session = zenoh_session      # shared by a fleet's robots; None: our own
         self.seed = seed
         self.dt = self.sim.dt
         ls = settings.lockstep
@@ -228,7 +232,8 @@ class SimulatedRobotSource:
             # the endpoints are announced.
             self._initial = self.sim.reset(self.seed)
             self.buses = open_buses(self.settings.buses)
-            self.zenoh = ZenohLink(self.settings.zenoh, self.world_answer, self.counters)
+            self.zenoh = ZenohLink(self.settings.zenoh, self.world_answer, self.counters,
+                                   session=self.zenoh_session)
             self._register_step_queryable()
             self._register_fault_queryable()
             self._start_readers()
@@ -262,13 +267,39 @@ class SimulatedRobotSource:
     def run(self, stop: threading.Event, duration_s: float | None = None) -> Readings:
         """Step until ``stop`` is set or ``duration_s`` simulation seconds have run (None: the
         configured ``[run] duration_s``; 0: no limit). Returns the last readings."""
-        if self.zenoh is None:
-            raise RuntimeError("open() the service before run()")
         duration = self.settings.run.duration_s if duration_s is None else duration_s
         last_step = round(duration / self.dt) if duration > 0 else None
+        r = self.begin_run()
+        n = 0
+        wait = self.hold_wait_s()
+        lockstep = self.lockstep
+        while not stop.is_set() and (last_step is None or n < last_step):
+            if lockstep is not None and self.unpaced_step():
+                # A fault has cut the firmware's command line: it cannot pace the run, so time
+                # goes on without it until the line is back (docs/protocols.md §6).
+                pass
+            elif not self.clock.wait_for_step(n + 1, timeout=wait):
+                if self.on_step_late():
+                    break
+                continue
+            r = self.finish_step(self.sim.step(self.next_command(n)), n + 1)
+            n += 1
+        return self.end_run(r, n)
+
+    # The loop's phases, also driven by a fleet (runtime/fleet_source.py): begin_run, then per
+    # step next_command -> (the simulator steps) -> finish_step, then end_run.
+
+    def use_initial(self, r: Readings) -> None:
+        """Serve ``r`` as step 0 (a fleet's reset, where the robot sees the others)."""
+        self._initial = r
+
+    def begin_run(self) -> Readings:
+        """Step 0: reset (unless open() did), declare the recording's channels, start the
+        clock, put step 0 on every bus; in lockstep, hold its frames for the firmware."""
+        if self.zenoh is None:
+            raise RuntimeError("open() the service before run()")
         r = self._initial if self._initial is not None else self.sim.reset(self.seed)
         self._initial = None
-        faults = self.faults
         r = self._faulted(r)
         if self.tap is not None:
             self.tap.declare(self._published_keys(r), self._tap_buses())
@@ -288,38 +319,66 @@ class SimulatedRobotSource:
         if lockstep is not None:
             for bus, _ in self._initial_frames or ():
                 self._client_marks[bus] = self._client_mark(bus)   # who has step 0 already
-        n = 0
-        wait = READ_TIMEOUT_S
-        if lockstep is not None:
+        self._last_readings = r
+        return r
+
+    def hold_wait_s(self) -> float:
+        """How long the loop waits for a step before it looks after the held frames."""
+        if self.lockstep is not None:
             # holding at t = 0: re-send step 0's frames every period of wall time
-            wait = min(READ_TIMEOUT_S, max(self.settings.lockstep.period_s, 0.005))
-        while not stop.is_set() and (last_step is None or n < last_step):
-            if lockstep is not None and lockstep.engaged and self._cycle_bus_cut():
-                # A fault has cut the firmware's command line: it cannot pace the run, so time
-                # goes on without it until the line is back (docs/protocols.md §6).
-                self._unpaced_steps += 1
-            elif not self.clock.wait_for_step(n + 1, timeout=wait):
-                if lockstep is not None:
-                    if not lockstep.engaged:
-                        self._resend_initial()
-                    if self._firmware_left():
-                        log.info("lockstep: the firmware has disconnected at t = %.3f s; "
-                                 "the run ends", r.t)
-                        break
-                continue
-            if lockstep is not None and n == 0:
-                # engaged: a client that came since the last re-send gets step 0 before step 1
-                self._resend_initial()
-            if faults.active:
-                faults.apply_to_sim(self.sim, self.sim.t)   # kidnap, wheel slip
-            r = self._faulted(self.sim.step(self.arbiter.command(self.sim.t)))
-            n += 1
-            self._emit(r, n)
-            self._after_step(r.t)
-            if lockstep is not None:
-                lockstep.step_done(n)
-        if lockstep is not None:
-            lockstep.wake()
+            return min(READ_TIMEOUT_S, max(self.settings.lockstep.period_s, 0.005))
+        return READ_TIMEOUT_S
+
+    def on_step_late(self) -> bool:
+        """The next step was not granted in time: re-send step 0 while held; True when the
+        firmware has gone and the run ends."""
+        lockstep = self.lockstep
+        if lockstep is None:
+            return False
+        if not lockstep.engaged:
+            self._resend_initial()
+        if self._firmware_left():
+            t = self._last_readings.t if self._last_readings is not None else 0.0
+            log.info("lockstep: the firmware has disconnected at t = %.3f s; the run ends", t)
+            return True
+        return False
+
+    def firmware_cut(self) -> bool:
+        """Lockstep: whether a fault has cut the engaged firmware's command line."""
+        return self.lockstep is not None and self.lockstep.engaged and self._cycle_bus_cut()
+
+    def unpaced_step(self) -> bool:
+        """Lockstep: whether a fault has cut the firmware's command line, so that the next step
+        runs without its grant (counted; docs/protocols.md §6)."""
+        if self.firmware_cut():
+            self._unpaced_steps += 1
+            return True
+        return False
+
+    def next_command(self, n: int) -> WheelCommand:
+        """Before step ``n + 1``: the faults act on the simulator and the wheel command in
+        force."""
+        if self.lockstep is not None and n == 0:
+            # engaged: a client that came since the last re-send gets step 0 before step 1
+            self._resend_initial()
+        if self.faults.active:
+            self.faults.apply_to_sim(self.sim, self.sim.t)   # kidnap, wheel slip
+        return self.arbiter.command(self.sim.t)
+
+    def finish_step(self, r: Readings, n: int) -> Readings:
+        """Step ``n``'s readings ``r`` to every bus and Zenoh; returns them as sent."""
+        r = self._faulted(r)
+        self._emit(r, n)
+        self._after_step(r.t)
+        if self.lockstep is not None:
+            self.lockstep.step_done(n)
+        return r
+
+    def end_run(self, r: Readings, n: int) -> Readings:
+        """After the last step ``n``: wake the waiters, the last K-Team replies to the
+        estimator, the final status."""
+        if self.lockstep is not None:
+            self.lockstep.wake()
         self._localise()  # K-Team replies since the last step
         # The final counters, unless the last step just published them (one status per t).
         if n == 0 or n % self._status_period != 0:

@@ -227,11 +227,27 @@ def _session_error(settings: ZenohSettings, e: Exception) -> str:
     return f"cannot open the Zenoh session (listen {listen}): {text}"
 
 
+def open_session(settings: ZenohSettings) -> zenoh.Session:
+    """A Zenoh session of ``settings`` (a :class:`TransportError` saying why it cannot open);
+    a listener on a non-loopback address is logged as a warning."""
+    config = session_config(settings)
+    for what in settings.exposure():
+        log.warning("%s, reachable from the network ([run] allow_non_loopback)", what)
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError as e:
+        raise TransportError(_session_error(settings, e)) from e
+
+
 class ZenohLink:
     """The bridge's Zenoh session: publishers under the prefix and the ``world`` queryable.
 
     ``world_answer`` is called for each query and returns the JSON-ready answer. Publishing is
     thread-safe (Zenoh sessions are). Use as a context manager or call :meth:`close`.
+
+    ``session``: an open session to publish through (several robots of one world share one,
+    each under its own prefix: runtime/fleet_source.py); it is not closed here. None opens one
+    from ``settings``.
     """
 
     def __init__(
@@ -239,6 +255,7 @@ class ZenohLink:
         settings: ZenohSettings,
         world_answer: Callable[[], Mapping[str, Any]],
         counters: BusCounters | None = None,
+        session: zenoh.Session | None = None,
     ) -> None:
         self.settings = settings
         self.prefix = settings.prefix
@@ -246,13 +263,8 @@ class ZenohLink:
         self._counters = counters or BusCounters()
         self._lock = threading.Lock()
         self._publishers: dict[str, zenoh.Publisher] = {}
-        config = session_config(settings)
-        for what in settings.exposure():
-            log.warning("%s, reachable from the network ([run] allow_non_loopback)", what)
-        try:
-            self._session = zenoh.open(config)
-        except zenoh.ZError as e:
-            raise TransportError(_session_error(settings, e)) from e
+        self._owns_session = session is None
+        self._session = session if session is not None else open_session(settings)
         self._queryable = self._session.declare_queryable(
             f"{self.prefix}/world", self._on_world_query
         )
@@ -335,7 +347,8 @@ class ZenohLink:
         self._queryable.undeclare()
         for q in self._commands:
             q.undeclare()
-        self._session.close()
+        if self._owns_session:
+            self._session.close()
 
     def __enter__(self) -> ZenohLink:
         return self
