@@ -75,13 +75,19 @@ def test_opens_with_mcap_library_every_channel_counts_match_rates(
         assert summary is not None and summary.statistics is not None
         topics = {c.id: c.topic for c in summary.channels.values()}
         counts = {topics[i]: n for i, n in summary.statistics.channel_message_counts.items()}
+        scene = set()
         for ch in summary.channels.values():
-            assert summary.schemas[ch.schema_id].encoding == "jsonschema"
-        # every message decodes as JSON
+            schema = summary.schemas[ch.schema_id]
+            if schema.name.startswith("foxglove."):  # the scene (runtime/foxglove_scene.py)
+                assert (schema.encoding, ch.message_encoding) == ("protobuf", "protobuf")
+                scene.add(ch.topic)
+            else:
+                assert (schema.encoding, ch.message_encoding) == ("jsonschema", "json")
         assert sum(1 for _ in reader.iter_messages()) == sum(counts.values())
     assert rec.complete
     rates = expected_rates(rec)
-    assert set(counts) == set(rates) | {"/bus/serial/kteam"}
+    assert scene and all(topic.startswith(("/world/", "/koala/")) for topic in scene)
+    assert set(counts) - scene == set(rates) | {"/bus/serial/kteam"}
     for topic, rate in rates.items():
         from_robot = (
             sum(1 for m in rec.topic(topic) if m.json()["dir"] == FROM_ROBOT)
