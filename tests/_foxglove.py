@@ -1,10 +1,12 @@
-"""A Foxglove WebSocket client written from the public protocol specification
-(``foxglove.websocket.v1``, which foxglove-sdk's server names ``foxglove.sdk.v1``: the same
-protocol under a new name; the client offers both, as the Foxglove app does, and the server
-picks the new name -- docs/foxglove.md. JSON text frames ``serverInfo`` / ``advertise`` / ``subscribe``,
-binary frames opcode 0x01 = message data ``<u8 op><u32 subscription id><u64 log time ns>
-<payload>``), and protobuf decoding of Foxglove's schemas from the file descriptor set a channel
-carries -- what a Foxglove client does, with no foxglove-sdk code on the client side."""
+"""A Foxglove WebSocket client written from the public protocol specification, and protobuf
+decoding of Foxglove's schemas from the file descriptor set a channel carries: what a Foxglove
+client does, with no foxglove-sdk code on the client side.
+
+The protocol is ``foxglove.websocket.v1``; foxglove-sdk's server names it ``foxglove.sdk.v1``
+(the same protocol under a new name): the client offers both, as the Foxglove app does, and the
+server picks the new one (docs/foxglove.md). JSON text frames ``serverInfo``, ``advertise``,
+``subscribe``; binary frames, opcode 0x01 = message data:
+``<u8 op><u32 subscription id><u64 log time ns><payload>``."""
 
 from __future__ import annotations
 

@@ -35,7 +35,7 @@ from dataclasses import replace
 from typing import Any
 
 import foxglove
-from foxglove.websocket import Capability, ChannelView, Client
+from foxglove.websocket import Capability, ChannelView, Client, ServerListener
 from koala_bridge.core.errors import ConfigError
 from koala_bridge.core.topics import json_schema as topic_json_schema
 from koala_bridge.drivers.messages import TransportError
@@ -105,6 +105,17 @@ def foxglove_schema(cls: type) -> ChannelSchema:
     return ChannelSchema(s.name, s.encoding, bytes(s.data), "protobuf")
 
 
+class _Subscriptions(ServerListener):
+    """foxglove-sdk's server listener: sets ``event`` when a client subscribes (called on the
+    server's thread: it only signals)."""
+
+    def __init__(self, event: threading.Event) -> None:
+        self._event = event
+
+    def on_subscribe(self, client: Client, channel: ChannelView) -> None:
+        self._event.set()
+
+
 class FoxgloveServer:
     """foxglove-sdk's WebSocket server in its own context: channels advertised up front, built
     only for subscribed clients and at a bounded rate.
@@ -132,7 +143,7 @@ class FoxgloveServer:
         try:
             self._server = foxglove.start_server(
                 name=name, host=host, port=port, context=self._context,
-                capabilities=[Capability.Time], server_listener=self,
+                capabilities=[Capability.Time], server_listener=_Subscriptions(self._subscribed),
             )
         except Exception as e:  # the SDK raises its own error types (e.g. address in use)
             raise TransportError(f"cannot start the Foxglove server on {host}:{port}: {e}") from e
@@ -198,10 +209,6 @@ class FoxgloveServer:
         self._subscribed.set()
 
     # -- the static scene ----------------------------------------------------------------------
-
-    def on_subscribe(self, client: Client, channel: ChannelView) -> None:
-        """foxglove-sdk's server listener: a client subscribed (its thread; only signal)."""
-        self._subscribed.set()
 
     def _serve_static(self) -> None:
         while not self._closed.is_set():
@@ -295,9 +302,10 @@ class FoxgloveTap:
             live = server is not None and server.due(out.topic)
             if not (live or recorder is not None):
                 continue
-            data = self._encode(out, t, payload)
-            if data is None:
+            encoded = self._encode(out, t, payload)
+            if encoded is None:
                 continue
+            data = encoded
             if live:
                 assert server is not None
                 server.log(out.topic, data, ns)

@@ -437,9 +437,8 @@ class SceneTranslator:
         ranges: Sequence[float | None] = payload.get("ranges") or ()
         points, colours = [], []
         for (x, y, th), r in zip(self._sonar, ranges, strict=False):
-            echo = r is not None
-            reach = float(r) if echo else self._sonar_range
-            colour = _rgba(0.2, 0.8, 1.0, 0.35) if echo else _rgba(0.6, 0.6, 0.6, 0.08)
+            reach = self._sonar_range if r is None else float(r)
+            colour = _rgba(0.6, 0.6, 0.6, 0.08) if r is None else _rgba(0.2, 0.8, 1.0, 0.35)
             points += [Point3(x=x, y=y, z=0.1),
                        Point3(x=x + reach * math.cos(th - self._sonar_half),
                               y=y + reach * math.sin(th - self._sonar_half), z=0.1),

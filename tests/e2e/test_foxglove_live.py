@@ -99,7 +99,7 @@ def test_map_pose_and_scan_match_zenoh(live: Any) -> None:
         m = sonar[t_ns(cloud.timestamp)]
         echoes = [(p, rng) for p, rng in zip(poses, m["ranges"], strict=True) if rng is not None]
         assert len(points) == len(echoes) > 0
-        for (x, y, z, rng), (pose, want) in zip(points, echoes, strict=True):
+        for (x, y, _z, rng), (pose, want) in zip(points, echoes, strict=True):
             assert rng == pytest.approx(want, rel=1e-6)
             assert x == pytest.approx(pose["x"] + want * math.cos(pose["theta"]), abs=1e-5)
             assert y == pytest.approx(pose["y"] + want * math.sin(pose["theta"]), abs=1e-5)
