@@ -162,7 +162,8 @@ def test_tap_records_each_message_once_and_a_bad_payload_is_skipped(
 
 @pytest.mark.parametrize("text, expected", [
     ("", ("127.0.0.1", 8765)), ("127.0.0.1:0", ("127.0.0.1", 0)), ("9000", ("127.0.0.1", 9000)),
-    ("localhost", ("localhost", 8765)), ("[::1]:8766", ("::1", 8766)), (":8767", ("127.0.0.1", 8767)),
+    ("localhost", ("localhost", 8765)), ("[::1]:8766", ("::1", 8766)),
+    (":8767", ("127.0.0.1", 8767)),
 ])
 def test_parse_address(text: str, expected: tuple[str, int]) -> None:
     assert parse_address(text) == expected
