@@ -58,8 +58,8 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 DEFAULT_ADDRESS = "127.0.0.1:8765"
-SCENE_RATE_HZ = 30.0    # live: the most messages per wall second on one scene topic
-RAW_RATE_HZ = 200.0     # live: ... on one raw stream (every sample of a real-time run)
+SCENE_RATE_HZ = 20.0    # live: the most messages per wall second on one scene topic
+RAW_RATE_HZ = 50.0      # live: ... on one raw stream (the plots)
 STATIC_PERIOD_S = 5.0   # recording: the static scene again every this many simulated seconds
 
 
@@ -128,7 +128,7 @@ class FoxgloveServer:
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self._context = foxglove.Context()
-        self._clock = clock
+        self.clock = clock
         self._lock = threading.Lock()
         self._channels: dict[str, foxglove.Channel] = {}
         self._next: dict[str, float] = {}
@@ -183,17 +183,24 @@ class FoxgloveServer:
     def __contains__(self, topic: str) -> bool:
         return topic in self._channels
 
-    def due(self, topic: str) -> bool:
-        """Whether a message on ``topic`` would reach a client now: one is subscribed and the
-        topic's rate allows it (then the slot is taken)."""
-        channel = self._channels.get(topic)
-        if channel is None or not channel.has_sinks():
+    def due(self, topic: str, now: float | None = None) -> bool:
+        """Whether a message on ``topic`` would reach a client now (``now``: the clock's time,
+        if the caller has it): the topic's rate allows it and a client is subscribed (then
+        the slot is taken). The rate holds on average: a message late by up to one period
+        (a real-time run's jitter) does not cost the next one its slot."""
+        if now is None:
+            now = self.clock()
+        next_t = self._next.get(topic)
+        if next_t is None or now < next_t or not self._channels[topic].has_sinks():
             return False
-        now = self._clock()
-        if now < self._next[topic]:
-            return False
-        self._next[topic] = now + self._period[topic]
+        period = self._period[topic]
+        self._next[topic] = max(next_t + period, now - period)
         return True
+
+    def subscribed(self, topic: str | None = None) -> bool:
+        """Whether a client is subscribed to ``topic`` (None: to any topic)."""
+        channels = self._channels.values() if topic is None else [self._channels[topic]]
+        return any(channel.has_sinks() for channel in channels)
 
     def log(self, topic: str, data: bytes, t_ns: int) -> None:
         self._channels[topic].log(data, log_time=t_ns)
@@ -259,6 +266,7 @@ class FoxgloveTap:
         self._next_static = 0.0
         self._failed: set[str] = set()
         self._time_topic = translator.names.topic("truth/tf")
+        self._raw_topics: dict[str, str] = {}     # bridge key -> its raw stream's topic
         if server is not None:
             for topic, cls in translator.channels().items():
                 server.add_channel(topic, self._schemas[cls])
@@ -293,38 +301,43 @@ class FoxgloveTap:
 
     def _draw(self, key: str, t: float, payload: Mapping[str, Any]) -> None:
         server, recorder = self.server, self.recorder
-        ns = time_ns(t)
         if recorder is not None and t >= self._next_static:
             self._next_static = t + STATIC_PERIOD_S
             for topic, data in self._static_bytes(t):
                 recorder.record_encoded(topic, t, data, self._schema_of(topic))
-        for out in self.translator.outputs(key):
-            live = server is not None and server.due(out.topic)
+        outputs = self.translator.outputs(key)
+        now = None if server is None else server.clock()
+        ns = -1
+        for out in outputs:
+            live = now is not None and server is not None and server.due(out.topic, now)
             if not (live or recorder is not None):
                 continue
             encoded = self._encode(out, t, payload)
             if encoded is None:
                 continue
-            data = encoded
             if live:
                 assert server is not None
-                server.log(out.topic, data, ns)
+                ns = time_ns(t)
+                server.log(out.topic, encoded, ns)
                 if out.topic == self._time_topic:
                     server.set_time(ns)
             if recorder is not None:
-                recorder.record_encoded(out.topic, t, data, self._schemas[out.schema])
+                recorder.record_encoded(out.topic, t, encoded, self._schemas[out.schema])
         if server is not None:
-            raw = topic_name(key)
-            if raw not in server:
+            raw = self._raw_topics.get(key)
+            if raw is None:
                 self._raw_channel(key)      # advertised on first sight: no subscriber yet
-            elif server.due(raw):
-                server.log(raw, json.dumps(payload, separators=(",", ":")).encode(), ns)
+            elif server.due(raw, now):
+                server.log(raw, json.dumps(payload, separators=(",", ":")).encode(),
+                           time_ns(t) if ns < 0 else ns)
 
     def _raw_channel(self, key: str) -> None:
         """Advertise the raw stream of ``key``: the bridge's JSON message, for the plots, on
         the recording's topic name (one layout for the live view and the recordings)."""
         assert self.server is not None
-        self.server.add_channel(topic_name(key), topic_json_schema(key), RAW_RATE_HZ)
+        topic = topic_name(key)
+        self.server.add_channel(topic, topic_json_schema(key), RAW_RATE_HZ)
+        self._raw_topics[key] = topic
 
     def _encode(self, out: Output, t: float, payload: Mapping[str, Any]) -> bytes | None:
         """``out``'s message for ``payload``, encoded; None if there is nothing to draw or the

@@ -182,3 +182,24 @@ def test_endpoints_name_the_live_view_only_when_on() -> None:
     on = Endpoints(foxglove_url="ws://127.0.0.1:8765")
     assert on.to_json_dict()["foxglove"] == {"url": "ws://127.0.0.1:8765"}
     assert "ws://127.0.0.1:8765" in on.describe()
+
+
+def test_layout_file_names_topics_that_exist(world: dict[str, Any]) -> None:
+    """docs/foxglove-layout.json: every 3D topic is one the translator writes, every plotted
+    path a field of a bridge topic (the raw streams)."""
+    import json
+    from pathlib import Path
+
+    from koala_bridge.core.topics import TOPICS
+
+    layout = json.loads((Path(__file__).resolve().parents[2] / "docs"
+                         / "foxglove-layout.json").read_text())
+    channels = SceneTranslator(world).channels()
+    panels = layout["configById"]
+    assert set(panels["3D!koala"]["topics"]) <= set(channels)
+    assert panels["Log!koala"]["topicToRender"] in channels
+    for name, panel in panels.items():
+        for path in panel.get("paths", []):
+            topic, field = path["value"].split(".", 1)
+            cls = TOPICS[topic.strip("/")]
+            assert field.split(".")[0].split("[")[0] in cls.__dataclass_fields__, (name, path)
