@@ -240,7 +240,7 @@ class Recorder:
         if world is not None:
             self._writer.add_metadata(WORLD_META_NAME, {"json": json.dumps(world)})
         self._channels: dict[str, int] = {}
-        self._schema_ids: dict[ChannelSchema, int] = {}  # one schema record per schema
+        self._schema_ids: dict[ChannelSchema, int] = {}  # record_encoded's schema records
         self._msg_seq: dict[int, int] = {}
         self._frame_seq: dict[tuple[str, str], int] = {}
         self._last_flush = clock()
@@ -355,16 +355,20 @@ class Recorder:
         channel_id = self._channels.get(topic)
         if channel_id is None:
             if isinstance(schema, ChannelSchema):
+                # one schema record for the channels that share it (a SceneUpdate's is 5 kB)
                 spec = schema
+                schema_id = self._schema_ids.get(spec)
+                if schema_id is None:
+                    schema_id = self._writer.register_schema(
+                        name=spec.name, encoding=spec.encoding, data=spec.data
+                    )
+                    self._schema_ids[spec] = schema_id
             else:
                 s = schema(topic)
                 spec = ChannelSchema(s["title"], "jsonschema", json.dumps(s).encode(), "json")
-            schema_id = self._schema_ids.get(spec)
-            if schema_id is None:
                 schema_id = self._writer.register_schema(
                     name=spec.name, encoding=spec.encoding, data=spec.data
                 )
-                self._schema_ids[spec] = schema_id
             channel_id = self._writer.register_channel(topic, spec.message_encoding, schema_id)
             self._channels[topic] = channel_id
             self._msg_seq[channel_id] = 0
