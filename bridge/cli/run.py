@@ -20,6 +20,8 @@ examples:
   koala-bridge run --set buses.can.wire_timing=true --set buses.can.bitrate=125000
   koala-bridge run --config examples/two_robots.toml --endpoints-file ep.json  # [[robots]]:
                     # several Koalas in one world, each with its own buses (docs/multirobot.md)
+  koala-bridge run --foxglove                       # live view in Foxglove (docs/foxglove.md)
+  koala-bridge run --clock fast --foxglove 127.0.0.1:0 --record /tmp/run.mcap
 
 lockstep is set in the config's [lockstep] table (cycle_bus, cycle_message, period_s, on_quiet,
 quiet_timeout_s); --set zenoh.remote_commands=true adds the lockstep/step and faults/schedule
@@ -31,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 from pathlib import Path
 from typing import Any
@@ -41,10 +44,13 @@ from koala_bridge.runtime.clock import CLOCK_NAMES
 from koala_bridge.runtime.faults import FAULT_HELP, faults_from_config, parse_fault_option
 from koala_bridge.runtime.settings import (
     BridgeSettings,
+    ConfigError,
     apply_override,
     load_config,
     parse_override,
 )
+
+log = logging.getLogger(__name__)
 
 # The shipped default config (a package resource, core/resources.py), wherever the command runs.
 DEFAULT_CONFIG = default_config_path()
@@ -86,7 +92,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--record", type=Path, metavar="FILE.mcap",
-        help="record every Zenoh message and raw bus frame to an MCAP file (docs/recording.md)",
+        help="record every Zenoh message and raw bus frame to an MCAP file, and the scene in "
+        "Foxglove's standard schemas beside them (docs/recording.md)",
+    )
+    parser.add_argument(
+        "--foxglove", nargs="?", const="", metavar="HOST:PORT",
+        help="serve a live view on a Foxglove WebSocket: the map, the robot, its sensors and "
+        "estimate, plots and logs (default 127.0.0.1:8765; port 0: any free port, named in the "
+        "banner and the endpoints file; a non-loopback host needs [run] allow_non_loopback; "
+        "docs/foxglove.md)",
     )
 
 
@@ -121,9 +135,11 @@ def run(args: argparse.Namespace) -> int:
     # A bad configuration raises ConfigError: cli/main.py prints it, with a hint.
     config = resolve_config(args)
     settings = BridgeSettings.from_config(config)
+    foxglove_io, address = _foxglove(args, settings)
     source = make_source(args.source, config, settings)
 
     after_close = None
+    recorder = None
     if args.record is not None:
         from koala_bridge.recording.mcap_file import Recorder, RecordingError, run_metadata
 
@@ -151,6 +167,13 @@ def run(args: argparse.Namespace) -> int:
             recorder.close()
             return f"Recorded {recorder.written} messages to {recorder.path}."
 
+    if foxglove_io is not None and (address is not None or args.record is not None):
+        # the scene in Foxglove's schemas: live and/or into the recording (docs/foxglove.md)
+        source = foxglove_io.attach_foxglove(
+            source, settings.robot_name, address=address,
+            recorder=recorder,
+        )
+
     return run_session(
         source,
         prog="koala-bridge run",
@@ -160,3 +183,22 @@ def run(args: argparse.Namespace) -> int:
         sim_time=(lambda: source.sim.t) if args.source == "sim" else None,
         duration_s=settings.run.duration_s,
     )
+
+
+def _foxglove(args: argparse.Namespace, settings: BridgeSettings) -> tuple[Any, Any]:
+    """The Foxglove module and the live server's ``(host, port)`` (None: no server). Without
+    the foxglove-sdk package, --foxglove is an error and a recording has no scene channels."""
+    try:
+        from koala_bridge.runtime import foxglove_io
+    except ImportError as e:
+        if args.foxglove is not None:
+            raise ConfigError(f"--foxglove needs the foxglove-sdk package ({e}); install it "
+                              "with: pip install 'foxglove-sdk>=0.30'") from None
+        if args.record is not None:
+            log.warning("foxglove-sdk is not installed: the recording has no Foxglove scene "
+                        "channels (%s)", e)
+        return None, None
+    if args.foxglove is None:
+        return foxglove_io, None
+    return foxglove_io, foxglove_io.parse_address(args.foxglove,
+                                                  settings.run.allow_non_loopback)

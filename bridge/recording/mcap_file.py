@@ -121,6 +121,18 @@ BUS_FRAME_SCHEMA: dict[str, Any] = {
 }
 
 
+@dataclass(frozen=True)
+class ChannelSchema:
+    """A channel's schema record (``name``, ``encoding``, ``data``) and its messages' encoding:
+    ``jsonschema`` / ``json`` for the bridge's own channels, ``protobuf`` / ``protobuf`` for
+    the Foxglove standard-schema channels (docs/recording.md)."""
+
+    name: str
+    encoding: str
+    data: bytes
+    message_encoding: str
+
+
 def _topic_schema(topic: str) -> dict[str, Any]:
     """The schema of the MCAP topic (``/sensors/ir``) of a Zenoh key; a robot's key of a fleet
     (``/alpha/sensors/ir``, runtime/fleet_source.py) has the schema of its key below the name."""
@@ -233,6 +245,7 @@ class Recorder:
         if world is not None:
             self._writer.add_metadata(WORLD_META_NAME, {"json": json.dumps(world)})
         self._channels: dict[str, int] = {}
+        self._schema_ids: dict[ChannelSchema, int] = {}  # record_encoded's schema records
         self._msg_seq: dict[int, int] = {}
         self._frame_seq: dict[tuple[str, str], int] = {}
         self._last_flush = clock()
@@ -284,6 +297,21 @@ class Recorder:
                 lambda _topic: BUS_FRAME_SCHEMA,
             )
 
+    def record_encoded(self, topic: str, t: float, data: bytes, schema: ChannelSchema) -> None:
+        """Record one message already encoded by its writer (a Foxglove standard-schema message
+        of :mod:`runtime.foxglove_io`) on the MCAP ``topic`` as it is, under ``schema``."""
+        with self._lock:
+            self._write(topic, t, data, schema)
+
+    def declare_encoded(self, channels: Iterable[tuple[str, ChannelSchema]]) -> None:
+        """Create the channels ``(topic, schema)`` of :meth:`record_encoded` now (see
+        :meth:`declare`)."""
+        with self._lock:
+            if self._closed or self._failed:
+                return
+            for topic, schema in channels:
+                self._channel(topic, schema)
+
     def declare(self, keys: Iterable[str] = (), buses: Iterable[str] = ()) -> None:
         """Create the channels of Zenoh ``keys`` (below the prefix) and of ``buses`` now, before
         their first message: a recording then holds every channel its run served, a bus no
@@ -324,21 +352,36 @@ class Recorder:
 
     # -- internals ----------------------------------------------------------------------------
 
-    def _channel(self, topic: str, schema: Callable[[str], dict[str, Any]]) -> int:
-        """The id of ``topic``'s channel, registered (with its schema) on first use."""
+    def _channel(
+        self, topic: str, schema: Callable[[str], dict[str, Any]] | ChannelSchema
+    ) -> int:
+        """The id of ``topic``'s channel, registered (with its schema) on first use: a JSON
+        Schema for the topic (JSON messages), or a :class:`ChannelSchema` as it is."""
         channel_id = self._channels.get(topic)
         if channel_id is None:
-            s = schema(topic)
-            schema_id = self._writer.register_schema(
-                name=s["title"], encoding="jsonschema", data=json.dumps(s).encode()
-            )
-            channel_id = self._writer.register_channel(topic, "json", schema_id)
+            if isinstance(schema, ChannelSchema):
+                # one schema record for the channels that share it (a SceneUpdate's is 5 kB)
+                spec = schema
+                schema_id = self._schema_ids.get(spec)
+                if schema_id is None:
+                    schema_id = self._writer.register_schema(
+                        name=spec.name, encoding=spec.encoding, data=spec.data
+                    )
+                    self._schema_ids[spec] = schema_id
+            else:
+                s = schema(topic)
+                spec = ChannelSchema(s["title"], "jsonschema", json.dumps(s).encode(), "json")
+                schema_id = self._writer.register_schema(
+                    name=spec.name, encoding=spec.encoding, data=spec.data
+                )
+            channel_id = self._writer.register_channel(topic, spec.message_encoding, schema_id)
             self._channels[topic] = channel_id
             self._msg_seq[channel_id] = 0
         return channel_id
 
     def _write(
-        self, topic: str, t: float, data: bytes, schema: Callable[[str], dict[str, Any]]
+        self, topic: str, t: float, data: bytes,
+        schema: Callable[[str], dict[str, Any]] | ChannelSchema,
     ) -> None:
         if self._closed or self._failed:
             self.dropped += 1
@@ -434,7 +477,7 @@ class Recording:
     metadata: dict[str, dict[str, str]]
     messages: list[RecordedMessage]
     complete: bool
-    schemas: dict[str, str] = field(default_factory=dict)  # topic -> JSON schema text
+    schemas: dict[str, str] = field(default_factory=dict)  # topic -> JSON Schema text (json)
     lost: str = ""
     #: the MCAP records of the channels and their schemas, by id (``koala-bridge recover``
     #: writes them back)
@@ -454,12 +497,19 @@ class Recording:
 
     @property
     def topics(self) -> list[str]:
-        return sorted({m.topic for m in self.messages} | set(self.schemas))
+        return sorted({m.topic for m in self.messages} | set(self.schemas)
+                      | {ch.topic for ch in self.channel_records.values()})
 
     def topic(self, topic: str) -> list[RecordedMessage]:
         """Messages of one topic (``/sensors/gyro`` or ``sensors/gyro``) in file order."""
         name = topic_name(topic)
         return [m for m in self.messages if m.topic == name]
+
+    def message_encoding(self, m: RecordedMessage) -> str:
+        """The encoding of ``m``'s channel: ``json`` for the bridge's messages and bus frames,
+        ``protobuf`` for the Foxglove standard-schema channels (docs/recording.md)."""
+        ch = self.channel_records.get(m.channel_id)
+        return "json" if ch is None else ch.message_encoding
 
     def counts(self) -> dict[str, int]:
         out: dict[str, int] = {}
@@ -640,6 +690,7 @@ class _Walk:
             ch.topic: rec.schema_records[ch.schema_id].data.decode("utf-8", "replace")
             for ch in rec.channel_records.values()
             if ch.schema_id in rec.schema_records
+            and rec.schema_records[ch.schema_id].encoding == "jsonschema"
         }
         return rec
 

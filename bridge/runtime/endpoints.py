@@ -5,7 +5,8 @@ The endpoints file is JSON with exactly this shape (issue 2, item 8)::
     {"serial": {"kteam": PATH, "rangefinders": PATH},
      "can": {"socketcand": {"host": H, "port": P, "channel": C}, "slcan": PATH, "dbc": ABS_PATH},
      "mavlink": {"url": PYMAVLINK_CONNECTION_STRING},
-     "zenoh": {"endpoints": [...], "prefix": PREFIX}}
+     "zenoh": {"endpoints": [...], "prefix": PREFIX},
+     "foxglove": {"url": "ws://HOST:PORT"}}          (only with run --foxglove)
 
 A bus that is disabled in the configuration appears as ``null``.
 
@@ -56,6 +57,7 @@ class Endpoints:
     zenoh_endpoints: tuple[str, ...] = ()
     zenoh_prefix: str = ""
     virtual_can_channel: str | None = None      # in-process only: not in the file
+    foxglove_url: str | None = None             # run --foxglove: in the file only then
     extra: dict[str, str] = field(default_factory=dict)
 
     def to_json_dict(self) -> dict[str, Any]:
@@ -72,6 +74,8 @@ class Endpoints:
             },
             "mavlink": {"url": self.mavlink_url},
             "zenoh": {"endpoints": list(self.zenoh_endpoints), "prefix": self.zenoh_prefix},
+            # the live view (run --foxglove, docs/foxglove.md); absent when it is off
+            **({"foxglove": {"url": self.foxglove_url}} if self.foxglove_url else {}),
         }
 
     def describe(self) -> str:
@@ -115,6 +119,9 @@ class Endpoints:
             lines.append(f"  Zenoh                   {where}  prefix {self.zenoh_prefix}")
         else:
             lines.append(f"  Zenoh                   {off}")
+        if self.foxglove_url:
+            lines.append(f"  Foxglove (live view)    {self.foxglove_url}   open it in Foxglove: "
+                         "Open connection > Foxglove WebSocket (docs/foxglove.md)")
         for name, where in sorted(self.extra.items()):
             lines.append(f"  {name:<23} {where}")
         return "\n".join(lines)

@@ -151,7 +151,8 @@ def plan_replay(
     zenoh_frames: list[ReplayFrame] = []
     for m in rec.messages:
         if not m.topic.startswith("/bus/"):
-            if zenoh:
+            # the Foxglove standard-schema channels (protobuf) are views of these, not messages
+            if zenoh and rec.message_encoding(m) == "json":
                 zenoh_frames.append(ReplayFrame(m.t, ZENOH, m.data, key=m.topic.lstrip("/")))
             continue
         bus = m.topic[len("/bus/") :]

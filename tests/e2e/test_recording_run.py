@@ -75,13 +75,19 @@ def test_opens_with_mcap_library_every_channel_counts_match_rates(
         assert summary is not None and summary.statistics is not None
         topics = {c.id: c.topic for c in summary.channels.values()}
         counts = {topics[i]: n for i, n in summary.statistics.channel_message_counts.items()}
+        scene = set()
         for ch in summary.channels.values():
-            assert summary.schemas[ch.schema_id].encoding == "jsonschema"
-        # every message decodes as JSON
+            schema = summary.schemas[ch.schema_id]
+            if schema.name.startswith("foxglove."):  # the scene (runtime/foxglove_scene.py)
+                assert (schema.encoding, ch.message_encoding) == ("protobuf", "protobuf")
+                scene.add(ch.topic)
+            else:
+                assert (schema.encoding, ch.message_encoding) == ("jsonschema", "json")
         assert sum(1 for _ in reader.iter_messages()) == sum(counts.values())
     assert rec.complete
     rates = expected_rates(rec)
-    assert set(counts) == set(rates) | {"/bus/serial/kteam"}
+    assert scene and all(topic.startswith(("/world/", "/koala/")) for topic in scene)
+    assert set(counts) - scene == set(rates) | {"/bus/serial/kteam"}
     for topic, rate in rates.items():
         from_robot = (
             sum(1 for m in rec.topic(topic) if m.json()["dir"] == FROM_ROBOT)
@@ -115,7 +121,9 @@ def test_a_bus_no_client_used_still_has_its_channel(
     assert "/bus/serial/kteam" in topics
     assert counts.get(topics["/bus/serial/kteam"], 0) == 0
     rec = open_recording(path)
-    assert set(topics) == set(expected_rates(rec)) | {"/bus/serial/kteam"}
+    scene = {c.topic for c in summary.channels.values()  # the Foxglove scene beside them
+             if summary.schemas[c.schema_id].name.startswith("foxglove.")}
+    assert set(topics) - scene == set(expected_rates(rec)) | {"/bus/serial/kteam"}
     assert "/bus/serial/kteam" in rec.topics and not rec.topic("/bus/serial/kteam")
     # Stopped between two statuses (2.5 s, 1 Hz): one more, the final counters at the stop time.
     period = 1.0 / expected_rates(rec)["/status"]
@@ -212,7 +220,8 @@ def test_run_killed_while_recording_leaves_a_readable_file(
     path = tmp_path / "killed.mcap"
     b = bridge(clock="realtime", extra=["--record", str(path)])
     deadline = time.monotonic() + 20
-    while path.stat().st_size < 40_000 and time.monotonic() < deadline:  # a few chunks
+    # a few chunks (the Foxglove scene channels fill them too)
+    while path.stat().st_size < 80_000 and time.monotonic() < deadline:
         time.sleep(0.1)
     b.stop(sig)
     rec = open_recording(path)
