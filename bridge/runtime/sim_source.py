@@ -235,8 +235,12 @@ class SimulatedRobotSource:
         except BaseException:
             self.close()
             raise
-        self.endpoints = endpoints_of(self.buses, self.settings)
+        self.endpoints = endpoints_of(
+            self.buses, self.settings, zenoh_listening=self._zenoh_listening())
         return self.endpoints
+
+    def _zenoh_listening(self) -> tuple[str, ...] | None:
+        return self.zenoh.listening if self.zenoh is not None else None
 
     def close(self) -> None:
         """Stop the readers, close every transport and the Zenoh session. Idempotent."""
@@ -689,7 +693,8 @@ class SimulatedRobotSource:
         if not offline and self.endpoints is not None:
             # a pty comes back as a new device (like a USB serial adapter replugged): clients
             # find its path in the endpoints, rewritten
-            self.endpoints = endpoints_of(self.buses, self.settings)
+            self.endpoints = endpoints_of(
+                self.buses, self.settings, zenoh_listening=self._zenoh_listening())
             if self.settings.run.endpoints_file:
                 try:
                     write_endpoints_file(self.settings.run.endpoints_file, self.endpoints)
