@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, TypeAlias
 
 import numpy as np
+from koala_bridge.core.geometry import wall_clearance
 from koala_bridge.core.grid import SIDE_STEP, SIDES, Grid
 from koala_bridge.recording.mcap_file import Recording, open_recording
 
@@ -43,18 +44,6 @@ def wall_segments(rec: RecordingLike) -> np.ndarray:
     if world is None:
         raise ValueError("the recording carries no world")
     return np.asarray(world["segments"], dtype=float).reshape(-1, 4)
-
-
-def wall_clearance(xy: np.ndarray, segments: np.ndarray) -> np.ndarray:
-    """Distance from each point ``xy`` ``(n, 2)`` to the nearest wall segment, m."""
-    if len(segments) == 0:
-        return np.full(len(xy), np.inf)
-    p = xy[:, None, :]
-    a, b = segments[None, :, :2], segments[None, :, 2:]
-    ab = b - a
-    u = np.clip(np.sum((p - a) * ab, axis=2) / np.maximum(np.sum(ab * ab, axis=2), 1e-12), 0, 1)
-    nearest = a + u[..., None] * ab
-    return np.asarray(np.min(np.linalg.norm(p - nearest, axis=2), axis=1))
 
 
 def body_clearance_bound(track: np.ndarray, segments: np.ndarray) -> np.ndarray:
