@@ -71,10 +71,17 @@ class DaskStop:
         return self._set
 
 
-def _ignore_sigint() -> None:
+def _pool_worker_signals() -> None:
     # Ctrl-C reaches the whole foreground group: the pool's processes leave it to the campaign,
-    # which stops the runs through the stop signal (each ends its own process groups)
+    # which stops the runs through the stop signal (each ends its own process groups). SIGTERM
+    # (the campaign's process killed) ends the worker through the run's `finally`, which ends
+    # the bridge's and the firmware's process groups first.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _exit_on_sigterm)
+
+
+def _exit_on_sigterm(signum: int, frame: object) -> None:
+    raise SystemExit(128 + signum)
 
 
 def default_workers() -> int:
@@ -91,7 +98,7 @@ def local_executor(workers: int, stop_path: Path
     stop.clear()
     pool = ProcessPoolExecutor(max_workers=workers,
                                mp_context=multiprocessing.get_context("spawn"),
-                               initializer=_ignore_sigint)
+                               initializer=_pool_worker_signals)
     try:
         yield pool, stop, stop.set
     finally:

@@ -42,6 +42,10 @@ GRACE_S = 20.0
 #: Between SIGTERM and SIGKILL of a process group.
 TERM_WAIT_S = 10.0
 POLL_S = 0.05
+#: The bridge runs this many simulated seconds past ``sim_duration_s``: a firmware told its
+#: budget (``{duration_s}``) and ending when it has passed it then ends by itself, its report
+#: written, instead of losing its link in the middle of its last cycle.
+DURATION_MARGIN_S = 1.0
 LOG_TAIL = 4000
 
 
@@ -122,7 +126,8 @@ def _run_in(task: CaseTask, run_dir: Path, t0: float) -> CaseResult:
            "KOALA_RUN_DIR": values["run_dir"]}
     bridge_cmd = [sys.executable, "-m", "koala_bridge", "run", "--clock", "lockstep",
                   "--config", str(paths["config"]), "--seed", str(case.seed),
-                  "--duration", f"{task.sim_duration_s!r}", "--record", str(paths["recording"]),
+                  "--duration", f"{task.sim_duration_s + DURATION_MARGIN_S!r}",
+                  "--record", str(paths["recording"]),
                   "--endpoints-file", str(paths["endpoints"]), "--log-level", "WARNING"]
     startup_s: float | None = None
     returncode: int | None = None

@@ -7,7 +7,7 @@ A campaign is a TOML file (docs/campaigns.md)::
     firmware = ["{python}", "coverage_firmware.py", "--endpoints-file", "{endpoints}", ...]
     config = ""                  # the base bridge config; "" = the shipped default.toml
     set = ["lockstep.period_s=0.02"]   # --set overrides for every run
-    sim_duration_s = 400.0       # the bridge stops there (simulated seconds)
+    sim_duration_s = 400.0       # the firmware's budget, {duration_s}; the bridge stops 1 s later
     wall_timeout_s = 300.0       # a run still going after this many wall seconds fails
 
     [matrix]
@@ -68,7 +68,7 @@ PLACEHOLDERS = {
     "config": "the run's bridge configuration (TOML: the firmware's period, robot, ...)",
     "world": "the run's world file (TOML with a [world] table)",
     "seed": "the run's seed",
-    "duration_s": "the campaign's sim_duration_s",
+    "duration_s": "the campaign's sim_duration_s (the bridge stops 1 simulated s later)",
     "report": "where the firmware may write a JSON report (checks and the report read it)",
     "run_dir": "the run's own temporary folder",
     "campaign_dir": "the campaign file's folder (as seen on the machine that runs the case)",

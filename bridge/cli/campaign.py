@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
 import uuid
 from pathlib import Path
@@ -63,6 +64,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="print the case ids and exit")
 
 
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
 def _count(text: str) -> int:
     try:
         value = int(text)
@@ -102,6 +107,8 @@ def run(args: argparse.Namespace) -> int:
         where = f"{workers} local worker{'s' if workers != 1 else ''}"
     print(f"campaign {campaign.name}: {total} runs on {where}; output in {out}", file=sys.stderr)
     counts = {"pass": 0, "fail": 0}
+    # SIGTERM (a CI job cancelled) stops as Ctrl-C does: the runs end their processes
+    previous = signal.signal(signal.SIGTERM, _interrupt)
     try:
         with count_progress(total, f"campaign {campaign.name}") as advance:
             def on_result(record: dict) -> None:  # type: ignore[type-arg]
@@ -115,9 +122,11 @@ def run(args: argparse.Namespace) -> int:
                                    resume=args.resume, keep_all=args.keep_all,
                                    on_result=on_result)
     except KeyboardInterrupt:
+        signal.signal(signal.SIGTERM, previous)
         print(f"campaign {campaign.name}: stopped; finished runs are in {out / 'results.json'}"
               f" (--resume runs the rest)", file=sys.stderr)
         return 130
+    signal.signal(signal.SIGTERM, previous)
     passed = len(outcome.records) - outcome.failed
     print(f"campaign {campaign.name}: {passed} of {len(outcome.records)} runs passed "
           f"({outcome.ran} run now); {outcome.results}, {outcome.junit}, {outcome.report}")

@@ -350,6 +350,9 @@ class SimulatedRobotSource:
         since they were last sent (for a firmware that waits for data before its first
         command; a client there before sees them again), and on every MAVLink poll where
         clients cannot be seen (UDP). Not recorded: the recording holds each sample once."""
+        # A UDP client of a bridge listening on port 0 (udpout:) says hello first: read it, so
+        # that step 0 goes to it before the firmware's first command.
+        self._drain_output_links()
         due: dict[str, bool] = {}
         for bus, resend in self._initial_frames or ():
             if bus not in due:

@@ -210,3 +210,27 @@ def test_ctrl_c_stops_cleanly_and_resume_runs_the_rest(tmp_path: Path) -> None:
     assert doc["complete"] is True
     assert [r["case_id"] for r in doc["runs"]] == CASES
     assert f"({len(CASES) - len(done)} run now)" in p.stdout
+
+
+def test_one_case_of_the_example_campaign_runs_with_the_coverage_firmware(
+        tmp_path: Path) -> None:
+    """The example (examples/campaign_coverage.toml) cut to 15 simulated seconds: the coverage
+    firmware finds every bus on its free port (MAVLink on udpout: it says hello first), calibrates
+    and starts localising; it does not finish in 15 s, so exit_code fails and the others pass."""
+    examples = Path(__file__).resolve().parents[2] / "examples"
+    text = (examples / "campaign_coverage.toml").read_text()
+    firmware = json.dumps(str(examples / "coverage_firmware.py"))
+    text = text.replace('"coverage_firmware.py"', firmware)
+    text = text.replace("sim_duration_s = 450.0", "sim_duration_s = 15.0")
+    (tmp_path / "c.toml").write_text(text)
+    case = "lab_walls_1-s0-gyro_bias_step-base"
+    campaign(tmp_path, "--only", case, "--out", str(tmp_path / "out"), check=1)
+    (run,) = runs(tmp_path / "out").values()
+    checks = {c["name"]: c["passed"] for c in run["checks"]}
+    assert checks == {"exit_code": False, "no_wall_contact": True, "coverage_min_percent": False,
+                      "localisation_error_max_m": False, "no_bus_errors": True}, run["checks"]
+    assert run["firmware_exit"] == 1 and not run["timed_out"]
+    # the firmware ended on its budget (the bridge runs 1 s past it, campaign/runner.py)
+    assert run["figures"]["sim_time_s"] == pytest.approx(15.0, abs=0.05)
+    log = (tmp_path / "out" / "logs" / case / "report.json").read_text()
+    assert json.loads(log)["ended"] == "robot-time budget"

@@ -140,3 +140,20 @@ def test_junit_xml_has_one_testcase_per_run_and_failures_with_their_checks(
     props = {p.get("name"): p.get("value") for p in cases[1].iter("property")}
     assert props == {"world": "lab_walls_1", "seed": "1", "faults": "none", "overrides": "base"}
     assert json.loads(cases[1].findtext("system-out") or "") == {"digest": "ab"}
+
+
+def test_the_cli_answers_a_bad_campaign_in_one_line_and_lists_cases(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from koala_bridge.cli.main import main
+
+    bad = write(tmp_path, GOOD.replace("seeds =", "seed ="))
+    assert main(["campaign", str(bad)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("koala-bridge campaign: configuration error: [matrix] unknown key "
+                          "'seed'") and "\n" not in err
+    good = write(tmp_path, GOOD)
+    assert main(["campaign", str(good), "--list"]) == 0
+    listed = capsys.readouterr().out.split()
+    assert listed == [c.case_id for c in load_campaign(good).cases]
+    assert main(["campaign", str(good), "--only", "nope"]) == 2
+    assert "no case 'nope'" in capsys.readouterr().err
