@@ -4,15 +4,16 @@ one run.
 
 1. *Local pool vs Dask*: the first ``--cases`` cases of the example campaign
    (``examples/campaign_coverage.toml``: the coverage firmware, every error model on), each cut
-   to ``--sim-s`` simulated seconds, once on the local pool (one worker per core) and once on a
-   Dask scheduler + one worker (``--nthreads`` = cores) started here on 127.0.0.1. Prints runs
-   per minute of each and the cluster path's overhead (wall time ratio - 1; issue: <= 15 %).
+   to ``--sim-s`` simulated seconds (default 30), once on the local pool (one worker per
+   core) and once on a Dask scheduler + one worker (``--nthreads`` = cores) started here on
+   127.0.0.1. Prints runs per minute of each and the cluster path's overhead (wall time
+   ratio - 1; issue: <= 15 %).
    The outcome digests of the two must agree (a cluster run is the same run).
 2. *Scaling*: the tiny firmware of the tests (``tests/e2e/_campaign_firmware.py``, 10 simulated
    seconds) on 2, 4, 8 cases on the local pool; a least-squares line wall = a + b * cases, and
    the median start-up time of one run (bridge start to its endpoints file).
 
-    python -m bench.bench_campaign [--cases 4] [--sim-s 60]
+    python -m bench.bench_campaign [--cases 4] [--sim-s 30]
 """
 
 from __future__ import annotations
@@ -81,8 +82,8 @@ def stop_cluster(procs: list[subprocess.Popen[bytes]]) -> None:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", type=int, default=4, help="example cases compared (default 4)")
-    ap.add_argument("--sim-s", type=float, default=60.0,
-                    help="simulated seconds per example run (default 60)")
+    ap.add_argument("--sim-s", type=float, default=30.0,
+                    help="simulated seconds per example run (default 30)")
     args = ap.parse_args(argv)
     from koala_bridge.campaign.executors import dask_executor, default_workers, local_executor
 

@@ -115,13 +115,17 @@ def test_local_pool_judges_every_run_and_writes_results_junit_and_report(local: 
     assert r[CASES[2]]["figures"]["digest"] != r[CASES[3]]["figures"]["digest"]
 
 
-def test_only_reproduces_one_case_bit_for_bit(local: Path) -> None:
+def test_only_reproduces_cases_bit_for_bit_and_keep_all_keeps_every_recording(
+        local: Path) -> None:
     out = local / "only"
-    campaign(local, "--only", CASES[3], "--out", str(out), check=1)
+    campaign(local, "--only", CASES[3], "--only", CASES[0], "--keep-all", "--out", str(out),
+             "--workers", "2", check=1)
     again, first = runs(out), runs(local / "local")
-    assert list(again) == [CASES[3]]
-    assert again[CASES[3]]["figures"] == first[CASES[3]]["figures"]  # digest included
-    assert again[CASES[3]]["verdict"] == "fail"
+    assert list(again) == [CASES[3], CASES[0]]
+    for case in (CASES[3], CASES[0]):
+        assert again[case]["figures"] == first[case]["figures"]  # the digest included
+        assert again[case]["verdict"] == first[case]["verdict"]
+        assert (out / again[case]["recording"]).stat().st_size > 0  # a pass's too
 
 
 @pytest.fixture
