@@ -95,7 +95,7 @@ from koala_bridge.core.geometry import wrap_angle as wrap
 from koala_bridge.core.grid import SIDE_STEP, SIDES, Grid
 from koala_bridge.drivers.can_codec import KoalaCanCodec, load_koala_dbc
 from koala_bridge.drivers.kteam import LineSplitter, format_command, parse_reply
-from koala_bridge.drivers.mavlink_codec import CompassDecoder
+from koala_bridge.drivers.mavlink_codec import CompassDecoder, CompassEncoder, MavlinkIdentity
 from koala_bridge.drivers.messages import (
     CompassSample,
     GyroFrame,
@@ -217,15 +217,26 @@ class Links:
         self.codec = KoalaCanCodec(load_koala_dbc(endpoints["can"]["dbc"]))
         self.compass = CompassDecoder()
         kind, host, port = mav_url.split(":")
+        self.mav_heard = kind != "udpout"  # udpout: the robot answers once it has heard us
         if kind == "udpin":
             self.mav = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             self.mav.bind((host, int(port)))
+        elif kind == "udpout":  # the bridge listens (port 0): say hello as a ground station
+            self.mav = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            self.mav.connect((host, int(port)))
         elif kind == "tcp":
             self.mav = socket.create_connection((host, int(port)))
         else:
-            raise SystemExit(f"unsupported MAVLink connection {mav_url!r} (udpin: or tcp:)")
-        self.mav_datagrams = kind == "udpin"
+            raise SystemExit(f"unsupported MAVLink connection {mav_url!r} (udpin:, udpout:, tcp:)")
+        self.mav_datagrams = kind != "tcp"
         self.mav.setblocking(False)
+        self.say_hello()
+
+    def say_hello(self) -> None:
+        """On ``udpout:`` only: send a ground station's HEARTBEAT, so the robot knows where to
+        send its stream (repeated by :meth:`samples` until it answers)."""
+        if not self.mav_heard:
+            self.mav.send(gcs_heartbeat())
 
     def check_watchdog(self) -> None:
         """Liveness only: abort when the run has taken ``--timeout-s`` wall seconds."""
@@ -251,6 +262,7 @@ class Links:
                 break
             if not data:
                 break
+            self.mav_heard = True
             parsed = (self.compass.feed_datagram(data) if self.mav_datagrams
                       else self.compass.feed(data))
             out += [Sample(s.time_boot_ms / 1000.0, COMPASS, s) for s in parsed
@@ -392,6 +404,9 @@ class CoverageFirmware:
         self.units: tuple[int, int] = (0, 0)  # the wheel command of the next cycle
         self.resyncs = 0
         self.localised: tuple[int, int] | None = None
+        #: [t, x, y] of the estimate once a second of robot time after localising (the
+        #: report's "estimates": a campaign's localisation-error check judges them)
+        self.estimates: list[list[float]] = []
         self.localised_at: float | None = None  # robot time since T_0, s
         self.localisation_moves: int | None = None
         self.order: list[tuple[int, int]] = []
@@ -411,8 +426,11 @@ class CoverageFirmware:
     def start(self) -> None:
         """Before the first cycle: wait until the robot is heard from (an odometry sample),
         which fixes ``T_0``."""
-        while self.clock.newest[ODOMETRY] == -math.inf:
+        # (udpout: the robot's MAVLink stream only starts once our hello has arrived; wait for
+        # it here, where the robot holds at t = 0, so the first cycle sees the same samples)
+        while self.clock.newest[ODOMETRY] == -math.inf or not self.links.mav_heard:
             self.links.check_watchdog()
+            self.links.say_hello()
             self.clock.add(self.links.samples(wait_s=0.05))
         self.clock.add(self.links.samples())
         self.clock.start()
@@ -458,6 +476,10 @@ class CoverageFirmware:
         self.t = clock.end
         for s in clock.take():
             self.on_sample(s)
+        if self.localised is not None and (
+                not self.estimates or self.t - self.estimates[-1][0] >= 1.0 - 1e-9):
+            x, y, _ = self.tracker.pose
+            self.estimates.append([round(self.t, 6), x, y])
         if self.t - clock.origin > self.args.max_sim_s:  # type: ignore[operator]
             raise RobotTimeBudget(f"{self.args.max_sim_s:g} s of robot time have passed")
 
@@ -828,6 +850,7 @@ class CoverageFirmware:
             "robot_time_s": round(self.t - self.clock.origin, 6),
             # the final estimate, in the world frame, at robot time t (the robot's own clock)
             "estimate": {"t": round(self.t, 6), "x": x, "y": y, "theta": th},
+            "estimates": self.estimates,
             "period_s": self.robot.period_s,
             "cycles": self.cycles,
             "skipped_periods": self.clock.skipped,
@@ -868,6 +891,12 @@ def _path_to_nearest(
                 prev[n] = (c, s)
                 queue.append(n)
     return []
+
+
+def gcs_heartbeat() -> bytes:
+    """A ground station's HEARTBEAT (system 255, component 190: MAVLink's convention)."""
+    identity = MavlinkIdentity(system_id=255, component_id=190, mav_type=6)  # MAV_TYPE_GCS
+    return CompassEncoder(identity).heartbeat()
 
 
 def _reachable(world: Grid, start: tuple[int, int]) -> set[tuple[int, int]]:

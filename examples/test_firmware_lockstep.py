@@ -24,9 +24,10 @@ every cell). To adapt the file to your firmware:
 - ``WORLD``, ``SEED``, :func:`bridge_config`: your arena, the seed (one fixed seed per test makes
   a failure reproducible: the same seed and config give the same run, bit for bit), and the
   robot/sensor settings you want to test against (``[sensors.*] ideal``, noise, faults).
-- The ``test_*`` functions: your assertions. The helpers read the truth track from the
-  recording (:func:`truth_track`) and compute what the tests need (:func:`wall_clearance`,
-  :func:`first_visits`); the firmware's own JSON report is in ``run.report``.
+- The ``test_*`` functions: your assertions. The helpers (``koala_bridge.campaign.truth``) read
+  the truth track from the recording (:func:`truth_track`) and compute what the tests need
+  (:func:`wall_clearance`, :func:`first_visits`); the firmware's own JSON report is in
+  ``run.report``. ``koala-bridge campaign`` (docs/campaigns.md) runs such checks over a matrix.
 - Faults: ``run_in_lockstep(..., faults=["bias:gyro:start_s=20,bias=0.02"])`` passes
   ``--fault KIND:TARGET[:key=value,...]`` to the bridge (docs/faults.md).
 
@@ -60,9 +61,15 @@ from typing import Any
 import numpy as np
 import pytest
 import tomli_w
-from koala_bridge.core.grid import SIDE_STEP, SIDES, Grid
+from koala_bridge.campaign.truth import (
+    first_visits,
+    reachable_cells,
+    truth_track,
+    wall_clearance,
+    wall_segments,
+)
+from koala_bridge.core.grid import Grid
 from koala_bridge.core.resources import config_dir, default_config_path
-from koala_bridge.recording.mcap_file import open_recording
 
 HERE = Path(__file__).resolve().parent
 
@@ -87,8 +94,6 @@ PERIOD_S = 0.02
 COVERAGE_BUDGET_S = 450.0
 #: Liveness only: a firmware or bridge that hangs fails the test after this many wall seconds.
 WALL_TIMEOUT_S = 240.0
-#: "Visited a cell" = the true centre passed this close to the cell's centre.
-CENTRE_TOLERANCE_M = 0.1
 
 
 def firmware_arguments(endpoints: Path, config: Path, report: Path, seed: int,
@@ -202,54 +207,10 @@ def run_in_lockstep(folder: Path, seed: int = SEED, faults: Sequence[str] = (),
 
 
 # -- reading the truth -----------------------------------------------------------------------------
-
-def truth_track(recording: Path) -> np.ndarray:
-    """The recorded true pose, ``(n, 4)`` rows ``t, x, y, theta`` (s, m, m, rad), in time order."""
-    poses = [m.json() for m in open_recording(recording).topic("/truth/pose")]
-    return np.array([(p["t"], p["x"], p["y"], p["theta"]) for p in poses])
-
-
-def wall_segments(recording: Path) -> np.ndarray:
-    """The walls the bridge simulated, ``(k, 4)`` rows ``x0, y0, x1, y1`` (the recording's
-    world metadata)."""
-    world = open_recording(recording).world
-    assert world is not None, "the recording carries no world"
-    return np.asarray(world["segments"], dtype=float).reshape(-1, 4)
-
-
-def wall_clearance(xy: np.ndarray, segments: np.ndarray) -> np.ndarray:
-    """Distance from each point ``xy`` ``(n, 2)`` to the nearest wall segment, m."""
-    p = xy[:, None, :]
-    a, b = segments[None, :, :2], segments[None, :, 2:]
-    ab = b - a
-    u = np.clip(np.sum((p - a) * ab, axis=2) / np.maximum(np.sum(ab * ab, axis=2), 1e-12), 0, 1)
-    nearest = a + u[..., None] * ab
-    return np.min(np.linalg.norm(p - nearest, axis=2), axis=1)
-
-
-def reachable_cells(world: Grid, start: tuple[int, int]) -> set[tuple[int, int]]:
-    """Every cell the robot can drive to from ``start`` (breadth first over open sides)."""
-    seen, todo = {start}, [start]
-    while todo:
-        c = todo.pop()
-        for side in SIDES:
-            n = (c[0] + SIDE_STEP[side][0], c[1] + SIDE_STEP[side][1])
-            if world.can_move(*c, side) and n not in seen:
-                seen.add(n)
-                todo.append(n)
-    return seen
-
-
-def first_visits(track: np.ndarray, world: Grid) -> dict[tuple[int, int], float]:
-    """For each cell whose centre the truth passed within ``CENTRE_TOLERANCE_M``: the first
-    time it did, s."""
-    out: dict[tuple[int, int], float] = {}
-    for t, x, y, _ in track:
-        cell = world.cell_of(x, y)
-        cx, cy = world.cell_centre(*cell)
-        if cell not in out and math.hypot(x - cx, y - cy) < CENTRE_TOLERANCE_M:
-            out[cell] = float(t)
-    return out
+# truth_track, wall_segments, wall_clearance, reachable_cells and first_visits come from
+# koala_bridge.campaign.truth (imported above): the same judges as `koala-bridge campaign`'s
+# checks (docs/campaigns.md), which run this kind of test over a whole matrix of worlds, seeds
+# and faults.
 
 
 def robot_config(config: Path) -> dict[str, Any]:

@@ -37,6 +37,7 @@ SUBCOMMANDS: dict[str, str] = {
     "monitor": "koala_bridge.cli.monitor",
     "snapshot": "koala_bridge.cli.snapshot",
     "config": "koala_bridge.cli.config",
+    "campaign": "koala_bridge.cli.campaign",
 }
 
 EPILOG = """\

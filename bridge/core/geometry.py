@@ -59,3 +59,18 @@ def circle_centre(points: ArrayLike) -> FloatArray:
     a = np.column_stack([2 * m, np.ones(len(m))])
     sol, *_ = np.linalg.lstsq(a, np.sum(m**2, axis=1), rcond=None)
     return np.asarray(sol[:-1], dtype=float)
+
+
+def wall_clearance(points: ArrayLike, walls: ArrayLike) -> FloatArray:
+    """``(T,)`` distance from each ``(x, y)`` of ``points`` ``(T, >=2)`` to the nearest wall
+    segment of ``walls`` ``(M, 4)`` rows ``x0, y0, x1, y1``, m (``inf`` without walls)."""
+    p = np.asarray(points, dtype=float)[:, None, :2]
+    w = np.asarray(walls, dtype=float).reshape(-1, 4)
+    if len(w) == 0:
+        return np.full(p.shape[0], np.inf)
+    a, b = w[None, :, :2], w[None, :, 2:4]
+    ab = b - a
+    u = np.clip(np.sum((p - a) * ab, axis=2) / np.maximum(np.sum(ab * ab, axis=2), 1e-300),
+                0.0, 1.0)
+    nearest = a + u[:, :, None] * ab
+    return np.asarray(np.min(np.linalg.norm(p - nearest, axis=2), axis=1), dtype=float)

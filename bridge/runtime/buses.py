@@ -174,7 +174,10 @@ def bus_urls(settings: BusesSettings) -> dict[str, str]:
         urls["mavlink"] = (
             "pty://" if mav.transport == "pty" else f"{mav.transport}://{mav.host}:{mav.port}"
         )
-        if mav.transport == "udp":  # one bridge per ground-station port (docs/security.md)
+        if mav.transport == "udp" and mav.port == 0:
+            # a free port the bridge listens on; it answers the client that sends to it
+            urls["mavlink"] = f"udpin://{mav.host}:0"
+        elif mav.transport == "udp":  # one bridge per ground-station port (docs/security.md)
             urls["mavlink"] += "?exclusive=1"
     can = settings.can
     if can.socketcand:
@@ -200,12 +203,9 @@ def open_bus(name: str, url: str) -> ByteTransport | CanTransport:
     except (TransportError, OSError) as e:
         hint = ""
         if name in PORT_KEYS and address_in_use(e):
-            # port 0 (any free one) only where the bridge listens: not for MAVLink over UDP,
-            # whose port is the ground station's (settings.MavlinkSettings)
-            any_free = ", 0 any free one" if name == "can.socketcand" else ""
             hint = (
                 f" (another koala-bridge running? --set {PORT_KEYS[name]}=N picks another "
-                f"port{any_free})"
+                "port, 0 any free one)"
             )
         raise BusOpenError(f"cannot open bus {name}: {e}{hint}") from e
 

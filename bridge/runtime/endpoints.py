@@ -25,6 +25,7 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -161,10 +162,12 @@ def _serial_args(dialect_name: str) -> str:
             f"stopbits={line.stopbits:g}")
 
 
-def endpoints_of(buses: OpenBuses, settings: BridgeSettings, zenoh: bool = True) -> Endpoints:
+def endpoints_of(buses: OpenBuses, settings: BridgeSettings, zenoh: bool = True,
+                 zenoh_listening: Sequence[str] | None = None) -> Endpoints:
     """Where clients connect to ``buses`` opened from ``settings`` (``run`` and ``replay``).
 
-    ``zenoh``: whether a Zenoh session listens on ``[zenoh] listen`` under ``[zenoh] prefix``.
+    ``zenoh``: whether a Zenoh session listens on ``[zenoh] listen`` under ``[zenoh] prefix``;
+    ``zenoh_listening``: the locators it actually bound (a port 0 resolved), if known.
     """
     socketcand = None
     if "can.socketcand" in buses.can:
@@ -183,7 +186,11 @@ def endpoints_of(buses: OpenBuses, settings: BridgeSettings, zenoh: bool = True)
         # [buses.can] dbc, the database clients decode the CAN bus with; no CAN bus, no DBC
         dbc=str(settings.buses.can.dbc_path.resolve()) if buses.can else None,
         mavlink_url=mav_url,
-        zenoh_endpoints=settings.zenoh.listen if zenoh else (),
+        zenoh_endpoints=(
+            () if not zenoh
+            else tuple(zenoh_listening) if zenoh_listening is not None
+            else settings.zenoh.listen
+        ),
         zenoh_prefix=settings.zenoh.prefix if zenoh else "",
         virtual_can_channel=(
             buses.can["can.virtual"].endpoint.channel if "can.virtual" in buses.can else None

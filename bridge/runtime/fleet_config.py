@@ -22,7 +22,8 @@ Defaults chosen so that no two robots clash (an entry that sets a key keeps its 
 - ``[buses.can] socketcand_port = 0`` (a free port, named in the endpoints file) and
   ``virtual_channel = "<virtual_channel>-<name>"``;
 - ``[buses.mavlink]``: with ``transport = "udp"`` the port is the file's plus the robot's index
-  (14550, 14551, ...: the ground station's ports), with ``"tcp"`` 0 (a free port); ``system_id``
+  (14550, 14551, ...: the ground station's ports; a file's 0 stays 0, a free port each), with
+  ``"tcp"`` 0 (a free port); ``system_id``
   is the file's plus the index (a ground station tells vehicles apart by it);
 - the ptys (K-Team, range frames, slcan) are new devices for each robot anyway.
 
@@ -129,7 +130,8 @@ def _robot_config(base: Mapping[str, Any], entry: Mapping[str, Any], index: int,
         can["virtual_channel"] = f"{can.get('virtual_channel', 'koala')}-{name}"
     mav = cfg["buses"].setdefault("mavlink", {})
     if "port" not in mav_in and isinstance(mav.get("port"), int):
-        if mav.get("transport") == "udp":
+        if mav.get("transport") == "udp" and mav["port"] != 0:
+            # (port 0 stays 0: each robot gets a free port of its own, in the endpoints file)
             mav["port"] = mav["port"] + index
         elif mav.get("transport") == "tcp":
             mav["port"] = 0

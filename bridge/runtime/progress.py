@@ -149,3 +149,37 @@ def _clock_time(seconds: float) -> str:
     if s < 3600:
         return f"{s // 60} min {s % 60:02d} s"
     return f"{s // 3600} h {s % 3600 // 60:02d} min"
+
+
+@contextmanager
+def count_progress(
+    total: int, description: str, stream: TextIO | None = None
+) -> Iterator[Callable[[str], None]]:
+    """A bar of ``total`` items of work (runs of a campaign) with elapsed time and ETA, on
+    ``stream`` (default stderr) if it is a terminal; yields ``advance(status)``, called once per
+    item done with a short status text (e.g. ``"12 pass, 1 fail"``). Transient, as
+    :func:`run_progress`'s line, and log lines go above it."""
+    stream = sys.stderr if stream is None else stream
+    if total <= 0 or not shows_progress(stream):
+        yield lambda status: None
+        return
+    from rich.console import Console
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    progress = Progress(
+        TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+        TextColumn("{task.fields[status]}"), TimeElapsedColumn(), TextColumn("ETA"),
+        TimeRemainingColumn(), console=Console(file=stream), transient=True,
+        refresh_per_second=REFRESH_PER_SECOND, redirect_stdout=False, redirect_stderr=True,
+    )
+    with progress:
+        task = progress.add_task(description, total=total, status="")
+        with _logging_through(stream, sys.stderr):
+            yield lambda status: progress.update(task, advance=1, status=status)

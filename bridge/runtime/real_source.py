@@ -343,7 +343,8 @@ class RealRobotSource:
         if self._mavlink is not None:
             self._spawn("mavlink", self._mavlink_reader(self._mavlink))
         return Endpoints(
-            zenoh_endpoints=self.settings.zenoh.listen, zenoh_prefix=self.settings.zenoh.prefix
+            zenoh_endpoints=self.zenoh.listening if self.zenoh else self.settings.zenoh.listen,
+            zenoh_prefix=self.settings.zenoh.prefix,
         )
 
     def run(self, stop: threading.Event, duration_s: float | None = None) -> _LastReadings:

@@ -482,7 +482,8 @@ class ReplaySource:
         except BaseException:
             self.close()
             raise
-        return endpoints_of(self.buses, self.settings, zenoh=self.zenoh is not None)
+        return endpoints_of(self.buses, self.settings, zenoh=self.zenoh is not None,
+                            zenoh_listening=self.zenoh.listening if self.zenoh else None)
 
     def describe(self) -> str:
         counts = ", ".join(f"{b} {n}" for b, n in sorted(self.plan.counts.items()))

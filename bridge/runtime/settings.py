@@ -75,7 +75,7 @@ MAVLINK_TRANSPORTS = ("udp", "tcp", "pty")
 KTEAM_DIALECTS = tuple(DIALECTS)
 
 #: A Zenoh locator whose port is 0 (``tcp/127.0.0.1:0``, ``udp/[::1]:0#iface=lo``, ...).
-_ZERO_PORT = re.compile(r":0+(?:[?#].*)?$")
+ZERO_PORT = re.compile(r":0+(?:[?#].*)?$")
 
 #: The top-level tables of a configuration: sim/ reads the first four (sim/config.py), the bridge
 #: the others (``[real]``: runtime/real_source.py, for ``run --source real``; ``[localisation]``:
@@ -481,6 +481,9 @@ class MavlinkSettings:
     enabled: Bool
     transport: Annotated[Str, one_of(MAVLINK_TRANSPORTS)]  # udp (send) | tcp (listen) | pty
     host: Str
+    # udp: where the client listens (the bridge sends there); 0: the bridge listens on a free
+    # port instead and answers whoever sends to it (the client connects with udpout:, sends
+    # first). tcp: where the bridge listens, 0 a free port. The endpoints file names the port.
     port: _PortKey
     system_id: Annotated[int, Strict(), Field(ge=1, le=255)]
     component_id: Annotated[int, Strict(), Field(ge=1, le=255)]
@@ -498,17 +501,6 @@ class MavlinkSettings:
     baud: PositiveInt = 57600
     framing: _Framing = "8N1"
 
-    def __post_init__(self) -> None:
-        if self.transport == "udp" and self.port == 0:
-            # UDP: host:port is where the CLIENT listens (the bridge sends datagrams there), so
-            # the bridge cannot pick it; tcp listens itself and 0 picks a free port.
-            raise ConfigError(
-                "[buses.mavlink] 'port' 0 is not allowed with transport 'udp': host:port is the "
-                "address the client (ground station) listens on and the bridge sends to, so "
-                "choose it, e.g. --set buses.mavlink.port=14551 and connect with "
-                "udpin:127.0.0.1:14551"
-            )
-
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> MavlinkSettings:
         return validate(cls, d, "buses.mavlink")
@@ -517,8 +509,9 @@ class MavlinkSettings:
         """What this section serves on (or sends to) a non-loopback address."""
         if not self.enabled or self.transport == "pty" or is_loopback_host(self.host):
             return []
-        if self.transport == "tcp":
-            return [f"MAVLink listens on tcp {self.host or '*'}:{self.port} ([buses.mavlink] host)"]
+        if self.transport == "tcp" or self.port == 0:
+            return [f"MAVLink listens on {self.transport} {self.host or '*'}:{self.port} "
+                    "([buses.mavlink] host)"]
         return [f"MAVLink sends to udp {self.host}:{self.port} and reads the replies "
                 "([buses.mavlink] host)"]
 
@@ -555,7 +548,13 @@ class MavlinkSettings:
                               accept_unsigned=self.signing_accept_unsigned)
 
     def client_url(self, pty_path: str | None = None, bound_port: int | None = None) -> str:
-        """The pymavlink connection string a client uses to receive this stream."""
+        """The pymavlink connection string a client uses to receive this stream (``udpout:``
+        when the bridge listens on a UDP port it picked: the client sends first, e.g. a
+        HEARTBEAT, and the bridge answers it)."""
+        if self.transport == "udp" and self.port == 0:
+            if bound_port is None:
+                raise ValueError("a UDP MAVLink link on port 0 needs the port it bound")
+            return f"udpout:{self.host}:{bound_port}"
         if self.transport == "udp":
             return f"udpin:{self.host}:{self.port}"
         if self.transport == "tcp":
@@ -683,19 +682,6 @@ def _locators(value: tuple[str, ...]) -> tuple[str, ...]:
 _Locators = Annotated[tuple[Str, ...], BeforeValidator(tuples), AfterValidator(_locators)]
 
 
-def _no_zero_port(value: tuple[str, ...]) -> tuple[str, ...]:
-    for locator in value:
-        if _ZERO_PORT.search(locator):
-            # Zenoh does not report the port it picked, so neither the banner nor the
-            # endpoints file could tell clients where to connect.
-            raise ValueError(
-                f"locator {locator!r}: port 0 is not supported (the bridge could not tell "
-                "clients which port Zenoh picked); give a free port, e.g. "
-                "--set 'zenoh.listen=[\"tcp/127.0.0.1:7448\"]'"
-            )
-    return value
-
-
 def _plain_prefix(value: str) -> str:
     """``""`` (``koala/<robot name>``) or a plain Zenoh key expression: chunks separated by
     single ``/``, none empty, without wildcards (``*``, ``$*``) or Zenoh's reserved ``?#``."""
@@ -720,7 +706,7 @@ class ZenohSettings:
     """``[zenoh]``: the session and what it publishes."""
 
     mode: Annotated[Str, one_of(("peer", "client"))]
-    listen: Annotated[_Locators, AfterValidator(_no_zero_port)]
+    listen: _Locators   # port 0: a free port; the endpoints file names the one bound
     connect: _Locators
     multicast_scouting: Bool
     prefix: Annotated[Str, AfterValidator(_plain_prefix)]   # "" in the file: koala/<robot name>

@@ -240,8 +240,12 @@ class SimulatedRobotSource:
         except BaseException:
             self.close()
             raise
-        self.endpoints = endpoints_of(self.buses, self.settings)
+        self.endpoints = endpoints_of(
+            self.buses, self.settings, zenoh_listening=self._zenoh_listening())
         return self.endpoints
+
+    def _zenoh_listening(self) -> tuple[str, ...] | None:
+        return self.zenoh.listening if self.zenoh is not None else None
 
     def close(self) -> None:
         """Stop the readers, close every transport and the Zenoh session. Idempotent."""
@@ -405,6 +409,9 @@ class SimulatedRobotSource:
         since they were last sent (for a firmware that waits for data before its first
         command; a client there before sees them again), and on every MAVLink poll where
         clients cannot be seen (UDP). Not recorded: the recording holds each sample once."""
+        # A UDP client of a bridge listening on port 0 (udpout:) says hello first: read it, so
+        # that step 0 goes to it before the firmware's first command.
+        self._drain_output_links()
         due: dict[str, bool] = {}
         for bus, resend in self._initial_frames or ():
             if bus not in due:
@@ -748,7 +755,8 @@ class SimulatedRobotSource:
         if not offline and self.endpoints is not None:
             # a pty comes back as a new device (like a USB serial adapter replugged): clients
             # find its path in the endpoints, rewritten
-            self.endpoints = endpoints_of(self.buses, self.settings)
+            self.endpoints = endpoints_of(
+                self.buses, self.settings, zenoh_listening=self._zenoh_listening())
             if self.settings.run.endpoints_file:
                 try:
                     write_endpoints_file(self.settings.run.endpoints_file, self.endpoints)

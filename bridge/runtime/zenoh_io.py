@@ -74,7 +74,7 @@ from koala_bridge.core.topics import (
 )
 from koala_bridge.drivers.messages import TransportError
 from koala_bridge.runtime.counters import BusCounters
-from koala_bridge.runtime.settings import ZenohSettings
+from koala_bridge.runtime.settings import ZERO_PORT, ZenohSettings
 from koala_bridge.sim.types import LandmarkObservation, Readings
 
 log = logging.getLogger(__name__)
@@ -203,7 +203,23 @@ def session_config(settings: ZenohSettings) -> zenoh.Config:
     config.insert_json5(
         "scouting/multicast/enabled", json.dumps(settings.multicast_scouting)
     )
+    if any(ZERO_PORT.search(locator) for locator in settings.listen):
+        # Zenoh's API does not say which port a listener on port 0 bound; its admin space
+        # does (@/<zid>/<mode>: "locators"). Read-only, and only for such a session.
+        config.insert_json5("adminspace/enabled", "true")
+        config.insert_json5("adminspace/permissions", '{"read": true, "write": false}')
     return config
+
+
+def bound_locators(session: zenoh.Session, mode: str, timeout_s: float = 5.0) -> tuple[str, ...]:
+    """The locators ``session`` listens on, ports resolved (its admin space, which
+    :func:`session_config` enables when a listen port is 0)."""
+    zid = str(session.zid())
+    for reply in session.get(f"@/{zid}/{mode}", timeout=timeout_s):
+        if reply.ok is not None:
+            info = json.loads(bytes(reply.ok.payload.to_bytes()))
+            return tuple(str(x) for x in info.get("locators", ()))
+    raise TransportError("zenoh: the session did not report the port it listens on")
 
 
 def zenoh_error_text(e: Exception) -> str:
@@ -265,6 +281,15 @@ class ZenohLink:
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._owns_session = session is None
         self._session = session if session is not None else open_session(settings)
+        #: The locators the session listens on (a port 0 resolved to the port bound).
+        self.listening: tuple[str, ...] = settings.listen
+        if any(ZERO_PORT.search(locator) for locator in settings.listen):
+            try:
+                self.listening = bound_locators(self._session, settings.mode)
+            except BaseException:
+                if self._owns_session:
+                    self._session.close()
+                raise
         self._queryable = self._session.declare_queryable(
             f"{self.prefix}/world", self._on_world_query
         )

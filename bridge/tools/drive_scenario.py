@@ -59,6 +59,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from koala_bridge.core.geometry import wall_clearance
 from koala_bridge.core.resources import default_config_path
 from koala_bridge.core.topics import EstimatePose, FaultEventMessage, TruthPose
 from koala_bridge.estimation.metrics import (
@@ -414,17 +415,6 @@ def _poses(samples: Sequence[tuple[float, Mapping[str, Any]]]) -> tuple[FloatArr
     t = np.array([m["t"] for _, m in samples], dtype=float)
     p = np.array([[m["x"], m["y"], m["theta"]] for _, m in samples], dtype=float).reshape(-1, 3)
     return t, p
-
-
-def wall_clearance(points: FloatArray, walls: FloatArray) -> FloatArray:
-    """``(T,)`` distance from each ``(x, y)`` of ``points`` ``(T, >=2)`` to the nearest wall
-    segment ``(M, 4)``, m."""
-    p = np.asarray(points, dtype=float)[:, None, :2]
-    a, b = walls[None, :, :2], walls[None, :, 2:4]
-    ab = b - a
-    u = np.clip(np.sum((p - a) * ab, axis=2) / np.sum(ab * ab, axis=2), 0.0, 1.0)
-    nearest = a + u[:, :, None] * ab
-    return np.asarray(np.min(np.linalg.norm(p - nearest, axis=2), axis=1), dtype=float)
 
 
 def contact_intervals(t: FloatArray, truth: FloatArray, walls: FloatArray, radius: float,

@@ -52,6 +52,15 @@ def test_defaults_never_clash() -> None:
     check_clashes(entries, [a, b], [0.19, 0.19])
 
 
+def test_a_mavlink_udp_port_0_is_a_free_port_for_every_robot() -> None:
+    """Port 0 is "any free port" (each robot binds its own; the endpoints file names it), not
+    a base to count from: robot 1 must not get port 1."""
+    config = _config()
+    config["buses"]["mavlink"]["port"] = 0
+    a, b = _settings(config)
+    assert (a.buses.mavlink.port, b.buses.mavlink.port) == (0, 0)
+
+
 def test_a_robot_sets_its_own_keys_and_a_file_prefix_is_the_parent() -> None:
     config = _config(
         {"name": "a", "start": {"x": 1.3, "y": 1.75}, "seed_offset": 7,

@@ -94,3 +94,29 @@ def test_the_line_fits_the_terminal_and_keeps_the_eta(
 def test_compact_text_has_the_same_facts() -> None:
     assert progress_text(30.0, 2.0, 60.0, compact=True) == "t 30.0/60 s  rtf 15.00  ETA 2 s"
     assert progress_text(5.0, 5.0, 0.0, compact=True) == "t 5.0 s  rtf 1.00  until Ctrl-C"
+
+
+def test_count_progress_shows_runs_done_on_a_terminal_only() -> None:
+    """The campaign's bar (count_progress): nothing in a pipe; on a terminal the count, the
+    status text and an ETA, with logging routed around it."""
+    from koala_bridge.runtime.progress import count_progress
+
+    pipe = io.StringIO()
+    with count_progress(3, "campaign c", stream=pipe) as advance:
+        advance("1 pass, 0 fail")
+    assert pipe.getvalue() == ""
+    terminal = FakeTerminal()
+    handler = logging.StreamHandler(terminal)
+    root = logging.getLogger()
+    root.addHandler(handler)
+    try:
+        with count_progress(3, "campaign c", stream=terminal) as advance:
+            assert handler.stream is not terminal
+            advance("1 pass, 0 fail")
+            advance("1 pass, 1 fail")
+    finally:
+        root.removeHandler(handler)
+    assert handler.stream is terminal
+    shown = terminal.getvalue()
+    assert "campaign c" in shown and "2/3" in shown and "1 pass, 1 fail" in shown
+    assert "ETA" in shown
