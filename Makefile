@@ -13,10 +13,10 @@ SMOKE_VENV := build/smoke-venv
 
 # pip's own output shows what is being downloaded and installed (the first time takes a while).
 $(STAMP): pyproject.toml
-	@echo "== Setting up $(VENV): a virtualenv with koala-bridge (editable) and its dev extras"
+	@echo "== Setting up $(VENV): a virtualenv with koala-bridge (editable) and its dev and cluster extras"
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --upgrade pip
-	$(PY) -m pip install -e '.[dev]'
+	$(PY) -m pip install -e '.[dev,cluster]'
 	touch $(STAMP)
 	@echo "== $(VENV) is ready"
 
