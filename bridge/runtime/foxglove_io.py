@@ -30,7 +30,7 @@ import json
 import logging
 import threading
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import replace
 from typing import Any
 
@@ -133,7 +133,7 @@ class FoxgloveServer:
         self._channels: dict[str, foxglove.Channel] = {}
         self._next: dict[str, float] = {}
         self._period: dict[str, float] = {}
-        self._static: list[tuple[str, bytes]] = []
+        self._static: dict[str, bytes] = {}
         self._static_t_ns = 0
         self._subscribed = threading.Event()
         self._closed = threading.Event()
@@ -210,9 +210,10 @@ class FoxgloveServer:
         self._static_t_ns = t_ns
         self._server.broadcast_time(t_ns)
 
-    def set_static(self, messages: Iterable[tuple[str, bytes]]) -> None:
-        """The messages each client gets when it subscribes (their channels must exist)."""
-        self._static = list(messages)
+    def add_static(self, messages: Iterable[tuple[str, bytes]]) -> None:
+        """Messages each client gets when it subscribes to their topics (their channels must
+        exist); a topic's message replaces the one it had. Several taps add theirs."""
+        self._static = {**self._static, **dict(messages)}
         self._subscribed.set()
 
     # -- the static scene ----------------------------------------------------------------------
@@ -224,7 +225,7 @@ class FoxgloveServer:
             # the subscription is in force once the listener has returned: a moment later
             self._closed.wait(0.05)
             self._subscribed.clear()
-            for topic, data in self._static:
+            for topic, data in self._static.items():
                 channel = self._channels.get(topic)
                 if channel is not None and channel.has_sinks():
                     channel.log(data, log_time=self._static_t_ns)
@@ -246,6 +247,10 @@ class FoxgloveTap:
     """A :class:`runtime.source.Tap` that passes everything on to ``inner`` (the recorder, or
     None) and draws the scene for the live ``server`` and/or the ``recorder``.
 
+    ``raw_namespace``: the live raw streams' topics are the recording's names of the keys below
+    it (a robot of ``[[robots]]``: its name, ``/alpha/sensors/gyro``). The robot whose
+    translator draws the world's topics also gives the clients the time.
+
     Thread-safe: a source may call it from several threads (a real robot's readers).
     """
 
@@ -256,8 +261,10 @@ class FoxgloveTap:
         *,
         server: FoxgloveServer | None = None,
         recorder: Recorder | None = None,
+        raw_namespace: str = "",
     ) -> None:
         self.translator = translator
+        self.raw_namespace = raw_namespace
         self.inner = inner
         self.server = server
         self.recorder = recorder
@@ -265,12 +272,12 @@ class FoxgloveTap:
         self._schemas = {cls: foxglove_schema(cls) for cls in set(translator.channels().values())}
         self._next_static = 0.0
         self._failed: set[str] = set()
-        self._time_topic = translator.names.topic("truth/tf")
+        self._time_topic = translator.names.topic("truth/tf") if translator.world_topics else ""
         self._raw_topics: dict[str, str] = {}     # bridge key -> its raw stream's topic
         if server is not None:
             for topic, cls in translator.channels().items():
                 server.add_channel(topic, self._schemas[cls])
-            server.set_static(self._static_bytes(0.0))
+            server.add_static(self._static_bytes(0.0))
 
     # -- Tap -----------------------------------------------------------------------------------
 
@@ -335,7 +342,7 @@ class FoxgloveTap:
         """Advertise the raw stream of ``key``: the bridge's JSON message, for the plots, on
         the recording's topic name (one layout for the live view and the recordings)."""
         assert self.server is not None
-        topic = topic_name(key)
+        topic = topic_name(f"{self.raw_namespace}/{key}" if self.raw_namespace else key)
         self.server.add_channel(topic, topic_json_schema(key), RAW_RATE_HZ)
         self._raw_topics[key] = topic
 
@@ -396,20 +403,34 @@ def attach_foxglove(
     *,
     address: tuple[str, int] | None = None,
     recorder: Recorder | None = None,
+    robots: Sequence[tuple[str, RobotSource]] = (),
 ) -> RobotSource:
     """Draw ``source``'s scene for Foxglove: live on ``address`` (``(host, port)``; None: no
     server) and into ``recorder`` (None: no recording). Wraps ``source.tap`` (the recorder's
     tap goes on behind the new one); returns the source to run (``source`` itself, or
-    ``source`` with the server, :class:`ServedWithFoxglove`)."""
-    translator = SceneTranslator(source.world_answer(), robot)
-    inner = source.tap
+    ``source`` with the server, :class:`ServedWithFoxglove`).
+
+    ``robots``: the robots of a ``[[robots]]`` source, ``(name, its source)`` in order; each
+    robot's tap is wrapped instead, its scene drawn under ``/<name>/scene`` with frames
+    ``<name>/...``, its raw streams under ``/<name>``, the world's topics by the first robot
+    only, all on one server (``robot`` then only names the server).
+    """
+    members = list(robots) or [(robot, source)]
+    fleet = bool(robots)
+    translators = [
+        SceneTranslator(member.world_answer(), name,
+                        namespace=f"/{name}/scene" if fleet else "", world_topics=i == 0)
+        for i, (name, member) in enumerate(members)]
+    inners = [member.tap for _, member in members]
+
+    def wrap(server: FoxgloveServer | None) -> None:
+        for (name, member), translator, inner in zip(members, translators, inners, strict=True):
+            member.tap = FoxgloveTap(translator, inner, server=server, recorder=recorder,
+                                     raw_namespace=name if fleet else "")
+
     if address is None:
-        source.tap = FoxgloveTap(translator, inner, recorder=recorder)
+        wrap(None)
         return source
-
-    def on_open(server: FoxgloveServer) -> None:
-        source.tap = FoxgloveTap(translator, inner, server=server, recorder=recorder)
-
     host, port = address
     return ServedWithFoxglove(  # type: ignore[return-value]
-        source, lambda: FoxgloveServer(host, port, name=f"koala-bridge {robot}"), on_open)
+        source, lambda: FoxgloveServer(host, port, name=f"koala-bridge {robot}"), wrap)

@@ -70,6 +70,23 @@ def test_truth_pose_transform_and_pose(world: dict[str, Any]) -> None:
     assert pose.frame_id == "world" and pose.pose.position.y == 2.0
 
 
+def test_a_fleet_robot_has_its_scene_under_its_namespace(world: dict[str, Any]) -> None:
+    """[[robots]]: robot b's topics under /b/scene, its frames b/...; the world's topics drawn
+    by one robot only (the others share them)."""
+    first = SceneTranslator(world, "a", namespace="/a/scene")
+    other = SceneTranslator(world, "b", namespace="/b/scene", world_topics=False)
+    assert {"/world/map", "/world/grid", "/a/scene/body", "/a/scene/truth/pose"} <= set(
+        first.channels())
+    assert [t for t, _ in first.static()] == ["/world/map", "/world/grid", "/a/scene/body"]
+    assert [t for t, _ in other.static()] == ["/b/scene/body"]
+    assert all(t.startswith("/b/scene/") for t in other.channels())
+    assert len(other.channels()) == len(first.channels()) - 2
+    tf = build(other, "truth/pose", "/b/scene/truth/tf", {"t": 0.5, "x": 1, "y": 2, "theta": 0})
+    assert (tf.parent_frame_id, tf.child_frame_id) == ("world", "b/base_link")
+    scan = other.outputs("sensors/sonar")[1]
+    assert scan.topic == "/b/scene/sensors/sonar/scan"
+
+
 def test_estimate_covariance_and_its_ellipse(world: dict[str, Any]) -> None:
     tr = SceneTranslator(world)
     cov = [[0.04, 0.01, 0.002], [0.01, 0.01, 0.003], [0.002, 0.003, 0.09]]
