@@ -20,8 +20,9 @@ The static scene (the map, the world's grid, the robot's body) goes to a client 
 subscribes, and into a recording at t = 0 and every :data:`STATIC_PERIOD_S` simulated seconds
 (a player that seeks finds it).
 
-Several robots: one :class:`SceneTranslator` per robot (its topics under ``/<robot name>``);
-:class:`FoxgloveTap` takes a translator, a server can be shared by several taps.
+Several robots (``[[robots]]``): one :class:`SceneTranslator` and one :class:`FoxgloveTap` per
+robot (its topics under ``/<robot name>/scene``, the world's drawn by the first robot), all on
+one server and one recording (:func:`attach_foxglove` with ``robots``).
 """
 
 from __future__ import annotations
