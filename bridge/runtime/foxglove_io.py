@@ -198,6 +198,13 @@ class FoxgloveServer:
         self._next[topic] = max(next_t + period, now - period)
         return True
 
+    def next_due(self, topic: str, now: float) -> float:
+        """The clock's time before which :meth:`due` of ``topic`` is surely False: its next
+        slot, or a period from ``now`` while no client is subscribed to it."""
+        if not self._channels[topic].has_sinks():
+            return now + self._period[topic]
+        return self._next[topic]
+
     def subscribed(self, topic: str | None = None) -> bool:
         """Whether a client is subscribed to ``topic`` (None: to any topic)."""
         channels = self._channels.values() if topic is None else [self._channels[topic]]
@@ -275,6 +282,7 @@ class FoxgloveTap:
         self._failed: set[str] = set()
         self._time_topic = translator.names.topic("truth/tf") if translator.world_topics else ""
         self._raw_topics: dict[str, str] = {}     # bridge key -> its raw stream's topic
+        self._idle_until: dict[str, float] = {}   # bridge key -> when a topic of it may be due
         if server is not None:
             for topic, cls in translator.channels().items():
                 server.add_channel(topic, self._schemas[cls])
@@ -296,6 +304,10 @@ class FoxgloveTap:
     def record(self, channel: str, t: float, payload: Mapping[str, Any]) -> None:
         if self.inner is not None:
             self.inner.record(channel, t, payload)
+        server = self.server
+        if (self.recorder is None and server is not None
+                and server.clock() < self._idle_until.get(channel, 0.0)):
+            return      # live only, and none of the key's topics is due yet: the common case
         with self._lock:
             self._draw(channel, t, payload)
 
@@ -338,6 +350,10 @@ class FoxgloveTap:
             elif server.due(raw, now):
                 server.log(raw, json.dumps(payload, separators=(",", ":")).encode(),
                            time_ns(t) if ns < 0 else ns)
+            if raw is not None:
+                assert now is not None
+                self._idle_until[key] = min(server.next_due(topic, now)
+                                            for topic in (raw, *(o.topic for o in outputs)))
 
     def _raw_channel(self, key: str) -> None:
         """Advertise the raw stream of ``key``: the bridge's JSON message, for the plots, on
