@@ -168,10 +168,15 @@ def run(args: argparse.Namespace) -> int:
             return f"Recorded {recorder.written} messages to {recorder.path}."
 
     if foxglove_io is not None and (address is not None or args.record is not None):
-        # the scene in Foxglove's schemas: live and/or into the recording (docs/foxglove.md)
+        # the scene in Foxglove's schemas: live and/or into the recording (docs/foxglove.md);
+        # [[robots]]: every robot's, on one server and in one recording (docs/multirobot.md)
+        from koala_bridge.runtime.fleet_source import FleetSource
+
+        robots = (list(zip(source.names, source.robots, strict=True))
+                  if isinstance(source, FleetSource) else [])
         source = foxglove_io.attach_foxglove(
-            source, settings.robot_name, address=address,
-            recorder=recorder,
+            source, ", ".join(n for n, _ in robots) or settings.robot_name, address=address,
+            recorder=recorder, robots=robots,
         )
 
     return run_session(

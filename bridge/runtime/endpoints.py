@@ -14,7 +14,8 @@ With several robots (``[[robots]]``, docs/multirobot.md) the file holds one such
 robot, under its name, in the configuration's order::
 
     {"robots": {"alpha": {"serial": ..., "can": ..., "mavlink": ..., "zenoh": ...},
-                "beta": {...}}}
+                "beta": {...}},
+     "foxglove": {"url": "ws://HOST:PORT"}}          (only with run --foxglove: one server)
  The file is written atomically
 (a temporary file in the same directory, then ``os.replace``), so a reader never sees half a file,
 and only after every endpoint accepts clients.
@@ -136,8 +137,10 @@ class FleetEndpoints(Endpoints):
     robots: tuple[tuple[str, Endpoints], ...] = ()
 
     def to_json_dict(self) -> dict[str, Any]:
-        """The endpoints file's content: ``{"robots": {name: one robot's object}}``."""
-        return {"robots": {name: ep.to_json_dict() for name, ep in self.robots}}
+        """The endpoints file's content: ``{"robots": {name: one robot's object}}``, and
+        ``"foxglove": {"url": ...}`` beside it with run --foxglove (one server for all)."""
+        return {"robots": {name: ep.to_json_dict() for name, ep in self.robots},
+                **({"foxglove": {"url": self.foxglove_url}} if self.foxglove_url else {})}
 
     def describe(self) -> str:
         """Each robot's lines of :meth:`Endpoints.describe`, under its name."""
@@ -145,6 +148,9 @@ class FleetEndpoints(Endpoints):
         for name, ep in self.robots:
             lines.append(f"Robot {name}:")
             lines += ["  " + line for line in ep.describe().splitlines()[1:]]
+        if self.foxglove_url:
+            lines.append(f"  Foxglove (live view)    {self.foxglove_url}   every robot; open it "
+                         "in Foxglove: Open connection > Foxglove WebSocket (docs/foxglove.md)")
         return "\n".join(lines)
 
     def robot(self, name: str) -> Endpoints:

@@ -20,8 +20,9 @@ The static scene (the map, the world's grid, the robot's body) goes to a client 
 subscribes, and into a recording at t = 0 and every :data:`STATIC_PERIOD_S` simulated seconds
 (a player that seeks finds it).
 
-Several robots: one :class:`SceneTranslator` per robot (its topics under ``/<robot name>``);
-:class:`FoxgloveTap` takes a translator, a server can be shared by several taps.
+Several robots (``[[robots]]``): one :class:`SceneTranslator` and one :class:`FoxgloveTap` per
+robot (its topics under ``/<robot name>/scene``, the world's drawn by the first robot), all on
+one server and one recording (:func:`attach_foxglove` with ``robots``).
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ import json
 import logging
 import threading
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import replace
 from typing import Any
 
@@ -133,7 +134,7 @@ class FoxgloveServer:
         self._channels: dict[str, foxglove.Channel] = {}
         self._next: dict[str, float] = {}
         self._period: dict[str, float] = {}
-        self._static: list[tuple[str, bytes]] = []
+        self._static: dict[str, bytes] = {}
         self._static_t_ns = 0
         self._subscribed = threading.Event()
         self._closed = threading.Event()
@@ -197,6 +198,13 @@ class FoxgloveServer:
         self._next[topic] = max(next_t + period, now - period)
         return True
 
+    def next_due(self, topic: str, now: float) -> float:
+        """The clock's time before which :meth:`due` of ``topic`` is surely False: its next
+        slot, or a period from ``now`` while no client is subscribed to it."""
+        if not self._channels[topic].has_sinks():
+            return now + self._period[topic]
+        return self._next[topic]
+
     def subscribed(self, topic: str | None = None) -> bool:
         """Whether a client is subscribed to ``topic`` (None: to any topic)."""
         channels = self._channels.values() if topic is None else [self._channels[topic]]
@@ -210,9 +218,10 @@ class FoxgloveServer:
         self._static_t_ns = t_ns
         self._server.broadcast_time(t_ns)
 
-    def set_static(self, messages: Iterable[tuple[str, bytes]]) -> None:
-        """The messages each client gets when it subscribes (their channels must exist)."""
-        self._static = list(messages)
+    def add_static(self, messages: Iterable[tuple[str, bytes]]) -> None:
+        """Messages each client gets when it subscribes to their topics (their channels must
+        exist); a topic's message replaces the one it had. Several taps add theirs."""
+        self._static = {**self._static, **dict(messages)}
         self._subscribed.set()
 
     # -- the static scene ----------------------------------------------------------------------
@@ -224,7 +233,7 @@ class FoxgloveServer:
             # the subscription is in force once the listener has returned: a moment later
             self._closed.wait(0.05)
             self._subscribed.clear()
-            for topic, data in self._static:
+            for topic, data in self._static.items():
                 channel = self._channels.get(topic)
                 if channel is not None and channel.has_sinks():
                     channel.log(data, log_time=self._static_t_ns)
@@ -246,6 +255,10 @@ class FoxgloveTap:
     """A :class:`runtime.source.Tap` that passes everything on to ``inner`` (the recorder, or
     None) and draws the scene for the live ``server`` and/or the ``recorder``.
 
+    ``raw_namespace``: the live raw streams' topics are the recording's names of the keys below
+    it (a robot of ``[[robots]]``: its name, ``/alpha/sensors/gyro``). The robot whose
+    translator draws the world's topics also gives the clients the time.
+
     Thread-safe: a source may call it from several threads (a real robot's readers).
     """
 
@@ -256,8 +269,10 @@ class FoxgloveTap:
         *,
         server: FoxgloveServer | None = None,
         recorder: Recorder | None = None,
+        raw_namespace: str = "",
     ) -> None:
         self.translator = translator
+        self.raw_namespace = raw_namespace
         self.inner = inner
         self.server = server
         self.recorder = recorder
@@ -265,12 +280,13 @@ class FoxgloveTap:
         self._schemas = {cls: foxglove_schema(cls) for cls in set(translator.channels().values())}
         self._next_static = 0.0
         self._failed: set[str] = set()
-        self._time_topic = translator.names.topic("truth/tf")
+        self._time_topic = translator.names.topic("truth/tf") if translator.world_topics else ""
         self._raw_topics: dict[str, str] = {}     # bridge key -> its raw stream's topic
+        self._idle_until: dict[str, float] = {}   # bridge key -> when a topic of it may be due
         if server is not None:
             for topic, cls in translator.channels().items():
                 server.add_channel(topic, self._schemas[cls])
-            server.set_static(self._static_bytes(0.0))
+            server.add_static(self._static_bytes(0.0))
 
     # -- Tap -----------------------------------------------------------------------------------
 
@@ -288,6 +304,10 @@ class FoxgloveTap:
     def record(self, channel: str, t: float, payload: Mapping[str, Any]) -> None:
         if self.inner is not None:
             self.inner.record(channel, t, payload)
+        server = self.server
+        if (self.recorder is None and server is not None
+                and server.clock() < self._idle_until.get(channel, 0.0)):
+            return      # live only, and none of the key's topics is due yet: the common case
         with self._lock:
             self._draw(channel, t, payload)
 
@@ -330,12 +350,16 @@ class FoxgloveTap:
             elif server.due(raw, now):
                 server.log(raw, json.dumps(payload, separators=(",", ":")).encode(),
                            time_ns(t) if ns < 0 else ns)
+            if raw is not None:
+                assert now is not None
+                self._idle_until[key] = min(server.next_due(topic, now)
+                                            for topic in (raw, *(o.topic for o in outputs)))
 
     def _raw_channel(self, key: str) -> None:
         """Advertise the raw stream of ``key``: the bridge's JSON message, for the plots, on
         the recording's topic name (one layout for the live view and the recordings)."""
         assert self.server is not None
-        topic = topic_name(key)
+        topic = topic_name(f"{self.raw_namespace}/{key}" if self.raw_namespace else key)
         self.server.add_channel(topic, topic_json_schema(key), RAW_RATE_HZ)
         self._raw_topics[key] = topic
 
@@ -396,20 +420,34 @@ def attach_foxglove(
     *,
     address: tuple[str, int] | None = None,
     recorder: Recorder | None = None,
+    robots: Sequence[tuple[str, RobotSource]] = (),
 ) -> RobotSource:
     """Draw ``source``'s scene for Foxglove: live on ``address`` (``(host, port)``; None: no
     server) and into ``recorder`` (None: no recording). Wraps ``source.tap`` (the recorder's
     tap goes on behind the new one); returns the source to run (``source`` itself, or
-    ``source`` with the server, :class:`ServedWithFoxglove`)."""
-    translator = SceneTranslator(source.world_answer(), robot)
-    inner = source.tap
+    ``source`` with the server, :class:`ServedWithFoxglove`).
+
+    ``robots``: the robots of a ``[[robots]]`` source, ``(name, its source)`` in order; each
+    robot's tap is wrapped instead, its scene drawn under ``/<name>/scene`` with frames
+    ``<name>/...``, its raw streams under ``/<name>``, the world's topics by the first robot
+    only, all on one server (``robot`` then only names the server).
+    """
+    members = list(robots) or [(robot, source)]
+    fleet = bool(robots)
+    translators = [
+        SceneTranslator(member.world_answer(), name,
+                        namespace=f"/{name}/scene" if fleet else "", world_topics=i == 0)
+        for i, (name, member) in enumerate(members)]
+    inners = [member.tap for _, member in members]
+
+    def wrap(server: FoxgloveServer | None) -> None:
+        for (name, member), translator, inner in zip(members, translators, inners, strict=True):
+            member.tap = FoxgloveTap(translator, inner, server=server, recorder=recorder,
+                                     raw_namespace=name if fleet else "")
+
     if address is None:
-        source.tap = FoxgloveTap(translator, inner, recorder=recorder)
+        wrap(None)
         return source
-
-    def on_open(server: FoxgloveServer) -> None:
-        source.tap = FoxgloveTap(translator, inner, server=server, recorder=recorder)
-
     host, port = address
     return ServedWithFoxglove(  # type: ignore[return-value]
-        source, lambda: FoxgloveServer(host, port, name=f"koala-bridge {robot}"), on_open)
+        source, lambda: FoxgloveServer(host, port, name=f"koala-bridge {robot}"), wrap)

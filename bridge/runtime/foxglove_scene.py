@@ -14,7 +14,8 @@ Frames (Foxglove's frame tree; FLU body frame, world x east / y north, z up):
 - ``<robot>/estimate`` -- where the localisation node thinks it is (``estimate/pose``).
 
 Topics: the world's (shared by every robot) under ``/world``, each robot's under
-``/<robot name>`` (:class:`SceneTopics`), so that several robots can share one server:
+``/<robot name>`` (:class:`SceneTopics`; a robot of ``[[robots]]``: ``/<robot name>/scene``),
+so that several robots share one server and one recording:
 
 =================================  ==================  ===========================================
 topic                              schema              from
@@ -110,12 +111,15 @@ class Output:
 
 @dataclass(frozen=True)
 class SceneTopics:
-    """The topic and frame names of one robot (``robot``: its ``[robot] name``)."""
+    """The topic and frame names of one robot (``robot``: its ``[robot] name``). Its topics are
+    under ``namespace``, by default ``/<robot>``; a robot of ``[[robots]]`` has its scene under
+    ``/<robot>/scene`` (its recording's JSON channels are ``/<robot>/<key>`` already)."""
 
     robot: str
+    namespace: str = ""
 
     def topic(self, suffix: str) -> str:
-        return f"/{self.robot}/{suffix}"
+        return f"{self.namespace or '/' + self.robot}/{suffix}"
 
     @property
     def base_frame(self) -> str:
@@ -183,13 +187,20 @@ class SceneTranslator:
 
     Args:
         world: the ``world`` answer (:class:`core.topics.WorldMessage` as JSON), with ``robot``.
-        robot: the robot's name (its topics' prefix); by default the description's ``name``.
+        robot: the robot's name (its frames' prefix, and its topics' unless ``namespace``); by
+            default the description's ``name``.
+        namespace: the robot's topics' prefix (``/alpha/scene``); by default ``/<robot>``.
+        world_topics: whether it draws the world's topics (``/world/map``, ``/world/grid``):
+            several robots on one server or in one recording share them, drawn by one robot.
     """
 
-    def __init__(self, world: Mapping[str, Any], robot: str | None = None) -> None:
+    def __init__(self, world: Mapping[str, Any], robot: str | None = None, *,
+                 namespace: str = "", world_topics: bool = True) -> None:
         self.world = world
         self.robot_description: Mapping[str, Any] = world.get("robot") or {}
-        self.names = SceneTopics(robot or str(self.robot_description.get("name") or "koala"))
+        self.names = SceneTopics(robot or str(self.robot_description.get("name") or "koala"),
+                                 namespace)
+        self.world_topics = world_topics
         sensors = self.robot_description.get("sensors") or {}
         self._ir = _sensor_poses(self.robot_description, "ir")
         self._ir_range = float((sensors.get("ir") or {}).get("max_range_m", 0.25))
@@ -240,16 +251,19 @@ class SceneTranslator:
 
     def channels(self) -> dict[str, type]:
         """Every topic this translator writes -> its schema class (static ones included)."""
-        out: dict[str, type] = {MAP_TOPIC: SceneUpdate, GRID_TOPIC: Grid,
-                                self.names.topic("body"): SceneUpdate}
+        out: dict[str, type] = ({MAP_TOPIC: SceneUpdate, GRID_TOPIC: Grid}
+                                if self.world_topics else {})
+        out[self.names.topic("body")] = SceneUpdate
         for outputs in self._outputs.values():
             out.update({o.topic: o.schema for o in outputs})
         return out
 
     def static(self, t: float = 0.0) -> list[tuple[str, FoxgloveMessage]]:
-        """The messages that do not change: the map, the world's grid and the robot's body."""
-        return [(MAP_TOPIC, self.world_map(t)), (GRID_TOPIC, self.world_grid(t)),
-                (self.names.topic("body"), self.body(t))]
+        """The messages that do not change: the map and the world's grid (if it draws the
+        world's topics) and the robot's body."""
+        world = ([(MAP_TOPIC, self.world_map(t)), (GRID_TOPIC, self.world_grid(t))]
+                 if self.world_topics else [])
+        return [*world, (self.names.topic("body"), self.body(t))]
 
     # -- the world ---------------------------------------------------------------------------
 

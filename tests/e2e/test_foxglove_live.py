@@ -123,3 +123,58 @@ def test_non_loopback_refused_and_bad_address(bridge: Any, tmp_path: Any) -> Non
         assert len(lines) == 1 and words in lines[0], done.stderr
 
 
+
+
+def test_every_robot_of_a_fleet_on_one_server(bridge: Any) -> None:
+    """[[robots]] (examples/two_robots.toml): one server, its URL beside "robots" in the
+    endpoints file; one shared map; each robot's scene under /<name>/scene with its own frames,
+    each pose what that robot's Zenoh truth says at the same time."""
+    from conftest import REPO, ZenohWatch
+
+    b = bridge(clock="realtime", config=REPO / "examples" / "two_robots.toml",
+               extra=["--foxglove", "127.0.0.1:0"])
+    url = b.endpoints["foxglove"]["url"]
+    assert list(b.endpoints["robots"]) == ["alpha", "beta"]
+    assert url.startswith("ws://127.0.0.1:") and f"Foxglove (live view)    {url}" in b.log()
+    alpha = b.endpoints["robots"]["alpha"]
+    assert alpha["zenoh"]["prefix"] == "koala/alpha"
+    watch = ZenohWatch(alpha["zenoh"]["endpoints"][0], "koala")  # keys "<name>/truth/pose"
+    try:
+        with serial.Serial(alpha["serial"]["kteam"], 115200, timeout=5) as port:
+            port.write(b"D,10,4\r")   # alpha drives an arc; beta stands
+            assert port.read_until(b"\r\n").startswith(b"d")
+        names = ("alpha", "beta")
+        poses = {n: f"/{n}/scene/truth/pose" for n in names}
+        tfs = {n: f"/{n}/scene/truth/tf" for n in names}
+        raw = {n: f"/{n}/sensors/gyro" for n in names}
+        with FoxgloveClient(url) as client:
+            client.wait_advertised([MAP, *poses.values(), *tfs.values(), *raw.values()])
+            assert client.server_info["name"] == "koala-bridge alpha, beta"
+            for n in names:
+                assert client.channels[poses[n]]["schemaName"] == "foxglove.PoseInFrame"
+                assert client.channels[tfs[n]]["schemaName"] == "foxglove.FrameTransform"
+                assert client.channels[raw[n]]["encoding"] == "json"
+            assert not [t for t in client.channels if t.startswith("/koala/")]
+            client.subscribe([MAP, *poses.values(), *tfs.values()])
+            got = client.receive(lambda g: len(g.get(MAP, ())) >= 1 and all(
+                len(g.get(t, ())) >= 5 for t in (*poses.values(), *tfs.values())))
+        assert len(got[MAP]) == 1     # one map for both (each robot's body is its own topic)
+        for n in names:
+            last = max(t_ns(r.message.timestamp) for r in got[poses[n]])
+            watch.after(f"{n}/truth/pose", last * 1e-9)
+            truth = {round(m["t"] * 1e9): m for m in watch.messages[f"{n}/truth/pose"]}
+            for r in got[poses[n]]:
+                m = truth[t_ns(r.message.timestamp)]
+                p = r.message.pose
+                assert r.message.frame_id == "world"
+                assert (p.position.x, p.position.y) == (m["x"], m["y"])
+                assert yaw(p.orientation) == pytest.approx(m["theta"], abs=1e-12)
+            for r in got[tfs[n]]:
+                tf, m = r.message, truth[t_ns(r.message.timestamp)]
+                assert (tf.parent_frame_id, tf.child_frame_id) == ("world", f"{n}/base_link")
+                assert (tf.translation.x, tf.translation.y) == (m["x"], m["y"])
+        xs = {n: {r.message.pose.position.x for r in got[poses[n]]} for n in names}
+        assert max(xs["alpha"]) < 2.0 < min(xs["beta"])   # two robots, not one drawn twice
+        assert len({r.message.pose.orientation.z for r in got[poses["alpha"]]}) > 1  # turning
+    finally:
+        watch.close()

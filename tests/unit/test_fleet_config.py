@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import tomllib
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -136,7 +137,11 @@ def test_fleet_endpoints_file_names_each_robot() -> None:
     doc = fleet.to_json_dict()
     assert list(doc) == ["robots"] and list(doc["robots"]) == ["a", "b"]
     assert doc["robots"]["a"] == one.to_json_dict()      # each robot: the one-robot format
-    assert "Robot b:" in fleet.describe()
+    assert "Robot b:" in fleet.describe() and "Foxglove" not in fleet.describe()
+    # run --foxglove: one server for every robot, its URL beside "robots"
+    served = replace(fleet, foxglove_url="ws://127.0.0.1:8765")
+    assert served.to_json_dict() == {**doc, "foxglove": {"url": "ws://127.0.0.1:8765"}}
+    assert "Foxglove (live view)    ws://127.0.0.1:8765" in served.describe()
 
 
 def test_example_is_the_default_config_plus_robots() -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import base64
 import math
+import time
 from typing import Any
 
 import numpy as np
@@ -68,6 +69,23 @@ def test_truth_pose_transform_and_pose(world: dict[str, Any]) -> None:
     assert 2 * math.atan2(tf.rotation.z, tf.rotation.w) == pytest.approx(-2.5)
     pose = build(tr, "truth/pose", "/k2/truth/pose", p)
     assert pose.frame_id == "world" and pose.pose.position.y == 2.0
+
+
+def test_a_fleet_robot_has_its_scene_under_its_namespace(world: dict[str, Any]) -> None:
+    """[[robots]]: robot b's topics under /b/scene, its frames b/...; the world's topics drawn
+    by one robot only (the others share them)."""
+    first = SceneTranslator(world, "a", namespace="/a/scene")
+    other = SceneTranslator(world, "b", namespace="/b/scene", world_topics=False)
+    assert {"/world/map", "/world/grid", "/a/scene/body", "/a/scene/truth/pose"} <= set(
+        first.channels())
+    assert [t for t, _ in first.static()] == ["/world/map", "/world/grid", "/a/scene/body"]
+    assert [t for t, _ in other.static()] == ["/b/scene/body"]
+    assert all(t.startswith("/b/scene/") for t in other.channels())
+    assert len(other.channels()) == len(first.channels()) - 2
+    tf = build(other, "truth/pose", "/b/scene/truth/tf", {"t": 0.5, "x": 1, "y": 2, "theta": 0})
+    assert (tf.parent_frame_id, tf.child_frame_id) == ("world", "b/base_link")
+    scan = other.outputs("sensors/sonar")[1]
+    assert scan.topic == "/b/scene/sensors/sonar/scan"
 
 
 def test_estimate_covariance_and_its_ellipse(world: dict[str, Any]) -> None:
@@ -203,3 +221,37 @@ def test_layout_file_names_topics_that_exist(world: dict[str, Any]) -> None:
             topic, field = path["value"].split(".", 1)
             cls = TOPICS[topic.strip("/")]
             assert field.split(".")[0].split("[")[0] in cls.__dataclass_fields__, (name, path)
+
+
+
+# foxglove-sdk's server runtime keeps sockets open after stop() (its process-wide runtime):
+# nothing this test can close, so the descriptor check is off for it alone.
+@pytest.mark.no_leak_check
+def test_live_topics_wait_for_a_client_and_their_slot() -> None:
+    """The live tap skips a key until one of its topics may be due: with no client, a period
+    from now (a client that subscribes waits at most that); with one, the topic's next slot."""
+    from _foxglove import FoxgloveClient
+    from koala_bridge.runtime.foxglove_io import FoxgloveServer
+
+    now = [10.0]
+    server = FoxgloveServer("127.0.0.1", 0, clock=lambda: now[0])
+    try:
+        server.add_channel("/x", {"type": "object"}, rate_hz=20.0)
+        assert not server.due("/x") and server.next_due("/x", 10.0) == pytest.approx(10.05)
+        with FoxgloveClient(server.url) as client:
+            client.wait_advertised(["/x"])
+            client.subscribe(["/x"])
+            deadline = time.monotonic() + 30
+            while not server.subscribed("/x"):
+                assert time.monotonic() < deadline
+                time.sleep(0.01)
+            slots = 0
+            while server.due("/x"):     # the first slots catch up to the clock
+                slots += 1
+            assert slots >= 1 and server.next_due("/x", now[0]) == pytest.approx(10.05)
+            now[0] = 10.04
+            assert not server.due("/x")
+            now[0] = 10.05
+            assert server.due("/x") and server.next_due("/x", now[0]) == pytest.approx(10.10)
+    finally:
+        server.close()
