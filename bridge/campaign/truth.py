@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeAlias
 
@@ -118,11 +118,12 @@ def firmware_bus_rejections(rec: RecordingLike) -> dict[str, int]:
 def outcome_digest(rec: RecordingLike) -> str:
     """SHA-256 over every channel a run's outcome depends on, message by message with its time
     stamp: the truth, every sensor, the estimator, every frame the robot put on a bus.
-    ``/status`` (a wall-clock real-time factor) and the frames the firmware sent (they arrive in
+    ``/status`` (a wall-clock real-time factor), the Foxglove scene channels drawn from the
+    others (their Log repeats that factor) and the frames the firmware sent (they arrive in
     scheduling-dependent chunks) are left out, as in the lockstep determinism test. Two lockstep
     runs of one case have the same digest."""
     h = hashlib.sha256()
-    for m in _outcome_messages(_recording(rec).messages):
+    for m in _outcome_messages(_recording(rec)):
         h.update(m.topic.encode())
         h.update(m.log_time_ns.to_bytes(8, "little", signed=True))
         h.update(len(m.data).to_bytes(8, "little"))
@@ -130,10 +131,14 @@ def outcome_digest(rec: RecordingLike) -> str:
     return h.hexdigest()
 
 
-def _outcome_messages(messages: Iterable[Any]) -> list[Any]:
+def _outcome_messages(rec: Recording) -> list[Any]:
     out = []
-    for m in messages:
-        if m.topic == "/status":
+    for m in rec.messages:
+        if m.topic == "/status" or m.topic.endswith("/status"):  # a fleet's: /NAME/status
+            continue
+        if rec.message_encoding(m) != "json":
+            # the Foxglove scene (docs/recording.md): drawn from the JSON channels, and its Log
+            # carries /status's wall-clock real-time factor
             continue
         if m.topic.startswith("/bus/") and m.json().get("dir") != "from_robot":
             continue

@@ -93,11 +93,14 @@ def run(tmp: Path, name: str, hostile: bool) -> tuple[Path, dict[str, object]]:
 
 
 def channels(mcap: Path) -> dict[str, list[tuple[int, bytes]]]:
-    """Every channel except ``/status``, as (time stamp, bytes); bus channels keep the frames
-    the robot sent."""
+    """Every channel except ``/status`` and the Foxglove scene, as (time stamp, bytes); bus
+    channels keep the frames the robot sent."""
     out: dict[str, list[tuple[int, bytes]]] = {}
-    for m in open_recording(mcap).messages:
-        if m.topic == "/status":
+    rec = open_recording(mcap)
+    for m in rec.messages:
+        if m.topic.endswith("/status") or rec.message_encoding(m) != "json":
+            # the wall-clock real-time factor, and the Foxglove scene drawn from the other
+            # channels (its Log repeats that factor)
             continue
         if m.topic.startswith("/bus/") and m.json().get("dir") != "from_robot":
             continue
