@@ -24,6 +24,8 @@ import sys
 import uuid
 from pathlib import Path
 
+from koala_bridge.cli.main import count
+
 log = logging.getLogger(__name__)
 
 EXAMPLE = """examples:
@@ -48,7 +50,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("campaign-out"), metavar="DIR",
                         help="output folder (default: ./campaign-out)")
     where = parser.add_mutually_exclusive_group()
-    where.add_argument("--workers", type=_count, metavar="N",
+    where.add_argument("--workers", type=count, metavar="N",
                        help="runs at once on this machine (default: one per core)")
     where.add_argument("--cluster", metavar="ADDRESS",
                        help="a Dask scheduler, tcp://HOST:PORT or its scheduler file: runs go "
@@ -66,16 +68,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
-
-
-def _count(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {text}")
-    return value
 
 
 def run(args: argparse.Namespace) -> int:

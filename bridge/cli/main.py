@@ -83,6 +83,17 @@ def positive(text: str) -> float:
     return value
 
 
+def count(text: str) -> int:
+    """Argument type: a whole number >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {text}")
+    return value
+
+
 class OneLineErrorParser(argparse.ArgumentParser):
     """An argument error is one line on stderr (exit 2) that points at ``--help``, instead of
     the usage block followed by the error."""

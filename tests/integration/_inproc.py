@@ -10,7 +10,7 @@ import threading
 from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, TypeVar
 
 import can
 import serial
@@ -23,6 +23,15 @@ from koala_bridge.runtime.settings import (
     parse_override,
 )
 from koala_bridge.runtime.sim_source import SimulatedRobotSource
+
+
+class _Served(Protocol):
+    def open(self) -> Any: ...
+    def run(self, stop: threading.Event, duration_s: float | None = None) -> Any: ...
+    def close(self) -> None: ...
+
+
+S = TypeVar("S", bound=_Served)
 
 REPO = Path(__file__).resolve().parents[2]
 WAIT_S = 10.0
@@ -74,6 +83,14 @@ def bridge(*overrides: str, duration_s: float = 0.0, faults: list[dict[str, Any]
     exit."""
     config = lockstep_config(*overrides, faults=faults)
     source = SimulatedRobotSource(config, BridgeSettings.from_config(config), tap=tap)
+    with serving(source, duration_s):
+        yield source
+
+
+@contextmanager
+def serving(source: S, duration_s: float = 0.0) -> Iterator[S]:
+    """``source`` opened, its loop in a thread for ``duration_s`` (0: until the exit); stopped,
+    closed and the loop joined on exit."""
     source.open()
     stop = threading.Event()
     loop = threading.Thread(target=source.run, args=(stop, duration_s), daemon=True)

@@ -6,7 +6,6 @@ same streams for both robots."""
 from __future__ import annotations
 
 import math
-import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -15,7 +14,7 @@ from typing import Any
 import can
 import numpy as np
 import serial
-from _inproc import REPO, WAIT_S, ListTap, zenoh_session
+from _inproc import REPO, WAIT_S, ListTap, serving, zenoh_session
 from conftest import free_port
 from koala_bridge.drivers.messages import MotorCommandFrame, WheelOdometryFrame
 from koala_bridge.runtime.fleet_config import robot_entries
@@ -58,17 +57,8 @@ def fleet(config: dict[str, Any], tap: ListTap | None = None) -> Iterator[FleetS
     source = FleetSource(config, BridgeSettings.from_config(config), entries)
     if tap is not None:
         source.tap = tap
-    source.open()
-    stop = threading.Event()
-    loop = threading.Thread(target=source.run, args=(stop, 0.0), daemon=True)
-    loop.start()
-    try:
+    with serving(source):
         yield source
-    finally:
-        stop.set()
-        source.close()
-        loop.join(WAIT_S)
-        assert not loop.is_alive()
 
 
 @contextmanager
