@@ -929,6 +929,10 @@ class SimulatedRobotSource:
                 splitter.reset()
             if not data:
                 return
+            if self.settings.lockstep.cycle_bus == "kteam":
+                # a client wrote: the firmware was there, even if no poll of the loop caught it
+                # connected (one that asks once and leaves, on a loaded machine)
+                self._firmware_seen = True
             if self.tap is not None:
                 self.tap.record_frame("serial/kteam", "to_robot", self.port.t, data)
             for line in splitter.feed(data):
