@@ -5,6 +5,9 @@ the firmware says about itself (except the localisation check, which compares th
 reported estimates with the truth):
 
 ``exit_code``                the firmware exited 0 within the wall-clock timeout
+``sim_time_advanced``        simulated time moved past 0 (a run where nothing was simulated --
+                             the firmware never sent a cycle message -- proves nothing)
+``sim_time_min_s``           simulated time reached at least X s
 ``no_wall_contact``          the body circle (``robot.body_radius_m``) never reached a wall
 ``coverage_min_percent``     the truth passed near the centre of at least X % of the cells
                              reachable from where the robot started
@@ -90,6 +93,8 @@ def judge(run: RunOutcome, checks: ChecksTable, campaign_dir: Path
     else:
         figures = _figures(run, rec)
     needs_recording = [name for name, on in (
+        ("sim_time_advanced", checks.sim_time_advanced),
+        ("sim_time_min_s", checks.sim_time_min_s is not None),
         ("no_wall_contact", checks.no_wall_contact),
         ("coverage_min_percent", checks.coverage_min_percent is not None),
         ("localisation_error_max_m", checks.localisation_error_max_m is not None),
@@ -97,6 +102,7 @@ def judge(run: RunOutcome, checks: ChecksTable, campaign_dir: Path
     if rec is None:
         results += [CheckResult(n, False, "no readable recording") for n in needs_recording]
     else:
+        results += _sim_time_checks(run, checks, figures.get("sim_time_s"))
         if checks.no_wall_contact:
             c = figures.get("min_clearance_m")
             results.append(CheckResult(
@@ -128,6 +134,32 @@ def judge(run: RunOutcome, checks: ChecksTable, campaign_dir: Path
     for spec in checks.user:
         results.append(run_user_check(spec, run, campaign_dir))
     return results, figures
+
+
+def _sim_time_checks(run: RunOutcome, checks: ChecksTable, t: float | None
+                     ) -> list[CheckResult]:
+    """``sim_time_advanced`` and ``sim_time_min_s``: how far simulated time went (the last truth
+    sample's time), said as what happened."""
+    out: list[CheckResult] = []
+    ended = ("the firmware exited" if run.returncode is not None and not run.timed_out
+             else "the run ended")
+    reached = 0.0 if t is None else t
+    if checks.sim_time_advanced:
+        if reached > 0:
+            out.append(CheckResult("sim_time_advanced", True, f"simulated {reached:g} s"))
+        else:
+            lockstep = run.config.get("lockstep", {})
+            what = f"{lockstep.get('cycle_bus', 'kteam')} {lockstep.get('cycle_message', 'D')!r}"
+            out.append(CheckResult(
+                "sim_time_advanced", False,
+                f"{ended} after {reached:.1f} s of simulated time: it never sent a cycle "
+                f"message ({what}, [lockstep] in docs/protocols.md section 6)"))
+    if checks.sim_time_min_s is not None:
+        out.append(CheckResult(
+            "sim_time_min_s", reached >= checks.sim_time_min_s,
+            f"{ended} after {reached:g} s of simulated time (>= {checks.sim_time_min_s:g} s "
+            "needed)"))
+    return out
 
 
 def _figures(run: RunOutcome, rec: Recording) -> dict[str, Any]:

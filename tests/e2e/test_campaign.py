@@ -231,10 +231,29 @@ def test_one_case_of_the_example_campaign_runs_with_the_coverage_firmware(
     campaign(tmp_path, "--only", case, "--out", str(tmp_path / "out"), check=1)
     (run,) = runs(tmp_path / "out").values()
     checks = {c["name"]: c["passed"] for c in run["checks"]}
-    assert checks == {"exit_code": False, "no_wall_contact": True, "coverage_min_percent": False,
+    assert checks == {"exit_code": False, "sim_time_advanced": True, "no_wall_contact": True,
+                      "coverage_min_percent": False,
                       "localisation_error_max_m": False, "no_bus_errors": True}, run["checks"]
     assert run["firmware_exit"] == 1 and not run["timed_out"]
     # the firmware ended on its budget (the bridge runs 1 s past it, campaign/runner.py)
     assert run["figures"]["sim_time_s"] == pytest.approx(15.0, abs=0.05)
     log = (tmp_path / "out" / "logs" / case / "report.json").read_text()
     assert json.loads(log)["ended"] == "robot-time budget"
+
+
+def test_a_firmware_that_never_cycles_fails_sim_time_advanced(tmp_path: Path) -> None:
+    """The firmware reads the endpoints file and exits 0 without a cycle message: nothing was
+    simulated (held at t = 0), which must not pass -- whatever the other checks say."""
+    text = CAMPAIGN.replace('"--report", "{report}"]', '"--report", "{report}", "--no-cycle"]')
+    text = text.replace("[checks]\n", "[checks]\nsim_time_min_s = 5.0\n")
+    (tmp_path / "c.toml").write_text(text)
+    case = CASES[0]
+    campaign(tmp_path, "--only", case, "--out", str(tmp_path / "out"), check=1)
+    (run,) = runs(tmp_path / "out").values()
+    assert run["verdict"] == "fail" and run["firmware_exit"] == 0
+    checks = {c["name"]: c for c in run["checks"]}
+    assert checks["exit_code"]["passed"] and checks["no_wall_contact"]["passed"]
+    assert not checks["sim_time_advanced"]["passed"]
+    assert checks["sim_time_advanced"]["message"].startswith(
+        "the firmware exited after 0.0 s of simulated time: it never sent a cycle message")
+    assert not checks["sim_time_min_s"]["passed"]
