@@ -11,7 +11,7 @@ gives the same run, bit for bit. Runs go to a local process pool (one per core),
 Writes DIR/results.json (one record per run), DIR/junit.xml (for CI), DIR/report.md (pass/fail
 matrix; plots of failures), DIR/recordings/CASE.mcap for failures (all with --keep-all).
 Exit status: 0 every run passed, 1 some run failed, 2 a bad campaign file, 130 stopped with
-Ctrl-C (what finished is kept: --resume runs the rest).
+Ctrl-C, SIGINT or SIGTERM (what finished is kept: --resume runs the rest).
 """
 # The docstring above is this subcommand's --help (cli/main.py reads it): plain text, no reST.
 
@@ -99,8 +99,10 @@ def run(args: argparse.Namespace) -> int:
         where = f"{workers} local worker{'s' if workers != 1 else ''}"
     print(f"campaign {campaign.name}: {total} runs on {where}; output in {out}", file=sys.stderr)
     counts = {"pass": 0, "fail": 0}
-    # SIGTERM (a CI job cancelled) stops as Ctrl-C does: the runs end their processes
-    previous = signal.signal(signal.SIGTERM, _interrupt)
+    # SIGTERM (a CI job cancelled) stops as Ctrl-C does: the runs end their processes. SIGINT
+    # is installed too, whatever was inherited: a non-interactive shell starts `campaign ... &`
+    # with SIGINT ignored, and Python keeps an inherited SIG_IGN (then `kill -INT` did nothing)
+    previous = {sig: signal.signal(sig, _interrupt) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
         with count_progress(total, f"campaign {campaign.name}") as advance:
             def on_result(record: dict) -> None:  # type: ignore[type-arg]
@@ -114,11 +116,13 @@ def run(args: argparse.Namespace) -> int:
                                    resume=args.resume, keep_all=args.keep_all,
                                    on_result=on_result)
     except KeyboardInterrupt:
-        signal.signal(signal.SIGTERM, previous)
         print(f"campaign {campaign.name}: stopped; finished runs are in {out / 'results.json'}"
               f" (--resume runs the rest)", file=sys.stderr)
         return 130
-    signal.signal(signal.SIGTERM, previous)
+    finally:
+        for sig, handler in previous.items():
+            if handler is not None:  # None: not installed from Python, nothing to restore
+                signal.signal(sig, handler)
     passed = len(outcome.records) - outcome.failed
     print(f"campaign {campaign.name}: {passed} of {len(outcome.records)} runs passed "
           f"({outcome.ran} run now); {outcome.results}, {outcome.junit}, {outcome.report}")

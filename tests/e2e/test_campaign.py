@@ -179,7 +179,15 @@ def test_a_dask_cluster_on_loopback_gives_the_local_verdicts_and_figures(
         f"{c}.mcap" for c in CASES[2:])
 
 
-def test_ctrl_c_stops_cleanly_and_resume_runs_the_rest(tmp_path: Path) -> None:
+def _ignore_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+@pytest.mark.parametrize("sigint_ignored", [False, True], ids=["foreground", "background"])
+def test_ctrl_c_stops_cleanly_and_resume_runs_the_rest(tmp_path: Path,
+                                                       sigint_ignored: bool) -> None:
+    """Ctrl-C, and SIGINT to a campaign started with SIGINT ignored: what a non-interactive
+    shell does to `koala-bridge campaign c.toml &` (Python then keeps SIG_IGN)."""
     (tmp_path / "c.toml").write_text(CAMPAIGN)
     runs_tmp = tmp_path / "tmp"
     runs_tmp.mkdir()
@@ -188,7 +196,8 @@ def test_ctrl_c_stops_cleanly_and_resume_runs_the_rest(tmp_path: Path) -> None:
     proc = subprocess.Popen(
         [sys.executable, "-m", "koala_bridge", "campaign", str(tmp_path / "c.toml"),
          "--out", str(out), "--workers", "1"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+        preexec_fn=_ignore_sigint if sigint_ignored else None)
     try:
         deadline = time.monotonic() + 120
         while not ((out / "results.json").exists() and runs(out)):
