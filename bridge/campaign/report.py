@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from koala_bridge.campaign.results import n_runs
 from koala_bridge.campaign.truth import (
     estimate_errors,
     first_visits,
@@ -31,7 +32,7 @@ def write_report(out: Path, name: str, records: Sequence[Mapping[str, Any]],
     path. ``configs``: each case's bridge configuration (its world), by case id."""
     passed = sum(r["verdict"] == "pass" for r in records)
     lines = [f"# Campaign {name}", ""]
-    lines.append(f"{passed} of {len(records)} runs passed"
+    lines.append(f"{passed} of {n_runs(len(records))} passed"
                  + ("" if complete else " (incomplete: `--resume` runs the rest)") + ".")
     lines += ["", "## Matrix", ""] + _matrix(records)
     failures = [r for r in records if r["verdict"] != "pass"]

@@ -56,7 +56,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help="a Dask scheduler, tcp://HOST:PORT or its scheduler file: runs go "
                        "to its workers")
     parser.add_argument("--only", action="append", default=[], metavar="CASE_ID",
-                        help="run this case only (repeatable); ids as --list prints them")
+                        help="run this case only (repeatable); ids as --list prints them. "
+                        "Into an --out that has this campaign's results.json, the other cases' "
+                        "records are kept (merged)")
     parser.add_argument("--resume", action="store_true",
                         help="keep the runs DIR/results.json already has (same case, same "
                         "config) and run the others")
@@ -73,6 +75,7 @@ def _interrupt(signum: int, frame: object) -> None:
 def run(args: argparse.Namespace) -> int:
     from koala_bridge.campaign.engine import run_campaign
     from koala_bridge.campaign.executors import dask_executor, default_workers, local_executor
+    from koala_bridge.campaign.results import n_runs
     from koala_bridge.campaign.spec import load_campaign
     from koala_bridge.runtime.progress import count_progress
 
@@ -97,7 +100,8 @@ def run(args: argparse.Namespace) -> int:
         def executor():  # type: ignore[no-untyped-def]
             return local_executor(workers, out / ".stop")
         where = f"{workers} local worker{'s' if workers != 1 else ''}"
-    print(f"campaign {campaign.name}: {total} runs on {where}; output in {out}", file=sys.stderr)
+    print(f"campaign {campaign.name}: {n_runs(total)} on {where}; output in {out}",
+          file=sys.stderr)
     counts = {"pass": 0, "fail": 0}
     # SIGTERM (a CI job cancelled) stops as Ctrl-C does: the runs end their processes. SIGINT
     # is installed too, whatever was inherited: a non-interactive shell starts `campaign ... &`
@@ -123,7 +127,12 @@ def run(args: argparse.Namespace) -> int:
         for sig, handler in previous.items():
             if handler is not None:  # None: not installed from Python, nothing to restore
                 signal.signal(sig, handler)
-    passed = len(outcome.records) - outcome.failed
-    print(f"campaign {campaign.name}: {passed} of {len(outcome.records)} runs passed "
-          f"({outcome.ran} run now); {outcome.results}, {outcome.junit}, {outcome.report}")
+    selected = len(outcome.selected_records)
+    held = ""
+    if args.only:  # the other cases' earlier records were kept: say what results.json holds
+        held = (f"; results.json holds {len(outcome.records)} of {len(campaign.cases)} cases"
+                f"{'' if outcome.campaign_complete else ' (incomplete)'}")
+    print(f"campaign {campaign.name}: {selected - outcome.failed} of {n_runs(selected)} passed "
+          f"({outcome.ran} run now){held}; {outcome.results}, {outcome.junit}, "
+          f"{outcome.report}")
     return 0 if outcome.failed == 0 and outcome.complete else 1

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -121,11 +122,35 @@ def test_only_reproduces_cases_bit_for_bit_and_keep_all_keeps_every_recording(
     campaign(local, "--only", CASES[3], "--only", CASES[0], "--keep-all", "--out", str(out),
              "--workers", "2", check=1)
     again, first = runs(out), runs(local / "local")
-    assert list(again) == [CASES[3], CASES[0]]
+    assert list(again) == [CASES[0], CASES[3]]  # in campaign order
+    assert json.loads((out / "results.json").read_text())["complete"] is False  # 2 of 4
     for case in (CASES[3], CASES[0]):
         assert again[case]["figures"] == first[case]["figures"]  # the digest included
         assert again[case]["verdict"] == first[case]["verdict"]
         assert (out / again[case]["recording"]).stat().st_size > 0  # a pass's too
+
+
+def test_only_into_an_earlier_out_folder_merges_its_record_with_the_others(
+        local: Path) -> None:
+    out = local / "merged"
+    shutil.copytree(local / "local", out)
+    doc = json.loads((out / "results.json").read_text())
+    doc["runs"][0]["wall_s"] = 12345.0  # marks the record the re-run must replace
+    (out / "results.json").write_text(json.dumps(doc))
+    p = campaign(local, "--only", CASES[0], "--out", str(out), "--workers", "1", check=0)
+    assert "1 of 1 run passed (1 run now); results.json holds 4 of 4 cases;" in p.stdout
+    merged, first = runs(out), runs(local / "local")
+    assert list(merged) == CASES
+    assert merged[CASES[0]]["wall_s"] != 12345.0
+    assert merged[CASES[0]]["figures"] == first[CASES[0]]["figures"]
+    for case in CASES[1:]:
+        assert merged[case] == first[case]
+    assert json.loads((out / "results.json").read_text())["complete"] is True
+    suite = ET.parse(out / "junit.xml").getroot().find("testsuite")
+    assert suite is not None and (suite.get("tests"), suite.get("failures")) == ("4", "2")
+    report = (out / "report.md").read_text()
+    assert "2 of 4 runs passed." in report
+    assert "| lab_walls_1 | 1 | **FAIL** | **FAIL** |" in report
 
 
 @pytest.fixture
