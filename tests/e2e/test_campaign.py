@@ -204,6 +204,20 @@ def test_a_dask_cluster_on_loopback_gives_the_local_verdicts_and_figures(
         f"{c}.mcap" for c in CASES[2:])
 
 
+def test_resources_no_worker_offers_fail_at_once_instead_of_waiting_for_ever(
+        tmp_path: Path, dask_cluster: str) -> None:
+    """The fixture's worker offers no resources; a campaign asking for one would wait for ever
+    (Dask keeps such tasks pending): it fails before submitting, exit 2, one line."""
+    text = CAMPAIGN.replace("wall_timeout_s = 120.0", "wall_timeout_s = 120.0\n"
+                            "resources = { simulators = 1 }")
+    (tmp_path / "c.toml").write_text(text)
+    p = campaign(tmp_path, "--cluster", dask_cluster, "--out", str(tmp_path / "out"), check=2)
+    assert "offers the campaign's resources simulators=1 (what its workers offer: none)" in (
+        p.stderr)
+    assert "--resources \"simulators=1\"" in p.stderr
+    assert not (tmp_path / "out" / "results.json").exists()
+
+
 def _ignore_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 

@@ -166,3 +166,16 @@ def test_the_cli_answers_a_bad_campaign_in_one_line_and_lists_cases(
     assert listed == [c.case_id for c in load_campaign(good).cases]
     assert main(["campaign", str(good), "--only", "nope"]) == 2
     assert "no case 'nope'" in capsys.readouterr().err
+
+
+def test_workers_offering_names_the_workers_with_enough_of_every_resource() -> None:
+    from koala_bridge.campaign.executors import workers_offering
+
+    info = {"workers": {"tcp://a": {"resources": {}},
+                        "tcp://b": {"resources": {"simulators": 1.0}},
+                        "tcp://c": {"resources": {"simulators": 2.0, "gpu": 1.0}}}}
+    assert workers_offering(info, {"simulators": 1}) == ["tcp://b", "tcp://c"]
+    assert workers_offering(info, {"simulators": 2}) == ["tcp://c"]
+    assert workers_offering(info, {"simulators": 1, "gpu": 1}) == ["tcp://c"]
+    assert workers_offering(info, {"fpga": 1}) == []
+    assert workers_offering({"workers": {}}, {"simulators": 1}) == []
