@@ -108,8 +108,9 @@ def judge(run: RunOutcome, checks: ChecksTable, campaign_dir: Path
             results.append(CheckResult(
                 "no_wall_contact", c is not None and c > 0,
                 "no truth" if c is None else (
-                    f"closest body-to-wall distance {c:+.4f} m"
-                    + (f" at t = {figures['contact_t_s']:.2f} s" if c <= 0 else ""))))
+                    f"closest body-to-wall distance {c:+.4f} m at t = "
+                    f"{figures['min_clearance_t_s']:.2f} s"
+                    + (" (wall contact)" if c <= 0 else " (closest approach, no contact)"))))
         if checks.coverage_min_percent is not None:
             cov = figures.get("coverage_percent")
             results.append(CheckResult(
@@ -178,7 +179,8 @@ def _figures(run: RunOutcome, rec: Recording) -> dict[str, Any]:
     if len(bound) and np.isfinite(bound).any():
         worst = int(np.argmin(bound))
         out["min_clearance_m"] = round(float(bound[worst] - radius), 6)
-        out["contact_t_s"] = round(float(track[worst, 0]), 6)
+        # the time of closest approach (a wall contact only when min_clearance_m <= 0)
+        out["min_clearance_t_s"] = round(float(track[worst, 0]), 6)
     world = Grid.from_dict(run.config["world"])
     start = world.cell_of(track[0, 1], track[0, 2])
     reachable = reachable_cells(world, start)

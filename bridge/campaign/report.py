@@ -103,7 +103,7 @@ def _plot_failure(out: Path, record: Mapping[str, Any],
     estimates = np.asarray([e[:3] for e in report.get("estimates") or ()], dtype=float)
     if len(estimates):
         ax_map.plot(estimates[:, 1], estimates[:, 2], ".", ms=3, label="firmware estimate")
-    contact = record["figures"].get("contact_t_s")
+    contact = record["figures"].get("min_clearance_t_s")  # a contact when the clearance <= 0
     if record["figures"].get("min_clearance_m", 1.0) <= 0 and contact is not None:
         i = int(np.argmin(np.abs(track[:, 0] - contact)))
         ax_map.plot(track[i, 1], track[i, 2], "x", color="red", ms=10, label="wall contact")

@@ -65,7 +65,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--keep-all", action="store_true",
                         help="keep every run's recording, not only the failures'")
     parser.add_argument("--list", action="store_true",
-                        help="print the case ids and exit")
+                        help="print the case ids (with --only: those) and exit")
 
 
 def _interrupt(signum: int, frame: object) -> None:
@@ -80,12 +80,12 @@ def run(args: argparse.Namespace) -> int:
     from koala_bridge.runtime.progress import count_progress
 
     campaign = load_campaign(args.campaign)  # ConfigError: one line, exit 2 (cli/main.py)
-    if args.list:
-        for case in campaign.cases:
-            print(case.case_id)
-        return 0
     for case_id in args.only:
         campaign.case(case_id)  # an unknown id fails before anything runs
+    if args.list:  # with --only: those cases only
+        for case in [campaign.case(c) for c in args.only] if args.only else campaign.cases:
+            print(case.case_id)
+        return 0
     out: Path = args.out
     total = len(args.only) if args.only else len(campaign.cases)
     if args.cluster:

@@ -99,6 +99,11 @@ def test_local_pool_judges_every_run_and_writes_results_junit_and_report(local: 
     assert r[CASES[2]]["figures"]["min_clearance_m"] <= 0 < r[CASES[0]]["figures"][
         "min_clearance_m"]
     assert r[CASES[0]]["figures"]["sim_time_s"] == pytest.approx(10.0)
+    # the time of the closest approach, named so that a passing run's cannot read as a contact
+    assert "contact_t_s" not in r[CASES[0]]["figures"]
+    assert 0 <= r[CASES[0]]["figures"]["min_clearance_t_s"] <= 10.0
+    (clear,) = [c for c in r[CASES[0]]["checks"] if c["name"] == "no_wall_contact"]
+    assert clear["message"].endswith("(closest approach, no contact)")
     assert all(r[c]["startup_s"] > 0 and r[c]["firmware_exit"] == 0 for c in CASES)
     # recordings for failures only; the report plots them
     assert r[CASES[0]]["recording"] is None

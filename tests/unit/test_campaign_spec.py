@@ -166,6 +166,12 @@ def test_the_cli_answers_a_bad_campaign_in_one_line_and_lists_cases(
     assert listed == [c.case_id for c in load_campaign(good).cases]
     assert main(["campaign", str(good), "--only", "nope"]) == 2
     assert "no case 'nope'" in capsys.readouterr().err
+    # --list with --only lists those only (an unknown one is still an error)
+    assert main(["campaign", str(good), "--list", "--only", "lab_walls_2-s7-none-slow",
+                 "--only", "lab_walls_1-s0-none-base"]) == 0
+    assert capsys.readouterr().out.split() == ["lab_walls_2-s7-none-slow",
+                                               "lab_walls_1-s0-none-base"]
+    assert main(["campaign", str(good), "--list", "--only", "nope"]) == 2
 
 
 def test_workers_offering_names_the_workers_with_enough_of_every_resource() -> None:
