@@ -38,7 +38,8 @@ EXAMPLE = """examples:
 
   # on a Dask cluster (docs/campaigns.md "On a cluster"): the firmware must be on each worker
   dask scheduler --host 10.0.0.5 --port 8786 &
-  dask worker tcp://10.0.0.5:8786 --nthreads 1 --nworkers 4 &   # on each machine
+  # on each machine: one process per run at once, one thread each (a run is processes)
+  dask worker tcp://10.0.0.5:8786 --nworkers 4 --nthreads 1 &
   koala-bridge campaign my.toml --cluster tcp://10.0.0.5:8786 --out out/cluster
 """
 
