@@ -46,7 +46,7 @@ def timed(c: Any, out: Path, factory: Any, only: list[str]) -> tuple[float, list
 
     t0 = time.monotonic()
     outcome = run_campaign(c, out, factory, only=only)
-    return time.monotonic() - t0, outcome.records
+    return time.monotonic() - t0, outcome.selected_records
 
 
 def start_cluster(tmp: Path, threads: int) -> tuple[str, list[subprocess.Popen[bytes]]]:

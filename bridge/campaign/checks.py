@@ -5,6 +5,9 @@ the firmware says about itself (except the localisation check, which compares th
 reported estimates with the truth):
 
 ``exit_code``                the firmware exited 0 within the wall-clock timeout
+``sim_time_advanced``        simulated time moved past 0 (a run where nothing was simulated --
+                             the firmware never sent a cycle message -- proves nothing)
+``sim_time_min_s``           simulated time reached at least X s
 ``no_wall_contact``          the body circle (``robot.body_radius_m``) never reached a wall
 ``coverage_min_percent``     the truth passed near the centre of at least X % of the cells
                              reachable from where the robot started
@@ -90,6 +93,8 @@ def judge(run: RunOutcome, checks: ChecksTable, campaign_dir: Path
     else:
         figures = _figures(run, rec)
     needs_recording = [name for name, on in (
+        ("sim_time_advanced", checks.sim_time_advanced),
+        ("sim_time_min_s", checks.sim_time_min_s is not None),
         ("no_wall_contact", checks.no_wall_contact),
         ("coverage_min_percent", checks.coverage_min_percent is not None),
         ("localisation_error_max_m", checks.localisation_error_max_m is not None),
@@ -97,13 +102,15 @@ def judge(run: RunOutcome, checks: ChecksTable, campaign_dir: Path
     if rec is None:
         results += [CheckResult(n, False, "no readable recording") for n in needs_recording]
     else:
+        results += _sim_time_checks(run, checks, figures.get("sim_time_s"))
         if checks.no_wall_contact:
             c = figures.get("min_clearance_m")
             results.append(CheckResult(
                 "no_wall_contact", c is not None and c > 0,
                 "no truth" if c is None else (
-                    f"closest body-to-wall distance {c:+.4f} m"
-                    + (f" at t = {figures['contact_t_s']:.2f} s" if c <= 0 else ""))))
+                    f"closest body-to-wall distance {c:+.4f} m at t = "
+                    f"{figures['min_clearance_t_s']:.2f} s"
+                    + (" (wall contact)" if c <= 0 else " (closest approach, no contact)"))))
         if checks.coverage_min_percent is not None:
             cov = figures.get("coverage_percent")
             results.append(CheckResult(
@@ -130,6 +137,32 @@ def judge(run: RunOutcome, checks: ChecksTable, campaign_dir: Path
     return results, figures
 
 
+def _sim_time_checks(run: RunOutcome, checks: ChecksTable, t: float | None
+                     ) -> list[CheckResult]:
+    """``sim_time_advanced`` and ``sim_time_min_s``: how far simulated time went (the last truth
+    sample's time), said as what happened."""
+    out: list[CheckResult] = []
+    ended = ("the firmware exited" if run.returncode is not None and not run.timed_out
+             else "the run ended")
+    reached = 0.0 if t is None else t
+    if checks.sim_time_advanced:
+        if reached > 0:
+            out.append(CheckResult("sim_time_advanced", True, f"simulated {reached:g} s"))
+        else:
+            lockstep = run.config.get("lockstep", {})
+            what = f"{lockstep.get('cycle_bus', 'kteam')} {lockstep.get('cycle_message', 'D')!r}"
+            out.append(CheckResult(
+                "sim_time_advanced", False,
+                f"{ended} after {reached:.1f} s of simulated time: it never sent a cycle "
+                f"message ({what}, [lockstep] in docs/protocols.md section 6)"))
+    if checks.sim_time_min_s is not None:
+        out.append(CheckResult(
+            "sim_time_min_s", reached >= checks.sim_time_min_s,
+            f"{ended} after {reached:g} s of simulated time (>= {checks.sim_time_min_s:g} s "
+            "needed)"))
+    return out
+
+
 def _figures(run: RunOutcome, rec: Recording) -> dict[str, Any]:
     track = truth_track(rec)
     out: dict[str, Any] = {"digest": outcome_digest(rec), "truth_samples": len(track)}
@@ -146,7 +179,8 @@ def _figures(run: RunOutcome, rec: Recording) -> dict[str, Any]:
     if len(bound) and np.isfinite(bound).any():
         worst = int(np.argmin(bound))
         out["min_clearance_m"] = round(float(bound[worst] - radius), 6)
-        out["contact_t_s"] = round(float(track[worst, 0]), 6)
+        # the time of closest approach (a wall contact only when min_clearance_m <= 0)
+        out["min_clearance_t_s"] = round(float(track[worst, 0]), 6)
     world = Grid.from_dict(run.config["world"])
     start = world.cell_of(track[0, 1], track[0, 2])
     reachable = reachable_cells(world, start)

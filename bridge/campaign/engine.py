@@ -19,6 +19,7 @@ from typing import Any
 
 from koala_bridge.campaign.results import (
     fingerprint,
+    n_runs,
     read_results,
     record_of,
     write_junit,
@@ -38,16 +39,24 @@ ExecutorFactory = Callable[[], AbstractContextManager[
 
 @dataclass
 class CampaignOutcome:
-    records: list[dict[str, Any]]     # every finished run, this time and resumed
+    records: list[dict[str, Any]]     # every record of results.json, in campaign order
+    selected: list[str]               # the cases this call was asked for (all, or --only's)
     ran: int                          # runs done this time
     complete: bool                    # every selected case has a record
+    campaign_complete: bool           # every case of the campaign has one (results.json)
     results: Path
     junit: Path
     report: Path
 
     @property
+    def selected_records(self) -> list[dict[str, Any]]:
+        wanted = set(self.selected)
+        return [r for r in self.records if r["case_id"] in wanted]
+
+    @property
     def failed(self) -> int:
-        return sum(r["verdict"] != "pass" for r in self.records)
+        """Failed runs among the selected cases."""
+        return sum(r["verdict"] != "pass" for r in self.selected_records)
 
 
 def tasks_of(campaign: Campaign, keep_all: bool, stop: StopSignal | None,
@@ -72,29 +81,43 @@ def run_campaign(
     """Run the campaign's cases (``only`` those ids) into ``out``; ``resume``: keep the records
     of an earlier results.json whose fingerprint still matches and run only the others.
 
+    With ``only``, the other cases' records of an earlier results.json of this campaign are kept
+    (those whose fingerprint still matches): the re-run cases' records are replaced, and
+    results.json, junit.xml and report.md hold the merged set ("complete" only when every case
+    of the campaign has a record).
+
     ``on_result`` is called with each record as it is written (the progress bar). Ctrl-C
     (KeyboardInterrupt) sets the stop signal, lets the runs in flight end their processes,
     writes what finished and raises KeyboardInterrupt again."""
     out.mkdir(parents=True, exist_ok=True)
     results_path = out / "results.json"
-    tasks = tasks_of(campaign, keep_all, None, only)
-    order = [t.case.case_id for t in tasks]
-    previous: dict[str, dict[str, Any]] = {}
+    every = tasks_of(campaign, keep_all, None)
+    tasks = tasks_of(campaign, keep_all, None, only) if only else every
+    order = [t.case.case_id for t in every]
+    selected = [t.case.case_id for t in tasks]
+    doc = read_results(results_path) if resume or only else None
     if resume:
-        doc = read_results(results_path)
         if doc is None:
             raise ConfigError(f"--resume: no results.json of a campaign in {out}")
         if doc.get("campaign") != campaign.name:
             raise ConfigError(f"--resume: {results_path} is campaign {doc.get('campaign')!r}, "
                               f"not {campaign.name!r}")
-        wanted = {t.case.case_id: fingerprint(t) for t in tasks}
-        previous = {r["case_id"]: r for r in doc.get("runs", [])
-                    if wanted.get(r["case_id"]) == r.get("fingerprint")}
-    records = dict(previous)
+    earlier: dict[str, dict[str, Any]] = {}
+    if doc is not None and doc.get("campaign") == campaign.name:
+        wanted = {t.case.case_id: fingerprint(t) for t in every}
+        earlier = {r["case_id"]: r for r in doc.get("runs", [])
+                   if wanted.get(r["case_id"]) == r.get("fingerprint")}
+    elif doc is not None:
+        log.warning("%s is campaign %r: replaced by %r's results", results_path,
+                    doc.get("campaign"), campaign.name)
+    previous = {c: r for c, r in earlier.items() if c in selected} if resume else {}
+    # the records this call keeps: with --only, the other cases' too
+    records = {c: r for c, r in earlier.items() if resume or c not in selected}
     header = {"campaign": campaign.name, "file": str(campaign.path), "order": order,
               "cases": len(order)}
     todo = [t for t in tasks if t.case.case_id not in previous]
-    log.info("campaign %s: %d runs (%d already done)", campaign.name, len(todo), len(previous))
+    log.info("campaign %s: %s (%d already done)", campaign.name, n_runs(len(todo)),
+             len(previous))
     interrupted = False
     ran = 0
     with executor() as (pool, stop, set_stop):
@@ -118,18 +141,20 @@ def run_campaign(
                 if result.verdict != "interrupted":  # finished before it saw the signal
                     records[result.case_id] = _store(out, result, task)
                     ran += 1
-    complete = not interrupted and len(records) == len(order)
-    write_results(results_path, header, records.values(), complete=complete)
+    campaign_complete = not interrupted and all(c in records for c in order)
+    write_results(results_path, header, records.values(), complete=campaign_complete)
     ordered = [records[c] for c in order if c in records]
     junit = out / "junit.xml"
     write_junit(junit, campaign.name, ordered)
     from koala_bridge.campaign.report import write_report
 
     report = write_report(out, campaign.name, ordered,
-                          {t.case.case_id: t.case.config for t in tasks}, complete)
+                          {t.case.case_id: t.case.config for t in every}, campaign_complete)
     if interrupted:
         raise KeyboardInterrupt
-    return CampaignOutcome(ordered, ran, complete, results_path, junit, report)
+    complete = all(c in records for c in selected)
+    return CampaignOutcome(ordered, selected, ran, complete, campaign_complete, results_path,
+                           junit, report)
 
 
 def _with_stop(task: CaseTask, stop: StopSignal) -> CaseTask:

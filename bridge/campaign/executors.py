@@ -106,6 +106,39 @@ def local_executor(workers: int, stop_path: Path
         stop.clear()
 
 
+#: Wall seconds to wait for a first worker before judging the cluster's resources.
+WORKER_WAIT_S = 30.0
+
+
+def workers_offering(info: Mapping[str, Any], resources: Mapping[str, float]) -> list[str]:
+    """The workers of ``info`` (``Client.scheduler_info()``) that offer every resource of
+    ``resources`` in at least that amount (a task asking for more than any worker has never
+    starts)."""
+    return [address for address, w in info.get("workers", {}).items()
+            if all(w.get("resources", {}).get(k, 0) >= v for k, v in resources.items())]
+
+
+def _check_resources(client: Any, resources: Mapping[str, float], address: str) -> None:
+    """:class:`ClusterError` unless a worker offers what the campaign's ``resources`` ask:
+    Dask would otherwise keep the tasks waiting for such a worker, silently, for ever."""
+    try:
+        client.wait_for_workers(1, timeout=WORKER_WAIT_S)
+    except TimeoutError:
+        raise ClusterError(f"the Dask scheduler {address} has no worker (waited "
+                           f"{WORKER_WAIT_S:g} s): start workers (dask worker) first") from None
+    info = client.scheduler_info()
+    if workers_offering(info, resources):
+        return
+    asked = ",".join(f"{k}={v:g}" for k, v in resources.items())
+    offered = sorted({",".join(f"{k}={v:g}" for k, v in w.get("resources", {}).items())
+                      or "none" for w in info.get("workers", {}).values()})
+    raise ClusterError(
+        f"no worker of {address} offers the campaign's resources {asked} (what its "
+        f"workers offer: {'; '.join(offered)}), so no run "
+        f"would ever start: start workers with --resources \"{asked}\" or change [campaign] "
+        "resources")
+
+
 @contextmanager
 def dask_executor(address: str, resources: Mapping[str, float], name: str
                   ) -> Iterator[tuple[Executor, StopSignal, Callable[[], None]]]:
@@ -126,6 +159,8 @@ def dask_executor(address: str, resources: Mapping[str, float], name: str
     except (OSError, TimeoutError, ValueError) as e:
         raise ClusterError(f"cannot reach the Dask scheduler {address}: {e}") from e
     try:
+        if resources:
+            _check_resources(client, resources, address)
         event = Event(name, client=client)
         event.clear()
         executor = client.get_executor(pure=False, resources=dict(resources) or None)

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from koala_bridge.campaign.results import n_runs
 from koala_bridge.campaign.truth import (
     estimate_errors,
     first_visits,
@@ -31,7 +32,7 @@ def write_report(out: Path, name: str, records: Sequence[Mapping[str, Any]],
     path. ``configs``: each case's bridge configuration (its world), by case id."""
     passed = sum(r["verdict"] == "pass" for r in records)
     lines = [f"# Campaign {name}", ""]
-    lines.append(f"{passed} of {len(records)} runs passed"
+    lines.append(f"{passed} of {n_runs(len(records))} passed"
                  + ("" if complete else " (incomplete: `--resume` runs the rest)") + ".")
     lines += ["", "## Matrix", ""] + _matrix(records)
     failures = [r for r in records if r["verdict"] != "pass"]
@@ -102,7 +103,7 @@ def _plot_failure(out: Path, record: Mapping[str, Any],
     estimates = np.asarray([e[:3] for e in report.get("estimates") or ()], dtype=float)
     if len(estimates):
         ax_map.plot(estimates[:, 1], estimates[:, 2], ".", ms=3, label="firmware estimate")
-    contact = record["figures"].get("contact_t_s")
+    contact = record["figures"].get("min_clearance_t_s")  # a contact when the clearance <= 0
     if record["figures"].get("min_clearance_m", 1.0) <= 0 and contact is not None:
         i = int(np.argmin(np.abs(track[:, 0] - contact)))
         ax_map.plot(track[i, 1], track[i, 2], "x", color="red", ms=10, label="wall contact")

@@ -26,6 +26,11 @@ from koala_bridge.campaign.runner import CaseResult, CaseTask
 RESULTS_VERSION = 1
 
 
+def n_runs(n: int) -> str:
+    """``"1 run"``, ``"4 runs"``."""
+    return f"{n} run{'' if n == 1 else 's'}"
+
+
 def fingerprint(task: CaseTask) -> str:
     """What makes a run's outcome: the case's config and faults, the firmware command, the
     duration and the checks. ``--resume`` reuses a record only when this is unchanged."""

@@ -21,6 +21,8 @@ A campaign is a TOML file (docs/campaigns.md)::
 
     [checks]
     exit_code = true
+    sim_time_advanced = true     # simulated time moved past 0 (default true)
+    sim_time_min_s = 300.0       # ... and reached 300 s (default: off; <= sim_duration_s)
     no_wall_contact = true
     coverage_min_percent = 100.0
     localisation_error_max_m = 0.05
@@ -132,6 +134,8 @@ class ChecksTable:
     """``[checks]``: what decides a run's verdict (every check enabled must pass)."""
 
     exit_code: Bool = True
+    sim_time_advanced: Bool = True
+    sim_time_min_s: Positive | None = None
     no_wall_contact: Bool = False
     coverage_min_percent: Annotated[float, Field(ge=0, le=100)] | None = None
     localisation_error_max_m: NonNegative | None = None
@@ -216,6 +220,10 @@ def campaign_from_dict(d: Mapping[str, Any], path: Path) -> Campaign:
     table = validate(CampaignTable, d["campaign"], "campaign")
     matrix = validate(MatrixTable, d["matrix"], "matrix")
     checks = validate(ChecksTable, d.get("checks", {}), "checks")
+    if checks.sim_time_min_s is not None and checks.sim_time_min_s > table.sim_duration_s:
+        raise ConfigError(f"[checks] 'sim_time_min_s' = {checks.sim_time_min_s:g} can never be "
+                          f"met: the runs last sim_duration_s = {table.sim_duration_s:g} "
+                          "simulated seconds")
     if not matrix.faults or not matrix.overrides:
         raise ConfigError("[matrix] 'faults' and 'overrides' need at least one named set "
                           "(e.g. none = [])")

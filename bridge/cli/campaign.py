@@ -11,7 +11,7 @@ gives the same run, bit for bit. Runs go to a local process pool (one per core),
 Writes DIR/results.json (one record per run), DIR/junit.xml (for CI), DIR/report.md (pass/fail
 matrix; plots of failures), DIR/recordings/CASE.mcap for failures (all with --keep-all).
 Exit status: 0 every run passed, 1 some run failed, 2 a bad campaign file, 130 stopped with
-Ctrl-C (what finished is kept: --resume runs the rest).
+Ctrl-C, SIGINT or SIGTERM (what finished is kept: --resume runs the rest).
 """
 # The docstring above is this subcommand's --help (cli/main.py reads it): plain text, no reST.
 
@@ -38,7 +38,8 @@ EXAMPLE = """examples:
 
   # on a Dask cluster (docs/campaigns.md "On a cluster"): the firmware must be on each worker
   dask scheduler --host 10.0.0.5 --port 8786 &
-  dask worker tcp://10.0.0.5:8786 --nthreads 1 --nworkers 4 &   # on each machine
+  # on each machine: one process per run at once, one thread each (a run is processes)
+  dask worker tcp://10.0.0.5:8786 --nworkers 4 --nthreads 1 &
   koala-bridge campaign my.toml --cluster tcp://10.0.0.5:8786 --out out/cluster
 """
 
@@ -56,14 +57,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help="a Dask scheduler, tcp://HOST:PORT or its scheduler file: runs go "
                        "to its workers")
     parser.add_argument("--only", action="append", default=[], metavar="CASE_ID",
-                        help="run this case only (repeatable); ids as --list prints them")
+                        help="run this case only (repeatable); ids as --list prints them. "
+                        "Into an --out that has this campaign's results.json, the other cases' "
+                        "records are kept (merged)")
     parser.add_argument("--resume", action="store_true",
                         help="keep the runs DIR/results.json already has (same case, same "
                         "config) and run the others")
     parser.add_argument("--keep-all", action="store_true",
                         help="keep every run's recording, not only the failures'")
     parser.add_argument("--list", action="store_true",
-                        help="print the case ids and exit")
+                        help="print the case ids (with --only: those) and exit")
 
 
 def _interrupt(signum: int, frame: object) -> None:
@@ -73,16 +76,17 @@ def _interrupt(signum: int, frame: object) -> None:
 def run(args: argparse.Namespace) -> int:
     from koala_bridge.campaign.engine import run_campaign
     from koala_bridge.campaign.executors import dask_executor, default_workers, local_executor
+    from koala_bridge.campaign.results import n_runs
     from koala_bridge.campaign.spec import load_campaign
     from koala_bridge.runtime.progress import count_progress
 
     campaign = load_campaign(args.campaign)  # ConfigError: one line, exit 2 (cli/main.py)
-    if args.list:
-        for case in campaign.cases:
-            print(case.case_id)
-        return 0
     for case_id in args.only:
         campaign.case(case_id)  # an unknown id fails before anything runs
+    if args.list:  # with --only: those cases only
+        for case in [campaign.case(c) for c in args.only] if args.only else campaign.cases:
+            print(case.case_id)
+        return 0
     out: Path = args.out
     total = len(args.only) if args.only else len(campaign.cases)
     if args.cluster:
@@ -97,10 +101,13 @@ def run(args: argparse.Namespace) -> int:
         def executor():  # type: ignore[no-untyped-def]
             return local_executor(workers, out / ".stop")
         where = f"{workers} local worker{'s' if workers != 1 else ''}"
-    print(f"campaign {campaign.name}: {total} runs on {where}; output in {out}", file=sys.stderr)
+    print(f"campaign {campaign.name}: {n_runs(total)} on {where}; output in {out}",
+          file=sys.stderr)
     counts = {"pass": 0, "fail": 0}
-    # SIGTERM (a CI job cancelled) stops as Ctrl-C does: the runs end their processes
-    previous = signal.signal(signal.SIGTERM, _interrupt)
+    # SIGTERM (a CI job cancelled) stops as Ctrl-C does: the runs end their processes. SIGINT
+    # is installed too, whatever was inherited: a non-interactive shell starts `campaign ... &`
+    # with SIGINT ignored, and Python keeps an inherited SIG_IGN (then `kill -INT` did nothing)
+    previous = {sig: signal.signal(sig, _interrupt) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
         with count_progress(total, f"campaign {campaign.name}") as advance:
             def on_result(record: dict) -> None:  # type: ignore[type-arg]
@@ -114,12 +121,19 @@ def run(args: argparse.Namespace) -> int:
                                    resume=args.resume, keep_all=args.keep_all,
                                    on_result=on_result)
     except KeyboardInterrupt:
-        signal.signal(signal.SIGTERM, previous)
         print(f"campaign {campaign.name}: stopped; finished runs are in {out / 'results.json'}"
               f" (--resume runs the rest)", file=sys.stderr)
         return 130
-    signal.signal(signal.SIGTERM, previous)
-    passed = len(outcome.records) - outcome.failed
-    print(f"campaign {campaign.name}: {passed} of {len(outcome.records)} runs passed "
-          f"({outcome.ran} run now); {outcome.results}, {outcome.junit}, {outcome.report}")
+    finally:
+        for sig, handler in previous.items():
+            if handler is not None:  # None: not installed from Python, nothing to restore
+                signal.signal(sig, handler)
+    selected = len(outcome.selected_records)
+    held = ""
+    if args.only:  # the other cases' earlier records were kept: say what results.json holds
+        held = (f"; results.json holds {len(outcome.records)} of {len(campaign.cases)} cases"
+                f"{'' if outcome.campaign_complete else ' (incomplete)'}")
+    print(f"campaign {campaign.name}: {selected - outcome.failed} of {n_runs(selected)} passed "
+          f"({outcome.ran} run now){held}; {outcome.results}, {outcome.junit}, "
+          f"{outcome.report}")
     return 0 if outcome.failed == 0 and outcome.complete else 1

@@ -54,10 +54,13 @@ examples:
   koala-bridge <subcommand> --help                # what each subcommand does
 """
 
-#: Below a subcommand's --help that names a docs/*.md file: a wheel does not install them.
+#: Below the top-level --help and a subcommand's that names docs/ or examples/: a wheel installs
+#: neither folder.
 DOCS_NOTE = (
-    "docs/*.md: the documents named above are in the koala-bridge source (its docs/\n"
-    "folder); they are not installed with the package."
+    "docs/*.md, docs/foxglove-layout.json and examples/ (two_robots.toml,\n"
+    "campaign_coverage.toml, coverage_firmware.py, ...) are in the koala-bridge source\n"
+    "repository (get them with a git clone of it); they are not installed with the\n"
+    "package."
 )
 
 
@@ -138,7 +141,7 @@ def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
             "Hardware-in-the-loop bridge for the K-Team Koala: a simulated robot served on its "
             "real buses (serial, CAN, MAVLink) and published over Zenoh."
         ),
-        epilog=EPILOG,
+        epilog=f"{EPILOG}\n{DOCS_NOTE}",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     common = OneLineErrorParser(add_help=False)
@@ -166,7 +169,7 @@ def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
                 continue
             module.add_arguments(p)
             p.set_defaults(_module=module, _parser=p)
-        if "docs/" in p.format_help():
+        if "docs/" in p.format_help() or "examples/" in p.format_help():
             p.epilog = f"{p.epilog.rstrip()}\n\n{DOCS_NOTE}" if p.epilog else DOCS_NOTE
     return parser
 

@@ -108,13 +108,14 @@ class Endpoints:
                 f"  CAN virtual             channel '{self.virtual_can_channel}' (in-process only)"
             )
         lines.append(f"  CAN database (DBC)      {self.dbc or off}")
+        mav = self.mavlink_url
         lines.append(
-            f"  MAVLink                 {self.mavlink_url or off}"
-            + (
-                f"   e.g. mavutil.mavlink_connection('{self.mavlink_url}')"
-                if self.mavlink_url
-                else ""
-            )
+            f"  MAVLink                 {mav or off}"
+            + (f"   e.g. mavutil.mavlink_connection('{mav}')" if mav else "")
+            # udpout: the bridge listens on a port it picked and knows no client until one
+            # writes: the client sends first (docs/protocols.md "Links and connection strings")
+            + ("; send first (a HEARTBEAT): the bridge streams to whoever wrote to it"
+               if mav and mav.startswith("udpout:") else "")
         )
         if self.zenoh_prefix:
             where = ", ".join(self.zenoh_endpoints) or "(no listen endpoint: see [zenoh] connect)"

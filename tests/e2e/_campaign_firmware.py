@@ -29,9 +29,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--report")
     ap.add_argument("--estimate", help="X,Y reported as the final estimate")
     ap.add_argument("--exit", type=int, default=0, help="exit status")
+    ap.add_argument("--no-cycle", action="store_true",
+                    help="read the endpoints file and exit: simulated time never moves")
     args = ap.parse_args(argv)
     with open(args.endpoints) as f:
         ep = json.load(f)
+    if args.no_cycle:
+        return args.exit
     port = serial.Serial(ep["serial"]["kteam"], 115200, timeout=10)
     speed = 0 if args.seed == 0 else args.speed
     cycles = int(round(args.duration / args.period)) - 1

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -98,6 +99,11 @@ def test_local_pool_judges_every_run_and_writes_results_junit_and_report(local: 
     assert r[CASES[2]]["figures"]["min_clearance_m"] <= 0 < r[CASES[0]]["figures"][
         "min_clearance_m"]
     assert r[CASES[0]]["figures"]["sim_time_s"] == pytest.approx(10.0)
+    # the time of the closest approach, named so that a passing run's cannot read as a contact
+    assert "contact_t_s" not in r[CASES[0]]["figures"]
+    assert 0 <= r[CASES[0]]["figures"]["min_clearance_t_s"] <= 10.0
+    (clear,) = [c for c in r[CASES[0]]["checks"] if c["name"] == "no_wall_contact"]
+    assert clear["message"].endswith("(closest approach, no contact)")
     assert all(r[c]["startup_s"] > 0 and r[c]["firmware_exit"] == 0 for c in CASES)
     # recordings for failures only; the report plots them
     assert r[CASES[0]]["recording"] is None
@@ -121,11 +127,35 @@ def test_only_reproduces_cases_bit_for_bit_and_keep_all_keeps_every_recording(
     campaign(local, "--only", CASES[3], "--only", CASES[0], "--keep-all", "--out", str(out),
              "--workers", "2", check=1)
     again, first = runs(out), runs(local / "local")
-    assert list(again) == [CASES[3], CASES[0]]
+    assert list(again) == [CASES[0], CASES[3]]  # in campaign order
+    assert json.loads((out / "results.json").read_text())["complete"] is False  # 2 of 4
     for case in (CASES[3], CASES[0]):
         assert again[case]["figures"] == first[case]["figures"]  # the digest included
         assert again[case]["verdict"] == first[case]["verdict"]
         assert (out / again[case]["recording"]).stat().st_size > 0  # a pass's too
+
+
+def test_only_into_an_earlier_out_folder_merges_its_record_with_the_others(
+        local: Path) -> None:
+    out = local / "merged"
+    shutil.copytree(local / "local", out)
+    doc = json.loads((out / "results.json").read_text())
+    doc["runs"][0]["wall_s"] = 12345.0  # marks the record the re-run must replace
+    (out / "results.json").write_text(json.dumps(doc))
+    p = campaign(local, "--only", CASES[0], "--out", str(out), "--workers", "1", check=0)
+    assert "1 of 1 run passed (1 run now); results.json holds 4 of 4 cases;" in p.stdout
+    merged, first = runs(out), runs(local / "local")
+    assert list(merged) == CASES
+    assert merged[CASES[0]]["wall_s"] != 12345.0
+    assert merged[CASES[0]]["figures"] == first[CASES[0]]["figures"]
+    for case in CASES[1:]:
+        assert merged[case] == first[case]
+    assert json.loads((out / "results.json").read_text())["complete"] is True
+    suite = ET.parse(out / "junit.xml").getroot().find("testsuite")
+    assert suite is not None and (suite.get("tests"), suite.get("failures")) == ("4", "2")
+    report = (out / "report.md").read_text()
+    assert "2 of 4 runs passed." in report
+    assert "| lab_walls_1 | 1 | **FAIL** | **FAIL** |" in report
 
 
 @pytest.fixture
@@ -179,7 +209,29 @@ def test_a_dask_cluster_on_loopback_gives_the_local_verdicts_and_figures(
         f"{c}.mcap" for c in CASES[2:])
 
 
-def test_ctrl_c_stops_cleanly_and_resume_runs_the_rest(tmp_path: Path) -> None:
+def test_resources_no_worker_offers_fail_at_once_instead_of_waiting_for_ever(
+        tmp_path: Path, dask_cluster: str) -> None:
+    """The fixture's worker offers no resources; a campaign asking for one would wait for ever
+    (Dask keeps such tasks pending): it fails before submitting, exit 2, one line."""
+    text = CAMPAIGN.replace("wall_timeout_s = 120.0", "wall_timeout_s = 120.0\n"
+                            "resources = { simulators = 1 }")
+    (tmp_path / "c.toml").write_text(text)
+    p = campaign(tmp_path, "--cluster", dask_cluster, "--out", str(tmp_path / "out"), check=2)
+    assert "offers the campaign's resources simulators=1 (what its workers offer: none)" in (
+        p.stderr)
+    assert "--resources \"simulators=1\"" in p.stderr
+    assert not (tmp_path / "out" / "results.json").exists()
+
+
+def _ignore_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+@pytest.mark.parametrize("sigint_ignored", [False, True], ids=["foreground", "background"])
+def test_ctrl_c_stops_cleanly_and_resume_runs_the_rest(tmp_path: Path,
+                                                       sigint_ignored: bool) -> None:
+    """Ctrl-C, and SIGINT to a campaign started with SIGINT ignored: what a non-interactive
+    shell does to `koala-bridge campaign c.toml &` (Python then keeps SIG_IGN)."""
     (tmp_path / "c.toml").write_text(CAMPAIGN)
     runs_tmp = tmp_path / "tmp"
     runs_tmp.mkdir()
@@ -188,7 +240,8 @@ def test_ctrl_c_stops_cleanly_and_resume_runs_the_rest(tmp_path: Path) -> None:
     proc = subprocess.Popen(
         [sys.executable, "-m", "koala_bridge", "campaign", str(tmp_path / "c.toml"),
          "--out", str(out), "--workers", "1"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+        preexec_fn=_ignore_sigint if sigint_ignored else None)
     try:
         deadline = time.monotonic() + 120
         while not ((out / "results.json").exists() and runs(out)):
@@ -231,10 +284,29 @@ def test_one_case_of_the_example_campaign_runs_with_the_coverage_firmware(
     campaign(tmp_path, "--only", case, "--out", str(tmp_path / "out"), check=1)
     (run,) = runs(tmp_path / "out").values()
     checks = {c["name"]: c["passed"] for c in run["checks"]}
-    assert checks == {"exit_code": False, "no_wall_contact": True, "coverage_min_percent": False,
+    assert checks == {"exit_code": False, "sim_time_advanced": True, "no_wall_contact": True,
+                      "coverage_min_percent": False,
                       "localisation_error_max_m": False, "no_bus_errors": True}, run["checks"]
     assert run["firmware_exit"] == 1 and not run["timed_out"]
     # the firmware ended on its budget (the bridge runs 1 s past it, campaign/runner.py)
     assert run["figures"]["sim_time_s"] == pytest.approx(15.0, abs=0.05)
     log = (tmp_path / "out" / "logs" / case / "report.json").read_text()
     assert json.loads(log)["ended"] == "robot-time budget"
+
+
+def test_a_firmware_that_never_cycles_fails_sim_time_advanced(tmp_path: Path) -> None:
+    """The firmware reads the endpoints file and exits 0 without a cycle message: nothing was
+    simulated (held at t = 0), which must not pass -- whatever the other checks say."""
+    text = CAMPAIGN.replace('"--report", "{report}"]', '"--report", "{report}", "--no-cycle"]')
+    text = text.replace("[checks]\n", "[checks]\nsim_time_min_s = 5.0\n")
+    (tmp_path / "c.toml").write_text(text)
+    case = CASES[0]
+    campaign(tmp_path, "--only", case, "--out", str(tmp_path / "out"), check=1)
+    (run,) = runs(tmp_path / "out").values()
+    assert run["verdict"] == "fail" and run["firmware_exit"] == 0
+    checks = {c["name"]: c for c in run["checks"]}
+    assert checks["exit_code"]["passed"] and checks["no_wall_contact"]["passed"]
+    assert not checks["sim_time_advanced"]["passed"]
+    assert checks["sim_time_advanced"]["message"].startswith(
+        "the firmware exited after 0.0 s of simulated time: it never sent a cycle message")
+    assert not checks["sim_time_min_s"]["passed"]

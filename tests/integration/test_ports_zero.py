@@ -9,14 +9,17 @@ and receives the compass; python-can's socketcand interface opens the named port
 from __future__ import annotations
 
 import json
+import math
 import re
 import socket
 import time
+from pathlib import Path
 
 import pytest
 import zenoh
 from _inproc import bridge, socketcand
 from koala_bridge.runtime.endpoints import write_endpoints_file
+from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink2
 
 pytestmark = pytest.mark.integration
@@ -79,3 +82,41 @@ def test_two_bridges_on_port_zero_report_distinct_bound_ports(tmp_path) -> None:
             assert bus.recv(timeout=10) is not None
         finally:
             bus.shutdown()
+
+
+README = Path(__file__).resolve().parents[2] / "README.md"
+
+
+def readme_mavlink_snippet() -> str:
+    """The README's MAVLink client lines, from its "# MAVLink compass" comment to the blank
+    line after them."""
+    text = README.read_text()
+    start = text.index("# MAVLink compass")
+    return text[start:text.index("\n\n", start)]
+
+
+@pytest.mark.parametrize("overrides", [ZERO, ('run.clock="fast"',)],
+                         ids=["udpout-port-0", "udpin-fixed-port"])
+def test_the_readme_mavlink_snippet_hears_the_compass_on_either_kind_of_url(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, overrides: tuple[str, ...]) -> None:
+    """Port 0 makes the url udpout: and the client must send first; the README's snippet sends
+    a HEARTBEAT, which pymavlink drops on udpin: -- the same lines work with both."""
+    monkeypatch.setenv("MAVLINK20", "1")  # as the snippet says; the dialect chosen again
+    monkeypatch.setattr(mavutil, "mavlink", mavutil.mavlink)
+    mavutil.set_dialect(mavutil.current_dialect)
+    snippet = readme_mavlink_snippet()
+    assert "heartbeat_send" in snippet
+    with bridge(*overrides) as source:
+        ep = json.loads(write_endpoints_file(tmp_path / "ep.json",
+                                             source.endpoints).read_text())  # type: ignore[arg-type]
+        assert ep["mavlink"]["url"].startswith("udpout:" if overrides == ZERO else "udpin:")
+        printed: list[object] = []
+        scope = {"ep": ep, "mavutil": mavutil, "math": math, "print": printed.append}
+        try:
+            exec(snippet, scope)  # noqa: S102 - the README's own lines
+        finally:
+            if "gcs" in scope:
+                scope["gcs"].close()  # type: ignore[attr-defined]
+    assert scope["imu"] is not None, "no SCALED_IMU within the snippet's 5 s"
+    (heading,) = printed
+    assert 0 <= float(heading) < 360  # type: ignore[arg-type]

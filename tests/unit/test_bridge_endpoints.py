@@ -71,6 +71,16 @@ def test_describe_names_every_endpoint() -> None:
     assert sample().to_json_dict()["zenoh"]["prefix"] == "koala/koala"
 
 
+def test_describe_says_a_udpout_mavlink_client_sends_first() -> None:
+    """With port 0 the bridge listens on a port it picked and streams to whoever wrote to it:
+    the banner says so, or a client that only listens hears nothing."""
+    out = Endpoints(mavlink_url="udpout:127.0.0.1:40123").describe()
+    (line,) = [x for x in out.splitlines() if "MAVLink" in x]
+    assert "mavutil.mavlink_connection('udpout:127.0.0.1:40123')" in line
+    assert "send first (a HEARTBEAT)" in line
+    assert "send first" not in sample().describe()  # udpin: the bridge sends to the client
+
+
 def test_counters_are_thread_safe_and_snapshot_sorted() -> None:
     counters = BusCounters(["kteam"])
 

@@ -85,6 +85,7 @@ def test_the_matrix_is_the_product_of_its_axes_with_readable_ids(tmp_path: Path)
     (("robot.drive_error.ideal=false", "robot.drive_eror.ideal=false"),
      "case lab_walls_1-s0-none-slow"),
     (("gyro_bias =", "\"gyro bias\" ="), "must be a name of letters"),
+    (("[checks]", "[checks]\nsim_time_min_s = 11"), "'sim_time_min_s' = 11 can never be met"),
 ])
 def test_mistakes_are_one_line_errors_naming_the_key(tmp_path: Path, edit: tuple[str, str],
                                                       message: str) -> None:
@@ -92,6 +93,14 @@ def test_mistakes_are_one_line_errors_naming_the_key(tmp_path: Path, edit: tuple
         load_campaign(write(tmp_path, GOOD.replace(*edit)))
     assert message in str(e.value)
     assert "\n" not in str(e.value)
+
+
+def test_the_sim_time_check_is_on_by_default_and_turns_off(tmp_path: Path) -> None:
+    checks = load_campaign(write(tmp_path, GOOD)).checks
+    assert checks.sim_time_advanced is True and checks.sim_time_min_s is None
+    off = GOOD.replace("[checks]", "[checks]\nsim_time_advanced = false\nsim_time_min_s = 10")
+    checks = load_campaign(write(tmp_path, off)).checks
+    assert checks.sim_time_advanced is False and checks.sim_time_min_s == 10
 
 
 def test_an_unknown_case_id_suggests_the_nearest(tmp_path: Path) -> None:
@@ -157,3 +166,22 @@ def test_the_cli_answers_a_bad_campaign_in_one_line_and_lists_cases(
     assert listed == [c.case_id for c in load_campaign(good).cases]
     assert main(["campaign", str(good), "--only", "nope"]) == 2
     assert "no case 'nope'" in capsys.readouterr().err
+    # --list with --only lists those only (an unknown one is still an error)
+    assert main(["campaign", str(good), "--list", "--only", "lab_walls_2-s7-none-slow",
+                 "--only", "lab_walls_1-s0-none-base"]) == 0
+    assert capsys.readouterr().out.split() == ["lab_walls_2-s7-none-slow",
+                                               "lab_walls_1-s0-none-base"]
+    assert main(["campaign", str(good), "--list", "--only", "nope"]) == 2
+
+
+def test_workers_offering_names_the_workers_with_enough_of_every_resource() -> None:
+    from koala_bridge.campaign.executors import workers_offering
+
+    info = {"workers": {"tcp://a": {"resources": {}},
+                        "tcp://b": {"resources": {"simulators": 1.0}},
+                        "tcp://c": {"resources": {"simulators": 2.0, "gpu": 1.0}}}}
+    assert workers_offering(info, {"simulators": 1}) == ["tcp://b", "tcp://c"]
+    assert workers_offering(info, {"simulators": 2}) == ["tcp://c"]
+    assert workers_offering(info, {"simulators": 1, "gpu": 1}) == ["tcp://c"]
+    assert workers_offering(info, {"fpga": 1}) == []
+    assert workers_offering({"workers": {}}, {"simulators": 1}) == []
