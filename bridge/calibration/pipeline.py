@@ -48,7 +48,7 @@ from koala_bridge.calibration.streams import (
 )
 from koala_bridge.calibration.streams.compass import CompassProblem
 from koala_bridge.calibration.streams.level import build_gyro_level, note_level_bias
-from scipy import stats
+from koala_bridge.core.distributions import norm_ppf
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +57,7 @@ log = logging.getLogger(__name__)
 #: only when it is at least this many standard errors from the declared model (the declared
 #: value outside the effect's 99 % interval). A slipping wheel once proposed ticks_per_metre
 #: 22 222 -> 70 968 with an SE of 32 500 (1.5 SE), which ``|d| < SE`` alone would have written.
-WRITE_Z = float(stats.norm.ppf(1 - ALPHA / 2))
+WRITE_Z = norm_ppf(1 - ALPHA / 2)
 
 #: Callback ``(stream, done, total)`` for progress display; the library never prints.
 Progress = Callable[[str, int, int], None]
