@@ -93,7 +93,20 @@ class StreamResult:
         return [SecondaryMetric(p.metric, p.unit, self.before, self.after), *self.secondary]
 
     def _params_and_se(self) -> list[tuple[FloatArray, FloatArray | None]]:
-        """Per added effect: its parameter values and their standard errors (None: fixed)."""
+        """Per added effect: its parameter values and their standard errors (None: fixed).
+        Kept while the selection's final fit is the same object with the same vector: the
+        report asks for them once per table and figure (a sandwich SE of a 1-hour stream
+        costs tens of ms)."""
+        sel = self.selection
+        key = (sel.after, sel.after.x.tobytes(), tuple(self.effects))
+        memo = getattr(self, "_se_memo", None)
+        if memo is not None and memo[0][0] is key[0] and memo[0][1:] == key[1:]:
+            return memo[1]  # type: ignore[no-any-return]
+        out = self._compute_params_and_se()
+        self._se_memo = (key, out)
+        return out
+
+    def _compute_params_and_se(self) -> list[tuple[FloatArray, FloatArray | None]]:
         sel = self.selection
         params = sel.params_of(sel.after)
         se = parameter_se(self.problem, sel.after)
