@@ -15,8 +15,8 @@ model jointly (EM) is :func:`koala_bridge.calibration.selection.fit_model`.
 from __future__ import annotations
 
 import numpy as np
+from koala_bridge.core.distributions import binom_sf, norm_sf
 from numpy.typing import NDArray
-from scipy import stats
 
 FloatArray = NDArray[np.float64]
 
@@ -61,8 +61,8 @@ def heavy_tailed(
     k, n = tail_count(r, z)
     if n < 20 or k == 0:
         return False
-    p0 = min(2 * float(stats.norm.sf(z)) + max(declared_fraction, 0.0), 1.0)
-    return bool(stats.binom.sf(k - 1, n, p0) < alpha)
+    p0 = min(2 * norm_sf(z) + max(declared_fraction, 0.0), 1.0)
+    return bool(binom_sf(k - 1, n, p0) < alpha)
 
 
 def gaussian_logpdf(r: FloatArray, sigma: float, shape: FloatArray | None = None) -> FloatArray:

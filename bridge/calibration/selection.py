@@ -50,7 +50,8 @@ from koala_bridge.calibration.robust import (
     mixture_loglik,
     weighted_rms,
 )
-from scipy import optimize, stats
+from koala_bridge.core.distributions import chi2_ppf
+from scipy import optimize
 
 log = logging.getLogger(__name__)
 
@@ -397,7 +398,7 @@ def judge(
         nf, ns = max(counts[0], 1), max(counts[1], 1)
     dbic = nf * np.log(max(_ss(wf_new), tiny) / max(_ss(wf_old), tiny)) + k * np.log(nf)
     lr = ns * np.log(max(_ss(ws_old), tiny) / max(_ss(ws_new), tiny))
-    thr = float(stats.chi2.ppf(1 - ALPHA / max(n_candidates, 1), max(k, 1)))
+    thr = chi2_ppf(1 - ALPHA / max(n_candidates, 1), max(k, 1))
     ss_old, ss_new = _ss(rs_old), _ss(rs_new)
     gain = 1 - np.sqrt(ss_new / ss_old) if ss_old > 0 else 0.0
     passed = bool(dbic < 0 and lr > thr and gain >= MIN_RELATIVE_GAIN)
@@ -422,7 +423,7 @@ def _judge_likelihood(old: Fit, new: Fit, k: int, n_candidates: int, rho: float)
     c = (1 - rho) / (1 + rho) if rho > 0 else 1.0
     dbic = -2 * c * (lf_new - lf_old) + k * np.log(max(c * nf, 2.0))
     lr = 2 * c * (ls_new - ls_old)
-    thr = float(stats.chi2.ppf(1 - ALPHA / max(n_candidates, 1), max(k, 1)))
+    thr = chi2_ppf(1 - ALPHA / max(n_candidates, 1), max(k, 1))
     gain = float(-np.expm1(-(ls_new - ls_old) / ns)) if np.isfinite(ls_new - ls_old) else np.nan
     passed = bool(dbic < 0 and lr > thr and gain >= MIN_RELATIVE_GAIN)
     return Trial(name, k, float(dbic), float(lr), thr, gain, passed, new)

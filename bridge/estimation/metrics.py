@@ -52,10 +52,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from koala_bridge.core.distributions import chi2_ppf
 from koala_bridge.core.geometry import wrap_angle
 from koala_bridge.estimation.errors import EstimationError
 from numpy.typing import ArrayLike, NDArray
-from scipy.stats import chi2
 
 FloatArray = NDArray[np.float64]
 
@@ -197,7 +197,7 @@ def nees(error: ArrayLike, cov: ArrayLike) -> FloatArray:
 def chi2_band(dof: int = POSE_DOF, probability: float = BAND_PROBABILITY) -> tuple[float, float]:
     """The two-sided ``probability`` interval of a chi-square with ``dof`` degrees of freedom."""
     a = (1.0 - probability) / 2.0
-    return float(chi2.ppf(a, dof)), float(chi2.ppf(1.0 - a, dof))
+    return chi2_ppf(a, dof), chi2_ppf(1.0 - a, dof)
 
 
 @dataclass(frozen=True)
@@ -233,7 +233,7 @@ def nees_summary(values: ArrayLike, dof: int = POSE_DOF,
         return NeesSummary(0, dof, (lo, hi), math.nan, math.nan, math.nan, math.nan,
                            (math.nan, math.nan))
     a = (1.0 - probability) / 2.0
-    interval = (float(chi2.ppf(a, n * dof)) / n, float(chi2.ppf(1.0 - a, n * dof)) / n)
+    interval = (chi2_ppf(a, n * dof) / n, chi2_ppf(1.0 - a, n * dof) / n)
     return NeesSummary(
         n, dof, (lo, hi),
         float(np.mean((v >= lo) & (v <= hi))),

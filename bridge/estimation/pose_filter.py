@@ -33,10 +33,10 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from koala_bridge.core.distributions import chi2_ppf
 from koala_bridge.core.geometry import wrap_angle
 from koala_bridge.estimation.errors import EstimationError
 from numpy.typing import ArrayLike, NDArray
-from scipy.stats import chi2
 
 FloatArray = NDArray[np.float64]
 
@@ -267,7 +267,7 @@ class PoseTracker:
         self.P = np.diag([1e6, 1e6, math.pi**2, params.gyro_bias_sigma0**2])
         self.t = 0.0
         self.counters = GateCounters()
-        self._gates = {m: float(chi2.ppf(params.gate_probability, m)) for m in (1, 2)}
+        self._gates = {m: chi2_ppf(params.gate_probability, m) for m in (1, 2)}
         self._ticks: tuple[int, int] | None = None
         self._gyro_t: float | None = None
         self._gyro_angle = 0.0

@@ -46,8 +46,8 @@ import numpy as np
 from koala_bridge.calibration.effects import register_effect
 from koala_bridge.calibration.effects.base import Effect, EffectInstance
 from koala_bridge.calibration.robust import mad_sigma, tail_count
+from koala_bridge.core.distributions import norm_sf
 from numpy.typing import NDArray
-from scipy import stats
 
 
 @register_effect("outlier")
@@ -68,7 +68,7 @@ class Outlier(Effect):
         sigma_name = "inlier_sigma" if problem.noise_shape("fit") is None else "inlier_sigma_ratio"
         k, n = tail_count(r, 3.0)
         # start: the excess over the Gaussian share beyond 3 sigma, at least 1 %
-        p0 = float(np.clip(k / max(n, 1) - 2 * stats.norm.sf(3.0), 0.01, 0.3))
+        p0 = float(np.clip(k / max(n, 1) - 2 * norm_sf(3.0), 0.01, 0.3))
         out = []
         y_min, y_max = float(np.min(fit.y)), float(np.max(fit.y))
         if problem.range_limits is not None:
