@@ -32,3 +32,17 @@ def fast_bridge_config() -> dict[str, Any]:
     ):
         config = apply_override(config, key, value)
     return config
+
+
+def per_step_us(
+    wall: dict[str, list[float]], cpu: dict[str, list[float]], steps: int
+) -> tuple[dict[str, float], dict[str, float], dict[str, float]]:
+    """Microseconds per step of each variant's timed windows (``steps`` steps each): the best
+    window's wall time (the least disturbed, the ``timeit`` convention), the median window's,
+    and the best window's CPU time."""
+    import statistics
+
+    best = {k: 1e6 * min(v) / steps for k, v in wall.items()}
+    med = {k: 1e6 * statistics.median(v) / steps for k, v in wall.items()}
+    cpu_best = {k: 1e6 * min(v) / steps for k, v in cpu.items()}
+    return best, med, cpu_best

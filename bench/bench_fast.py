@@ -78,7 +78,7 @@ from typing import Any
 
 import numpy as np
 
-from bench._common import fast_bridge_config
+from bench._common import fast_bridge_config, per_step_us
 
 REPO = Path(__file__).resolve().parents[1]
 TARGET_RTF = 150.0
@@ -245,9 +245,7 @@ def main(argv: list[str] | None = None) -> int:
         service.close()
 
     dt = service.dt
-    us = {k: 1e6 * min(v) / steps for k, v in wall.items()}
-    med = {k: 1e6 * float(np.median(v)) / steps for k, v in wall.items()}
-    cpu_us = {k: 1e6 * min(v) / steps for k, v in cpu.items()}
+    us, med, cpu_us = per_step_us(wall, cpu, steps)
     print(f"bridge loop, config/default.toml, every bus + Zenoh + localisation, fast clock, "
           f"{len(wall['loop'])} windows of {args.window:g} sim-s each (best / median)")
     for k, what in (("loop", "whole loop"), ("floor", "simulator alone (floor)")):

@@ -34,9 +34,7 @@ import threading
 import time
 from pathlib import Path
 
-import numpy as np
-
-from bench._common import REPO, fast_bridge_config
+from bench._common import REPO, fast_bridge_config, per_step_us
 
 VARIANTS = ("bare", "live", "record", "record+scene")
 
@@ -138,9 +136,7 @@ def main(argv: list[str] | None = None) -> int:
                 received = json.loads(out.strip().splitlines()[-1]) if out.strip() else {}
 
     dt = service.dt
-    us = {k: 1e6 * min(v) / steps for k, v in wall.items()}
-    med = {k: 1e6 * float(np.median(v)) / steps for k, v in wall.items()}
-    cpu_us = {k: 1e6 * min(v) / steps for k, v in cpu.items()}
+    us, med, cpu_us = per_step_us(wall, cpu, steps)
     print(f"bridge loop, config/default.toml, every bus + Zenoh + localisation, fast clock, "
           f"{len(wall['bare'])} windows of {args.window:g} sim-s per variant (best / median)")
     for k in VARIANTS:
