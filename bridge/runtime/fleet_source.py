@@ -110,9 +110,13 @@ class FleetSource:
             robot.tap = None if tap is None else RobotTap(tap, e.name)
 
     def robots_metadata(self) -> list[dict[str, Any]]:
-        """Each robot's name, Zenoh prefix and start pose (a recording's metadata)."""
+        """Each robot's name, Zenoh prefix, start pose, random-stream key, K-Team dialect and
+        parameters (its ``world`` answer's ``robot``): a recording's metadata, which ``export``
+        and ``replay --robot`` read (recording/mcap_file.py, :func:`robot_view`)."""
         return [{"name": e.name, "prefix": r.settings.zenoh.prefix,
-                 "start": e.config["world"]["start"], "seed_offset": e.stream_key}
+                 "start": e.config["world"]["start"], "seed_offset": e.stream_key,
+                 "kteam_dialect": r.settings.buses.kteam_dialect,
+                 "robot": r.world_answer().get("robot")}
                 for e, r in zip(self.entries, self.robots, strict=True)]
 
     def world_answer(self) -> dict[str, Any]:
