@@ -27,8 +27,10 @@ one server and one recording (:func:`attach_foxglove` with ``robots``).
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import logging
+import re
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -82,14 +84,16 @@ def parse_address(text: str, allow_non_loopback: bool = False) -> tuple[str, int
         host, port_text = "", text
     else:
         host, port_text = text, ""
+    bare = not port_text and not text.startswith("[")     # HOST alone
     host = host or default_host
     try:
         port = int(port_text or default_port)
     except ValueError:
         port = -1
-    if not 0 <= port <= 65535 or not host:
-        raise ConfigError(f"--foxglove {text!r}: expected HOST:PORT (e.g. {DEFAULT_ADDRESS}; "
-                          "port 0 = any free port)")
+    if not 0 <= port <= 65535 or not _is_host(host, bare):
+        raise ConfigError(f"--foxglove {text!r}: expected HOST:PORT, e.g. {DEFAULT_ADDRESS} "
+                          "(port 0 = any free port; a HOST alone is an IP address, localhost "
+                          "or a dotted name)")
     if not is_loopback_host(host) and not allow_non_loopback:
         raise ConfigError(
             f"--foxglove {host}: not loopback, so the live view would be reachable from the "
@@ -97,6 +101,24 @@ def parse_address(text: str, allow_non_loopback: bool = False) -> tuple[str, int
             "127.0.0.1"
         )
     return host, port
+
+
+#: A DNS host name (RFC 1123 labels, dot-separated).
+_HOST_NAME = re.compile(r"(?!-)[A-Za-z0-9-]{1,63}(?<!-)(\.(?!-)[A-Za-z0-9-]{1,63}(?<!-))*\.?")
+
+
+def _is_host(host: str, bare: bool) -> bool:
+    """Whether ``host`` can be the host of ``--foxglove``: an IP address, or a host name (a
+    ``bare`` one, given without a port, only ``localhost`` or a dotted name: a lone word such as
+    ``garbage`` is a mistyped address far more often than a machine's name)."""
+    try:
+        ipaddress.ip_address(host.partition("%")[0])
+        return True
+    except ValueError:
+        pass
+    if not _HOST_NAME.fullmatch(host) or host.replace(".", "").isdigit():
+        return False
+    return not bare or host == "localhost" or "." in host.rstrip(".")
 
 
 def foxglove_schema(cls: type) -> ChannelSchema:

@@ -115,7 +115,9 @@ def test_non_loopback_refused_and_bad_address(bridge: Any, tmp_path: Any) -> Non
 
     from conftest import REPO, bridge_command
 
-    for address, words in (("0.0.0.0:0", "not loopback"), ("127.0.0.1:99999", "HOST:PORT")):
+    for address, words in (("0.0.0.0:0", "not loopback"), ("127.0.0.1:99999", "HOST:PORT"),
+                           ("garbage", "--foxglove 'garbage': expected HOST:PORT, e.g. "
+                            "127.0.0.1:8765")):
         done = subprocess.run(bridge_command("run", "--foxglove", address), cwd=REPO,
                               capture_output=True, text=True, timeout=120)
         assert done.returncode == 2, done
