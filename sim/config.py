@@ -30,6 +30,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Annotated, Any
 
+import numpy as np
+from koala_bridge.core.raycast import SegmentSet, point_segment_distances
 from koala_bridge.core.schema import ConfigError, Finite, reject_unknown, require, section, validate
 from koala_bridge.sim.robot import RobotConfig
 from koala_bridge.sim.sensors.camera import CameraConfig
@@ -134,9 +136,31 @@ def load_sim_config(d: Mapping[str, Any]) -> SimConfig:
             _period_steps(rate, step.dt_s)
         except ConfigError as e:
             raise ConfigError(f"[sensors.{name}] 'rate_hz': {e}") from None
-    return SimConfig(
-        sim=step,
-        robot=RobotConfig.from_dict(d["robot"]),
-        sensors=sensors,
-        world=World.from_dict(d["world"]),
-    )
+    robot = RobotConfig.from_dict(d["robot"])
+    world = World.from_dict(d["world"])
+    check_start(world, robot.body_radius_m)
+    return SimConfig(sim=step, robot=robot, sensors=sensors, world=world)
+
+
+def check_start(world: World, body_radius_m: float) -> None:
+    """Raise :class:`ConfigError` when the world's start pose puts the robot outside the world
+    (its centre beyond ``0..width``, ``0..height``) or its body (a circle of ``body_radius_m``)
+    across a wall segment: a robot that starts in a wall cannot move out of it."""
+    start = world.start
+    if start is None:
+        return
+    where = f"[world.start] x = {start.x:g}, y = {start.y:g}"
+    if not (0.0 <= start.x <= world.width_m and 0.0 <= start.y <= world.height_m):
+        raise ConfigError(f"{where} is outside the world (x 0..{world.width_m:g} m, "
+                          f"y 0..{world.height_m:g} m)")
+    if len(world.segments):
+        walls = SegmentSet.from_segments(world.segments, merge=False)
+        distances = point_segment_distances(walls, start.x, start.y)
+        nearest = int(np.argmin(distances))
+        gap = float(distances[nearest])
+        if gap < body_radius_m - 1e-9:
+            x0, y0, x1, y1 = (float(v) for v in world.segments[nearest])
+            raise ConfigError(
+                f"{where}: the robot's body (radius {body_radius_m:g} m) overlaps the wall "
+                f"({x0:g}, {y0:g})-({x1:g}, {y1:g}), {gap:.3f} m from its centre: start at "
+                f"least {body_radius_m:g} m from every wall")

@@ -6,7 +6,8 @@ The protocol is ``foxglove.websocket.v1``; foxglove-sdk's server names it ``foxg
 (the same protocol under a new name): the client offers both, as the Foxglove app does, and the
 server picks the new one (docs/foxglove.md). JSON text frames ``serverInfo``, ``advertise``,
 ``subscribe``; binary frames, opcode 0x01 = message data:
-``<u8 op><u32 subscription id><u64 log time ns><payload>``."""
+``<u8 op><u32 subscription id><u64 log time ns><payload>``, opcode 0x02 = time (a server with
+the ``time`` capability): ``<u8 op><u64 timestamp ns>``."""
 
 from __future__ import annotations
 
@@ -23,7 +24,9 @@ from websockets.sync.client import ClientConnection, connect
 
 SUBPROTOCOLS = ("foxglove.sdk.v1", "foxglove.websocket.v1")
 MESSAGE_DATA = 0x01
+TIME = 0x02
 _HEADER = struct.Struct("<BIQ")
+_TIME = struct.Struct("<BQ")
 
 
 def protobuf_decoder(schema_name: str, descriptor_set: bytes) -> Callable[[bytes], Any]:
@@ -47,13 +50,15 @@ class Received:
 @dataclass
 class FoxgloveClient:
     """A client, connected inside ``with``: ``channels`` by topic as advertised,
-    ``subscribe(topics)``, ``receive(done, timeout)``."""
+    ``subscribe(topics)``, ``receive(done, timeout)``; ``times``: the server's time messages
+    (ns), in order of arrival."""
 
     url: str
     ws: ClientConnection = field(init=False)
     server_info: dict[str, Any] = field(default_factory=dict)
     channels: dict[str, dict[str, Any]] = field(default_factory=dict)
     _subs: dict[int, tuple[str, Callable[[bytes], Any]]] = field(default_factory=dict)
+    times: list[int] = field(default_factory=list)
 
     def __enter__(self) -> FoxgloveClient:
         self.ws = connect(self.url, subprotocols=list(SUBPROTOCOLS),  # type: ignore[arg-type]
@@ -103,8 +108,11 @@ class FoxgloveClient:
         if isinstance(frame, str):
             self._text(json.loads(frame))
             return
+        if frame[0] == TIME:
+            self.times.append(_TIME.unpack_from(frame)[1])
+            return
         if frame[0] != MESSAGE_DATA:
-            return  # time (0x02) and the rest: not needed here
+            return  # the rest: not needed here
         _, sub_id, log_time = _HEADER.unpack_from(frame)
         topic, decode = self._subs[sub_id]
         on_message(Received(topic, log_time, decode(frame[_HEADER.size:])))

@@ -9,7 +9,9 @@ queryable answers, so `koala-bridge monitor` and `snapshot` work during a replay
 buses only). The buses are those of the recording's configuration (`--config` replaces it,
 `--set` overrides a key), and the start banner and --endpoints-file say where clients connect,
 as for `run`. A recording that cannot be replayed (other format version, no bus channel) is
-refused with the reason.
+refused with the reason. A recording of several robots (`[[robots]]`, docs/multirobot.md) is
+replayed one robot at a time: --robot NAME picks it, and it is replayed as a one-robot recording
+on that robot's buses and Zenoh prefix (of the recorded configuration).
 
 examples:
   koala-bridge run --clock fast --duration 60 --record /tmp/run.mcap   # make a recording
@@ -18,6 +20,7 @@ examples:
   koala-bridge replay /tmp/run.mcap --wait-clients 30 --set buses.mavlink.port=14551
   koala-bridge replay /tmp/run.mcap --set 'zenoh.listen=["tcp/127.0.0.1:7500"]' &
   koala-bridge monitor --connect tcp/127.0.0.1:7500                     # watch the replay
+  koala-bridge replay /tmp/two.mcap --robot beta   # one robot of a recording of [[robots]]
 """
 
 from __future__ import annotations
@@ -31,6 +34,10 @@ from koala_bridge.cli.main import positive, seconds
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("recording", metavar="FILE.mcap", help="a recording of `run --record`")
+    parser.add_argument(
+        "--robot", metavar="NAME",
+        help="the robot to replay of a recording of [[robots]] (required for one)",
+    )
     parser.add_argument(
         "--speed",
         type=positive,
@@ -98,6 +105,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from koala_bridge.core.resources import default_config_path
     from koala_bridge.recording.mcap_file import RecordingError, open_recording
+    from koala_bridge.runtime.fleet_config import robot_entries
     from koala_bridge.runtime.replay import ReplaySource, plan_replay
     from koala_bridge.runtime.session import run_session
     from koala_bridge.runtime.settings import (
@@ -108,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
     )
 
     # A bad recording or configuration raises the project's errors: cli/main.py prints them.
-    rec = open_recording(args.recording)
+    rec = open_recording(args.recording).robot(args.robot)
     plan = plan_replay(rec, tuple(args.buses) if args.buses else None, zenoh=not args.no_zenoh)
     if args.config is not None:
         config = load_config(args.config)
@@ -121,6 +129,11 @@ def run(args: argparse.Namespace) -> int:
                 f"{args.recording}: the recorded configuration is not JSON ({e}); "
                 "give one with --config"
             ) from e
+    if args.robot is not None and args.config is None:
+        # the robot's own configuration: the recorded file's with its entry laid over it
+        entry = next((e for e in robot_entries(config) or [] if e.name == args.robot), None)
+        if entry is not None:
+            config = entry.config
     for o in args.overrides:
         config = apply_override(config, *parse_override(o))
     settings = BridgeSettings.from_config(config)

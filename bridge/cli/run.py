@@ -108,7 +108,12 @@ def resolve_config(args: argparse.Namespace) -> dict[str, Any]:
     """The file's configuration with the command line applied on top (CLI > file)."""
     config = load_config(args.config)
     for text in args.overrides:
-        config = apply_override(config, *parse_override(text))
+        key, value = parse_override(text)
+        if key == ["robot", "name"] and "robots" in config:
+            raise ConfigError(
+                f"--set {text}: with [[robots]] each robot's name is its entry's 'name' "
+                "([[robots]] name = \"...\"), not [robot] name: rename it there")
+        config = apply_override(config, key, value)
     flags = {
         ("run", "clock"): args.clock,
         ("run", "duration_s"): args.duration,

@@ -147,8 +147,10 @@ def _meta(rec: Recording, counts: dict[str, int]) -> dict[str, Any]:
     seed: Any = run.get("seed")
     if isinstance(seed, str) and seed.lstrip("-").isdigit():
         seed = int(seed)
+    fleet_robot = run.get("robot")  # a robot of a [[robots]] recording (Recording.robot)
     return {
-        "source": f"koala-bridge recording ({run.get('source', 'sim')})",
+        "source": f"koala-bridge recording ({run.get('source', 'sim')})"
+                  + (f", robot {fleet_robot}" if fleet_robot else ""),
         "recording": str(rec.path.resolve()),
         "recording_complete": rec.complete,
         "recording_lost": rec.lost,
@@ -182,8 +184,15 @@ BUNDLE_FILES = frozenset(
 )
 
 
-def export_bundle(mcap_path: str | os.PathLike[str], out_dir: str | os.PathLike[str]) -> Path:
+def export_bundle(
+    mcap_path: str | os.PathLike[str], out_dir: str | os.PathLike[str],
+    robot: str | None = None,
+) -> Path:
     """Write the measurement bundle of the recording ``mcap_path`` into ``out_dir``.
+
+    A recording of ``[[robots]]`` is exported one robot at a time: ``robot`` names it, and its
+    channels are read as a one-robot recording's (:meth:`Recording.robot`); without ``robot``
+    such a recording is refused with a line naming its robots.
 
     The bundle is written into a temporary sibling directory and renamed to ``out_dir`` when
     complete, so an export that fails or is killed never leaves a partial bundle that
@@ -194,7 +203,7 @@ def export_bundle(mcap_path: str | os.PathLike[str], out_dir: str | os.PathLike[
     :class:`recording.mcap_file.RecordingError` if the file is not a recording, is damaged, or
     holds no reading at all; OSError if the directory cannot be written.
     """
-    rec = open_recording(mcap_path)
+    rec = open_recording(mcap_path).robot(robot)
     out = Path(out_dir)
     if out.exists():
         if not out.is_dir():

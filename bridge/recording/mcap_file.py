@@ -32,9 +32,12 @@ summary and footer: a complete, indexed file.
 from __future__ import annotations
 
 import base64
+import dataclasses
+import difflib
 import io
 import json
 import logging
+import math
 import os
 import struct
 import threading
@@ -516,6 +519,122 @@ class Recording:
         for m in self.messages:
             out[m.topic] = out.get(m.topic, 0) + 1
         return out
+
+    @property
+    def robots(self) -> list[dict[str, Any]]:
+        """The robots of a recording of ``[[robots]]`` (metadata ``robots``: each robot's
+        ``name``, ``prefix``, ``start``, ``seed_offset``, ...), in the file's order; ``[]`` for a
+        one-robot recording."""
+        text = self.metadata.get(META_NAME, {}).get("robots")
+        if not text:
+            return []
+        try:
+            robots = json.loads(text)
+        except ValueError as e:
+            raise RecordingError(f"{self.path}: its metadata 'robots' is not JSON ({e})") from e
+        if not isinstance(robots, list) or not all(
+                isinstance(r, dict) and isinstance(r.get("name"), str) for r in robots):
+            raise RecordingError(f"{self.path}: its metadata 'robots' is not a list of robots")
+        return robots
+
+    def robot(self, name: str | None) -> Recording:
+        """The recording as one robot's: for a recording of ``[[robots]]``, the view of robot
+        ``name`` as a one-robot recording (:func:`robot_view`); a one-robot recording itself
+        when ``name`` is None. Raises :class:`RecordingError` (one line) when ``name`` is
+        missing for a fleet's recording, names no robot of it, or is given for a one-robot
+        recording."""
+        robots = self.robots
+        names = [r["name"] for r in robots]
+        if not robots:
+            if name is None:
+                return self
+            raise RecordingError(f"{self.path.name} is a recording of one robot: --robot "
+                                 f"{name} applies only to a recording of [[robots]]")
+        if name is None:
+            raise RecordingError(f"{self.path.name} is a recording of {len(names)} robots "
+                                 f"({', '.join(names)}): choose one with --robot NAME")
+        if name not in names:
+            near = difflib.get_close_matches(name, names, n=1)
+            hint = f"; did you mean {near[0]!r}?" if near else ""
+            raise RecordingError(f"{self.path.name} holds no robot {name!r} (its robots: "
+                                 f"{', '.join(names)}){hint}")
+        return robot_view(self, robots[names.index(name)], names)
+
+
+def robot_topic(topic: str, name: str, names: Iterable[str]) -> str | None:
+    """The topic of robot ``name``'s channel ``topic`` of a fleet's recording as a one-robot
+    recording names it (``/alpha/truth/pose`` -> ``/truth/pose``, ``/bus/alpha/can`` ->
+    ``/bus/can``, its Foxglove scene ``/alpha/scene/truth/tf`` -> ``/alpha/truth/tf``, as a
+    one-robot run of a robot named ``alpha`` records it: docs/foxglove.md); a channel of the
+    world (``/world/map``) as it is; None for another robot's."""
+    for robot in names:
+        for head in (f"/bus/{robot}/", f"/{robot}/"):
+            if topic.startswith(head):
+                if robot != name:
+                    return None
+                rest = topic[len(head):]
+                if head.startswith("/bus/"):
+                    return "/bus/" + rest
+                if rest.startswith("scene/"):
+                    return f"/{name}/{rest[len('scene/'):]}"
+                return "/" + rest
+    return topic
+
+
+def robot_view(rec: Recording, robot: Mapping[str, Any], names: list[str]) -> Recording:
+    """Robot ``robot`` (an entry of :attr:`Recording.robots`) of a fleet's recording ``rec``,
+    read as a one-robot recording: its channels under their one-robot names
+    (:func:`robot_topic`), the world's channels shared, the others' left out; the metadata's
+    ``kteam_dialect`` the robot's and the world's ``start`` (and ``robot``, when recorded) its
+    own. The metadata keeps the fleet's ``config`` and names the robot (``robot``)."""
+    name = robot["name"]
+    topics = {ch.topic: robot_topic(ch.topic, name, names)
+              for ch in rec.channel_records.values()}
+    topics.update({m.topic: robot_topic(m.topic, name, names) for m in rec.messages
+                   if m.topic not in topics})
+    channels = {i: dataclasses.replace(ch, topic=t)
+                for i, ch in rec.channel_records.items() if (t := topics[ch.topic]) is not None}
+    messages = [dataclasses.replace(m, topic=t) for m in rec.messages
+                if (t := topics[m.topic]) is not None]
+    schemas = {t: text for topic, text in rec.schemas.items()
+               if (t := topics.get(topic, topic)) is not None}
+    metadata = {k: dict(v) for k, v in rec.metadata.items()}
+    run = metadata.setdefault(META_NAME, {})
+    run.pop("robots", None)
+    run["robot"] = name
+    dialect = robot.get("kteam_dialect") or _entry_dialect(run.get("config"), name)
+    if dialect:
+        run["kteam_dialect"] = dialect
+    world = rec.world
+    if world is not None:
+        start = robot.get("start")
+        if isinstance(start, dict) and {"x", "y"} <= start.keys():
+            theta = start.get("theta")
+            if theta is None:
+                theta = math.radians(float(start.get("theta_deg", 0.0)))
+            world["start"] = {"x": start["x"], "y": start["y"], "theta": theta}
+        if isinstance(robot.get("robot"), dict):
+            world["robot"] = robot["robot"]
+        metadata[WORLD_META_NAME] = {**metadata.get(WORLD_META_NAME, {}),
+                                     "json": json.dumps(world)}
+    return dataclasses.replace(rec, metadata=metadata, messages=messages, schemas=schemas,
+                               channel_records=channels)
+
+
+def _entry_dialect(config_text: str | None, name: str) -> str | None:
+    """The K-Team dialect of robot ``name`` in a recorded fleet configuration (its entry's
+    ``[robots.buses.kteam] dialect``, else the file's), for recordings whose ``robots`` metadata
+    does not say it."""
+    try:
+        config = json.loads(config_text or "{}")
+        entry = next(e for e in config.get("robots") or [] if e.get("name") == name)
+        for table in (entry, config):
+            found = ((table.get("buses") or {}).get("kteam") or {}).get("dialect")
+            if found:
+                return str(found)
+    except (ValueError, AttributeError, StopIteration):
+        pass
+    return None
 
 
 class CorruptRecordingError(RecordingError):

@@ -36,13 +36,15 @@ from __future__ import annotations
 
 import copy
 import math
-from collections.abc import Mapping
-from dataclasses import dataclass
+import re
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass, field
 from typing import Any
 
-from koala_bridge.core.schema import ConfigError, reject_unknown, require
+from koala_bridge.core.schema import ConfigError, reject_unknown
 
-__all__ = ["ROBOT_ENTRY_KEYS", "RobotEntry", "check_clashes", "robot_entries"]
+__all__ = ["ROBOT_ENTRY_KEYS", "RobotEntry", "check_clashes", "entry_errors", "robot_entries"]
 
 #: The keys of one ``[[robots]]`` entry.
 ROBOT_ENTRY_KEYS = ("name", "start", "seed_offset", "robot", "sensors", "buses", "zenoh",
@@ -61,6 +63,9 @@ class RobotEntry:
     index: int
     stream_key: int
     config: dict[str, Any]
+    own: Mapping[str, Any] = field(default_factory=dict)
+    """The entry as the file writes it (its errors are reported at its path:
+    :func:`entry_errors`)."""
 
 
 def robot_entries(config: Mapping[str, Any]) -> list[RobotEntry] | None:
@@ -82,7 +87,13 @@ def robot_entries(config: Mapping[str, Any]) -> list[RobotEntry] | None:
     for i, entry in enumerate(entries):
         where = f"robots.{i}"
         reject_unknown(entry, ROBOT_ENTRY_KEYS, where)
-        name = require(entry, "name", where)
+        for needed in ("name", "start"):
+            if needed not in entry:
+                raise ConfigError(
+                    f"[{where}] has no '{needed}': each [[robots]] entry needs name = \"...\" "
+                    "(a plain word, unique) and start = {x = .., y = .., theta_deg = ..} (the "
+                    "robot's start pose in the world); the rest is optional (docs/multirobot.md)")
+        name = entry["name"]
         if (not isinstance(name, str) or not name or not name.isprintable()
                 or any(c.isspace() or c in "/*$?#\\" for c in name)):
             raise ConfigError(f"[{where}] 'name' must be a plain word, got {name!r}")
@@ -96,13 +107,15 @@ def robot_entries(config: Mapping[str, Any]) -> list[RobotEntry] | None:
             raise ConfigError(f"[{where}] 'seed_offset' {key} is another robot's: two robots "
                               "would draw the same noise")
         keys.add(key)
-        start = require(entry, "start", where)
+        start = entry["start"]
         if not isinstance(start, Mapping):
             raise ConfigError(f"[{where}] 'start' must be a table {{x = .., y = .., "
                               f"theta_deg = ..}}, got {start!r}")
         reject_unknown(start, _START_KEYS, f"{where}.start")
         for k in ("x", "y"):
-            require(start, k, f"{where}.start")
+            if k not in start:
+                raise ConfigError(f"[{where}.start] has no '{k}': a robot's start is "
+                                  "{x = .., y = .., theta_deg = ..} (m, m, degrees)")
         zenoh = entry.get("zenoh", {})
         if isinstance(zenoh, Mapping):
             for k in zenoh:
@@ -110,8 +123,43 @@ def robot_entries(config: Mapping[str, Any]) -> list[RobotEntry] | None:
                     raise ConfigError(
                         f"[{where}.zenoh] '{k}' is the Zenoh session's, one for every robot: set "
                         f"it in [zenoh]; a robot sets only {', '.join(ZENOH_ROBOT_KEYS)}")
-        out.append(RobotEntry(name, i, key, _robot_config(base, entry, i, name)))
+        out.append(RobotEntry(name, i, key, _robot_config(base, entry, i, name), dict(entry)))
     return out
+
+
+@contextmanager
+def entry_errors(entry: RobotEntry) -> Iterator[None]:
+    """Report a :class:`ConfigError` raised while robot ``entry``'s configuration is built
+    (typed sections, simulator) at the entry's path when the entry set the key at fault:
+    ``[robots.1.buses.kteam] unknown key 'dialekt'`` rather than ``[buses.kteam] ...``, which
+    a reader looks for in the file's top-level tables; its start pose as ``[robots.1.start]``.
+    An error in a key the entry does not set is the file's and stays as it is."""
+    try:
+        yield
+    except ConfigError as e:
+        text = str(e)
+        found = _ERROR_PLACE.match(text)
+        if found is None:
+            raise
+        path, rest = found.group(1), found.group(2)
+        where = f"robots.{entry.index}"
+        if path == "world.start":
+            raise ConfigError(f"[{where}.start] robot {entry.name!r}: "
+                              f"{rest.strip()}") from e
+        key = _ERROR_KEY.search(rest)
+        table: Any = entry.own
+        for part in path.split("."):
+            table = table.get(part) if isinstance(table, Mapping) else None
+        if key is None or not isinstance(table, Mapping) or key.group(1) not in table:
+            raise
+        rest = rest.replace(f"({path}.", f"({where}.{path}.")
+        raise ConfigError(f"[{where}.{path}]{rest}") from e
+
+
+#: ``[section.path] the rest`` of a :class:`ConfigError` message (core/schema.py), and the key
+#: it names first (``unknown key 'dialekt'``, ``'port' must be ...``).
+_ERROR_PLACE = re.compile(r"^\[([\w.]+)\](.*)$", re.DOTALL)
+_ERROR_KEY = re.compile(r"'([^']+)'")
 
 
 def _robot_config(base: Mapping[str, Any], entry: Mapping[str, Any], index: int,

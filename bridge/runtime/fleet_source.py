@@ -27,7 +27,7 @@ from typing import Any
 
 from koala_bridge.runtime.clock import Clock
 from koala_bridge.runtime.endpoints import Endpoints, FleetEndpoints
-from koala_bridge.runtime.fleet_config import RobotEntry, check_clashes
+from koala_bridge.runtime.fleet_config import RobotEntry, check_clashes, entry_errors
 from koala_bridge.runtime.settings import BridgeSettings
 from koala_bridge.runtime.sim_source import SimulatedRobotSource
 from koala_bridge.runtime.source import Tap, until_text
@@ -72,12 +72,14 @@ class FleetSource:
         self.settings = settings
         self.entries = entries
         robot_settings = []
+        self.robots = []
         for e in entries:
             # the endpoints file is the fleet's (one file naming every robot)
             e.config.setdefault("run", {})["endpoints_file"] = ""
-            robot_settings.append(BridgeSettings.from_config(e.config))
-        self.robots = [SimulatedRobotSource(e.config, s, seed=seed)
-                       for e, s in zip(entries, robot_settings, strict=True)]
+            with entry_errors(e):       # an error in the entry's keys names its path
+                s = BridgeSettings.from_config(e.config)
+                self.robots.append(SimulatedRobotSource(e.config, s, seed=seed))
+            robot_settings.append(s)
         if settings.run.clock != "lockstep":
             clock: Clock = self.robots[0].clock      # one clock paces them all
             for robot in self.robots:
@@ -110,9 +112,13 @@ class FleetSource:
             robot.tap = None if tap is None else RobotTap(tap, e.name)
 
     def robots_metadata(self) -> list[dict[str, Any]]:
-        """Each robot's name, Zenoh prefix and start pose (a recording's metadata)."""
+        """Each robot's name, Zenoh prefix, start pose, random-stream key, K-Team dialect and
+        parameters (its ``world`` answer's ``robot``): a recording's metadata, which ``export``
+        and ``replay --robot`` read (recording/mcap_file.py, :func:`robot_view`)."""
         return [{"name": e.name, "prefix": r.settings.zenoh.prefix,
-                 "start": e.config["world"]["start"], "seed_offset": e.stream_key}
+                 "start": e.config["world"]["start"], "seed_offset": e.stream_key,
+                 "kteam_dialect": r.settings.buses.kteam_dialect,
+                 "robot": r.world_answer().get("robot")}
                 for e, r in zip(self.entries, self.robots, strict=True)]
 
     def world_answer(self) -> dict[str, Any]:

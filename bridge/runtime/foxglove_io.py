@@ -16,6 +16,9 @@ to:
   simulation time, through the recorder's own MCAP writer (one writer per file), beside the raw
   bus frames and the JSON channels.
 
+The clients' time (the ``time`` capability) is the simulation's, sent at most
+:data:`SCENE_RATE_HZ` times per wall second whatever the clients subscribe to.
+
 The static scene (the map, the world's grid, the robot's body) goes to a client when it
 subscribes, and into a recording at t = 0 and every :data:`STATIC_PERIOD_S` simulated seconds
 (a player that seeks finds it).
@@ -27,8 +30,10 @@ one server and one recording (:func:`attach_foxglove` with ``robots``).
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import logging
+import re
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -82,14 +87,16 @@ def parse_address(text: str, allow_non_loopback: bool = False) -> tuple[str, int
         host, port_text = "", text
     else:
         host, port_text = text, ""
+    bare = not port_text and not text.startswith("[")     # HOST alone
     host = host or default_host
     try:
         port = int(port_text or default_port)
     except ValueError:
         port = -1
-    if not 0 <= port <= 65535 or not host:
-        raise ConfigError(f"--foxglove {text!r}: expected HOST:PORT (e.g. {DEFAULT_ADDRESS}; "
-                          "port 0 = any free port)")
+    if not 0 <= port <= 65535 or not _is_host(host, bare):
+        raise ConfigError(f"--foxglove {text!r}: expected HOST:PORT, e.g. {DEFAULT_ADDRESS} "
+                          "(port 0 = any free port; a HOST alone is an IP address, localhost "
+                          "or a dotted name)")
     if not is_loopback_host(host) and not allow_non_loopback:
         raise ConfigError(
             f"--foxglove {host}: not loopback, so the live view would be reachable from the "
@@ -97,6 +104,24 @@ def parse_address(text: str, allow_non_loopback: bool = False) -> tuple[str, int
             "127.0.0.1"
         )
     return host, port
+
+
+#: A DNS host name (RFC 1123 labels, dot-separated).
+_HOST_NAME = re.compile(r"(?!-)[A-Za-z0-9-]{1,63}(?<!-)(\.(?!-)[A-Za-z0-9-]{1,63}(?<!-))*\.?")
+
+
+def _is_host(host: str, bare: bool) -> bool:
+    """Whether ``host`` can be the host of ``--foxglove``: an IP address, or a host name (a
+    ``bare`` one, given without a port, only ``localhost`` or a dotted name: a lone word such as
+    ``garbage`` is a mistyped address far more often than a machine's name)."""
+    try:
+        ipaddress.ip_address(host.partition("%")[0])
+        return True
+    except ValueError:
+        pass
+    if not _HOST_NAME.fullmatch(host) or host.replace(".", "").isdigit():
+        return False
+    return not bare or host == "localhost" or "." in host.rstrip(".")
 
 
 def foxglove_schema(cls: type) -> ChannelSchema:
@@ -136,6 +161,8 @@ class FoxgloveServer:
         self._period: dict[str, float] = {}
         self._static: dict[str, bytes] = {}
         self._static_t_ns = 0
+        self._time_period = 1.0 / SCENE_RATE_HZ
+        self._next_time = 0.0           # the clock's time of the next time broadcast
         self._subscribed = threading.Event()
         self._closed = threading.Event()
         if not is_loopback_host(host):
@@ -218,6 +245,20 @@ class FoxgloveServer:
         self._static_t_ns = t_ns
         self._server.broadcast_time(t_ns)
 
+    def tick_time(self, t_ns: int, now: float) -> None:
+        """Send the clients the time ``t_ns`` if its slot has come (``now``: the clock's time):
+        at most :data:`SCENE_RATE_HZ` times per wall second, whatever the clients subscribe to
+        (the player's clock follows the run even with only a plot open), never backwards."""
+        if now < self._next_time or t_ns < self._static_t_ns:
+            return
+        period = self._time_period
+        self._next_time = max(self._next_time + period, now - period)
+        self.set_time(t_ns)
+
+    def next_time_due(self) -> float:
+        """The clock's time before which :meth:`tick_time` sends nothing."""
+        return self._next_time
+
     def add_static(self, messages: Iterable[tuple[str, bytes]]) -> None:
         """Messages each client gets when it subscribes to their topics (their channels must
         exist); a topic's message replaces the one it had. Several taps add theirs."""
@@ -280,7 +321,7 @@ class FoxgloveTap:
         self._schemas = {cls: foxglove_schema(cls) for cls in set(translator.channels().values())}
         self._next_static = 0.0
         self._failed: set[str] = set()
-        self._time_topic = translator.names.topic("truth/tf") if translator.world_topics else ""
+        self._gives_time = translator.world_topics    # one tap per server sends the time
         self._raw_topics: dict[str, str] = {}     # bridge key -> its raw stream's topic
         self._idle_until: dict[str, float] = {}   # bridge key -> when a topic of it may be due
         if server is not None:
@@ -339,11 +380,13 @@ class FoxgloveTap:
                 assert server is not None
                 ns = time_ns(t)
                 server.log(out.topic, encoded, ns)
-                if out.topic == self._time_topic:
-                    server.set_time(ns)
             if recorder is not None:
                 recorder.record_encoded(out.topic, t, encoded, self._schemas[out.schema])
         if server is not None:
+            assert now is not None
+            if self._gives_time:
+                # independent of subscriptions: the time is the clients' clock, not a topic
+                server.tick_time(time_ns(t) if ns < 0 else ns, now)
             raw = self._raw_topics.get(key)
             if raw is None:
                 self._raw_channel(key)      # advertised on first sight: no subscriber yet
@@ -351,9 +394,11 @@ class FoxgloveTap:
                 server.log(raw, json.dumps(payload, separators=(",", ":")).encode(),
                            time_ns(t) if ns < 0 else ns)
             if raw is not None:
-                assert now is not None
-                self._idle_until[key] = min(server.next_due(topic, now)
-                                            for topic in (raw, *(o.topic for o in outputs)))
+                idle = min(server.next_due(topic, now)
+                           for topic in (raw, *(o.topic for o in outputs)))
+                if self._gives_time:
+                    idle = min(idle, server.next_time_due())
+                self._idle_until[key] = idle
 
     def _raw_channel(self, key: str) -> None:
         """Advertise the raw stream of ``key``: the bridge's JSON message, for the plots, on

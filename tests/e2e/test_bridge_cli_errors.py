@@ -73,6 +73,10 @@ def held_tcp_port() -> Iterator[int]:
     (["--set", 'buses.can.dbc="nonexistent.dbc"'], ["[buses.can] 'dbc': cannot load",
                                                     "nonexistent.dbc"]),
     (["--bogus"], ["unrecognized arguments: --bogus", "koala-bridge run --help"]),
+    # a start the robot cannot leave (a new user's first edit of [world] start)
+    (["--set", "world.start.x=7"], ["[world.start] x = 7, y = ", "is outside the world"]),
+    (["--set", "world.start.x=0.05"], ["[world.start] x = 0.05", "overlaps the wall",
+                                       "0.050 m from its centre"]),
 ])
 def test_run_mistakes_are_one_line_exit_2(tmp_path: Path, args: list[str],
                                           needles: list[str]) -> None:
@@ -190,3 +194,42 @@ def test_help_teaches_with_examples(tmp_path: Path, sub: str | None) -> None:
     assert "example" in p.stdout
     examples = p.stdout[p.stdout.index("example"):]
     assert f"koala-bridge {sub or 'run'} " in examples, p.stdout
+
+
+FLEET = Path(__file__).resolve().parents[2] / "examples" / "two_robots.toml"
+
+
+@pytest.mark.parametrize("entry, needles, absent", [
+    ('[[robots]]\nstart = { x = 0.5, y = 0.5 }\n',
+     ["[robots.2] has no 'name'", "each [[robots]] entry needs name ="], "config init"),
+    ('[[robots]]\nname = "g"\nstart = { x = 9.5, y = 0.5 }\n',
+     ["[robots.2.start] robot 'g': x = 9.5, y = 0.5 is outside the world"], "[world"),
+    ('[[robots]]\nname = "g"\nstart = { x = 0.1, y = 0.5 }\n',
+     ["[robots.2.start] robot 'g': x = 0.1, y = 0.5: the robot's body", "overlaps the wall"],
+     "[world"),
+    ('[[robots]]\nname = "g"\nstart = { x = 0.5, y = 0.5 }\n[robots.sensors.ir]\nrat_hz = 5\n',
+     ["[robots.2.sensors.ir] unknown key 'rat_hz'", "(robots.2.sensors.ir.rate_hz)"],
+     "[sensors.ir]"),
+])
+def test_a_robots_entry_mistake_names_the_entry(tmp_path: Path, entry: str,
+                                                needles: list[str], absent: str) -> None:
+    config = tmp_path / "fleet.toml"
+    config.write_text(FLEET.read_text() + "\n" + entry)
+    p = koala(tmp_path, "run", "--config", str(config), "--duration", "0.1", *free_ports())
+    line = assert_one_line_error(p, 2, "koala-bridge run: configuration error:", *needles)
+    assert absent not in line
+
+
+def test_a_typo_in_a_robots_sub_table_names_the_entry(tmp_path: Path) -> None:
+    config = tmp_path / "fleet.toml"
+    config.write_text(FLEET.read_text().replace('dialect = "koala25"', 'dialekt = "koala25"'))
+    p = koala(tmp_path, "run", "--config", str(config), "--duration", "0.1", *free_ports())
+    assert_one_line_error(p, 2, "[robots.1.buses.kteam] unknown key 'dialekt'; did you mean "
+                          "'dialect' (robots.1.buses.kteam.dialect)?")
+
+
+def test_set_robot_name_with_robots_is_refused(tmp_path: Path) -> None:
+    p = koala(tmp_path, "run", "--config", str(FLEET), "--duration", "0.1", *free_ports(),
+              "--set", "robot.name=x")
+    assert_one_line_error(p, 2, "--set robot.name=x: with [[robots]] each robot's name is its "
+                          "entry's 'name'")

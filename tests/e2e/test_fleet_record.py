@@ -90,3 +90,94 @@ def test_run_records_every_robot(tmp_path: Path) -> None:
         assert {p.frame_id for _, p in pose} == {"world"}
         assert {tf.child_frame_id for _, tf in decoded[f"/{name}/scene/truth/tf"]} == {
             f"{name}/base_link"}
+
+
+# -- export and replay of one robot of a fleet's recording (--robot) ----------------------------
+
+@pytest.fixture(scope="module")
+def fleet_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("fleet") / "two.mcap"
+    done = subprocess.run(
+        [sys.executable, "-m", "koala_bridge", "run",
+         "--config", str(REPO / "examples" / "two_robots.toml"), "--clock", "fast",
+         "--duration", "2", "--record", str(out),
+         "--set", f'zenoh.listen=["tcp/127.0.0.1:{free_port()}"]',
+         "--set", "localisation.enabled=false", "--set", "buses.mavlink.port=0"],
+        capture_output=True, text=True, timeout=120, check=False)
+    assert done.returncode == 0, done.stderr
+    return out
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "koala_bridge", *args],
+                          capture_output=True, text=True, timeout=120, check=False)
+
+
+def test_export_of_a_fleet_recording_names_its_robots(fleet_recording: Path,
+                                                      tmp_path: Path) -> None:
+    for command in (["export", str(fleet_recording), "--bundle", str(tmp_path / "b")],
+                    ["replay", str(fleet_recording), "--no-zenoh"]):
+        done = _cli(*command)
+        assert done.returncode == 2
+        assert done.stderr.strip().splitlines() == [
+            f"koala-bridge {command[0]}: two.mcap is a recording of 2 robots (alpha, beta): "
+            "choose one with --robot NAME"]
+    done = _cli("export", str(fleet_recording), "--bundle", str(tmp_path / "b"), "--robot", "bet")
+    assert done.returncode == 2
+    assert "no robot 'bet' (its robots: alpha, beta); did you mean 'beta'?" in done.stderr
+    assert not (tmp_path / "b").exists()
+
+
+def test_export_one_robot_of_a_fleet_recording(fleet_recording: Path, tmp_path: Path) -> None:
+    rec = open_recording(fleet_recording)
+    for name, x0, theta0 in (("alpha", 1.3, 0.0), ("beta", 2.2, 3.141592653589793)):
+        bundle = tmp_path / name
+        done = _cli("export", str(fleet_recording), "--bundle", str(bundle), "--robot", name)
+        assert done.returncode == 0, done.stderr
+        rows = (bundle / "truth_pose.csv").read_text().splitlines()
+        assert rows[0] == "t,x,y,theta"
+        assert len(rows) - 1 == rec.counts()[f"/{name}/truth/pose"]
+        xs = [float(r.split(",")[1]) for r in rows[1:]]
+        assert xs == [m.json()["x"] for m in rec.topic(f"/{name}/truth/pose")]
+        assert xs[0] == x0
+        meta = json.loads((bundle / "meta.json").read_text())
+        assert meta["robot"]["start_pose"] == {"x": x0, "y": 1.75, "theta": theta0}
+        assert meta["source"].endswith(f", robot {name}")
+        assert {"range.csv", "odometry.csv", "gyro.csv", "landmark_map.csv"} <= {
+            p.name for p in bundle.iterdir()}
+
+
+def test_one_robot_view_of_a_fleet_recording(fleet_recording: Path) -> None:
+    from koala_bridge.runtime.replay import plan_replay
+
+    rec = open_recording(fleet_recording)
+    beta = rec.robot("beta")
+    assert "/truth/pose" in beta.topics and "/bus/can" in beta.topics
+    assert "/world/map" in beta.topics                     # the world's channels are shared
+    assert "/beta/truth/tf" in beta.topics                 # the scene as one robot's, named beta
+    assert not [t for t in beta.topics if "alpha" in t or "scene" in t]
+    assert {t for t in beta.topics if "beta" in t} == {
+        t.replace("/beta/scene/", "/beta/") for t in rec.topics if t.startswith("/beta/scene/")}
+    assert beta.robot(None) is beta                        # a one-robot recording now
+    assert beta.world is not None and beta.world["start"]["x"] == 2.2
+    plan = plan_replay(beta, zenoh=False)
+    assert plan.dialect.name == "koala25"                  # beta's firmware, not alpha's
+    assert plan_replay(rec.robot("alpha"), zenoh=False).dialect.name == "koala1"
+    sent = sum(1 for m in rec.topic("/bus/beta/can") if m.json()["dir"] == "from_robot")
+    assert plan.counts["can"] == sent > 0
+
+
+def test_replay_one_robot_of_a_fleet_recording(fleet_recording: Path) -> None:
+    done = _cli("replay", str(fleet_recording), "--robot", "beta", "--no-zenoh", "--speed", "20",
+                "--linger", "0", "--set", "buses.mavlink.port=0")
+    assert done.returncode == 0, done.stderr
+    assert "Replaying two.mcap: can " in done.stdout
+    assert "virtual             channel 'koala-beta'" in done.stdout  # beta's own buses
+    assert "Replay done: sent can " in done.stdout
+
+
+def test_robot_option_on_a_one_robot_recording_is_refused(tmp_path: Path) -> None:
+    one = REPO / "tests" / "data" / "recordings" / "before-foxglove.mcap"
+    done = _cli("export", str(one), "--bundle", str(tmp_path / "b"), "--robot", "alpha")
+    assert done.returncode == 2
+    assert "is a recording of one robot: --robot alpha applies only" in done.stderr

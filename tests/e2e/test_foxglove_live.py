@@ -110,12 +110,29 @@ def test_map_pose_and_scan_match_zenoh(live: Any) -> None:
     assert matched and all(r.message == gyro[round(r.message["t"] * 1e9)] for r in matched)
 
 
+def test_time_is_sent_whatever_the_client_subscribes_to(live: Any) -> None:
+    """The server's time (op 0x02) is the simulation's, sent to a client subscribed only to the
+    pose: the player's clock follows the run without the transform topic open."""
+    _, _, client = live
+    client.wait_advertised([POSE])
+    assert "time" in client.server_info["capabilities"]
+    client.subscribe([POSE])
+    got = client.receive(lambda g: len(client.times) >= 5 and len(g.get(POSE, ())) >= 2)
+    times = client.times
+    assert times == sorted(times) and times[-1] > times[0]
+    # the simulation's time: the pose's log times are of the same clock
+    poses = [r.log_time_ns for r in got[POSE]]
+    assert min(poses) <= times[-1] and times[0] <= max(poses) + 1_000_000_000
+
+
 def test_non_loopback_refused_and_bad_address(bridge: Any, tmp_path: Any) -> None:
     import subprocess
 
     from conftest import REPO, bridge_command
 
-    for address, words in (("0.0.0.0:0", "not loopback"), ("127.0.0.1:99999", "HOST:PORT")):
+    for address, words in (("0.0.0.0:0", "not loopback"), ("127.0.0.1:99999", "HOST:PORT"),
+                           ("garbage", "--foxglove 'garbage': expected HOST:PORT, e.g. "
+                            "127.0.0.1:8765")):
         done = subprocess.run(bridge_command("run", "--foxglove", address), cwd=REPO,
                               capture_output=True, text=True, timeout=120)
         assert done.returncode == 2, done

@@ -80,7 +80,9 @@ def test_a_robot_sets_its_own_keys_and_a_file_prefix_is_the_parent() -> None:
 
 @pytest.mark.parametrize(("robots", "message"), [
     ([{"name": "a", "start": {"x": 1, "y": 1}, "strat": {}}], "did you mean 'start'"),
-    ([{"name": "a"}], "missing required key 'start'"),
+    ([{"name": "a"}], "has no 'start': each \\[\\[robots\\]\\] entry needs name"),
+    ([{"start": {"x": 1, "y": 1}}], "robots.0\\] has no 'name'"),
+    ([{"name": "a", "start": {"y": 1}}], "robots.0.start\\] has no 'x'"),
     ([{"name": "a", "start": {"x": 1, "y": 1, "theta": 0}}], "theta_deg"),
     ([{"name": "a b", "start": {"x": 1, "y": 1}}], "plain word"),
     ([{"name": "a", "start": {"x": 1, "y": 1}}, {"name": "a", "start": {"x": 2, "y": 1}}],
@@ -156,3 +158,43 @@ def test_example_is_the_default_config_plus_robots() -> None:
     entries = robot_entries(config)
     assert entries is not None
     check_clashes(entries, _settings(config), [0.19, 0.19])
+
+
+def _fleet(config: dict[str, Any]) -> None:
+    from koala_bridge.runtime.fleet_source import FleetSource
+
+    entries = robot_entries(config)
+    assert entries is not None
+    FleetSource(config, BridgeSettings.from_config(config), entries)
+
+
+@pytest.mark.parametrize(("start", "message"), [
+    ({"x": 3.5, "y": 1.0}, r"^\[robots.1.start\] robot 'b': x = 3.5, y = 1 is outside the world "
+                           r"\(x 0..3 m, y 0..3 m\)$"),
+    ({"x": 2.2, "y": -0.1}, "outside the world"),
+    ({"x": 2.2, "y": 0.1}, r"^\[robots.1.start\] robot 'b': x = 2.2, y = 0.1: the robot's body "
+                           r"\(radius 0.19 m\) overlaps the wall"),
+])
+def test_a_start_outside_the_world_or_in_a_wall_is_refused(start: dict[str, float],
+                                                           message: str) -> None:
+    config = _config({"name": "a", "start": {"x": 1.3, "y": 1.75}}, {"name": "b", "start": start})
+    with pytest.raises(ConfigError, match=message):
+        _fleet(config)
+
+
+def test_an_entry_typo_is_reported_at_the_entry_path() -> None:
+    config = _config({"name": "a", "start": {"x": 1.3, "y": 1.75}},
+                     {"name": "b", "start": {"x": 2.2, "y": 1.75},
+                      "buses": {"kteam": {"dialekt": "koala25"}}})
+    with pytest.raises(ConfigError, match=r"^\[robots.1.buses.kteam\] unknown key 'dialekt'; "
+                       r"did you mean 'dialect' \(robots.1.buses.kteam.dialect\)\?$"):
+        _fleet(config)
+
+
+def test_a_file_typo_stays_the_files() -> None:
+    """A key the entry does not set is the file's: its error keeps the file's path."""
+    config = _config({"name": "a", "start": {"x": 1.3, "y": 1.75},
+                      "sensors": {"ir": {"rate_hz": 10.0}}})
+    config["sensors"]["ir"]["rat_hz"] = 1
+    with pytest.raises(ConfigError, match=r"^\[sensors.ir\] unknown key 'rat_hz'"):
+        _fleet(config)

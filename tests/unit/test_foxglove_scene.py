@@ -181,18 +181,23 @@ def test_tap_records_each_message_once_and_a_bad_payload_is_skipped(
 @pytest.mark.parametrize("text, expected", [
     ("", ("127.0.0.1", 8765)), ("127.0.0.1:0", ("127.0.0.1", 0)), ("9000", ("127.0.0.1", 9000)),
     ("localhost", ("localhost", 8765)), ("[::1]:8766", ("::1", 8766)),
-    (":8767", ("127.0.0.1", 8767)),
+    (":8767", ("127.0.0.1", 8767)), ("::1", ("::1", 8765)),
 ])
 def test_parse_address(text: str, expected: tuple[str, int]) -> None:
     assert parse_address(text) == expected
 
 
-@pytest.mark.parametrize("text", ["127.0.0.1:70000", "127.0.0.1:x", "0.0.0.0:8765", "example.org"])
+@pytest.mark.parametrize("text", ["127.0.0.1:70000", "127.0.0.1:x", "0.0.0.0:8765", "example.org",
+                                  "garbage", "gar bage:8765", "1.2.3", "-x.org", "my-host:8768"])
 def test_parse_address_refuses(text: str) -> None:
     with pytest.raises(ConfigError):
         parse_address(text)
-    if text in ("0.0.0.0:8765", "example.org"):
+    if text in ("0.0.0.0:8765", "example.org", "my-host:8768"):
         assert parse_address(text, allow_non_loopback=True)[0] == text.split(":")[0]
+    else:
+        # not an address at all: a parse error, never "not loopback" (whatever the setting)
+        with pytest.raises(ConfigError, match="expected HOST:PORT, e.g. 127.0.0.1:8765"):
+            parse_address(text, allow_non_loopback=True)
 
 
 def test_endpoints_name_the_live_view_only_when_on() -> None:
