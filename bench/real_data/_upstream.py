@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import subprocess
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -39,18 +38,6 @@ def read_upstream(mirror: Path, repo: str, commit: str, path: str) -> bytes:
     if proc.returncode != 0:
         raise UpstreamMissing(f"{repo}@{commit[:7]}:{path}: {proc.stderr.decode().strip()}")
     return proc.stdout
-
-
-def write_csv(path: Path, header: Sequence[str], rows: Iterable[Sequence[Any]]) -> int:
-    """Write one bundle CSV (one header row); numbers as already formatted by the caller."""
-    n = 0
-    with path.open("w", newline="", encoding="utf-8") as f:
-        w = csv.writer(f, lineterminator="\n")
-        w.writerow(header)
-        for row in rows:
-            w.writerow(row)
-            n += 1
-    return n
 
 
 def write_meta(path: Path, meta: dict[str, Any]) -> None:

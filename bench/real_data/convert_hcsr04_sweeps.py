@@ -21,7 +21,9 @@ import re
 import sys
 from pathlib import Path
 
-from bench.real_data._upstream import read_upstream, run_converter, write_csv, write_meta
+from koala_bridge.recording.export import write_csv
+
+from bench.real_data._upstream import read_upstream, run_converter, write_meta
 
 NAME = "hcsr04_sweeps"
 REPO = "vishnu10183/ccu_test"

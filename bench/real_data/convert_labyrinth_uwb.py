@@ -16,8 +16,9 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from koala_bridge.recording.export import write_csv
 
-from bench.real_data._upstream import read_upstream, run_converter, write_csv, write_meta
+from bench.real_data._upstream import read_upstream, run_converter, write_meta
 
 NAME = "labyrinth_uwb"
 REPO = "densalzmann/libRSF"

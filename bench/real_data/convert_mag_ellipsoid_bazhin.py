@@ -15,7 +15,9 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from bench.real_data._upstream import read_upstream, run_converter, write_csv, write_meta
+from koala_bridge.recording.export import write_csv
+
+from bench.real_data._upstream import read_upstream, run_converter, write_meta
 
 NAME = "mag_ellipsoid_bazhin"
 REPO = "aleksandrbazhin/ellipsoid_fit_python"

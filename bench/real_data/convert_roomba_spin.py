@@ -21,8 +21,9 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from koala_bridge.recording.export import write_csv
 
-from bench.real_data._upstream import read_upstream, run_converter, write_csv, write_meta
+from bench.real_data._upstream import read_upstream, run_converter, write_meta
 
 NAME = "roomba_spin"
 REPO = "mathman93/RoombaCI-Clemson"

@@ -19,7 +19,9 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from bench.real_data._upstream import read_upstream, run_converter, write_csv, write_meta
+from koala_bridge.recording.export import write_csv
+
+from bench.real_data._upstream import read_upstream, run_converter, write_meta
 
 NAME = "sharp_gp2y0a02_sweep"
 REPO = "gonzalo-bulnes/arduino_playground"

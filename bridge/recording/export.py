@@ -89,7 +89,9 @@ def _cell(v: Any) -> str:
     return str(v)
 
 
-def _write_csv(path: Path, header: Sequence[str], rows: Iterable[Sequence[Any]]) -> int:
+def write_csv(path: Path, header: Sequence[str], rows: Iterable[Sequence[Any]]) -> int:
+    """Write one bundle CSV (a header row, then ``rows``, cells as :func:`_cell` writes them:
+    strings as given, floats repr-exact, None/NaN empty); returns the number of rows."""
     n = 0
     with path.open("w", newline="", encoding="utf-8") as f:
         w = csv.writer(f, lineterminator="\n")
@@ -269,23 +271,23 @@ def _write_bundle(rec: Recording, mcap_path: str | os.PathLike[str], out: Path) 
         msgs = _parsed(rec, cls)
         if msgs:
             rows = (msg.csv_row() for _, msg in msgs)
-            counts[name] = _write_csv(out / name, cls.csv_columns(), rows)
+            counts[name] = write_csv(out / name, cls.csv_columns(), rows)
 
     ranges = _range_rows(rec)
     if ranges:
-        counts["range.csv"] = _write_csv(out / "range.csv", RANGE_COLUMNS, ranges)
+        counts["range.csv"] = write_csv(out / "range.csv", RANGE_COLUMNS, ranges)
 
     camera = _parsed(rec, CameraMessage)
     if camera:
         rows = (
             (msg.t, o.id, o.range, o.bearing) for _, msg in camera for o in msg.observations
         )
-        counts["landmarks.csv"] = _write_csv(out / "landmarks.csv", LANDMARK_COLUMNS, rows)
+        counts["landmarks.csv"] = write_csv(out / "landmarks.csv", LANDMARK_COLUMNS, rows)
 
     landmarks = (rec.world or {}).get("landmarks") or []
     if landmarks:
         rows = ((lm.get("id"), lm.get("x"), lm.get("y"), lm.get("colour", "")) for lm in landmarks)
-        counts["landmark_map.csv"] = _write_csv(
+        counts["landmark_map.csv"] = write_csv(
             out / "landmark_map.csv", ("id", "x", "y", "colour"), rows
         )
 
@@ -295,7 +297,7 @@ def _write_bundle(rec: Recording, mcap_path: str | os.PathLike[str], out: Path) 
     if faults:
         rows = ((m.json()["t"], m.json()["name"], m.json()["kind"], m.json()["target"],
                  json.dumps(m.json()["detail"], separators=(",", ":"))) for m in faults)
-        counts["faults.csv"] = _write_csv(out / "faults.csv",
+        counts["faults.csv"] = write_csv(out / "faults.csv",
                                           ("t", "name", "kind", "target", "detail"), rows)
 
     if not set(counts) - {"landmark_map.csv", "faults.csv"}:  # the map alone is no reading
