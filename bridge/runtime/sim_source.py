@@ -439,9 +439,13 @@ class SimulatedRobotSource:
         or after its first command). Never for a run nobody's client has joined (a harness
         stepping over Zenoh) or where clients cannot be seen (python-can interfaces); after a
         fault cut the line, only once the firmware has come back and left again."""
+        wrote = False
         if self.settings.lockstep.cycle_bus == "kteam":
             link = self.buses.kteam
             present = link is not None and link.has_client()
+            # a client wrote: it was there even if no poll caught it connected (one that asks
+            # once and leaves, on a loaded machine)
+            wrote = link is not None and link.stats.received > 0
         else:
             servers = [t for t in self.buses.can.values() if isinstance(t, SocketcandServer)]
             present = any(t.stats.clients > 0 for t in servers)
@@ -450,7 +454,8 @@ class SimulatedRobotSource:
             self._awaiting_reconnect = False
             return False
         # a firmware that sent cycle messages was there, even if no poll caught it connected
-        seen = self._firmware_seen or (self.lockstep is not None and self.lockstep.cycles > 0)
+        seen = self._firmware_seen or wrote or (
+            self.lockstep is not None and self.lockstep.cycles > 0)
         return seen and not self._awaiting_reconnect
 
     def _cycle_bus_cut(self) -> bool:
@@ -929,10 +934,6 @@ class SimulatedRobotSource:
                 splitter.reset()
             if not data:
                 return
-            if self.settings.lockstep.cycle_bus == "kteam":
-                # a client wrote: the firmware was there, even if no poll of the loop caught it
-                # connected (one that asks once and leaves, on a loaded machine)
-                self._firmware_seen = True
             if self.tap is not None:
                 self.tap.record_frame("serial/kteam", "to_robot", self.port.t, data)
             for line in splitter.feed(data):
