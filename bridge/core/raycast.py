@@ -84,19 +84,14 @@ class SegmentSet:
 
     def with_circles(self, circles: np.ndarray, sides: int) -> SegmentSet:
         """These segments followed by the :func:`circle_polygons` of ``circles`` ``(K, 3)``
-        (``x, y, r``), built directly (a few array operations: once per robot and step in a
-        fleet). Indices below ``len(self)`` keep naming the same segments."""
+        (``x, y, r``), the derived arrays appended directly rather than rebuilt for every
+        segment by :meth:`from_segments` (once per robot and step in a fleet). Indices below
+        ``len(self)`` keep naming the same segments."""
         c = np.asarray(circles, dtype=float).reshape(-1, 3)
         if c.shape[0] == 0:
             return self
-        a = np.arange(sides + 1) * (2.0 * math.pi / sides)
-        rv = c[:, 2:3] * (1.0 / math.cos(math.pi / sides))     # (K, 1) vertex radius
-        vx = c[:, 0:1] + rv * np.cos(a)                         # (K, sides + 1)
-        vy = c[:, 1:2] + rv * np.sin(a)
-        ax = vx[:, :-1].ravel()
-        ay = vy[:, :-1].ravel()
-        bx = vx[:, 1:].ravel()
-        by = vy[:, 1:].ravel()
+        polygons = circle_polygons(c, sides)
+        ax, ay, bx, by = (np.ascontiguousarray(polygons[:, i]) for i in range(4))
         ex = bx - ax
         ey = by - ay
         len2 = ex * ex + ey * ey
@@ -119,11 +114,10 @@ def circle_polygons(circles: np.ndarray, sides: int) -> np.ndarray:
     touch the circle at their midpoints, its vertices lie at ``r / cos(pi / sides)``), with a
     vertex at angle 0."""
     c = np.asarray(circles, dtype=float).reshape(-1, 3)
-    a = np.linspace(0.0, 2.0 * math.pi, sides + 1)
-    ux, uy = np.cos(a), np.sin(a)
-    rv = c[:, 2:3] / math.cos(math.pi / sides)          # (K, 1) vertex radius
-    vx = c[:, 0:1] + rv * ux                            # (K, sides + 1)
-    vy = c[:, 1:2] + rv * uy
+    a = np.arange(sides + 1) * (2.0 * math.pi / sides)
+    rv = c[:, 2:3] * (1.0 / math.cos(math.pi / sides))     # (K, 1) vertex radius
+    vx = c[:, 0:1] + rv * np.cos(a)                         # (K, sides + 1)
+    vy = c[:, 1:2] + rv * np.sin(a)
     return np.stack([vx[:, :-1], vy[:, :-1], vx[:, 1:], vy[:, 1:]], axis=-1).reshape(-1, 4)
 
 
