@@ -19,8 +19,6 @@ one run.
 from __future__ import annotations
 
 import argparse
-import os
-import signal
 import statistics
 import subprocess
 import sys
@@ -31,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from koala_bridge.campaign.runner import end_groups
 
 from bench._common import REPO
 
@@ -70,13 +69,7 @@ def start_cluster(tmp: Path, threads: int) -> tuple[str, list[subprocess.Popen[b
 
 
 def stop_cluster(procs: list[subprocess.Popen[bytes]]) -> None:
-    for p in reversed(procs):
-        try:
-            os.killpg(p.pid, signal.SIGTERM)
-            p.wait(timeout=20)
-        except (ProcessLookupError, subprocess.TimeoutExpired):
-            os.killpg(p.pid, signal.SIGKILL)
-            p.wait()
+    end_groups(procs[::-1])     # the worker before the scheduler
 
 
 def main(argv: list[str] | None = None) -> int:

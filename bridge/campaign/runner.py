@@ -23,6 +23,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -157,14 +158,14 @@ def _run_in(task: CaseTask, run_dir: Path, t0: float) -> CaseResult:
                 flog.write(b"(not started: the bridge did not announce its endpoints)\n")
                 timed_out = bridge.poll() is None
     except _Interrupted:
-        _end_all(procs)
+        end_groups(procs)
         return CaseResult(case.case_id, case.axes, "interrupted", [], {},
                           time.monotonic() - t0, startup_s, None, False, socket.gethostname())
     except OSError as e:  # the firmware command cannot start: a failed run that says why
         (run_dir / "firmware.log").write_text(f"cannot start {firmware_cmd}: {e}\n")
         returncode = None
     finally:
-        _end_all(procs)
+        end_groups(procs)
     report = _read_report(paths["report"])
     outcome = RunOutcome(case.case_id, case.axes, run_dir, paths["recording"], config, report,
                          returncode, timed_out)
@@ -194,12 +195,12 @@ def _wait_both(task: CaseTask, bridge: subprocess.Popen[bytes],
         if fw is not None and br is not None:
             return fw, False
         if now > deadline:
-            _end_all([firmware, bridge])
+            end_groups([firmware, bridge])
             return firmware.poll() if fw is not None else None, True
         if fw is not None or br is not None:
             first_end = first_end or now
             if now - first_end > GRACE_S:  # the other side did not follow: end it
-                _end_all([firmware, bridge])
+                end_groups([firmware, bridge])
                 return firmware.returncode, False
         time.sleep(POLL_S)
 
@@ -209,9 +210,10 @@ def _check_stop(task: CaseTask) -> None:
         raise _Interrupted
 
 
-def _end_all(procs: list[subprocess.Popen[bytes]]) -> None:
-    """SIGTERM each still-running process's group (the bridge then closes its recording), then
-    SIGKILL what is left after :data:`TERM_WAIT_S`."""
+def end_groups(procs: Sequence[subprocess.Popen[bytes]]) -> None:
+    """SIGTERM each still-running process's group (the bridge then closes its recording), then,
+    in order, SIGKILL each group still there after :data:`TERM_WAIT_S` (processes started with
+    ``start_new_session``)."""
     for p in procs:
         if p.poll() is None:
             _signal_group(p, signal.SIGTERM)
