@@ -82,6 +82,9 @@ class StreamResult:
     secondary: list[SecondaryMetric] = field(default_factory=list)
     #: Allan-variance noise terms of a rate stream's residual (calibration/noise.py)
     noise: StreamNoise | None = None
+    #: :meth:`_params_and_se` of the final fit it was computed for
+    _se_memo: tuple[tuple[Any, ...], list[tuple[FloatArray, FloatArray | None]]] | None = field(
+        default=None, init=False, repr=False, compare=False)
 
     @property
     def effects(self) -> list[EffectInstance]:
@@ -99,9 +102,9 @@ class StreamResult:
         costs tens of ms)."""
         sel = self.selection
         key = (sel.after, sel.after.x.tobytes(), tuple(self.effects))
-        memo = getattr(self, "_se_memo", None)
+        memo = self._se_memo
         if memo is not None and memo[0][0] is key[0] and memo[0][1:] == key[1:]:
-            return memo[1]  # type: ignore[no-any-return]
+            return memo[1]
         out = self._compute_params_and_se()
         self._se_memo = (key, out)
         return out
