@@ -765,7 +765,7 @@ class CoverageFirmware:
         shortest path to the nearest unvisited cell."""
         w = self.world
         cell = start
-        reachable = _reachable(w, start)
+        reachable = w.reachable(start)
         visited = {cell}
         order = self.order  # kept on the firmware: a run cut short reports what it visited
         order.append(cell)
@@ -836,7 +836,7 @@ class CoverageFirmware:
         wall = time.monotonic() - wall0
         order = self.order
         reachable = (set() if self.localised is None
-                     else _reachable(self.world, self.localised))
+                     else self.world.reachable(self.localised))
         x, y, th = self.tracker.pose
         return {
             "ended": ended,
@@ -897,18 +897,6 @@ def gcs_heartbeat() -> bytes:
     """A ground station's HEARTBEAT (system 255, component 190: MAVLink's convention)."""
     identity = MavlinkIdentity(system_id=255, component_id=190, mav_type=6)  # MAV_TYPE_GCS
     return CompassEncoder(identity).heartbeat()
-
-
-def _reachable(world: Grid, start: tuple[int, int]) -> set[tuple[int, int]]:
-    seen, todo = {start}, [start]
-    while todo:
-        c = todo.pop()
-        for s in SIDES:
-            n = (c[0] + SIDE_STEP[s][0], c[1] + SIDE_STEP[s][1])
-            if world.can_move(*c, s) and n not in seen:
-                seen.add(n)
-                todo.append(n)
-    return seen
 
 
 def argument_parser(description: str = __doc__.split("\n\n")[0],

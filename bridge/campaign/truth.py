@@ -16,7 +16,7 @@ from typing import Any, TypeAlias
 
 import numpy as np
 from koala_bridge.core.geometry import wall_clearance
-from koala_bridge.core.grid import SIDE_STEP, SIDES, Grid
+from koala_bridge.core.grid import Grid
 from koala_bridge.recording.mcap_file import Recording, open_recording
 
 #: "Visited a cell" = the true centre passed this close to the cell's centre, m.
@@ -59,16 +59,8 @@ def body_clearance_bound(track: np.ndarray, segments: np.ndarray) -> np.ndarray:
 
 
 def reachable_cells(world: Grid, start: tuple[int, int]) -> set[tuple[int, int]]:
-    """Every cell the robot can drive to from ``start`` (breadth first over open sides)."""
-    seen, todo = {start}, [start]
-    while todo:
-        c = todo.pop()
-        for side in SIDES:
-            n = (c[0] + SIDE_STEP[side][0], c[1] + SIDE_STEP[side][1])
-            if world.can_move(*c, side) and n not in seen:
-                seen.add(n)
-                todo.append(n)
-    return seen
+    """Every cell the robot can drive to from ``start`` (:meth:`Grid.reachable`)."""
+    return world.reachable(start)
 
 
 def first_visits(track: np.ndarray, world: Grid,

@@ -208,6 +208,20 @@ class Grid:
             self.in_bounds(*n) and n not in self.blocked and not self.has_wall(col, row, side)
         )
 
+    def reachable(self, start: tuple[int, int]) -> set[tuple[int, int]]:
+        """Every cell the robot can drive to from ``start`` (``start`` included), through
+        open sides (:meth:`can_move`)."""
+        seen, todo = {start}, [start]
+        while todo:
+            c = todo.pop()
+            for side in SIDES:
+                dc, dr = SIDE_STEP[side]
+                n = (c[0] + dc, c[1] + dr)
+                if n not in seen and self.can_move(*c, side):
+                    seen.add(n)
+                    todo.append(n)
+        return seen
+
     def walled_sides(self) -> list[tuple[int, int, str]]:
         """``(col, row, side)`` of every walled cell side, row by row from the south, column
         fastest, sides in N, E, S, W order (a wall between two cells is listed for both)."""
