@@ -17,7 +17,7 @@ from typing import Any, TypeAlias
 import numpy as np
 from koala_bridge.core.geometry import wall_clearance
 from koala_bridge.core.grid import Grid
-from koala_bridge.recording.mcap_file import Recording, open_recording
+from koala_bridge.recording.mcap_file import Recording, open_recording, outcome_messages
 
 #: "Visited a cell" = the true centre passed this close to the cell's centre, m.
 CENTRE_TOLERANCE_M = 0.1
@@ -109,31 +109,12 @@ def firmware_bus_rejections(rec: RecordingLike) -> dict[str, int]:
 
 def outcome_digest(rec: RecordingLike) -> str:
     """SHA-256 over every channel a run's outcome depends on, message by message with its time
-    stamp: the truth, every sensor, the estimator, every frame the robot put on a bus.
-    ``/status`` (a wall-clock real-time factor), the Foxglove scene channels drawn from the
-    others (their Log repeats that factor) and the frames the firmware sent (they arrive in
-    scheduling-dependent chunks) are left out, as in the lockstep determinism test. Two lockstep
-    runs of one case have the same digest."""
+    stamp (:func:`recording.mcap_file.outcome_messages`: what the lockstep determinism test
+    compares too). Two lockstep runs of one case have the same digest."""
     h = hashlib.sha256()
-    for m in _outcome_messages(_recording(rec)):
+    for m in outcome_messages(_recording(rec)):
         h.update(m.topic.encode())
         h.update(m.log_time_ns.to_bytes(8, "little", signed=True))
         h.update(len(m.data).to_bytes(8, "little"))
         h.update(m.data)
     return h.hexdigest()
-
-
-def _outcome_messages(rec: Recording) -> list[Any]:
-    out = []
-    for m in rec.messages:
-        if m.topic == "/status" or m.topic.endswith("/status"):  # a fleet's: /NAME/status
-            continue
-        if rec.message_encoding(m) != "json":
-            # the Foxglove scene (docs/recording.md): drawn from the JSON channels, and its Log
-            # carries /status's wall-clock real-time factor
-            continue
-        if m.topic.startswith("/bus/") and m.json().get("dir") != "from_robot":
-            continue
-        out.append(m)
-    # file order interleaves channels by write time; per channel the order is the run's
-    return sorted(out, key=lambda m: m.topic)

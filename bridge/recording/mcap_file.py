@@ -696,6 +696,24 @@ def _chunk_records(chunk: Chunk) -> list[object]:
     return list(breakup_chunk(chunk, validate_crc=True))
 
 
+def outcome_messages(rec: Recording) -> list[RecordedMessage]:
+    """The messages a run's outcome consists of, channel by channel (sorted by topic; per
+    channel in the run's order): the truth, every sensor, the estimator, every frame the robot
+    put on a bus. Left out: ``/status`` (and a fleet's ``/NAME/status``: a wall-clock real-time
+    factor), the Foxglove scene channels (drawn from the others; their Log repeats that
+    factor) and the frames the firmware sent (they arrive in scheduling-dependent chunks). Two
+    lockstep runs of one config, seed and firmware have the same outcome, bit for bit."""
+    out = []
+    for m in rec.messages:
+        if m.topic.endswith("/status") or rec.message_encoding(m) != "json":
+            continue
+        if m.topic.startswith("/bus/") and m.json().get("dir") != "from_robot":
+            continue
+        out.append(m)
+    # file order interleaves channels by write time; per channel the order is the run's
+    return sorted(out, key=lambda m: m.topic)
+
+
 def open_recording(path: str | os.PathLike[str], *, salvage: bool = False) -> Recording:
     """Read a recording, complete or cut short, checking every CRC it carries.
 

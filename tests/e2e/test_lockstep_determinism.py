@@ -26,7 +26,7 @@ from pathlib import Path
 import pytest
 import tomli_w
 from conftest import free_port
-from koala_bridge.recording.mcap_file import open_recording
+from koala_bridge.recording.mcap_file import open_recording, outcome_messages
 
 ROOT = Path(__file__).resolve().parents[2]
 FIRMWARE = Path(__file__).with_name("_lockstep_firmware.py")
@@ -93,17 +93,11 @@ def run(tmp: Path, name: str, hostile: bool) -> tuple[Path, dict[str, object]]:
 
 
 def channels(mcap: Path) -> dict[str, list[tuple[int, bytes]]]:
-    """Every channel except ``/status`` and the Foxglove scene, as (time stamp, bytes); bus
-    channels keep the frames the robot sent."""
+    """The run's outcome (``outcome_messages``: every channel but the wall-clock ones and the
+    Foxglove scene; bus channels with the frames the robot sent), as (time stamp, bytes) per
+    channel."""
     out: dict[str, list[tuple[int, bytes]]] = {}
-    rec = open_recording(mcap)
-    for m in rec.messages:
-        if m.topic.endswith("/status") or rec.message_encoding(m) != "json":
-            # the wall-clock real-time factor, and the Foxglove scene drawn from the other
-            # channels (its Log repeats that factor)
-            continue
-        if m.topic.startswith("/bus/") and m.json().get("dir") != "from_robot":
-            continue
+    for m in outcome_messages(open_recording(mcap)):
         out.setdefault(m.topic, []).append((m.log_time_ns, m.data))
     return out
 
