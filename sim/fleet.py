@@ -3,7 +3,7 @@
 
 Each robot is a :class:`sim.simulator.Simulator` of its own configuration (its own start pose,
 sensors and error models) in the same world and with the same ``dt``. The others' bodies are
-obstacles to each (:meth:`Simulator.set_obstacles`: seen by IR, sonar and camera, and stopping a
+obstacles to each (:meth:`Simulator.share_bodies`: seen by IR, sonar and camera, and stopping a
 robot on contact as a wall does).
 
 A step moves the robots one after the other in their order, each against the others where they

@@ -27,7 +27,7 @@ The rays of all range sensors due at a step go through one compiled cast
 compiled call (truth and error model fused). The camera tests its lines of sight in its own
 compiled call.
 
-Other bodies (several robots in one world, :mod:`sim.fleet`): :meth:`Simulator.set_obstacles`
+Other bodies (several robots in one world, :mod:`sim.fleet`): :meth:`Simulator.share_bodies`
 gives the circles of the other robots' bodies. Each is added, for the step's collision test and
 ray casts (IR, sonar with its second legs, the camera's lines of sight), as a regular polygon of
 :data:`OBSTACLE_SIDES` sides circumscribed about the circle (its edges touch the circle at their
@@ -173,20 +173,11 @@ class Simulator:
         """The second half of :meth:`step`: the readings due after the last move (at ``t``)."""
         return self._readings(self._require_state())
 
-    def set_obstacles(self, circles: np.ndarray) -> None:
-        """The other bodies in the world, ``(K, 3)`` rows ``x, y, radius`` (m), in force for
-        every :meth:`move` and :meth:`sense` (and :meth:`reset`) until set again; ``(0, 3)``:
-        none (module docstring, "Other bodies")."""
-        c = np.asarray(circles, dtype=float).reshape(-1, 3)
-        if not np.all(np.isfinite(c)) or np.any(c[:, 2] <= 0):
-            raise ValueError("obstacles must be finite (x, y, radius > 0) rows")
-        self._obstacles = c
-        self._self_row = -1
-
     def share_bodies(self, bodies: np.ndarray, row: int) -> None:
-        """Like :meth:`set_obstacles` with every body of a fleet, ``(N, 3)`` rows ``x, y,
-        radius``, of which row ``row`` is this robot's own (not an obstacle). The array is
-        shared, not copied: its owner (:class:`sim.fleet.Fleet`) moves the rows in place."""
+        """The bodies of a fleet, ``(N, 3)`` rows ``x, y, radius`` (m), of which row ``row`` is
+        this robot's own: the others are obstacles for every :meth:`move` and :meth:`sense`
+        (module docstring, "Other bodies"). The array is shared, not copied: its owner
+        (:class:`sim.fleet.Fleet`) moves the rows in place."""
         self._obstacles = bodies
         self._self_row = row
 
