@@ -277,12 +277,13 @@ def _write_bundle(rec: Recording, mcap_path: str | os.PathLike[str], out: Path) 
     if ranges:
         counts["range.csv"] = write_csv(out / "range.csv", RANGE_COLUMNS, ranges)
 
-    camera = _parsed(rec, CameraMessage)
-    if camera:
-        rows = (
-            (msg.t, o.id, o.range, o.bearing) for _, msg in camera for o in msg.observations
-        )
-        counts["landmarks.csv"] = write_csv(out / "landmarks.csv", LANDMARK_COLUMNS, rows)
+    # (a camera that saw no landmark all run has messages but no observation: no file, as
+    # for a stream with no message -- a header alone is no table, calibrate refuses one)
+    observations = [(msg.t, o.id, o.range, o.bearing)
+                    for _, msg in _parsed(rec, CameraMessage) for o in msg.observations]
+    if observations:
+        counts["landmarks.csv"] = write_csv(out / "landmarks.csv", LANDMARK_COLUMNS,
+                                            observations)
 
     landmarks = (rec.world or {}).get("landmarks") or []
     if landmarks:

@@ -163,3 +163,23 @@ def test_export_refuses_a_recording_without_readings(tmp_path: Path) -> None:
         rec.record_frame("can", "from_robot", 0.0, b"")
     with pytest.raises(RecordingError, match="no reading"):
         export_bundle(path, tmp_path / "b")
+
+
+def test_a_camera_that_saw_no_landmark_leaves_no_landmarks_file(tmp_path: Path) -> None:
+    """Camera messages with no observation all run (a short run facing away): no
+    landmarks.csv rather than a header alone, which calibrate refuses as no table; the bundle
+    still calibrates."""
+    from koala_bridge.calibration.bundle import load_bundle
+
+    path = tmp_path / "blind.mcap"
+    with Recorder(path, world=WORLD) as rec:
+        for k in range(50):
+            t = 0.02 * k
+            rec.record("truth/pose", t, {"t": t, "x": 1.0, "y": 1.0, "theta": 0.3})
+            rec.record("sensors/gyro", t, {"t": t, "yaw_rate": 0.0, "truth": {"yaw_rate": 0.0}})
+            rec.record("sensors/camera", t, {"t": t, "observations": [],
+                                             "truth": {"observations": []}})
+    out = export_bundle(path, tmp_path / "b")
+    assert not (out / "landmarks.csv").exists()
+    assert "landmarks.csv" not in json.loads((out / "meta.json").read_text()).get("rows", {})
+    assert load_bundle(out).get("gyro") is not None
