@@ -13,7 +13,7 @@ What each stream is held against (the *reference*), in the order the bundle allo
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from difflib import get_close_matches
 from typing import Any
 
@@ -634,14 +634,13 @@ def build_ranges(
             beyond += int((ok & edge).sum())
             ok &= ~edge
         closer = 0
-        if counts and model.ir_curve is not None and min(model.ir_curve[0]) > 0:
-            # A response curve declared as a table from r0 > 0 says nothing closer than r0: an
-            # IR ranger's output there folds back (a Sharp GP2Y0A02's below ~15 cm) or
-            # saturates, and holding the table flat is the simulator's convention, not a
-            # declared response. Such readings are set aside, counted in the report, as the
+        near_limit = ir_curve_start(model.ir_curve) if counts else 0.0
+        if near_limit > 0:
+            # The declared curve says nothing closer than where its single-valued part starts
+            # (ir_curve_start): readings there are set aside, counted in the report, as the
             # sonar's are outside its range limits (a far end held flat is the declared
             # baseline -- nothing reflected -- and stays).
-            near = ok & (sub["true_range"] < min(model.ir_curve[0]))
+            near = ok & (sub["true_range"] < near_limit)
             closer = int(near.sum())
             ok &= ~near
         if int(ok.sum()) < MIN_ROWS:
@@ -743,12 +742,35 @@ def build_ranges(
             )
         if closer:
             problem.notes.append(
-                f"{closer} readings at true ranges closer than the declared response curve's "
-                f"first point ({min(model.ir_curve[0]):g} m) set aside: the curve says nothing "
-                "there (declare it from 0 m to have them used)"
+                f"{closer} readings at true ranges closer than {near_limit:g} m set aside: "
+                "the declared response curve is single-valued only from there (its first "
+                "point, or its peak where the output folds back: a count there is read at two "
+                "ranges); declare the curve from 0 m, falling, to have them used"
             )
         out.append(problem)
     return out
+
+
+def ir_curve_start(curve: tuple[Sequence[float], Sequence[float]] | None) -> float:
+    """The closest true range (m) at which a declared IR response curve ``(ranges, counts)``
+    says what a reading is: 0 for none or for a curve declared from 0 m that falls from there.
+
+    * A table declared from ``r0 > 0`` says nothing closer than ``r0``: holding it flat there
+      is the simulator's convention, not a declared response.
+    * A curve that first rises to a peak and then falls (a triangulating ranger such as the
+      Sharp GP2Y0A02YK, whose datasheet output peaks near 15 cm and folds back closer; its rated
+      range starts beyond the peak) is single-valued only from the peak: a count on the rising
+      branch is also read at a range beyond the peak, so a robot cannot use it as a range, and
+      the offset and gain of the falling branch (what calibration fits) do not describe the
+      fold. The first maximum counts, so a curve saturated flat from 0 m starts at 0.
+    """
+    if curve is None or len(curve[0]) == 0:
+        return 0.0
+    ranges = np.asarray(curve[0], dtype=float)
+    counts = np.asarray(curve[1], dtype=float)
+    order = np.argsort(ranges, kind="stable")
+    ranges, counts = ranges[order], counts[order]
+    return float(max(ranges[0], ranges[int(np.argmax(counts))]))
 
 
 def _too_few_ranges(
@@ -758,7 +780,8 @@ def _too_few_ranges(
     missing = f"{usable} usable rows of {n}, at least {MIN_ROWS} needed"
     fixes = []
     if closer:
-        missing += f"; {closer} closer than the declared IR response curve's first point"
+        missing += (f"; {closer} closer than where the declared IR response curve is "
+                    "single-valued (its first point, or its peak)")
         fixes.append(
             "declare [sensors.ir] response_range_m / response_counts down to the closest "
             "distance recorded"
