@@ -165,7 +165,8 @@ def plot_allan(noise: StreamNoise, path: Path) -> None:
 
     f = noise.fit
     tau = np.geomspace(f.tau[0], f.tau[-1], 200)
-    fig, ax = plt.subplots(figsize=(6.5, 4.5), constrained_layout=True)
+    fig, ax = plt.subplots(figsize=(6.5, 4.5))
+    fig.subplots_adjust(left=0.14, right=0.97, top=0.92, bottom=0.12)  # fixed: see report.py
     # the 1-sigma band of each point from its independent clusters (IEEE 952 C.1)
     err = f.adev / np.sqrt(2 * np.maximum(f.clusters - 1, 1))
     ax.errorbar(f.tau, f.adev, yerr=err, fmt="o", ms=3, color="k", label="overlapping ADEV")
