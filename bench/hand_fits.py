@@ -149,11 +149,17 @@ def fit_speed_odometry(bundle: str, odo: dict[str, NDArray], truth: dict[str, ND
     k_s, k_w = (float(v) for v in best.x)
     before = window_position_rms(t, ds0, dth0, t_ref, p_ref, score_m, window)[0]
     after = window_position_rms(t, ds0 * k_s, dth0 * k_w, t_ref, p_ref, score_m, window)[0]
+    # the check of each effect on the held-out part: the yaw scale alone, fitted the same way
+    yaw = [least_squares(lambda q: err([1.0, q[0]], fit_m).ravel(), [k]) for k in (1.0, -1.0)]
+    k_y = float(min(yaw, key=lambda r: r.cost).x[0])
+    yaw_only = window_position_rms(t, ds0, dth0 * k_y, t_ref, p_ref, score_m, window)[0]
+    n_windows = int(np.unique(np.floor((t_ref[score_m] - t_ref[score_m][0]) / window)).size)
     return HandFit(bundle, "odometry", "window_position_rms", "m", before, after,
                    "tick_scale + wheel_base"
                    + (" (negative: left/right swapped or mirrored frame)" if k_w < 0 else ""),
                    {"distance_scale": k_s, "yaw_scale": k_w,
-                    "wheel_base_m": wheel_base_m / abs(k_w), "window_s": window})
+                    "wheel_base_m": wheel_base_m / abs(k_w), "window_s": window,
+                    "held_out_yaw_scale_only": yaw_only, "held_out_windows": n_windows})
 
 
 # --- compass: constant field magnitude ----------------------------------------------------------
@@ -258,11 +264,18 @@ def fit_hcsr04_sweeps(d: Path) -> list[HandFit]:
     p = linear_range_fit(y, u, design, fit, f_scale=0.01)
     e = (y - u - design @ p)[score]
     inlier = np.abs(e) < 0.1
+    # the check of each effect on the held-out part: the offset alone, fitted the same way
+    p1 = linear_range_fit(y, u, design[:, :1], fit, f_scale=0.01)
+    e1 = (y - u - design[:, :1] @ p1)[score]
     return [HandFit(d.name, "range:sonar", "rms_error", "m", rms((y - u)[score]), rms(e),
                     "bias + scale (robust)",
                     {"bias_m": p[0], "scale_error": p[1],
                      "held_out_rms_inliers_m": rms(e[inlier]),
-                     "held_out_outlier_fraction": float(1 - inlier.mean())})]
+                     "held_out_median_abs_m": float(np.median(np.abs(e))),
+                     "held_out_outlier_fraction": float(1 - inlier.mean()),
+                     "bias_only_m": p1[0], "bias_only_held_out_rms_m": rms(e1),
+                     "bias_only_held_out_rms_inliers_m": rms(e1[np.abs(e1) < 0.1]),
+                     "bias_only_held_out_median_abs_m": float(np.median(np.abs(e1)))})]
 
 
 def fit_mag_ellipsoid_bazhin(d: Path) -> list[HandFit]:
@@ -286,8 +299,29 @@ def fit_roomba_spin(d: Path) -> list[HandFit]:
                       float(100 * norm[score].std() / norm[score].mean()),
                       "hard_iron + soft_iron (2-D)",
                       {"h_x": centre[0], "h_y": centre[1],
-                       "axis_ratio": float(np.divide(*sorted(np.linalg.eigvalsh(a))))})
+                       "axis_ratio": float(np.divide(*sorted(np.linalg.eigvalsh(a))))}
+                      | _planarity(m[fit]))
     return [compass]
+
+
+def _planarity(m: Array) -> dict[str, float]:
+    """How far 3-D readings of a spin about one axis are from an affine image of a circle
+    (``S R(psi) f + h``, hard and soft iron of any kind), which lies in a plane: the spread
+    out of the readings' best plane (smallest principal axis), and the amplitude of its first
+    and second harmonics of the in-plane angle ``psi`` -- a wobble of the plane or a field
+    that moves with the wheels, which no iron model describes."""
+    c = m.mean(axis=0)
+    _, vec = np.linalg.eigh(np.cov(m.T))
+    out = (m - c) @ vec[:, 0]
+    inplane = (m - c) @ vec[:, 1:]
+    psi = np.arctan2(inplane[:, 1], inplane[:, 0])
+    design = np.column_stack([np.ones_like(psi), np.cos(psi), np.sin(psi),
+                              np.cos(2 * psi), np.sin(2 * psi)])
+    coef = np.linalg.lstsq(design, out, rcond=None)[0]
+    return {"out_of_plane_std": float(out.std()),
+            "in_plane_radius": float(np.median(np.linalg.norm(inplane, axis=1))),
+            "out_of_plane_h1": float(np.hypot(coef[1], coef[2])),
+            "out_of_plane_h2": float(np.hypot(coef[3], coef[4]))}
 
 
 def fit_sharp_gp2y0a02_sweep(d: Path) -> list[HandFit]:
