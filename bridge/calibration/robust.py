@@ -40,6 +40,13 @@ def mad_sigma(r: FloatArray) -> float:
     return MAD_TO_SIGMA * float(np.median(np.abs(r - np.median(r))))
 
 
+def white_noise_sigma(v: FloatArray) -> float:
+    """The sigma of white noise on a series from its first differences (MAD, so the steps of
+    the signal itself do not count): ``diff`` of white noise has variance ``2 sigma^2``."""
+    v = np.asarray(v, dtype=float)
+    return mad_sigma(np.diff(v[np.isfinite(v)])) / float(np.sqrt(2))
+
+
 def tail_count(r: FloatArray, z: float = TAIL_Z) -> tuple[int, int]:
     """``(k, n)``: how many of the ``n`` finite residuals lie beyond ``z`` robust standard
     deviations of their median."""

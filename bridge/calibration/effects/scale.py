@@ -5,6 +5,18 @@
 Writes the native scale key (gyro: ``[sensors.gyro] scale_factor_error`` = (1 + declared)(1 + s)
 - 1) or
 ``[sensors.<stream>.calibration] scale``.
+
+A gain is determined only where the reference ``u`` varies well beyond its own noise. Noise in
+the reference pulls a least-squares gain towards zero by the noise's share of the reference's
+variance, ``1 + s_fitted ~ (1 + s) var(u_true) / var(u)`` (regression dilution, errors in
+variables: W. A. Fuller, *Measurement Error Models*, 1987, sec. 1.1). A gyro lying still
+against the rate differentiated from an optical heading is the extreme: the reference is all
+noise and the fitted gain goes to about 0 (``s`` ~ -1, a sensor that "reads nothing") with a
+small standard error. So ``scale`` is proposed only when that share, estimated on the fit part
+with the reference's white noise from its first differences (per sensor where the stream has
+several), is at most ``MAX_REFERENCE_NOISE_SHARE`` (:func:`.common.reference_dominates`); else
+a note says why. A gain that is
+not positive (``1 + s <= 0``) is no scale error of a working sensor: implausible.
 """
 
 from __future__ import annotations
@@ -13,7 +25,7 @@ from typing import Any
 
 from koala_bridge.calibration.effects import register_effect
 from koala_bridge.calibration.effects.base import Effect, EffectInstance
-from koala_bridge.calibration.effects.common import scalar_config
+from koala_bridge.calibration.effects.common import reference_dominates, scalar_config
 
 
 @register_effect("scale")
@@ -21,7 +33,12 @@ class Scale(Effect):
     kinds = frozenset({"scalar"})
 
     def _propose(self, problem: Any) -> list[EffectInstance]:
+        if not reference_dominates(problem, self.name):
+            return []
         return [EffectInstance(self.name, self, ("scale_error",), (0.0,))]
+
+    def plausible(self, inst: EffectInstance, params: Any) -> bool:
+        return bool(1.0 + float(params[0]) > 0.0)
 
     def apply(self, inst: EffectInstance, state: Any, params: Any) -> None:
         state.gain = state.gain * (1.0 + params[0])

@@ -12,6 +12,11 @@ scalar stream's ``tau`` starts at the best of a grid, ``tau`` in steps of half t
 interval over +-min(0.5 s, 5 % of the fit part), scored by the correlation of the readings with
 the shifted reference on the fit part (the cross-correlation peak, as in Kalibr's or
 imu_utils' temporal alignment).
+
+A scalar stream's ``tau`` is determined by the reference's signal, not its noise: with a
+reference that is mostly noise (a still gyro against a differentiated optical heading) a
+fractional shift interpolates, that is smooths, the noise and looks like a gain. So it is
+proposed only where the reference dominates its noise (:func:`.common.reference_dominates`).
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ from typing import Any
 import numpy as np
 from koala_bridge.calibration.effects import register_effect
 from koala_bridge.calibration.effects.base import Effect, EffectInstance
+from koala_bridge.calibration.effects.common import reference_dominates
 
 
 def coarse_lag(problem: Any) -> float:
@@ -55,7 +61,9 @@ class TimeOffset(Effect):
     kinds = frozenset({"scalar", "odometry"})
 
     def _propose(self, problem: Any) -> list[EffectInstance]:
-        if problem.kind == "scalar" and problem.reference is None:
+        if problem.kind == "scalar" and (
+            problem.reference is None or not reference_dominates(problem, self.name)
+        ):
             return []
         tau0 = coarse_lag(problem) if problem.kind == "scalar" else 0.0
         return [EffectInstance(self.name, self, ("tau_s",), (tau0,))]

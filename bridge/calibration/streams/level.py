@@ -31,7 +31,6 @@ ones in each of the fit and score parts.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import replace
 from typing import Any
@@ -39,7 +38,7 @@ from typing import Any
 import numpy as np
 from koala_bridge.calibration.bundle import Bundle, Table
 from koala_bridge.calibration.model import DeclaredModel
-from koala_bridge.calibration.robust import mad_sigma
+from koala_bridge.calibration.robust import white_noise_sigma
 from koala_bridge.calibration.streams.scalar import ScalarProblem
 from numpy.typing import NDArray
 
@@ -64,11 +63,6 @@ MAX_LEVEL_FRACTION = 0.95
 def tilt_from_accelerometer(acc: NDArray[np.float64]) -> NDArray[np.float64]:
     """(n,) angle between the body z axis and the measured gravity (rad), from (n, 3) m/s^2."""
     return np.asarray(np.arctan2(np.hypot(acc[:, 0], acc[:, 1]), acc[:, 2]), dtype=float)
-
-
-def _noise_sigma(v: NDArray[np.float64]) -> float:
-    """White-noise sigma from first differences (MAD, robust to the motion's steps)."""
-    return mad_sigma(np.diff(v[np.isfinite(v)])) / math.sqrt(2)
 
 
 def _long_runs(mask: NDArray[np.bool_], t: NDArray[np.float64], min_s: float) -> NDArray[np.bool_]:
@@ -102,7 +96,7 @@ def level_mask(gyro: Table) -> tuple[NDArray[np.bool_], str] | None:
         level = np.ones(t.size, dtype=bool)
         for c in RATE_COLUMNS:
             v = gyro[c]
-            limit = max(ROTATION_SIGMAS * _noise_sigma(v), MIN_ROTATION_RAD_S)
+            limit = max(ROTATION_SIGMAS * white_noise_sigma(v), MIN_ROTATION_RAD_S)
             level &= np.isfinite(v) & (np.abs(v - np.nanmedian(v)) < limit)
         how = (
             "no accelerometer: x/y rates ~0 (not tilting; a tilt held still is not told from level)"

@@ -1,0 +1,86 @@
+"""A reference that is mostly its own noise determines no gain and no time shift.
+
+A gyro lying still against the rate differentiated from an optical heading (the BROAD IMU
+recordings' still breaks): the reference rate is the heading's jitter differentiated, so least
+squares pulled the gyro's gain to about 0 (``scale`` -0.994, written into the config), and a
+fractional time shift smoothed the noise and passed for a latency. Only the bias is real.
+``effects.common.reference_noise_share`` measures the reference's noise share on the fit part;
+``scale`` and ``time_offset`` are not proposed beyond 1 %.
+
+Bias bound: the central-difference reference telescopes, so its mean is ``O(sigma_theta /
+(dt n))``; the gyro's white noise gives the bias a standard error ``sigma_g / sqrt(n_fit)``.
+The bias must lie within 4 of those (two-sided false alarm 6e-5).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+from koala_bridge.calibration.bundle import load_bundle
+from koala_bridge.calibration.effects.common import (
+    MAX_REFERENCE_NOISE_SHARE,
+    reference_noise_share,
+)
+from koala_bridge.calibration.model import declared_model
+from koala_bridge.calibration.pipeline import calibrate
+from koala_bridge.calibration.problem import Split
+
+RATE_HZ = 57.0
+DURATION_S = 60.0
+SIGMA_THETA = 2e-4  # rad: optical heading jitter
+SIGMA_GYRO = 0.005  # rad/s
+BIAS = 0.004  # rad/s
+
+
+def _still_bundle(tmp_path: Path, seed: int = 3) -> Path:
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, DURATION_S, 1 / RATE_HZ)
+    theta = 0.3 + rng.normal(0.0, SIGMA_THETA, t.size)
+    rate = BIAS + rng.normal(0.0, SIGMA_GYRO, t.size)
+    d = tmp_path / "still"
+    d.mkdir()
+    (d / "gyro.csv").write_text(
+        "t,yaw_rate\n" + "".join(f"{a:.6f},{b:.7f}\n" for a, b in zip(t, rate, strict=True)))
+    (d / "truth_pose.csv").write_text("t,x,y,theta\n" + "".join(
+        f"{a:.6f},0,0,{b:.7f}\n" for a, b in zip(t, theta, strict=True)))
+    (d / "meta.json").write_text(json.dumps({"units": {"gyro.yaw_rate": "rad/s"}}))
+    return d
+
+
+def test_a_still_gyro_against_a_noisy_optical_heading_gets_its_bias_only(tmp_path: Path) -> None:
+    bundle = load_bundle(_still_bundle(tmp_path))
+    (res,) = [r for r in calibrate(bundle, declared_model({}, bundle.meta))
+              if r.problem.name == "gyro"]
+    names = [i.name for i in res.effects]
+    assert names == ["bias"], names
+    (params,) = [p for _, (p, _) in zip(res.effects, res.effect_params(), strict=True)]
+    n_fit = int(Split.of(res.problem.t).mask(res.problem.t, "fit").sum())
+    se = SIGMA_GYRO / np.sqrt(n_fit) + 2 * SIGMA_THETA * RATE_HZ / n_fit
+    assert abs(params["bias"] - BIAS) < 4 * se
+    notes = " ".join(res.problem.notes)
+    assert "scale not tried: the reference varies too little beyond its own noise" in notes
+    assert "time_offset not tried" in notes
+
+
+def _problem(t: np.ndarray, u: np.ndarray, **columns: np.ndarray) -> SimpleNamespace:
+    return SimpleNamespace(t=t, u=u, split=Split.of(t), columns=columns,
+                           categorical_names=tuple(columns))
+
+
+def test_reference_noise_share_per_series() -> None:
+    rng = np.random.default_rng(1)
+    t = np.repeat(np.arange(0.0, 100.0, 0.1), 4)
+    beacon = np.tile(np.arange(4.0), t.size // 4)
+    # four beacons' ranges, each a slow swing of +-1 m with 1 cm noise, interleaved row by row
+    u = 5.0 + beacon + np.sin(0.05 * t + beacon) + rng.normal(0.0, 0.01, t.size)
+    share = reference_noise_share(_problem(t, u, landmark_id=beacon))
+    # noise variance 1e-4 against the fit part's variance (~1.3 m^2 between beacons and swings)
+    assert share < 1e-3
+    # without the series, the jumps between interleaved beacons would count as noise
+    assert reference_noise_share(_problem(t, u)) > MAX_REFERENCE_NOISE_SHARE
+    # a reference that is all noise: its share is about 1 (MAD of differences / sqrt 2)
+    noise = rng.normal(0.0, 1.0, t.size)
+    assert 0.8 < reference_noise_share(_problem(t, noise)) < 1.2
