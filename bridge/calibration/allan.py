@@ -109,12 +109,15 @@ def fit_noise_terms(
     avar = adev**2
     A = np.column_stack([1 / tau, np.ones_like(tau), tau])
     dof = np.maximum(clusters - 1, 1).astype(float)
-    model = avar.copy()
+    # a point's sd is its model value times sqrt(2 / dof): floored relative to the curve, so a
+    # point of (nearly) zero variance, or a term the fit drops, weighs much but finitely
+    floor = max(float(np.max(avar)) * 1e-12, np.finfo(float).tiny)
+    model = np.maximum(avar, floor)
     c = np.zeros(3)
     for _ in range(iterations):
-        w = np.sqrt(dof / 2) / np.maximum(model, np.finfo(float).tiny)  # 1 / sd of each point
+        w = np.sqrt(dof / 2) / model  # 1 / sd of each point
         c, _ = optimize.nnls(A * w[:, None], avar * w)
-        model = np.maximum(A @ c, 1e-300)
+        model = np.maximum(A @ c, floor)
     n, k = float(np.sqrt(c[0])), float(np.sqrt(3 * c[2]))
     delta = np.sqrt(2 / dof)  # relative sd of each point's Allan variance
     i = int(np.argmin(adev))
@@ -147,10 +150,13 @@ def reading_error(delta: FloatArray, share: FloatArray) -> float:
 
 def allan_noise(rate: FloatArray, tau0: float) -> AllanFit | None:
     """Overlapping Allan deviation of ``rate`` (every ``tau0`` s) at octave cluster sizes and the
-    noise terms fitted to it; None when fewer than 3 cluster sizes fit (too short a series)."""
+    noise terms fitted to it; None when fewer than 3 cluster sizes fit (too short a series) or
+    the series does not vary."""
     rate = np.asarray(rate, dtype=float)
     m = octave_cluster_sizes(rate.size)
     if m.size < 3 or not tau0 > 0:
         return None
     tau, adev = overlapping_adev(rate, tau0, m)
+    if not np.all(np.isfinite(adev)) or not np.any(adev > 0):
+        return None  # no noise to identify (a residual of exactly zero)
     return fit_noise_terms(tau, adev, rate.size // m)

@@ -152,3 +152,15 @@ def test_still_gyro_through_calibrate_reports_allan(tmp_path: Path) -> None:
     assert "allan" not in doc["streams"][1]  # the secondary metric's entry: once per stream
     assert (out / "allan_gyro.png").stat().st_size > 0
     assert "![gyro Allan deviation](allan_gyro.png)" in (out / "report.md").read_text()
+
+
+def test_a_residual_without_noise_has_no_noise_terms() -> None:
+    """A perfect reading (a constant rate against its exact reference) leaves a zero residual:
+    no noise to identify, not a crash (the weights once overflowed to NaN)."""
+    from koala_bridge.calibration.allan import allan_noise
+
+    assert allan_noise(np.zeros(3000), 0.05) is None
+    # a constant leaves rounding alone in the cluster means: finite terms at that level
+    fit = allan_noise(np.full(3000, 0.5), 0.05)
+    assert fit is None or max(fit.angle_random_walk, fit.rate_random_walk,
+                              fit.bias_instability) < 1e-10

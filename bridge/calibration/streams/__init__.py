@@ -332,6 +332,7 @@ def build_compass(
     ref = heading_reference(bundle)
     theta = None
     direction = None
+    level_note = None
     if ref is not None:
         inside = (t >= ref[0][0]) & (t <= ref[0][-1])
         if inside.sum() < MIN_ROWS:
@@ -345,6 +346,26 @@ def build_compass(
             )
             return None
         t, m = t[inside], m[inside]
+        level = _compass_level(bundle, t)
+        if level is not None:
+            keep, how = level
+            if int(keep.sum()) < MIN_ROWS:
+                _skip(
+                    skipped,
+                    "compass",
+                    f"the sensor tilts: {int(keep.sum())} of {keep.size} readings level "
+                    f"({how}), at least {MIN_ROWS} needed; a tilted magnetometer's x and y do "
+                    "not give the heading",
+                    "record stretches with the sensor level (turning about the vertical), or "
+                    "leave theta out of truth_pose.csv to calibrate the 3-D field magnitude; "
+                    f"see {FORMAT_DOC}",
+                )
+                return None
+            level_note = (
+                f"level readings only ({how}): {int(keep.sum())} of {keep.size}; a tilted "
+                "magnetometer's x and y do not give the heading"
+            )
+            t, m = t[keep], m[keep]
         theta = np.interp(t, ref[0], ref[1])
         mode = "heading"
         direction = _declared_field_direction(bundle, model, t)
@@ -377,6 +398,8 @@ def build_compass(
         gyro_heading=_declared_gyro_heading(bundle, model, t) if mode == "magnitude_2d" else None,
     )
     problem.notes.append(f"mode: {mode}; field unit {unit}")
+    if level_note is not None:
+        problem.notes.append(level_note)
     if problem.gyro_heading is not None:
         problem.notes.append(
             "second metric: heading against the gyro integrated under its declared model "
@@ -387,6 +410,30 @@ def build_compass(
     if direction is not None:
         problem.notes.append("declared local magnetic sources: field direction per position")
     return problem
+
+
+def _compass_level(bundle: Bundle, t: FloatArray) -> tuple[NDArray[np.bool_], str] | None:
+    """Which compass readings (stamps ``t``) were taken level, by the accelerometer of
+    ``gyro.csv`` (:func:`streams.level.level_mask`: z within a few degrees of gravity), and
+    how that was found; None when the bundle has no accelerometer or the sensor was level
+    throughout (then nothing is set aside). A reading is level when the accelerometer samples
+    on both sides of it are."""
+    from koala_bridge.calibration.streams.level import ACC_COLUMNS, MAX_LEVEL_FRACTION, level_mask
+
+    gyro = bundle.get("gyro")
+    if gyro is None or not all(c in gyro.columns for c in ACC_COLUMNS) or t.size == 0:
+        return None
+    found = level_mask(gyro)
+    if found is None:
+        return None
+    mask, how = found
+    if mask.mean() > MAX_LEVEL_FRACTION:
+        return None
+    tg = gyro["t"]
+    order = np.argsort(tg, kind="stable")
+    inside = (t >= tg[order[0]]) & (t <= tg[order[-1]])
+    level = inside & (np.interp(t, tg[order], mask[order].astype(float)) >= 1.0)
+    return level, how
 
 
 def _declared_gyro_heading(
