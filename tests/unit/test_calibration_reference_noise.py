@@ -65,22 +65,35 @@ def test_a_still_gyro_against_a_noisy_optical_heading_gets_its_bias_only(tmp_pat
     assert "time_offset not tried" in notes
 
 
-def _problem(t: np.ndarray, u: np.ndarray, **columns: np.ndarray) -> SimpleNamespace:
-    return SimpleNamespace(t=t, u=u, split=Split.of(t), columns=columns,
+def _problem(t: np.ndarray, u: np.ndarray, y: np.ndarray, **columns: np.ndarray) -> SimpleNamespace:
+    return SimpleNamespace(t=t, u=u, y=y, split=Split.of(t), columns=columns,
                            categorical_names=tuple(columns))
 
 
-def test_reference_noise_share_per_series() -> None:
+def test_reference_noise_share() -> None:
     rng = np.random.default_rng(1)
+    # four beacons' ranges, interleaved row by row: a slow swing of +-1 m each
     t = np.repeat(np.arange(0.0, 100.0, 0.1), 4)
     beacon = np.tile(np.arange(4.0), t.size // 4)
-    # four beacons' ranges, each a slow swing of +-1 m with 1 cm noise, interleaved row by row
-    u = 5.0 + beacon + np.sin(0.05 * t + beacon) + rng.normal(0.0, 0.01, t.size)
-    share = reference_noise_share(_problem(t, u, landmark_id=beacon))
-    # noise variance 1e-4 against the fit part's variance (~1.3 m^2 between beacons and swings)
-    assert share < 1e-3
-    # without the series, the jumps between interleaved beacons would count as noise
-    assert reference_noise_share(_problem(t, u)) > MAX_REFERENCE_NOISE_SHARE
-    # a reference that is all noise: its share is about 1 (MAD of differences / sqrt 2)
+    true = 5.0 + beacon + np.sin(0.05 * t + beacon)
+    reading = true + rng.normal(0.0, 0.05, t.size)
+    # the reference's own noise, 1 cm: its share of the variance (~1.3 m^2) is ~1e-4
+    ref = true + rng.normal(0.0, 0.01, t.size)
+    assert reference_noise_share(_problem(t, ref, reading, landmark_id=beacon)) < 1e-3
+    # a reference that is all noise, which the readings do not follow: about 1
     noise = rng.normal(0.0, 1.0, t.size)
-    assert 0.8 < reference_noise_share(_problem(t, noise)) < 1.2
+    share = reference_noise_share(_problem(t, noise, reading, landmark_id=beacon))
+    assert 0.8 < share < 1.2
+    assert share > MAX_REFERENCE_NOISE_SHARE
+
+
+def test_fast_motion_the_readings_share_is_not_noise() -> None:
+    """A drive's per-step jitter in the reference rate is motion: the gyro reads it too, also
+    when it reads it three samples late (a latency)."""
+    rng = np.random.default_rng(2)
+    t = np.arange(0.0, 60.0, 0.01)
+    motion = 0.5 * np.sin(0.3 * t) + rng.normal(0.0, 0.05, t.size)  # slow turn + step jitter
+    gyro = motion + rng.normal(0.0, 0.005, t.size)
+    assert reference_noise_share(_problem(t, motion, gyro)) < 0.01
+    late = np.r_[gyro[:3], gyro[:-3]]
+    assert reference_noise_share(_problem(t, motion, late)) < 0.01

@@ -7,7 +7,6 @@ from typing import Any
 
 import numpy as np
 from koala_bridge.calibration.effects.base import EffectInstance
-from koala_bridge.calibration.robust import white_noise_sigma
 
 
 def config_name(name: str) -> str:
@@ -69,44 +68,101 @@ def enough_orientations(problem: Any, harmonic: int, effect: str) -> bool:
     return False
 
 
-#: The largest share of the reference's variance that may be its own noise when a gain is
-#: fitted: the bias that noise gives the gain, relative, is about this share; 1 % is the
-#: smallest held-out gain the selection counts (selection.MIN_RELATIVE_GAIN).
-MAX_REFERENCE_NOISE_SHARE = 0.01
+#: The largest share of the reference's variance that may be unshared with the readings
+#: (:func:`reference_noise_share`) when a gain or a time shift is fitted through it. The share
+#: bounds the attenuation of a fitted gain from above (it counts any fast variation the
+#: readings do not follow: the reference's noise, and also censored readings or a latency's
+#: smoothing); beyond a quarter the reference is mostly not signal, and the fitted gain could be
+#: off by more than any scale error of a working sensor. Measured: a still gyro against a
+#: differentiated optical heading 0.83-0.95; the simulator's streams (default.toml, with and
+#: without an injected latency) 0-0.04; the real bundles of tests/data/real 0-0.0013.
+MAX_REFERENCE_NOISE_SHARE = 0.25
+#: the share above which the report says a fitted gain may be attenuated by it
+NOTE_REFERENCE_NOISE_SHARE = 0.01
+#: the largest latency between readings and reference looked through (s; effects/time_offset.py)
+MAX_LAG_S = 0.5
 
 
 def reference_noise_share(problem: Any) -> float:
-    """Share of the fit part's reference variance that is white noise (0 without a reference),
-    the noise from first differences within each series of the stream (the rows of one value of
-    its categorical columns: a sensor, a beacon), so interleaved series do not count as noise."""
-    u = getattr(problem, "u", None)
-    if u is None or not hasattr(problem, "t"):
+    """Share of the fit part's reference variance that is noise of the reference's own (0
+    without a reference), in the declared prediction's units (``base_gain * curve(u)``).
+
+    Differences within each series of the stream (the rows of one value of its categorical
+    columns, or its ``series``: a sensor, a beacon, a landmark; interleaved series would count
+    as noise) separate fast variation from the slow: ``dp`` of the prediction, ``dy`` of the
+    readings. Fast variation that is motion (a drive's per-step jitter) is in the readings too,
+    ``cov(dp, dy) ~ var(dp_motion)`` for a gain near 1; noise of the reference is not. So the
+    reference's white noise is ``sigma^2 ~ (var(dp) - cov(dp, dy)) / 2`` (differences of white
+    noise have twice its variance), and the share is that over ``var(p)``.
+    """
+    u, y = getattr(problem, "u", None), getattr(problem, "y", None)
+    if u is None or y is None or not hasattr(problem, "t"):
         return 0.0
     fit = problem.split.mask(problem.t, "fit")
     uf = np.asarray(u, dtype=float)[fit]
+    curve = getattr(problem, "curve", None)
+    pf = getattr(problem, "base_gain", 1.0) * (curve(uf) if curve is not None else uf)
+    yf = np.asarray(y, dtype=float)[fit]
     # the series of one sensor (landmark, tag, ...): the stream's categorical columns together
-    columns = getattr(problem, "columns", {})
+    columns = dict(getattr(problem, "columns", {}))
     names = [n for n in getattr(problem, "categorical_names", ()) if n in columns] or [
         n for n in ("sensor",) if n in columns]
+    series = getattr(problem, "series", None)
+    if series is not None:
+        columns["series"] = np.asarray(series, dtype=float)
+        names.append("series")
+    ok = np.isfinite(pf) & np.isfinite(yf)
     if names:
         cats = np.column_stack([np.asarray(columns[n], dtype=float)[fit] for n in names])
-        ok = np.isfinite(uf) & np.all(np.isfinite(cats), axis=1)
-        keys = np.unique(cats[ok], axis=0, return_inverse=True)[1].ravel().astype(float)
+        ok &= np.all(np.isfinite(cats), axis=1)
+        keys = np.unique(cats[ok], axis=0, return_inverse=True)[1].ravel()
     else:
-        ok = np.isfinite(uf)
-        keys = np.zeros(int(ok.sum()))
-    uf = uf[ok]
-    if uf.size < 3:
+        keys = np.zeros(int(ok.sum()), dtype=np.intp)
+    pf, yf = pf[ok], yf[ok]
+    if pf.size < 3:
         return 0.0
-    # differences within each sensor's own series, so interleaved sensors are not noise
-    order = np.argsort(keys, kind="stable")
-    same = np.diff(keys[order]) == 0
-    diffs = np.diff(uf[order])[same]
-    var = float(np.var(uf))
+    var = float(np.var(pf))
     if var <= 0.0:
         return np.inf
-    noise = white_noise_sigma(np.cumsum(np.r_[0.0, diffs])) if diffs.size else 0.0
-    return noise**2 / var
+    angle = bool(getattr(problem, "angle", False))
+    if keys.size and np.any(keys != keys[0]):
+        # several series: first differences within each, at lag 0
+        order = np.argsort(keys, kind="stable")
+        same = np.diff(keys[order]) == 0
+        dp, dy = np.diff(pf[order])[same], np.diff(yf[order])[same]
+        noise = _unshared(dp, dy, angle, 0)
+    else:
+        # one series: the readings may lag the reference (what time_offset fits), which
+        # decorrelates fast motion at lag 0, by a fraction of a sample too; differences over
+        # m = 1, 2, 4, ... samples, each at the lag (within MAX_LAG_S) it is shared best at,
+        # and the scale that leaves the least unshared (white noise differences have 2 sigma^2
+        # at every scale)
+        t = np.asarray(problem.t, dtype=float)[fit][ok]
+        step = float(np.median(np.diff(t))) if t.size > 1 else 0.0
+        k_max = min(int(MAX_LAG_S / step), pf.size // 4) if step > 0 else 0
+        noise = np.inf
+        m = 1
+        while m <= max(k_max, 1) and m < pf.size // 2:
+            noise = min(noise, _unshared(pf[m:] - pf[:-m], yf[m:] - yf[:-m], angle, k_max))
+            m *= 2
+    return 0.5 * float(noise) / var if np.isfinite(noise) else 0.0
+
+
+def _unshared(dp: np.ndarray, dy: np.ndarray, angle: bool, k_max: int) -> float:
+    """``var(dp) - max_k cov(dp_t, dy_t+k)`` over lags ``|k| <= k_max`` (at least 0)."""
+    if angle:
+        dp, dy = _wrap(dp), _wrap(dy)
+    if dp.size < 2:
+        return float("inf")
+    dp, dy = dp - dp.mean(), dy - dy.mean()
+    shared = float(np.mean(dp * dy))
+    for k in range(1, min(k_max, dp.size // 4) + 1):
+        shared = max(shared, float(np.mean(dp[:-k] * dy[k:])), float(np.mean(dp[k:] * dy[:-k])))
+    return max(float(np.mean(dp * dp)) - shared, 0.0)
+
+
+def _wrap(a: np.ndarray) -> np.ndarray:
+    return np.asarray((a + np.pi) % (2 * np.pi) - np.pi, dtype=float)
 
 
 def reference_dominates(problem: Any, effect: str) -> bool:
@@ -116,12 +172,21 @@ def reference_dominates(problem: Any, effect: str) -> bool:
     not tried."""
     share = reference_noise_share(problem)
     if share <= MAX_REFERENCE_NOISE_SHARE:
+        if share > NOTE_REFERENCE_NOISE_SHARE and effect == "scale":
+            note = (
+                f"the reference's fast variation is {100 * share:.2g} % unshared with the "
+                "readings (its own noise, or readings that do not follow it): a fitted scale may "
+                "be pulled towards 0 by up to that share"
+            )
+            if note not in problem.notes:
+                problem.notes.append(note)
         return True
     note = (
         f"{effect} not tried: the reference varies too little beyond its own noise (noise "
-        f"{100 * min(share, 1.0):.3g} % of its variance on the fit part; fitted through it, a "
-        "gain is pulled towards 0 by about that share and a time shift smooths the noise): "
-        "record motion over a wider range, or a reference with less noise"
+        f"{100 * min(share, 1.0):.3g} % of its variance on the fit part, the readings do not "
+        "follow it; fitted through it, a gain is pulled towards 0 by about that share and a "
+        "time shift smooths the noise): record motion over a wider range, or a reference with "
+        "less noise"
     )
     if note not in problem.notes:
         problem.notes.append(note)

@@ -13,10 +13,11 @@ variables: W. A. Fuller, *Measurement Error Models*, 1987, sec. 1.1). A gyro lyi
 against the rate differentiated from an optical heading is the extreme: the reference is all
 noise and the fitted gain goes to about 0 (``s`` ~ -1, a sensor that "reads nothing") with a
 small standard error. So ``scale`` is proposed only when that share, estimated on the fit part
-with the reference's white noise from its first differences (per sensor where the stream has
-several), is at most ``MAX_REFERENCE_NOISE_SHARE`` (:func:`.common.reference_dominates`); else
-a note says why. A gain that is
-not positive (``1 + s <= 0``) is no scale error of a working sensor: implausible.
+as the reference's fast variation the readings do not share
+(:func:`.common.reference_noise_share`), is at most ``MAX_REFERENCE_NOISE_SHARE``
+(:func:`.common.reference_dominates`); else a note says why, and above 1 % the report notes
+that a fitted gain may be attenuated by it. A gain that is not positive (``1 + s <= 0``) is no
+scale error of a working sensor: implausible.
 """
 
 from __future__ import annotations

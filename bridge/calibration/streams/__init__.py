@@ -939,6 +939,7 @@ def build_landmarks(
                 is_range=True,
                 base_add=np.broadcast_to(range_bias, t.shape)[ok],
                 quantity="landmark range",
+                series=obs["landmark_id"][ok],
             )
         )
     if ref is None and "landmark_bearing" in present:
@@ -971,8 +972,13 @@ def build_landmarks(
                 covariate_names=tuple(sorted(extras)),
                 angle=True,
                 quantity="landmark bearing",
+                series=obs["landmark_id"][okb],
             )
         )
+    if not inside.all():
+        # nothing set aside without a word: the observations no reference reaches
+        for problem in out:
+            problem.notes.append(f"set aside: {why} ({fix.split(', and record')[0]})")
     return out
 
 

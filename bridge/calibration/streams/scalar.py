@@ -91,6 +91,10 @@ class ScalarProblem(StreamProblem):
     curve_fitted: bool = False
     heading_window_s: float | None = None
     quantity: str = "value"
+    #: which series each row belongs to where rows of several interleave and no categorical
+    #: column says so (the landmark of a camera observation): the reference's own noise is
+    #: measured within each (effects.common.reference_noise_share)
+    series: FloatArray | None = None
     #: compare in heading space: the residual rate integrated over windows of this length
     #: (re-anchored at each window start) instead of the rate residual itself; used when the
     #: reference heading is noisy (a compass), whose derivative is far noisier than its integral.
