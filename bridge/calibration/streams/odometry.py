@@ -112,22 +112,35 @@ class SetAside:
         return out
 
 
+def _typical_ratio(ref: FloatArray, odo: FloatArray, least: float) -> float | None:
+    """The reference's motion per unit of the odometry's: the median ratio over the intervals
+    where both moved by ``least`` (a robot that spent most of a recording against a wall still
+    has its ratio from where it moved); None when too few did, or the ratio is not positive."""
+    both = (np.abs(odo) >= least) & (np.abs(ref) >= least)
+    if both.sum() < 3:
+        return None
+    typical = float(np.median(ref[both] / odo[both]))
+    return typical if typical > 0 else None
+
+
 def _stalled(ref: FloatArray, odo: FloatArray, least: float) -> NDArray[np.bool_]:
     """Intervals where the reference motion ``ref`` is below :data:`STALL_FRACTION` of the
-    typical ratio times the odometry motion ``odo`` (signed: a turn the other way is a stall
-    too), judged where ``|odo| >= least``. The typical ratio is the median over the intervals
-    where both moved by ``least``: a robot that spent most of a recording against a wall still
-    has its ratio from where it moved."""
-    judged = np.abs(odo) >= least
-    both = judged & (np.abs(ref) >= least)
-    if both.sum() < 3:
-        return np.zeros(odo.shape, dtype=bool)
-    typical = float(np.median(ref[both] / odo[both]))
-    if not typical > 0:
-        return np.zeros(odo.shape, dtype=bool)
+    typical ratio (:func:`_typical_ratio`) times the odometry motion ``odo`` (signed: a turn the
+    other way is a stall too), judged where ``|odo| >= least``."""
     out = np.zeros(odo.shape, dtype=bool)
+    typical = _typical_ratio(ref, odo, least)
+    if typical is None:
+        return out
+    judged = np.abs(odo) >= least
     out[judged] = ref[judged] / odo[judged] < STALL_FRACTION * typical
     return out
+
+
+def _lost(ref: float, odo: float, typical: float | None, least: float) -> bool:
+    """Whether a span's totals still show motion the reference did not make (:func:`_stalled`'s
+    test on the sums)."""
+    return bool(typical is not None and abs(odo) >= least
+                and ref / odo < STALL_FRACTION * typical)
 
 
 def speed_lag(
@@ -223,16 +236,34 @@ def find_stalls(
     travel_odo = np.hypot(np.diff(x), np.diff(y))
     px, py = (np.interp(edges + lag, t_ref, p_ref[:, j]) for j in (0, 1))
     travel_ref = np.hypot(np.diff(px), np.diff(py))
+    turn_odo = np.diff(th)
+    turn_ref = np.diff(np.interp(edges + lag, t_ref, theta_ref)) if theta_ref is not None else None
     flag = _stalled(travel_ref, travel_odo, STALL_MIN_TRAVEL_M)
-    if theta_ref is not None:
-        turn_ref = np.diff(np.interp(edges + lag, t_ref, theta_ref))
-        flag |= _stalled(turn_ref, np.diff(th), STALL_MIN_TURN_RAD)
+    if turn_ref is not None:
+        flag |= _stalled(turn_ref, turn_odo, STALL_MIN_TURN_RAD)
     # One interval more on each side: the contact's onset and end fall inside neither.
     flag = flag | np.r_[flag[1:], False] | np.r_[False, flag[:-1]]
     if not flag.any():
         return SetAside()
-    starts, ends = np.transpose(_runs(flag))
-    spans = tuple((float(edges[a]), float(edges[b])) for a, b in zip(starts, ends, strict=True))
+    # A span is motion lost only if its totals still show it: where the reference merely
+    # runs late for an interval (a commanded speed the robot reaches a moment later) and
+    # catches up inside the span, nothing was lost and the span is kept.
+    move = _typical_ratio(travel_ref, travel_odo, STALL_MIN_TRAVEL_M)
+    turn = _typical_ratio(turn_ref, turn_odo, STALL_MIN_TURN_RAD) if turn_ref is not None else None
+    runs = []
+    for a, b in _runs(flag):
+        lost = _lost(float(travel_ref[a:b].sum()), float(travel_odo[a:b].sum()), move,
+                     STALL_MIN_TRAVEL_M)
+        if turn_ref is not None:
+            lost |= _lost(float(turn_ref[a:b].sum()), float(turn_odo[a:b].sum()), turn,
+                          STALL_MIN_TURN_RAD)
+        if lost:
+            runs.append((a, b))
+        else:
+            flag[a:b] = False
+    if not runs:
+        return SetAside()
+    spans = tuple((float(edges[a]), float(edges[b])) for a, b in runs)
     return SetAside(spans, float(travel_odo[flag].sum()), float(travel_ref[flag].sum()))
 
 
@@ -288,9 +319,9 @@ class OdometryProblem(StreamProblem):
         self.notes.append(
             f"set aside {len(s.spans)} span(s) where the wheels stalled or slipped, "
             f"{s.seconds:.1f} s of {span:.1f} s ({100 * s.seconds / max(span, 1e-9):.0f} %): "
-            f"the encoders counted {s.odometry_m:.2f} m (declared model) while the reference "
-            f"moved {s.reference_m:.2f} m (e.g. pushing into a wall); windows restart after "
-            "each span"
+            f"the odometry (declared model) gave {s.odometry_m:.2f} m while the reference "
+            f"moved {s.reference_m:.2f} m (e.g. wheels pushing into a wall, or a commanded "
+            "speed the robot did not reach); windows restart after each span"
             + (
                 f", and {self._short_s:.1f} s between spans too short for half a window "
                 "were dropped"
