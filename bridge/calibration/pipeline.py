@@ -435,9 +435,16 @@ def calibrate(
         out = []
         full_by_name = {p.name: p for p in problems_full}
         for p in problems_small:
+            built = len(p.notes)
             res = run_stream(p, options, progress)
             full = full_by_name.get(p.name)  # a stream the subset alone has keeps its result
-            out.append(res if small is bundle or full is None else refit_full(full, res))
+            if small is bundle or full is None:
+                out.append(res)
+                continue
+            # what the selection noted on the subset (an effect not tried, and why) holds for
+            # the stream; what the builder noted, the full stream's builder noted itself
+            full.notes.extend(n for n in p.notes[built:] if n not in full.notes)
+            out.append(refit_full(full, res))
         return out
 
     results = run(
