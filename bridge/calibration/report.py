@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from koala_bridge.calibration.config_update import config_path, is_simulated
 from koala_bridge.calibration.metrics import (
     OUTLIER_SIGMAS,
     ErrorStatistics,
@@ -82,6 +83,17 @@ def _effect_entries(res: StreamResult) -> list[dict[str, Any]]:
             entry["not_written"] = reason
         out.append(entry)
     return out
+
+
+def _written_cell(res: StreamResult, inst: Any, e: dict[str, Any]) -> str:
+    """The report's ``--write-config`` cell: written, written as a comment (an effect the
+    simulator has no key for: the model change's diff shows none), or not written and why."""
+    if not e["written"]:
+        return f"**not written**: {e['not_written']}"
+    keys = inst.effect.config(inst, np.array(list(e["params"].values())), res.problem)
+    if not any(is_simulated(config_path(res.problem.section, k)) for k in keys):
+        return "written as a comment: the simulator has no key for it"
+    return "written"
 
 
 def _before(stage: Stage | None, res: StreamResult, m: SecondaryMetric) -> float:
@@ -314,11 +326,10 @@ def _stream_markdown(res: StreamResult, stage: Stage, plot: str | None, heading:
             )
     if res.effects:
         lines += ["", "| effect | params | evidence | --write-config |", "|---|---|---|---|"]
-        for e in _effect_entries(res):
-            written = "written" if e["written"] else f"**not written**: {e['not_written']}"
+        for inst, e in zip(res.effects, _effect_entries(res), strict=True):
             lines.append(
                 f"| {e['name']} | {json.dumps(e['params'])} | {json.dumps(e['evidence'])} | "
-                f"{written} |"
+                f"{_written_cell(res, inst, e)} |"
             )
     lines += [
         "",

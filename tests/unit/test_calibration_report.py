@@ -382,3 +382,22 @@ def test_an_effect_of_1_5_standard_errors_is_not_written(tmp_path: Path) -> None
     assert se < abs(value) < WRITE_Z * se  # larger than its SE, inside the 99 % interval
     assert res.not_written()[0] is not None
     assert "sensors.gyro.bias_rad_s" not in found_keys([res])
+
+
+def test_an_effect_without_a_simulator_key_is_written_as_a_comment(tmp_path: Path) -> None:
+    """A gyro latency has no key in the simulator's config: --write-config puts it in the
+    trailing comment block and the model change's diff shows none, so the report's cell says
+    "written as a comment", not "written" (which read as a contradiction of the diff)."""
+    from koala_bridge.calibration.pipeline import Options
+    from koala_bridge.calibration.report import write_report
+    from koala_bridge.calibration.stages import calibrate_stages
+    from koala_bridge.calibration.synthetic import CASES
+
+    d = make_bundle(tmp_path / "b", seed=1000, inj=CASES["time_offset"].inject)
+    stages, _ = calibrate_stages([d], DECLARED, Options(), tmp_path / "tmp")
+    (gyro,) = [r for r in stages[-1].results if r.problem.name == "gyro"]
+    assert [i.name for i in gyro.effects] == ["time_offset"]
+    write_report(tmp_path / "out", stages, "", plots=False)
+    md = (tmp_path / "out" / "report.md").read_text()
+    (row,) = [line for line in md.splitlines() if line.startswith("| time_offset | {")]
+    assert row.endswith("| written as a comment: the simulator has no key for it |")
