@@ -184,11 +184,43 @@ def _inline(value: Any) -> str:
     return tomli_w.dumps({"v": value})[4:].strip()
 
 
+def _edited(template: str, base: Mapping[str, Any], doc: Mapping[str, Any]) -> str:
+    """``template`` (MODEL.toml's text, which loads as ``base``) with every value that differs
+    in ``doc`` set, by tomlkit: its comments, order and layout stay. A changed key's own inline
+    comment, which described the old value, becomes ``calibrate: was <old>``."""
+    import tomlkit
+    from tomlkit.items import Item
+
+    out = tomlkit.parse(template)
+
+    def walk(node: Any, old: Mapping[str, Any], new: Mapping[str, Any]) -> None:
+        for key, value in new.items():
+            before = old.get(key) if isinstance(old, Mapping) else None
+            if isinstance(value, Mapping) and isinstance(before, Mapping) and key in node:
+                walk(node[key], before, value)
+                continue
+            if key in old and before == value:
+                continue
+            item = tomlkit.item(value)
+            if key in old and isinstance(node.get(key), Item) and not isinstance(value, Mapping):
+                item.comment(f"calibrate: was {_inline(before)}")
+            node[key] = item
+
+    walk(out, base, doc)
+    return tomlkit.dumps(out)
+
+
 def write_config(
-    path: Path, doc: Mapping[str, Any], unsimulated: Mapping[str, Any] = {}, fragment: bool = False
+    path: Path,
+    doc: Mapping[str, Any],
+    unsimulated: Mapping[str, Any] = {},
+    fragment: bool = False,
+    template: tuple[str, Mapping[str, Any]] | None = None,
 ) -> None:
     """Write ``doc`` as TOML; ``unsimulated`` findings as a trailing comment; ``fragment``: no
-    MODEL.toml was given, so the file holds only the found keys, which the header says."""
+    MODEL.toml was given, so the file holds only the found keys, which the header says.
+    ``template``: MODEL.toml's text and what it loads as; the file is then that text with the
+    changed values set (:func:`_edited`), so its comments and layout stay."""
     header = (
         "# Written by `koala-bridge calibrate --write-config`: the declared model with the\n"
         "# effects found in measured data added (see the report's config diff).\n"
@@ -209,4 +241,5 @@ def write_config(
         for k, v in unsimulated.items():
             lines.append(f"#   {k} = {_inline(v)}")
         tail = "\n".join(lines) + "\n"
-    Path(path).write_text(header + dumps(doc) + tail, encoding="utf-8")
+    body = dumps(doc) if template is None else _edited(template[0], template[1], doc)
+    Path(path).write_text(header + body + tail, encoding="utf-8")

@@ -199,6 +199,9 @@ def run(args: argparse.Namespace) -> int:
                 new_config,
                 not_simulated(all_keys(stages)),
                 fragment=args.config is None,
+                # MODEL.toml's own text, edited: its comments and layout stay
+                template=None if args.config is None else (
+                    args.config.read_text(encoding="utf-8"), config),
             )
     except OSError as e:  # the report or the config cannot be written
         print(f"koala-bridge calibrate: {e}", file=sys.stderr)

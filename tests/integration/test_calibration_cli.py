@@ -298,3 +298,48 @@ def test_written_config_finds_its_dbc_and_never_overwrites_the_model(tmp_path: P
     assert cli.run(_args(*argv, "--write-config", str(model))) == 2
     assert cli.run(_args(*argv, "--write-config", str(tmp_path))) == 2    # a directory
     assert model.read_text() == before
+
+
+def test_written_config_keeps_the_models_comments_and_layout(tmp_path: Path) -> None:
+    """--write-config with --config writes MODEL.toml's own text with the found values set: its
+    comments, order and layout stay (the whole file was once re-emitted without a comment); a
+    changed key's inline comment says what it was. It loads as the dict the diff describes."""
+    from koala_bridge.calibration.config_update import _edited, updated_config
+
+    template = (
+        "# my robot, measured 2026-11\n"
+        "[robot]\n"
+        "wheel_base_m = 0.15   # tape measure\n"
+        "ticks_per_metre = 2000.0\n"
+        "\n"
+        "# gyro from the datasheet\n"
+        "[sensors.gyro]\n"
+        "ideal = false\n"
+        "bias_rad_s = 0.0      # unknown\n"
+        "scale_factor_error = 0.0\n"
+    )
+    base = tomllib.loads(template)
+    new = updated_config(base, {"sensors.gyro.bias_rad_s": 0.0123, "robot.wheel_base_m": 0.178})
+    text = _edited(template, base, new)
+    assert tomllib.loads(text) == new
+    lines = text.splitlines()
+    assert lines[0] == "# my robot, measured 2026-11"
+    assert "# gyro from the datasheet" in lines
+    assert "ticks_per_metre = 2000.0" in lines  # untouched lines exactly as they were
+    assert "scale_factor_error = 0.0" in lines
+    (bias,) = [line for line in lines if line.startswith("bias_rad_s")]
+    assert "0.0123" in bias and "calibrate: was 0.0" in bias
+    (base_line,) = [line for line in lines if line.startswith("wheel_base_m")]
+    assert "0.178" in base_line and "calibrate: was 0.15" in base_line
+
+
+def test_cli_written_config_is_the_model_edited(tmp_path: Path) -> None:
+    model = tmp_path / "model.toml"
+    model.write_text("# keep me\n[robot]\nwheel_base_m = 0.15  # guess\n"
+                     "ticks_per_metre = 2778.0\n", encoding="utf-8")
+    new, out = tmp_path / "new.toml", tmp_path / "out"
+    argv = (str(DATA / "lego_brenner"), "--config", str(model), "--out", str(out), "--quiet")
+    assert cli.run(_args(*argv, "--write-config", str(new))) == 0
+    text = new.read_text()
+    assert "# keep me" in text
+    assert tomllib.loads(text)["robot"]["wheel_base_m"] != 0.15  # the lego robot's is 0.18
