@@ -418,17 +418,15 @@ def _compass_level(bundle: Bundle, t: FloatArray) -> tuple[NDArray[np.bool_], st
     how that was found; None when the bundle has no accelerometer or the sensor was level
     throughout (then nothing is set aside). A reading is level when the accelerometer samples
     on both sides of it are."""
-    from koala_bridge.calibration.streams.level import ACC_COLUMNS, MAX_LEVEL_FRACTION, level_mask
+    from koala_bridge.calibration.streams.level import ACC_COLUMNS, level_where_tilted
 
     gyro = bundle.get("gyro")
     if gyro is None or not all(c in gyro.columns for c in ACC_COLUMNS) or t.size == 0:
         return None
-    found = level_mask(gyro)
+    found = level_where_tilted(gyro)
     if found is None:
         return None
     mask, how = found
-    if mask.mean() > MAX_LEVEL_FRACTION:
-        return None
     tg = gyro["t"]
     order = np.argsort(tg, kind="stable")
     inside = (t >= tg[order[0]]) & (t <= tg[order[-1]])

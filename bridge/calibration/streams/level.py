@@ -106,6 +106,15 @@ def level_mask(gyro: Table) -> tuple[NDArray[np.bool_], str] | None:
     return _long_runs(level, t, MIN_LEVEL_S), f"{how}, stretches >= {MIN_LEVEL_S:g} s"
 
 
+def level_where_tilted(gyro: Table) -> tuple[NDArray[np.bool_], str] | None:
+    """:func:`level_mask`, but None also when the body was level nearly throughout (more than
+    :data:`MAX_LEVEL_FRACTION`): then nothing needs setting aside."""
+    found = level_mask(gyro)
+    if found is None or found[0].mean() > MAX_LEVEL_FRACTION:
+        return None
+    return found
+
+
 def build_gyro_level(bundle: Bundle, model: DeclaredModel) -> ScalarProblem | None:
     """The ``gyro:level`` stream (module docstring), or None."""
     from koala_bridge.calibration.streams import build_gyro, heading_reference
@@ -113,12 +122,10 @@ def build_gyro_level(bundle: Bundle, model: DeclaredModel) -> ScalarProblem | No
     gyro = bundle.get("gyro")
     if gyro is None or heading_reference(bundle) is None:
         return None
-    found = level_mask(gyro)
+    found = level_where_tilted(gyro)
     if found is None:
         return None
     mask, how = found
-    if mask.mean() > MAX_LEVEL_FRACTION:
-        return None
     tables = dict(bundle.tables)
     tables["gyro"] = gyro.select(mask)
     problem = build_gyro(replace(bundle, tables=tables), model)
