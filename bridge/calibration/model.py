@@ -181,6 +181,48 @@ def _typed(config: Mapping[str, Any], where: str = "model config") -> SimConfig 
         raise ModelConfigError(f"{where}: {e}") from e
 
 
+#: meta.json values that declare a config key (``meta path -> config dotted key``): where both
+#: state one, meta.json wins (:func:`declared_model`).
+META_KEYS: Mapping[tuple[str, ...], str] = {
+    ("robot", "ticks_per_metre"): "robot.ticks_per_metre",
+    ("robot", "wheel_base_m"): "robot.wheel_base_m",
+    ("robot", "wheel_diameter_ratio"): "robot.wheel_diameter_ratio",
+    ("sensor", "gyro", "bias_rad_s"): "sensors.gyro.bias_rad_s",
+    ("sensor", "gyro", "scale_factor_error"): "sensors.gyro.scale_factor_error",
+}
+
+
+def meta_declared(meta: Mapping[str, Any]) -> dict[str, float]:
+    """The config keys ``meta.json`` declares (:data:`META_KEYS`), with its values."""
+    out = {}
+    for path, dotted in META_KEYS.items():
+        value = _section(meta, *path[:-1]).get(path[-1])
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            out[dotted] = float(value)
+    return out
+
+
+def stated_key(config: Mapping[str, Any], dotted: str) -> bool:
+    """Whether ``config`` names the key ``a.b.c``."""
+    *head, last = dotted.split(".")
+    return last in _section(config, *head)
+
+
+def without_declared(meta: Mapping[str, Any], dotted: set[str] | frozenset[str]) -> dict[str, Any]:
+    """``meta`` without the values of :data:`META_KEYS` whose config keys are in ``dotted``."""
+    import copy
+
+    out = copy.deepcopy(dict(meta))
+    for path, key in META_KEYS.items():
+        if key in dotted:
+            node: Any = out
+            for part in path[:-1]:
+                node = node.get(part, {}) if isinstance(node, dict) else {}
+            if isinstance(node, dict):
+                node.pop(path[-1], None)
+    return out
+
+
 def declared_model(config: Mapping[str, Any], meta: Mapping[str, Any]) -> DeclaredModel:
     """Combine the config with a bundle's ``meta.json`` (meta wins) into a DeclaredModel.
 

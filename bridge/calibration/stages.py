@@ -38,9 +38,16 @@ from koala_bridge.calibration.config_update import (
     updated_config,
 )
 from koala_bridge.calibration.errors import BundleError
-from koala_bridge.calibration.model import declared_model
+from koala_bridge.calibration.model import (
+    declared_model,
+    meta_declared,
+    stated_key,
+    without_declared,
+)
 from koala_bridge.calibration.pipeline import Options, Progress, StreamResult, calibrate
 from koala_bridge.calibration.problem import FloatArray, SkippedStream, split_params
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -134,16 +141,20 @@ def calibrate_stages(
     stages: list[Stage] = []
     current: dict[str, Any] = dict(config)
     carried: list[CarriedEffect] = []
+    found: set[str] = set()  # config keys an earlier stage found
     for number, path in enumerate(inputs, 1):
         if on_stage is not None:
             on_stage(number, path)
         work = tmp / f"stage-{number}"
         work.mkdir(parents=True, exist_ok=True)
         bundle = load_input(path, work)
+        current = _with_meta(current, bundle.meta, found, path)
         skipped: list[SkippedStream] = []
-        results = calibrate(
-            bundle, declared_model(current, bundle.meta), options, progress, skipped
-        )
+        # the config now states what meta.json declared, and what earlier stages found, which
+        # a later bundle's meta.json (the nominal geometry) must not undo
+        meta = without_declared(
+            bundle.meta, {k for k in meta_declared(bundle.meta) if stated_key(current, k)})
+        results = calibrate(bundle, declared_model(current, meta), options, progress, skipped)
         if not results:
             raise BundleError(_nothing_to_calibrate(path, skipped))
         stage = Stage(number, str(path), results, skipped=skipped)
@@ -166,8 +177,32 @@ def calibrate_stages(
         if with_noise:
             keys.update(noise_keys(results))
         current = updated_config(current, keys)
+        found |= set(keys)
         carried += carried_from(stage)
     return stages, current
+
+
+def _with_meta(
+    config: dict[str, Any], meta: Mapping[str, Any], found: set[str], path: Path
+) -> dict[str, Any]:
+    """``config`` with the values ``meta.json`` declares set where ``config`` states another
+    (meta.json wins, :func:`declared_model`), except keys an earlier stage found: the written
+    config then holds the model the data were calibrated against, not the config's robot with
+    the bundle's found wheel base (a LEGO robot's wheel base over a Koala's tick size)."""
+    laid = {}
+    for key, value in meta_declared(meta).items():
+        if key in found or not stated_key(config, key):
+            continue
+        *head, last = key.split(".")
+        node: Any = config
+        for part in head:
+            node = node.get(part, {}) if isinstance(node, Mapping) else {}
+        if node.get(last) != value:
+            log.warning("%s: meta.json declares %s = %g, over the config's %s; the calibration, "
+                        "and the written config, take meta.json's", path, key, value,
+                        node.get(last))
+            laid[key] = value
+    return updated_config(config, laid) if laid else config
 
 
 def _nothing_to_calibrate(path: Path, skipped: Sequence[SkippedStream]) -> str:
