@@ -24,6 +24,7 @@ from koala_bridge.calibration.problem import (
     SecondaryMetric,
     SkippedStream,
     StreamProblem,
+    effective_size,
 )
 from koala_bridge.calibration.selection import (
     ALPHA,
@@ -229,7 +230,44 @@ def run_stream(
         (sel.before.insts, sel.before.x), (sel.after.insts, sel.after.x)
     )
     _note_known_rotation(problem, secondary)
+    _note_near_misses(problem, sel)
     return StreamResult(problem, sel, before, after, secondary)
+
+
+#: a candidate of the last round that failed only for want of evidence, with at least this
+#: held-out gain, is named in the notes (a longer recording could tell)
+NEAR_MISS_GAIN = 0.1
+
+
+def _note_near_misses(problem: StreamProblem, sel: Selection) -> None:
+    """Say why the loop stopped where a reader would expect more: the last round's candidates
+    that improved the held-out part by :data:`NEAR_MISS_GAIN` or more yet did not pass the
+    likelihood-ratio test (too few independent units to call it more than chance), and residuals
+    so correlated that the effective sample is a handful."""
+    if not sel.rounds:
+        return
+    close = [
+        t for t in sel.rounds[-1]
+        if not t.passed and np.isfinite(t.relative_gain) and t.relative_gain >= NEAR_MISS_GAIN
+        and np.isfinite(t.lr) and t.lr <= t.lr_threshold
+    ]
+    for t in sorted(close, key=lambda t: -t.relative_gain)[:3]:
+        problem.notes.append(
+            f"{t.name} not added though it improves the held-out part by "
+            f"{100 * t.relative_gain:.0f} %: not significant (held-out likelihood ratio "
+            f"{t.lr:.3g} < {t.lr_threshold:.3g}); a longer recording, or more of the motion "
+            "that shows it, would tell"
+        )
+    units = problem.independent_count("score")
+    n = int(sel.after.r_score.size)
+    effective = units if units is not None else effective_size(n, sel.rho)
+    if close and effective < 10:
+        problem.notes.append(
+            f"the held-out part holds about {effective:.3g} independent units"
+            + (f" (residual lag-1 autocorrelation {sel.rho:.3g} over {n} residuals)"
+               if units is None else "")
+            + ": few for any effect to pass"
+        )
 
 
 def _note_known_rotation(problem: StreamProblem, secondary: Sequence[SecondaryMetric]) -> None:

@@ -97,3 +97,28 @@ def test_fast_motion_the_readings_share_is_not_noise() -> None:
     assert reference_noise_share(_problem(t, motion, gyro)) < 0.01
     late = np.r_[gyro[:3], gyro[:-3]]
     assert reference_noise_share(_problem(t, motion, late)) < 0.01
+
+
+def test_a_reference_constant_on_the_fit_part_determines_no_gain(tmp_path: Path) -> None:
+    """A ToF sensor held at 25 cm, then swept (the micromouse logs of a new-user trial): on the
+    fit part ``k r^2`` and ``s r`` are offsets, and the held-out sweep alone picked a
+    range-squared term by extrapolation (k = -0.63 m/m^2). Neither is tried now, and the note
+    says the reference does not vary, not that it is noise."""
+    rng = np.random.default_rng(5)
+    still = np.full(300, 0.25)
+    sweep = np.repeat(np.arange(0.05, 0.45, 0.05), 25)
+    r = np.r_[still, sweep]
+    y = r + 0.01 + rng.normal(0.0, 0.003, r.size)  # a 1 cm offset, the one effect
+    d = tmp_path / "tof"
+    d.mkdir()
+    rows = (f"{0.1 * k:.1f},0,tof,{a:.5f},{b:.3f}\n"
+            for k, (a, b) in enumerate(zip(y, r, strict=True)))
+    (d / "range.csv").write_text("t,sensor,kind,measured,true_range\n" + "".join(rows))
+    (d / "meta.json").write_text(json.dumps({"units": {"range.measured": "m"}}))
+    bundle = load_bundle(d)
+    (res,) = calibrate(bundle, declared_model({}, bundle.meta))
+    names = [i.name for i in res.effects]
+    assert "range_dependent" not in names and "scale" not in names
+    notes = " ".join(res.problem.notes)
+    assert "range_dependent not tried: the reference does not vary on the fit part" in notes
+    assert "scale not tried: the reference does not vary on the fit part" in notes

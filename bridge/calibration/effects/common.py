@@ -167,7 +167,8 @@ def _wrap(a: np.ndarray) -> np.ndarray:
 
 def reference_dominates(problem: Any, effect: str) -> bool:
     """Whether a scalar stream's reference varies enough beyond its own noise to determine an
-    effect fitted through it (a gain, a time offset: :func:`reference_noise_share` at most
+    effect fitted through it (a gain, a range-squared term, a time offset: a reference that is
+    constant on the fit part determines none of them; :func:`reference_noise_share` at most
     :data:`MAX_REFERENCE_NOISE_SHARE`); when not, a note on the stream says why the effect was
     not tried."""
     share = reference_noise_share(problem)
@@ -181,6 +182,15 @@ def reference_dominates(problem: Any, effect: str) -> bool:
             if note not in problem.notes:
                 problem.notes.append(note)
         return True
+    if not np.isfinite(share):
+        note = (
+            f"{effect} not tried: the reference does not vary on the fit part (one value): "
+            "fitted through it, an effect is an offset there and only the held-out part's "
+            "extrapolation would choose it; record several distances (speeds) in both parts"
+        )
+        if note not in problem.notes:
+            problem.notes.append(note)
+        return False
     note = (
         f"{effect} not tried: the reference varies too little beyond its own noise (noise "
         f"{100 * min(share, 1.0):.3g} % of its variance on the fit part, the readings do not "
