@@ -168,6 +168,20 @@ class StreamResult:
                 out.append(None)
         return out
 
+    def after_written(self) -> float | None:
+        """The held-out metric of the model ``--write-config`` writes, when it leaves out an
+        effect as uncertain (:meth:`not_written`): the written effects alone, refitted on the
+        fit part with the nuisance parameters; None when every effect is written. *after*
+        counts every effect found, so a reader who simulates the written config sees this."""
+        reasons = self.not_written()
+        if all(r is None for r in reasons):
+            return None
+        dropped = {id(inst) for inst, r in zip(self.effects, reasons, strict=True) if r}
+        sel, p = self.selection, self.problem
+        keep = [i for i in sel.after.insts if id(i) not in dropped]
+        fit = fit_model(p, keep, p.initial_vector(keep, sel.after.x, sel.after.insts))
+        return float(p.metric_value(fit.insts, fit.x, "score"))
+
     def heldout_statistics(self, before: FloatArray | None = None) -> HeldOutStatistics:
         """Robust statistics of the held-out errors before and after
         (:func:`koala_bridge.calibration.metrics.heldout_statistics`); ``before`` replaces the

@@ -145,6 +145,10 @@ def stream_entries(
         )
         if signed:
             entry.update(signed=True, before_signed=_num(before), after_signed=_num(m.after))
+        if i == 0:
+            written = res.after_written()
+            if written is not None:  # an effect is left out of --write-config: its model's
+                entry["after_written"] = _num(abs(written) if signed else written)
         if stage is not None and staged:
             entry["stage"] = stage.number
         if stage is not None and stage.declared_before:
@@ -210,10 +214,14 @@ def metric_lines(stage: Stage, res: StreamResult) -> list[str]:
         + [i.name for i in res.effects]
     )
     out = []
-    for m in res.metrics():
+    written = res.after_written()
+    for i, m in enumerate(res.metrics()):
         name, before, after, ch = metric_text(m, _before(stage, res, m))
+        tail = (f"; the written model (uncertain effects left out): {_g(abs(written))}"
+                if i == 0 and written is not None else "")
         out.append(
             f"{res.problem.name} {name}: {before} -> {after} {m.unit}, {ch} [{effects or '-'}]"
+            + tail
         )
     if any(i.effect.mixture for i in res.effects):
         # an outlier effect leaves the prediction (and so the RMS) as it was: what it improves
@@ -392,8 +400,11 @@ def report_markdown(stages: Sequence[Stage], diff: str, plots: bool) -> str:
             names += [
                 e["name"] + ("" if e["written"] else " (not written)") for e in _effect_entries(res)
             ]
-            for m in res.metrics():
+            written = res.after_written()
+            for i, m in enumerate(res.metrics()):
                 name, before, after, ch = metric_text(m, _before(stage, res, m))
+                if i == 0 and written is not None:
+                    after += f" (written model: {_g(abs(written))})"
                 lines.append(
                     prefix + f"| {res.problem.name} | {name} | {m.unit} | {before} | {after} | "
                     f"{ch} | {', '.join(names) or '-'} |"

@@ -366,9 +366,15 @@ def test_an_effect_within_its_uncertainty_is_not_written(tmp_path: Path) -> None
     md = report_markdown([stage], "", plots=False)
     assert "| **not written**: uncertainty larger than the effect" in md
     assert "bias (not written)" in md
+    # the written model is the declared one here (its only effect left out): its held-out
+    # metric is *before*, and the report gives it beside *after*
+    assert res.after_written() == pytest.approx(res.before)
+    assert entry["after_written"] == pytest.approx(res.before, rel=1e-5)
+    assert "(written model: " in md
 
     strong = _forced_bias(tmp_path / "strong", 4, 20 * se)
     assert strong.not_written() == [None]
+    assert strong.after_written() is None
     assert found_keys([strong])["sensors.gyro.bias_rad_s"] == pytest.approx(20 * se, rel=0.1)
 
 
