@@ -69,7 +69,9 @@ def lockstep_config(*overrides: str, faults: list[dict[str, Any]] | None = None
     for text in ("run.clock=\"lockstep\"", "buses.can.socketcand_port=0",
                  "buses.can.slcan=false", "buses.rangefinders.enabled=false",
                  f"buses.mavlink.port={free_port('udp')}",
-                 f'zenoh.listen=["tcp/127.0.0.1:{free_port()}"]', *overrides):
+                 # port 0: the bridge binds a free one and names it in its endpoints (a port
+                 # picked free here could be taken by another connection before it binds)
+                 'zenoh.listen=["tcp/127.0.0.1:0"]', *overrides):
         config = apply_override(config, *parse_override(text))
     if faults:
         config["faults"] = faults
@@ -126,6 +128,7 @@ def socketcand(source: SimulatedRobotSource) -> can.BusABC:
 def zenoh_session(source: SimulatedRobotSource) -> zenoh.Session:
     conf = zenoh.Config()
     conf.insert_json5("mode", '"client"')
-    conf.insert_json5("connect/endpoints", json.dumps(list(source.settings.zenoh.listen)))
+    assert source.endpoints is not None and source.endpoints.zenoh_endpoints
+    conf.insert_json5("connect/endpoints", json.dumps(list(source.endpoints.zenoh_endpoints)))
     conf.insert_json5("scouting/multicast/enabled", "false")
     return zenoh.open(conf)
