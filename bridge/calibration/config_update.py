@@ -181,6 +181,8 @@ def _inline(value: Any) -> str:
     comment block is one ``#`` line per key (a multi-line table there would become keys)."""
     if isinstance(value, Mapping):
         return "{ " + ", ".join(f"{k} = {_inline(v)}" for k, v in value.items()) + " }"
+    if isinstance(value, list | tuple):  # tomli_w spreads arrays over lines
+        return "[" + ", ".join(_inline(v) for v in value) + "]"
     return tomli_w.dumps({"v": value})[4:].strip()
 
 

@@ -83,6 +83,9 @@ class StreamResult:
     secondary: list[SecondaryMetric] = field(default_factory=list)
     #: Allan-variance noise terms of a rate stream's residual (calibration/noise.py)
     noise: StreamNoise | None = None
+    #: the notes the selection added to the stream (an effect not tried, and why): a stream
+    #: selected on a decimated subset carries them to the full stream's result
+    selection_notes: list[str] = field(default_factory=list)
     #: :meth:`_params_and_se` of the final fit it was computed for
     _se_memo: tuple[tuple[Any, ...], list[tuple[FloatArray, FloatArray | None]]] | None = field(
         default=None, init=False, repr=False, compare=False)
@@ -231,7 +234,9 @@ def run_stream(
         if progress is not None:
             progress(problem.name, done, len(cands))
 
+    noted = len(problem.notes)
     sel = select_effects(problem, cands, options.max_effects, on_trial=tick)
+    selection_notes = list(problem.notes[noted:])
     if getattr(problem, "turn_on_bias_sigma", 0.0) > 0 and (
         options.effects is None or "bias" in options.effects
     ):
@@ -245,7 +250,7 @@ def run_stream(
     )
     _note_known_rotation(problem, secondary)
     _note_near_misses(problem, sel)
-    return StreamResult(problem, sel, before, after, secondary)
+    return StreamResult(problem, sel, before, after, secondary, selection_notes=selection_notes)
 
 
 #: a candidate of the last round that failed only for want of evidence, with at least this
@@ -258,8 +263,8 @@ def _note_near_misses(problem: StreamProblem, sel: Selection) -> None:
     that improved the held-out part by :data:`NEAR_MISS_GAIN` or more yet did not pass the
     likelihood-ratio test (too few independent units to call it more than chance), and residuals
     so correlated that the effective sample is a handful."""
-    if not sel.rounds:
-        return
+    if not sel.rounds or any(t.passed for t in sel.rounds[-1]):
+        return  # the loop stopped at max_effects: the last round's gains are pre-winner
     close = [
         t for t in sel.rounds[-1]
         if not t.passed and np.isfinite(t.relative_gain) and t.relative_gain >= NEAR_MISS_GAIN
@@ -443,6 +448,9 @@ def _problems(
 def refit_full(full: StreamProblem, small: StreamResult) -> StreamResult:
     """Refit the effects selected on a decimated stream on the full stream; metrics on it."""
     sel = small.selection
+    # what the selection noted on the subset (an effect not tried, and why) holds for the
+    # stream; what the builder noted, the full stream's builder noted itself
+    full.notes.extend(n for n in small.selection_notes if n not in full.notes)
     before = declared_fit(full, fit_model(full, [], full.nuisance_x0()))
     insts = list(sel.after.insts)
     after = fit_model(
@@ -456,7 +464,8 @@ def refit_full(full: StreamProblem, small: StreamResult) -> StreamResult:
     a = full.metric_value(after.insts, after.x, "score")
     secondary = full.secondary_metrics((before.insts, before.x), (after.insts, after.x))
     _note_known_rotation(full, secondary)
-    return StreamResult(full, result, b, a, secondary)
+    _note_near_misses(full, result)
+    return StreamResult(full, result, b, a, secondary, selection_notes=small.selection_notes)
 
 
 def calibrate(
@@ -487,16 +496,9 @@ def calibrate(
         out = []
         full_by_name = {p.name: p for p in problems_full}
         for p in problems_small:
-            built = len(p.notes)
             res = run_stream(p, options, progress)
             full = full_by_name.get(p.name)  # a stream the subset alone has keeps its result
-            if small is bundle or full is None:
-                out.append(res)
-                continue
-            # what the selection noted on the subset (an effect not tried, and why) holds for
-            # the stream; what the builder noted, the full stream's builder noted itself
-            full.notes.extend(n for n in p.notes[built:] if n not in full.notes)
-            out.append(refit_full(full, res))
+            out.append(res if small is bundle or full is None else refit_full(full, res))
         return out
 
     results = run(

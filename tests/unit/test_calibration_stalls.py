@@ -90,3 +90,18 @@ def test_a_moment_of_lag_that_the_reference_makes_up_is_no_stall() -> None:
     caught_up = np.cumsum(d)
     assert caught_up[-1] == pytest.approx(s[-1])
     assert find_stalls(T, _pose(s), T, _ref(caught_up), None).spans == ()
+
+
+@pytest.mark.parametrize(("start", "stop"), [(6.0, 6.5), (6.0, 7.0), (6.2, 7.2)])
+def test_a_short_stall_is_set_aside(start: float, stop: float) -> None:
+    """Half a second to a second against a wall (5-10 cm the wheels count and the body does
+    not make) is a stall, with normal motion around it: the span's padding must not dilute it
+    (the totals over the padded span once kept every stall under about a second)."""
+    s = _drive(T)
+    stalled = (T >= start) & (T < stop)
+    moved = np.cumsum(np.r_[0.0, np.diff(s) * ~stalled[1:]])
+    assert s[-1] - moved[-1] > 0.04  # what the wheels counted in vain
+    found = find_stalls(T, _pose(s), T, _ref(moved), None)
+    assert len(found.spans) == 1
+    ((a, b),) = found.spans
+    assert a <= start and b >= stop

@@ -815,7 +815,10 @@ def ir_curve_start(curve: tuple[Sequence[float], Sequence[float]] | None) -> flo
     counts = np.asarray(curve[1], dtype=float)
     order = np.argsort(ranges, kind="stable")
     ranges, counts = ranges[order], counts[order]
-    return float(max(ranges[0], ranges[int(np.argmax(counts))]))
+    peak = int(np.argmax(counts))
+    if peak == ranges.size - 1:  # rises throughout: no fold-back declared, nothing to cut
+        return float(ranges[0])
+    return float(max(ranges[0], ranges[peak]))
 
 
 def _too_few_ranges(

@@ -136,11 +136,21 @@ def _stalled(ref: FloatArray, odo: FloatArray, least: float) -> NDArray[np.bool_
     return out
 
 
-def _lost(ref: float, odo: float, typical: float | None, least: float) -> bool:
-    """Whether a span's totals still show motion the reference did not make (:func:`_stalled`'s
-    test on the sums)."""
-    return bool(typical is not None and abs(odo) >= least
-                and ref / odo < STALL_FRACTION * typical)
+def _lost(ref: FloatArray, odo: FloatArray, core: NDArray[np.bool_], typical: float | None,
+          least: float) -> bool:
+    """Whether a span (its intervals ``ref``, ``odo``; ``core`` the ones :func:`_stalled`
+    flagged) lost motion: over the whole span the reference fell behind what the typical ratio
+    makes of the odometry by at least half the odometry's motion on the flagged intervals. The
+    reference's motion counts along the odometry's (signed per interval): a turn the other way
+    is lost too, and odometry wiggling while the body is held does not cancel itself out. A
+    reference that runs late for an interval and catches up inside the span lost nothing."""
+    if typical is None:
+        return False
+    moved = float(np.sum(np.abs(odo[core])))
+    if moved < least:
+        return False
+    behind = typical * float(np.sum(np.abs(odo))) - float(np.sum(np.sign(odo) * ref))
+    return behind >= STALL_FRACTION * typical * moved
 
 
 def speed_lag(
@@ -238,11 +248,12 @@ def find_stalls(
     travel_ref = np.hypot(np.diff(px), np.diff(py))
     turn_odo = np.diff(th)
     turn_ref = np.diff(np.interp(edges + lag, t_ref, theta_ref)) if theta_ref is not None else None
-    flag = _stalled(travel_ref, travel_odo, STALL_MIN_TRAVEL_M)
-    if turn_ref is not None:
-        flag |= _stalled(turn_ref, turn_odo, STALL_MIN_TURN_RAD)
+    moving = _stalled(travel_ref, travel_odo, STALL_MIN_TRAVEL_M)
+    turning = (_stalled(turn_ref, turn_odo, STALL_MIN_TURN_RAD) if turn_ref is not None
+               else np.zeros_like(moving))
+    core = moving | turning
     # One interval more on each side: the contact's onset and end fall inside neither.
-    flag = flag | np.r_[flag[1:], False] | np.r_[False, flag[:-1]]
+    flag = core | np.r_[core[1:], False] | np.r_[False, core[:-1]]
     if not flag.any():
         return SetAside()
     # A span is motion lost only if its totals still show it: where the reference merely
@@ -251,12 +262,13 @@ def find_stalls(
     move = _typical_ratio(travel_ref, travel_odo, STALL_MIN_TRAVEL_M)
     turn = _typical_ratio(turn_ref, turn_odo, STALL_MIN_TURN_RAD) if turn_ref is not None else None
     runs = []
+    # the totals reach a catch-up up to the largest lag taken out later than the span's padding
+    ext = int(np.ceil(STALL_MAX_LAG_S / h))
     for a, b in _runs(flag):
-        lost = _lost(float(travel_ref[a:b].sum()), float(travel_odo[a:b].sum()), move,
-                     STALL_MIN_TRAVEL_M)
+        w = slice(max(a - ext, 0), min(b + ext, n))
+        lost = _lost(travel_ref[w], travel_odo[w], moving[w], move, STALL_MIN_TRAVEL_M)
         if turn_ref is not None:
-            lost |= _lost(float(turn_ref[a:b].sum()), float(turn_odo[a:b].sum()), turn,
-                          STALL_MIN_TURN_RAD)
+            lost |= _lost(turn_ref[w], turn_odo[w], turning[w], turn, STALL_MIN_TURN_RAD)
         if lost:
             runs.append((a, b))
         else:
