@@ -317,9 +317,14 @@ def test_written_config_keeps_the_models_comments_and_layout(tmp_path: Path) -> 
         "ideal = false\n"
         "bias_rad_s = 0.0      # unknown\n"
         "scale_factor_error = 0.0\n"
+        "\n"
+        "[sensors.compass]\n"
+        "ideal = false\n"
+        "hard_iron_uT = [0.0, 0.0, 0.0]  # none measured\n"
     )
     base = tomllib.loads(template)
-    new = updated_config(base, {"sensors.gyro.bias_rad_s": 0.0123, "robot.wheel_base_m": 0.178})
+    new = updated_config(base, {"sensors.gyro.bias_rad_s": 0.0123, "robot.wheel_base_m": 0.178,
+                                "sensors.compass.hard_iron_uT": [4.0, -2.5, 1.0]})
     text = _edited(template, base, new)
     assert tomllib.loads(text) == new
     lines = text.splitlines()
@@ -331,6 +336,9 @@ def test_written_config_keeps_the_models_comments_and_layout(tmp_path: Path) -> 
     assert "0.0123" in bias and "calibrate: was 0.0" in bias
     (base_line,) = [line for line in lines if line.startswith("wheel_base_m")]
     assert "0.178" in base_line and "calibrate: was 0.15" in base_line
+    # an array: its old value on one comment line (a multi-line one once crashed the write)
+    (iron,) = [line for line in lines if line.startswith("hard_iron_uT")]
+    assert "calibrate: was [0.0, 0.0, 0.0]" in iron
 
 
 def test_cli_written_config_is_the_model_edited(tmp_path: Path) -> None:
