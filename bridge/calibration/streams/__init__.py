@@ -413,17 +413,17 @@ def build_compass(
 
 
 def _compass_level(bundle: Bundle, t: FloatArray) -> tuple[NDArray[np.bool_], str] | None:
-    """Which compass readings (stamps ``t``) were taken level, by the accelerometer of
-    ``gyro.csv`` (:func:`streams.level.level_mask`: z within a few degrees of gravity), and
-    how that was found; None when the bundle has no accelerometer or the sensor was level
-    throughout (then nothing is set aside). A reading is level when the accelerometer samples
-    on both sides of it are."""
-    from koala_bridge.calibration.streams.level import ACC_COLUMNS, level_where_tilted
+    """Which compass readings (stamps ``t``) were taken at the sensor's usual attitude, by the
+    accelerometer of ``gyro.csv`` (:func:`streams.level.mounting_mask`: gravity within a few
+    degrees of its median direction), and how that was found; None when the bundle has no
+    accelerometer or the attitude held throughout (then nothing is set aside). A reading counts
+    when the accelerometer samples on both sides of it do."""
+    from koala_bridge.calibration.streams.level import mounting_mask
 
     gyro = bundle.get("gyro")
-    if gyro is None or not all(c in gyro.columns for c in ACC_COLUMNS) or t.size == 0:
+    if gyro is None or t.size == 0:
         return None
-    found = level_where_tilted(gyro)
+    found = mounting_mask(gyro)
     if found is None:
         return None
     mask, how = found

@@ -106,6 +106,39 @@ def level_mask(gyro: Table) -> tuple[NDArray[np.bool_], str] | None:
     return _long_runs(level, t, MIN_LEVEL_S), f"{how}, stretches >= {MIN_LEVEL_S:g} s"
 
 
+def mounting_mask(gyro: Table) -> tuple[NDArray[np.bool_], str] | None:
+    """Samples of ``gyro.csv`` at the sensor's usual attitude: the measured gravity within
+    :data:`LEVEL_TILT_DEG` of its median direction (the mounting), where the accelerometer reads
+    gravity alone, in stretches of :data:`MIN_LEVEL_S`; and how that was found. None without an
+    accelerometer, or when the attitude held nearly throughout (then nothing needs setting
+    aside). A constant mounting tilt (a few degrees, or an accelerometer's zero-g offset) is not
+    tilting: for a compass turning about the vertical it moves x/y by a constant and a gain,
+    which the iron effects model; a tilt that varies is what spoils a heading."""
+    if not all(c in gyro.columns for c in ACC_COLUMNS):
+        return None
+    t = gyro["t"]
+    acc = np.column_stack([gyro[c] for c in ACC_COLUMNS])
+    norm = np.linalg.norm(acc, axis=1)
+    ok = np.isfinite(norm) & (norm > 0)
+    if not ok.any():
+        return None
+    g = float(np.median(norm[ok]))
+    unit = np.zeros_like(acc)
+    unit[ok] = acc[ok] / norm[ok, None]
+    mount = np.median(unit[ok], axis=0)
+    mount /= max(float(np.linalg.norm(mount)), 1e-12)
+    calm = ok & (np.abs(norm - g) < GRAVITY_TOLERANCE * g)
+    steady = calm & (unit @ mount > np.cos(np.deg2rad(LEVEL_TILT_DEG)))
+    mask = _long_runs(steady, t, MIN_LEVEL_S)
+    if mask.mean() > MAX_LEVEL_FRACTION:
+        return None
+    tilt = float(np.degrees(np.arccos(np.clip(mount[2], -1.0, 1.0))))
+    how = (f"accelerometer: gravity within {LEVEL_TILT_DEG:g} deg of its median direction "
+           f"(the mounting, {tilt:.3g} deg from the z axis), |a| within "
+           f"{100 * GRAVITY_TOLERANCE:g} % of g, stretches >= {MIN_LEVEL_S:g} s")
+    return mask, how
+
+
 def level_where_tilted(gyro: Table) -> tuple[NDArray[np.bool_], str] | None:
     """:func:`level_mask`, but None also when the body was level nearly throughout (more than
     :data:`MAX_LEVEL_FRACTION`): then nothing needs setting aside."""
