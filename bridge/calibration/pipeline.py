@@ -15,6 +15,7 @@ import numpy as np
 from koala_bridge.calibration.bundle import Bundle
 from koala_bridge.calibration.effects import available_effects, get_effect
 from koala_bridge.calibration.effects.base import EffectInstance
+from koala_bridge.calibration.effects.common import reference_noise_share
 from koala_bridge.calibration.errors import EffectRegistryError
 from koala_bridge.calibration.metrics import HeldOutStatistics, heldout_statistics
 from koala_bridge.calibration.model import DeclaredModel
@@ -49,6 +50,7 @@ from koala_bridge.calibration.streams import (
 )
 from koala_bridge.calibration.streams.compass import CompassProblem
 from koala_bridge.calibration.streams.level import build_gyro_level, note_level_bias
+from koala_bridge.calibration.streams.scalar import ScalarProblem
 from koala_bridge.core.distributions import norm_ppf
 
 log = logging.getLogger(__name__)
@@ -496,8 +498,11 @@ def calibrate(
         out = []
         full_by_name = {p.name: p for p in problems_full}
         for p in problems_small:
-            res = run_stream(p, options, progress)
             full = full_by_name.get(p.name)  # a stream the subset alone has keeps its result
+            if full is not None and full is not p and isinstance(full, ScalarProblem):
+                # measured on the stream's consecutive samples, not the subset's random rows
+                p.reference_share = reference_noise_share(full)  # type: ignore[attr-defined]
+            res = run_stream(p, options, progress)
             out.append(res if small is bundle or full is None else refit_full(full, res))
         return out
 

@@ -122,3 +122,44 @@ def test_a_reference_constant_on_the_fit_part_determines_no_gain(tmp_path: Path)
     notes = " ".join(res.problem.notes)
     assert "range_dependent not tried: the reference does not vary on the fit part" in notes
     assert "scale not tried: the reference does not vary on the fit part" in notes
+
+
+def test_a_gain_error_is_not_reference_noise() -> None:
+    """Readings at distances in no order (a reference that changes from row to row) from a
+    sensor whose gain is 0.7: the fast variation is shared, times the gain. Counted at a gain
+    of 1 it read as 30 % noise and blocked the very scale to find."""
+    rng = np.random.default_rng(4)
+    t = np.arange(0.0, 100.0, 0.1)
+    true = rng.uniform(0.2, 1.5, t.size)
+    for gain in (0.7, 0.95, 1.3):
+        reading = gain * true + rng.normal(0.0, 0.005, t.size)
+        assert reference_noise_share(_problem(t, true, reading)) < 0.01, gain
+
+
+def test_a_decimated_stream_measures_its_reference_on_consecutive_samples(
+    tmp_path: Path,
+) -> None:
+    """A long stream is selected on a random subset of rows (Options.max_rows); the subset's
+    rows are not consecutive samples, so the jitter the gyro shares with its reference (read
+    70 ms late) looked unshared there, and scale and time_offset were not tried. The share is
+    now measured on the whole stream's consecutive samples."""
+    from koala_bridge.calibration.pipeline import Options
+
+    rng = np.random.default_rng(8)
+    t = np.arange(0.0, 100.0, 0.01)
+    rate = 0.1 * np.sin(0.2 * t) + rng.normal(0.0, 0.1, t.size)  # slow turns + strong jitter
+    theta = np.r_[0.0, np.cumsum(rate[1:] * 0.01)]  # the reference heading (rate = its slope)
+    late = np.r_[np.full(7, rate[0]), rate[:-7]]
+    gyro = 1.05 * late + rng.normal(0.0, 0.005, t.size)
+    d = tmp_path / "long"
+    d.mkdir()
+    (d / "gyro.csv").write_text("t,yaw_rate\n" + "".join(
+        f"{a:.2f},{b:.6f}\n" for a, b in zip(t, gyro, strict=True)))
+    (d / "truth_pose.csv").write_text("t,x,y,theta\n" + "".join(
+        f"{a:.2f},0,0,{b:.7f}\n" for a, b in zip(t, theta, strict=True)))
+    (d / "meta.json").write_text(json.dumps({"units": {"gyro.yaw_rate": "rad/s"}}))
+    bundle = load_bundle(d)
+    results = calibrate(bundle, declared_model({}, bundle.meta), Options(max_rows=2000))
+    (res,) = [r for r in results if r.problem.name == "gyro"]
+    assert not any("not tried" in n for n in res.problem.notes), res.problem.notes
+    assert {"scale", "time_offset"} <= {i.name for i in res.effects}

@@ -79,6 +79,8 @@ def enough_orientations(problem: Any, harmonic: int, effect: str) -> bool:
 MAX_REFERENCE_NOISE_SHARE = 0.25
 #: the share above which the report says a fitted gain may be attenuated by it
 NOTE_REFERENCE_NOISE_SHARE = 0.01
+#: rows the share is measured on at most (a contiguous block of the fit part)
+MAX_SHARE_ROWS = 20_000
 #: the largest latency between readings and reference looked through (s; effects/time_offset.py)
 MAX_LAG_S = 0.5
 
@@ -119,31 +121,46 @@ def reference_noise_share(problem: Any) -> float:
     else:
         keys = np.zeros(int(ok.sum()), dtype=np.intp)
     pf, yf = pf[ok], yf[ok]
+    if pf.size > MAX_SHARE_ROWS:
+        # a contiguous block from the middle of the fit part: consecutive rows, as sampled
+        start = (pf.size - MAX_SHARE_ROWS) // 2
+        block = slice(start, start + MAX_SHARE_ROWS)
+        pf, yf, keys = pf[block], yf[block], keys[block]
+        t_ok = np.asarray(problem.t, dtype=float)[fit][ok][block]
+    else:
+        t_ok = np.asarray(problem.t, dtype=float)[fit][ok]
     if pf.size < 3:
         return 0.0
     var = float(np.var(pf))
     if var <= 0.0:
         return np.inf
     angle = bool(getattr(problem, "angle", False))
+    # the readings follow the reference times a gain (a scale error, a reflectivity): the
+    # shared fast variation is cov(dp, dy) / g; g from the levels, held within 2:1 (a gain a
+    # noisy reference pulls towards 0 must not make its noise look shared)
+    pc, yc = pf - pf.mean(), yf - yf.mean()
+    gain = 1.0
+    if not angle and np.dot(pc, pc) > 0:
+        gain = float(np.clip(np.dot(pc, yc) / np.dot(pc, pc), 0.5, 2.0))
     if keys.size and np.any(keys != keys[0]):
         # several series: first differences within each, at lag 0
         order = np.argsort(keys, kind="stable")
         same = np.diff(keys[order]) == 0
         dp, dy = np.diff(pf[order])[same], np.diff(yf[order])[same]
-        noise = _unshared(dp, dy, angle, 0)
+        noise = _unshared(dp, dy / gain, angle, 0)
     else:
         # one series: the readings may lag the reference (what time_offset fits), which
         # decorrelates fast motion at lag 0, by a fraction of a sample too; differences over
         # m = 1, 2, 4, ... samples, each at the lag (within MAX_LAG_S) it is shared best at,
         # and the scale that leaves the least unshared (white noise differences have 2 sigma^2
         # at every scale)
-        t = np.asarray(problem.t, dtype=float)[fit][ok]
-        step = float(np.median(np.diff(t))) if t.size > 1 else 0.0
+        step = float(np.median(np.diff(t_ok))) if t_ok.size > 1 else 0.0
         k_max = min(int(MAX_LAG_S / step), pf.size // 4) if step > 0 else 0
         noise = np.inf
         m = 1
         while m <= max(k_max, 1) and m < pf.size // 2:
-            noise = min(noise, _unshared(pf[m:] - pf[:-m], yf[m:] - yf[:-m], angle, k_max))
+            noise = min(noise, _unshared(pf[m:] - pf[:-m], (yf[m:] - yf[:-m]) / gain, angle,
+                                         k_max))
             m *= 2
     return 0.5 * float(noise) / var if np.isfinite(noise) else 0.0
 
@@ -171,7 +188,9 @@ def reference_dominates(problem: Any, effect: str) -> bool:
     constant on the fit part determines none of them; :func:`reference_noise_share` at most
     :data:`MAX_REFERENCE_NOISE_SHARE`); when not, a note on the stream says why the effect was
     not tried."""
-    share = reference_noise_share(problem)
+    share = getattr(problem, "reference_share", None)
+    if share is None:
+        share = reference_noise_share(problem)
     if share <= MAX_REFERENCE_NOISE_SHARE:
         if share > NOTE_REFERENCE_NOISE_SHARE and effect == "scale":
             note = (

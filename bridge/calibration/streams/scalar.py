@@ -95,6 +95,9 @@ class ScalarProblem(StreamProblem):
     #: column says so (the landmark of a camera observation): the reference's own noise is
     #: measured within each (effects.common.reference_noise_share)
     series: FloatArray | None = None
+    #: the reference's noise share measured on the whole stream (effects.common), set by the
+    #: pipeline on a decimated subset, whose random rows are not consecutive samples
+    reference_share: float | None = None
     #: compare in heading space: the residual rate integrated over windows of this length
     #: (re-anchored at each window start) instead of the rate residual itself; used when the
     #: reference heading is noisy (a compass), whose derivative is far noisier than its integral.
