@@ -148,12 +148,10 @@ def calibrate_stages(
         work = tmp / f"stage-{number}"
         work.mkdir(parents=True, exist_ok=True)
         bundle = load_input(path, work)
-        current = _with_meta(current, bundle.meta, found, path)
+        current = _with_meta(current, bundle.meta, found, path, whole=bool(config))
         skipped: list[SkippedStream] = []
-        # the config now states what meta.json declared, and what earlier stages found, which
-        # a later bundle's meta.json (the nominal geometry) must not undo
-        meta = without_declared(
-            bundle.meta, {k for k in meta_declared(bundle.meta) if stated_key(current, k)})
+        # what earlier stages found a later bundle's meta.json (the nominal values) must not undo
+        meta = without_declared(bundle.meta, found)
         results = calibrate(bundle, declared_model(current, meta), options, progress, skipped)
         if not results:
             raise BundleError(_nothing_to_calibrate(path, skipped))
@@ -183,15 +181,23 @@ def calibrate_stages(
 
 
 def _with_meta(
-    config: dict[str, Any], meta: Mapping[str, Any], found: set[str], path: Path
+    config: dict[str, Any], meta: Mapping[str, Any], found: set[str], path: Path, whole: bool
 ) -> dict[str, Any]:
-    """``config`` with the values ``meta.json`` declares set where ``config`` states another
-    (meta.json wins, :func:`declared_model`), except keys an earlier stage found: the written
-    config then holds the model the data were calibrated against, not the config's robot with
-    the bundle's found wheel base (a LEGO robot's wheel base over a Koala's tick size)."""
+    """``config`` with the robot geometry ``meta.json`` declares (tick size, wheel base, wheel
+    ratio; meta.json wins, :func:`declared_model`) set, except keys an earlier stage found:
+    the written config then holds the robot the data were calibrated against, not the config's
+    robot with the bundle's found wheel base (a LEGO robot's wheel base over a Koala's tick
+    size). Where the config states another value a warning says so; ``whole`` (a --config was
+    given, completed by the simulator's defaults) sets the keys it does not state too, which
+    would otherwise be the default Koala's. Without a config nothing is laid: the written
+    file holds only what was found."""
     laid = {}
     for key, value in meta_declared(meta).items():
-        if key in found or not stated_key(config, key):
+        if not key.startswith("robot.") or key in found:
+            continue
+        if not stated_key(config, key):
+            if whole:
+                laid[key] = value
             continue
         *head, last = key.split(".")
         node: Any = config

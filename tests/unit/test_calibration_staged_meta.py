@@ -62,3 +62,19 @@ def test_the_written_config_is_the_robot_calibrated(tmp_path: Path) -> None:
     assert final["robot"]["ticks_per_metre"] == NOMINAL["ticks_per_metre"]
     # found: 0.30 (1 + 0.05) injected (synthetic.Injected), 1 % its tolerance here
     assert abs(final["robot"]["wheel_base_m"] - 0.315) < 0.01 * 0.315
+
+
+def test_a_config_without_a_robot_section_gets_the_bundles_geometry(tmp_path: Path) -> None:
+    """A --config that states no [robot] is completed by the simulator's defaults (the
+    Koala's tick size) when simulated: the bundle's declared geometry goes into the written
+    config, beside the found wheel base, so that is the robot simulated."""
+    partial = {k: v for k, v in DECLARED.items() if k != "robot"}
+    stages, final = calibrate_stages([_bundle(tmp_path, 1)], partial, Options(), tmp_path / "t")
+    assert [i.name for i in _odometry(stages[0]).effects] == ["wheel_base"]
+    assert final["robot"]["ticks_per_metre"] == NOMINAL["ticks_per_metre"]
+    assert abs(final["robot"]["wheel_base_m"] - 0.315) < 0.01 * 0.315
+
+
+def test_without_a_config_the_written_keys_are_only_those_found(tmp_path: Path) -> None:
+    stages, final = calibrate_stages([_bundle(tmp_path, 1)], {}, Options(), tmp_path / "t")
+    assert set(final["robot"]) == {"wheel_base_m"}
