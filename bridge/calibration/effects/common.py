@@ -191,6 +191,8 @@ def reference_dominates(problem: Any, effect: str) -> bool:
     share = getattr(problem, "reference_share", None)
     if share is None:
         share = reference_noise_share(problem)
+        if hasattr(problem, "reference_share"):
+            problem.reference_share = share  # once per stream: scale, time_offset, k r^2 ask
     if share <= MAX_REFERENCE_NOISE_SHARE:
         if share > NOTE_REFERENCE_NOISE_SHARE and effect == "scale":
             note = (
