@@ -100,11 +100,15 @@ def reference_noise_share(problem: Any) -> float:
     u, y = getattr(problem, "u", None), getattr(problem, "y", None)
     if u is None or y is None or not hasattr(problem, "t"):
         return 0.0
-    fit = problem.split.mask(problem.t, "fit")
-    uf = np.asarray(u, dtype=float)[fit]
+    rows = np.flatnonzero(problem.split.mask(problem.t, "fit"))
+    if rows.size > MAX_SHARE_ROWS:
+        # a contiguous block from the middle of the fit part: consecutive rows, as sampled
+        start = (rows.size - MAX_SHARE_ROWS) // 2
+        rows = rows[start : start + MAX_SHARE_ROWS]
+    uf = np.asarray(u, dtype=float)[rows]
     curve = getattr(problem, "curve", None)
     pf = getattr(problem, "base_gain", 1.0) * (curve(uf) if curve is not None else uf)
-    yf = np.asarray(y, dtype=float)[fit]
+    yf = np.asarray(y, dtype=float)[rows]
     # the series of one sensor (landmark, tag, ...): the stream's categorical columns together
     columns = dict(getattr(problem, "columns", {}))
     names = [n for n in getattr(problem, "categorical_names", ()) if n in columns] or [
@@ -115,20 +119,13 @@ def reference_noise_share(problem: Any) -> float:
         names.append("series")
     ok = np.isfinite(pf) & np.isfinite(yf)
     if names:
-        cats = np.column_stack([np.asarray(columns[n], dtype=float)[fit] for n in names])
+        cats = np.column_stack([np.asarray(columns[n], dtype=float)[rows] for n in names])
         ok &= np.all(np.isfinite(cats), axis=1)
         keys = np.unique(cats[ok], axis=0, return_inverse=True)[1].ravel()
     else:
         keys = np.zeros(int(ok.sum()), dtype=np.intp)
     pf, yf = pf[ok], yf[ok]
-    if pf.size > MAX_SHARE_ROWS:
-        # a contiguous block from the middle of the fit part: consecutive rows, as sampled
-        start = (pf.size - MAX_SHARE_ROWS) // 2
-        block = slice(start, start + MAX_SHARE_ROWS)
-        pf, yf, keys = pf[block], yf[block], keys[block]
-        t_ok = np.asarray(problem.t, dtype=float)[fit][ok][block]
-    else:
-        t_ok = np.asarray(problem.t, dtype=float)[fit][ok]
+    t_ok = np.asarray(problem.t, dtype=float)[rows][ok]
     if pf.size < 3:
         return 0.0
     var = float(np.var(pf))
@@ -173,8 +170,14 @@ def _unshared(dp: np.ndarray, dy: np.ndarray, angle: bool, k_max: int) -> float:
         return float("inf")
     dp, dy = dp - dp.mean(), dy - dy.mean()
     shared = float(np.mean(dp * dy))
-    for k in range(1, min(k_max, dp.size // 4) + 1):
-        shared = max(shared, float(np.mean(dp[:-k] * dy[k:])), float(np.mean(dp[k:] * dy[:-k])))
+    k = min(k_max, dp.size // 4)
+    if k > 0:
+        # every lag at once: the cross-covariance by FFT (entry j pairs dp_t with dy_t+j)
+        n = dp.size
+        size = 1 << int(np.ceil(np.log2(2 * n)))  # zero-padded: no wrap-around
+        cc = np.fft.irfft(np.fft.rfft(dy, size) * np.conj(np.fft.rfft(dp, size)), size) / n
+        lags = np.r_[cc[: k + 1], cc[-k:]]  # lags 0..k and -k..-1
+        shared = max(shared, float(np.max(lags)))
     return max(float(np.mean(dp * dp)) - shared, 0.0)
 
 
