@@ -204,8 +204,13 @@ def _edited(template: str, base: Mapping[str, Any], doc: Mapping[str, Any]) -> s
             if key in old and before == value:
                 continue
             item = tomlkit.item(value)
-            if key in old and isinstance(node.get(key), Item) and not isinstance(value, Mapping):
-                item.comment(f"calibrate: was {_inline(before)}")
+            previous = node.get(key)
+            if key in old and isinstance(previous, Item) and not isinstance(value, Mapping):
+                kept = previous.trivia.comment.lstrip("#").strip()
+                if isinstance(value, str) and kept:
+                    item.comment(kept)  # a file path made relative to the new file: same key
+                else:
+                    item.comment(f"calibrate: was {_inline(before)}")
             node[key] = item
 
     walk(out, base, doc)

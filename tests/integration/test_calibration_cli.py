@@ -285,13 +285,16 @@ def test_written_config_finds_its_dbc_and_never_overwrites_the_model(tmp_path: P
     model_dir.mkdir()
     (model_dir / "koala.dbc").write_text("VERSION \"\"\n", encoding="utf-8")
     model = model_dir / "model.toml"
-    model.write_text('[robot]\nwheel_base_m = 0.15\n[buses.can]\ndbc = "koala.dbc"\n',
-                     encoding="utf-8")
+    model.write_text('[robot]\nwheel_base_m = 0.15\n[buses.can]\n'
+                     'dbc = "koala.dbc"  # the CAN database, beside me\n', encoding="utf-8")
     new = tmp_path / "elsewhere" / "new.toml"
     argv = (str(DATA / "lego_brenner"), "--config", str(model), "--out", str(out), "--quiet")
     assert cli.run(_args(*argv, "--write-config", str(new))) == 0
     dbc = tomllib.loads(new.read_text())["buses"]["can"]["dbc"]
     assert (new.parent / dbc).resolve() == (model_dir / "koala.dbc").resolve()
+    # the path's own comment stays: only where it is relative to changed
+    (line,) = [x for x in new.read_text().splitlines() if x.startswith("dbc")]
+    assert line.endswith("# the CAN database, beside me")
     json.loads((out / "report.json").read_text(),
                parse_constant=lambda c: pytest.fail(f"report.json holds {c}"))
     before = model.read_text()
