@@ -126,7 +126,8 @@ class ScalarProblem(StreamProblem):
         self._parts = {
             "fit": self._slice(fit),
             "score": self._slice(~fit),
-            "all": self._slice(np.ones_like(fit)),
+            # every row in order: the arrays themselves (nothing writes into a part)
+            "all": ScalarPart(self.t, self.y, self.u, dict(self.columns)),
         }
         base_add = np.broadcast_to(np.asarray(self.base_add, dtype=float), self.t.shape)
         self._base_add = {"fit": base_add[fit], "score": base_add[~fit], "all": base_add}
