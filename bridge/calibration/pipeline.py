@@ -499,9 +499,9 @@ def calibrate(
         full_by_name = {p.name: p for p in problems_full}
         for p in problems_small:
             full = full_by_name.get(p.name)  # a stream the subset alone has keeps its result
-            if full is not None and full is not p and isinstance(full, ScalarProblem):
+            if isinstance(p, ScalarProblem) and isinstance(full, ScalarProblem) and full is not p:
                 # measured on the stream's consecutive samples, not the subset's random rows
-                p.reference_share = reference_noise_share(full)  # type: ignore[attr-defined]
+                p.reference_share = reference_noise_share(full)
             res = run_stream(p, options, progress)
             out.append(res if small is bundle or full is None else refit_full(full, res))
         return out

@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 from koala_bridge.calibration.effects.base import EffectInstance
+from koala_bridge.core.geometry import wrap_angle
 
 
 def config_name(name: str) -> str:
@@ -59,13 +60,19 @@ def enough_orientations(problem: Any, harmonic: int, effect: str) -> bool:
     spread = float(problem.orientation_spread(harmonic))
     if spread >= MIN_ORIENTATION_SPREAD:
         return True
-    note = (
+    note_once(
+        problem,
         f"{effect} not tried: the orientations vary too little to tell it from the constant "
-        f"(spread {spread:.3g} < {MIN_ORIENTATION_SPREAD:g}; turn the sensor through more angles)"
+        f"(spread {spread:.3g} < {MIN_ORIENTATION_SPREAD:g}; turn the sensor through more angles)",
     )
+    return False
+
+
+def note_once(problem: Any, note: str) -> None:
+    """Add ``note`` to the stream's notes unless it is there (effects are proposed once per
+    round of some loops, and per stage)."""
     if note not in problem.notes:
         problem.notes.append(note)
-    return False
 
 
 #: The largest share of the reference's variance that may be unshared with the readings
@@ -165,7 +172,7 @@ def reference_noise_share(problem: Any) -> float:
 def _unshared(dp: np.ndarray, dy: np.ndarray, angle: bool, k_max: int) -> float:
     """``var(dp) - max_k cov(dp_t, dy_t+k)`` over lags ``|k| <= k_max`` (at least 0)."""
     if angle:
-        dp, dy = _wrap(dp), _wrap(dy)
+        dp, dy = wrap_angle(dp), wrap_angle(dy)
     if dp.size < 2:
         return float("inf")
     dp, dy = dp - dp.mean(), dy - dy.mean()
@@ -181,10 +188,6 @@ def _unshared(dp: np.ndarray, dy: np.ndarray, angle: bool, k_max: int) -> float:
     return max(float(np.mean(dp * dp)) - shared, 0.0)
 
 
-def _wrap(a: np.ndarray) -> np.ndarray:
-    return np.asarray((a + np.pi) % (2 * np.pi) - np.pi, dtype=float)
-
-
 def reference_dominates(problem: Any, effect: str) -> bool:
     """Whether a scalar stream's reference varies enough beyond its own noise to determine an
     effect fitted through it (a gain, a range-squared term, a time offset: a reference that is
@@ -198,30 +201,27 @@ def reference_dominates(problem: Any, effect: str) -> bool:
             problem.reference_share = share  # once per stream: scale, time_offset, k r^2 ask
     if share <= MAX_REFERENCE_NOISE_SHARE:
         if share > NOTE_REFERENCE_NOISE_SHARE and effect == "scale":
-            note = (
+            note_once(
+                problem,
                 f"the reference's fast variation is {100 * share:.2g} % unshared with the "
                 "readings (its own noise, or readings that do not follow it): a fitted scale may "
-                "be pulled towards 0 by up to that share"
+                "be pulled towards 0 by up to that share",
             )
-            if note not in problem.notes:
-                problem.notes.append(note)
         return True
     if not np.isfinite(share):
-        note = (
+        note_once(
+            problem,
             f"{effect} not tried: the reference does not vary on the fit part (one value): "
             "fitted through it, an effect is an offset there and only the held-out part's "
-            "extrapolation would choose it; record several distances (speeds) in both parts"
+            "extrapolation would choose it; record several distances (speeds) in both parts",
         )
-        if note not in problem.notes:
-            problem.notes.append(note)
-        return False
-    note = (
-        f"{effect} not tried: the reference varies too little beyond its own noise (noise "
-        f"{100 * min(share, 1.0):.3g} % of its variance on the fit part, the readings do not "
-        "follow it; fitted through it, a gain is pulled towards 0 by about that share and a "
-        "time shift smooths the noise): record motion over a wider range, or a reference with "
-        "less noise"
-    )
-    if note not in problem.notes:
-        problem.notes.append(note)
+    else:
+        note_once(
+            problem,
+            f"{effect} not tried: the reference varies too little beyond its own noise (noise "
+            f"{100 * min(share, 1.0):.3g} % of its variance on the fit part, the readings do not "
+            "follow it; fitted through it, a gain is pulled towards 0 by about that share and a "
+            "time shift smooths the noise): record motion over a wider range, or a reference "
+            "with less noise",
+        )
     return False
