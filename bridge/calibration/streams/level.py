@@ -80,11 +80,7 @@ def level_mask(gyro: Table) -> tuple[NDArray[np.bool_], str] | None:
     file has neither an accelerometer nor the x/y rates."""
     t = gyro["t"]
     if all(c in gyro.columns for c in ACC_COLUMNS):
-        acc = np.column_stack([gyro[c] for c in ACC_COLUMNS])
-        norm = np.linalg.norm(acc, axis=1)
-        ok = np.isfinite(norm)
-        g = float(np.median(norm[ok])) if ok.any() else 0.0
-        calm = ok & (np.abs(norm - g) < GRAVITY_TOLERANCE * g)
+        acc, calm = _gravity(gyro)
         level = calm & (
             np.abs(tilt_from_accelerometer(np.nan_to_num(acc))) < np.deg2rad(LEVEL_TILT_DEG)
         )
@@ -106,6 +102,17 @@ def level_mask(gyro: Table) -> tuple[NDArray[np.bool_], str] | None:
     return _long_runs(level, t, MIN_LEVEL_S), f"{how}, stretches >= {MIN_LEVEL_S:g} s"
 
 
+def _gravity(gyro: Table) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """The accelerometer's ``(n, 3)`` readings, and where they are gravity alone: ``|a|``
+    finite and within :data:`GRAVITY_TOLERANCE` of its median (a body that accelerates is not
+    measured for attitude)."""
+    acc = np.column_stack([gyro[c] for c in ACC_COLUMNS])
+    norm = np.linalg.norm(acc, axis=1)
+    ok = np.isfinite(norm)
+    g = float(np.median(norm[ok])) if ok.any() else 0.0
+    return acc, ok & (np.abs(norm - g) < GRAVITY_TOLERANCE * g)
+
+
 def mounting_mask(gyro: Table) -> tuple[NDArray[np.bool_], str] | None:
     """Samples of ``gyro.csv`` at the sensor's usual attitude: the measured gravity within
     :data:`LEVEL_TILT_DEG` of its median direction (the mounting), where the accelerometer reads
@@ -117,17 +124,13 @@ def mounting_mask(gyro: Table) -> tuple[NDArray[np.bool_], str] | None:
     if not all(c in gyro.columns for c in ACC_COLUMNS):
         return None
     t = gyro["t"]
-    acc = np.column_stack([gyro[c] for c in ACC_COLUMNS])
-    norm = np.linalg.norm(acc, axis=1)
-    ok = np.isfinite(norm) & (norm > 0)
-    if not ok.any():
+    acc, calm = _gravity(gyro)
+    if not calm.any():
         return None
-    g = float(np.median(norm[ok]))
     unit = np.zeros_like(acc)
-    unit[ok] = acc[ok] / norm[ok, None]
-    mount = np.median(unit[ok], axis=0)
+    unit[calm] = acc[calm] / np.linalg.norm(acc[calm], axis=1, keepdims=True)
+    mount = np.median(unit[calm], axis=0)
     mount /= max(float(np.linalg.norm(mount)), 1e-12)
-    calm = ok & (np.abs(norm - g) < GRAVITY_TOLERANCE * g)
     steady = calm & (unit @ mount > np.cos(np.deg2rad(LEVEL_TILT_DEG)))
     mask = _long_runs(steady, t, MIN_LEVEL_S)
     if mask.mean() > MAX_LEVEL_FRACTION:
@@ -139,15 +142,6 @@ def mounting_mask(gyro: Table) -> tuple[NDArray[np.bool_], str] | None:
     return mask, how
 
 
-def level_where_tilted(gyro: Table) -> tuple[NDArray[np.bool_], str] | None:
-    """:func:`level_mask`, but None also when the body was level nearly throughout (more than
-    :data:`MAX_LEVEL_FRACTION`): then nothing needs setting aside."""
-    found = level_mask(gyro)
-    if found is None or found[0].mean() > MAX_LEVEL_FRACTION:
-        return None
-    return found
-
-
 def build_gyro_level(bundle: Bundle, model: DeclaredModel) -> ScalarProblem | None:
     """The ``gyro:level`` stream (module docstring), or None."""
     from koala_bridge.calibration.streams import build_gyro, heading_reference
@@ -155,10 +149,12 @@ def build_gyro_level(bundle: Bundle, model: DeclaredModel) -> ScalarProblem | No
     gyro = bundle.get("gyro")
     if gyro is None or heading_reference(bundle) is None:
         return None
-    found = level_where_tilted(gyro)
+    found = level_mask(gyro)
     if found is None:
         return None
     mask, how = found
+    if mask.mean() > MAX_LEVEL_FRACTION:
+        return None
     tables = dict(bundle.tables)
     tables["gyro"] = gyro.select(mask)
     problem = build_gyro(replace(bundle, tables=tables), model)
