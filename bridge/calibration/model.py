@@ -25,6 +25,7 @@ Keys read (units in the key name where not SI)::
 
 from __future__ import annotations
 
+import copy
 import logging
 import tomllib
 from collections.abc import Callable, Mapping
@@ -208,18 +209,19 @@ def stated_key(config: Mapping[str, Any], dotted: str) -> bool:
     return last in _section(config, *head)
 
 
+def config_value(config: Mapping[str, Any], dotted: str) -> Any:
+    """The value ``config`` states for the key ``a.b.c`` (None when it states none)."""
+    *head, last = dotted.split(".")
+    return _section(config, *head).get(last)
+
+
 def without_declared(meta: Mapping[str, Any], dotted: set[str] | frozenset[str]) -> dict[str, Any]:
     """``meta`` without the values of :data:`META_KEYS` whose config keys are in ``dotted``."""
-    import copy
-
     out = copy.deepcopy(dict(meta))
     for path, key in META_KEYS.items():
-        if key in dotted:
-            node: Any = out
-            for part in path[:-1]:
-                node = node.get(part, {}) if isinstance(node, dict) else {}
-            if isinstance(node, dict):
-                node.pop(path[-1], None)
+        node = _section(out, *path[:-1])
+        if key in dotted and isinstance(node, dict):
+            node.pop(path[-1], None)
     return out
 
 
@@ -237,7 +239,7 @@ def declared_model(config: Mapping[str, Any], meta: Mapping[str, Any]) -> Declar
 
     def stated(*path: str) -> bool:
         """Whether ``config`` names the key (or table) at ``path``."""
-        return path[-1] in _section(config, *path[:-1])
+        return stated_key(config, ".".join(path))
 
     meta_robot = meta.get("robot", {}) if isinstance(meta.get("robot"), Mapping) else {}
 

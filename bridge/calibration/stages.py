@@ -39,6 +39,7 @@ from koala_bridge.calibration.config_update import (
 )
 from koala_bridge.calibration.errors import BundleError
 from koala_bridge.calibration.model import (
+    config_value,
     declared_model,
     meta_declared,
     stated_key,
@@ -199,14 +200,10 @@ def _with_meta(
             if whole:
                 laid[key] = value
             continue
-        *head, last = key.split(".")
-        node: Any = config
-        for part in head:
-            node = node.get(part, {}) if isinstance(node, Mapping) else {}
-        if node.get(last) != value:
+        stated = config_value(config, key)
+        if stated != value:
             log.warning("%s: meta.json declares %s = %g, over the config's %s; the calibration, "
-                        "and the written config, take meta.json's", path, key, value,
-                        node.get(last))
+                        "and the written config, take meta.json's", path, key, value, stated)
             laid[key] = value
     return updated_config(config, laid) if laid else config
 

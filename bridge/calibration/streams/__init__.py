@@ -901,10 +901,11 @@ def build_landmarks(
         f"landmark_map.csv, {int((known & ~during).sum())} more lie outside truth_pose.csv's "
         "time span"
     )
-    fix = (
+    reach = (
         "give every observed landmark_id its row in landmark_map.csv, stamp every file on one "
-        f"clock, and record at least {MIN_ROWS} observations; see {FORMAT_DOC}"
+        "clock"
     )
+    fix = f"{reach}, and record at least {MIN_ROWS} observations; see {FORMAT_DOC}"
     obs, idx, t = obs.select(inside), idx[inside], t[inside]
     px = np.interp(t, truth["t"], truth["x"])
     py = np.interp(t, truth["t"], truth["y"])
@@ -979,7 +980,7 @@ def build_landmarks(
     if not inside.all():
         # nothing set aside without a word: the observations no reference reaches
         for problem in out:
-            problem.notes.append(f"set aside: {why} ({fix.split(', and record')[0]})")
+            problem.notes.append(f"set aside: {why} ({reach})")
     return out
 
 

@@ -123,12 +123,13 @@ def _typical_ratio(ref: FloatArray, odo: FloatArray, least: float) -> float | No
     return typical if typical > 0 else None
 
 
-def _stalled(ref: FloatArray, odo: FloatArray, least: float) -> NDArray[np.bool_]:
+def _stalled(
+    ref: FloatArray, odo: FloatArray, typical: float | None, least: float
+) -> NDArray[np.bool_]:
     """Intervals where the reference motion ``ref`` is below :data:`STALL_FRACTION` of the
-    typical ratio (:func:`_typical_ratio`) times the odometry motion ``odo`` (signed: a turn the
-    other way is a stall too), judged where ``|odo| >= least``."""
+    ``typical`` ratio (:func:`_typical_ratio`) times the odometry motion ``odo`` (signed: a turn
+    the other way is a stall too), judged where ``|odo| >= least``."""
     out = np.zeros(odo.shape, dtype=bool)
-    typical = _typical_ratio(ref, odo, least)
     if typical is None:
         return out
     judged = np.abs(odo) >= least
@@ -248,8 +249,10 @@ def find_stalls(
     travel_ref = np.hypot(np.diff(px), np.diff(py))
     turn_odo = np.diff(th)
     turn_ref = np.diff(np.interp(edges + lag, t_ref, theta_ref)) if theta_ref is not None else None
-    moving = _stalled(travel_ref, travel_odo, STALL_MIN_TRAVEL_M)
-    turning = (_stalled(turn_ref, turn_odo, STALL_MIN_TURN_RAD) if turn_ref is not None
+    move = _typical_ratio(travel_ref, travel_odo, STALL_MIN_TRAVEL_M)
+    turn = _typical_ratio(turn_ref, turn_odo, STALL_MIN_TURN_RAD) if turn_ref is not None else None
+    moving = _stalled(travel_ref, travel_odo, move, STALL_MIN_TRAVEL_M)
+    turning = (_stalled(turn_ref, turn_odo, turn, STALL_MIN_TURN_RAD) if turn_ref is not None
                else np.zeros_like(moving))
     core = moving | turning
     # One interval more on each side: the contact's onset and end fall inside neither.
@@ -259,8 +262,6 @@ def find_stalls(
     # A span is motion lost only if its totals still show it: where the reference merely
     # runs late for an interval (a commanded speed the robot reaches a moment later) and
     # catches up inside the span, nothing was lost and the span is kept.
-    move = _typical_ratio(travel_ref, travel_odo, STALL_MIN_TRAVEL_M)
-    turn = _typical_ratio(turn_ref, turn_odo, STALL_MIN_TURN_RAD) if turn_ref is not None else None
     runs = []
     # the totals reach a catch-up up to the largest lag taken out later than the span's padding
     ext = int(np.ceil(STALL_MAX_LAG_S / h))
