@@ -74,6 +74,13 @@ def config_path(section: str, key: str) -> str:
     return key[1:] if key.startswith("/") else f"{section}.{key}"
 
 
+def effect_paths(res: StreamResult, inst: Any) -> list[str]:
+    """The dotted config keys one effect of ``res`` writes (simulated or not)."""
+    problem, after = res.problem, res.selection.after
+    params = split_params(problem, after.insts, after.x)[after.insts.index(inst)]
+    return [config_path(problem.section, key) for key in inst.config(params, problem)]
+
+
 def found_keys(results: Sequence[StreamResult]) -> dict[str, Any]:
     """``{dotted.key: value}`` for every found effect (and fitted declared parts, e.g. a curve),
     except an effect whose uncertainty is larger than it (:meth:`StreamResult.not_written`):

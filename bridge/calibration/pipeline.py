@@ -88,6 +88,9 @@ class StreamResult:
     #: the notes the selection added to the stream (an effect not tried, and why): a stream
     #: selected on a decimated subset carries them to the full stream's result
     selection_notes: list[str] = field(default_factory=list)
+    #: :meth:`after_written`, with the final fit it was computed for
+    _written_memo: tuple[Any, float | None] | None = field(
+        default=None, init=False, repr=False, compare=False)
     #: :meth:`_params_and_se` of the final fit it was computed for
     _se_memo: tuple[tuple[Any, ...], list[tuple[FloatArray, FloatArray | None]]] | None = field(
         default=None, init=False, repr=False, compare=False)
@@ -177,15 +180,21 @@ class StreamResult:
         """The held-out metric of the model ``--write-config`` writes, when it leaves out an
         effect as uncertain (:meth:`not_written`): the written effects alone, refitted on the
         fit part with the nuisance parameters; None when every effect is written. *after*
-        counts every effect found, so a reader who simulates the written config sees this."""
+        counts every effect found, so a reader who simulates the written config sees this.
+        Kept for the same final fit: the report asks for it in three places."""
+        memo = self._written_memo
+        if memo is not None and memo[0] is self.selection.after:
+            return memo[1]
         reasons = self.not_written()
-        if all(r is None for r in reasons):
-            return None
-        dropped = {id(inst) for inst, r in zip(self.effects, reasons, strict=True) if r}
-        sel, p = self.selection, self.problem
-        keep = [i for i in sel.after.insts if id(i) not in dropped]
-        fit = fit_model(p, keep, p.initial_vector(keep, sel.after.x, sel.after.insts))
-        return float(p.metric_value(fit.insts, fit.x, "score"))
+        value = None
+        if any(r is not None for r in reasons):
+            dropped = {id(inst) for inst, r in zip(self.effects, reasons, strict=True) if r}
+            sel, p = self.selection, self.problem
+            keep = [i for i in sel.after.insts if id(i) not in dropped]
+            fit = fit_model(p, keep, p.initial_vector(keep, sel.after.x, sel.after.insts))
+            value = float(p.metric_value(fit.insts, fit.x, "score"))
+        self._written_memo = (self.selection.after, value)
+        return value
 
     def heldout_statistics(self, before: FloatArray | None = None) -> HeldOutStatistics:
         """Robust statistics of the held-out errors before and after

@@ -41,7 +41,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from koala_bridge.calibration.config_update import config_path, is_simulated
+from koala_bridge.calibration.config_update import effect_paths, is_simulated
 from koala_bridge.calibration.metrics import (
     OUTLIER_SIGMAS,
     ErrorStatistics,
@@ -90,8 +90,7 @@ def _written_cell(res: StreamResult, inst: Any, e: dict[str, Any]) -> str:
     simulator has no key for: the model change's diff shows none), or not written and why."""
     if not e["written"]:
         return f"**not written**: {e['not_written']}"
-    keys = inst.effect.config(inst, np.array(list(e["params"].values())), res.problem)
-    if not any(is_simulated(config_path(res.problem.section, k)) for k in keys):
+    if not any(is_simulated(path) for path in effect_paths(res, inst)):
         return "written as a comment: the simulator has no key for it"
     return "written"
 

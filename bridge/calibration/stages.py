@@ -31,7 +31,7 @@ from typing import Any
 
 from koala_bridge.calibration.bundle import load_input
 from koala_bridge.calibration.config_update import (
-    config_path,
+    effect_paths,
     found_keys,
     is_simulated,
     noise_keys,
@@ -46,7 +46,7 @@ from koala_bridge.calibration.model import (
     without_declared,
 )
 from koala_bridge.calibration.pipeline import Options, Progress, StreamResult, calibrate
-from koala_bridge.calibration.problem import FloatArray, SkippedStream, split_params
+from koala_bridge.calibration.problem import FloatArray, SkippedStream
 
 log = logging.getLogger(__name__)
 
@@ -84,15 +84,10 @@ class Stage:
 def _effect_keys(res: StreamResult) -> list[tuple[str, dict[str, float], dict[str, Any]]]:
     """``(name, params, simulated config keys with their written values)`` of each effect
     added to ``res``'s stream."""
-    problem, after = res.problem, res.selection.after
-    params = split_params(problem, after.insts, after.x)
     written = found_keys([res])
     out = []
     for inst, (named, _) in zip(res.effects, res.effect_params(), strict=True):
-        paths = [
-            config_path(problem.section, key)
-            for key in inst.config(params[after.insts.index(inst)], problem)
-        ]
+        paths = effect_paths(res, inst)
         keys = {p: written[p] for p in paths if is_simulated(p) and p in written}
         out.append((inst.name, named, keys))
     return out
