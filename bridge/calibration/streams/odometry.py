@@ -287,6 +287,12 @@ class _Windows:
     label: NDArray[np.intp]  # window label per sample (0..n_windows-1)
     n: int
     starts: NDArray[np.intp]  # index (into the reference) of each window's anchor (n,)
+    # What the model does not change, gathered once per part (each is a gather of every scored
+    # sample; on a 1-hour stream they cost more than the dead reckoning):
+    t: FloatArray = field(default_factory=lambda: np.empty(0))  # reference times scored
+    t_starts: FloatArray = field(default_factory=lambda: np.empty(0))  # the anchors' times
+    q: FloatArray = field(default_factory=lambda: np.empty((2, 0)))  # reference travel (2, N)
+    phi: FloatArray | None = None  # the reference heading at each sample's anchor
 
 
 @dataclass
@@ -308,6 +314,7 @@ class OdometryProblem(StreamProblem):
 
     def __post_init__(self) -> None:
         self._last = LastResult()
+        self._track = LastResult()  # the dead reckoning, shared by the parts (one per model)
         self._counted: NDArray[np.bool_] | None = None  # odometry steps dead-reckoned
         self.set_aside = find_stalls(
             self.t_odo, self.dead_reckon(self.state()), self.t_ref, self.p_ref, self.theta_ref
@@ -373,7 +380,14 @@ class OdometryProblem(StreamProblem):
         label = np.cumsum(np.r_[True, (np.diff(piece) != 0) | (np.diff(label) != 0)]) - 1
         first = np.r_[0, np.flatnonzero(np.diff(label)) + 1]
         starts = idx[first]
-        return _Windows(idx, starts[label], label, int(label.max()) + 1, starts)
+        anchor = starts[label]
+        return _Windows(
+            idx, anchor, label, int(label.max()) + 1, starts,
+            t=self.t_ref[idx],
+            t_starts=self.t_ref[starts],
+            q=np.ascontiguousarray((self.p_ref[idx] - self.p_ref[anchor]).T),
+            phi=None if self.theta_ref is None else self.theta_ref[anchor],
+        )
 
     def state(self) -> OdometryState:
         return OdometryState(self.tpm, self.wheel_base, self.ratio)
@@ -412,52 +426,57 @@ class OdometryProblem(StreamProblem):
     def _compute_errors(
         self, insts: Sequence[EffectInstance], x: FloatArray, part: str
     ) -> tuple[FloatArray, _Windows]:
-        st = self.state()
-        apply_all(st, self, insts, x)
         w = self._windows[part]
         if w.ref_idx.size == 0:
-            return np.empty((0, 2)), w
-        X, Y, TH = self.dead_reckon(st)
+            return np.empty((2, 0)), w
+        track = self._track.get(insts, x, "track")
+        if track is None:
+            # The fit part, the held-out part and the whole stream are scored on one dead
+            # reckoning of the same model (a 1-hour stream's is 360 000 samples).
+            st = self.state()
+            apply_all(st, self, insts, x)
+            track = self._track.put(insts, x, "track", (st, *self.dead_reckon(st)))
+        st, X, Y, TH = track
         # Dead-reckoned pose at the scored samples and at the windows' anchors only (the other
         # part's samples are not needed: interpolating every reference sample cost twice this).
-        j, a = w.ref_idx, w.anchor
-        tq, tq_a = self.t_ref[j] + st.tau, self.t_ref[w.starts] + st.tau
-        xj, yj = np.interp(tq, self.t_odo, X), np.interp(tq, self.t_odo, Y)
+        tq, tq_a = (w.t, w.t_starts) if st.tau == 0 else (w.t + st.tau, w.t_starts + st.tau)
         xa = np.interp(tq_a, self.t_odo, X)[w.label]
         ya = np.interp(tq_a, self.t_odo, Y)[w.label]
+        dx, dy = np.interp(tq, self.t_odo, X) - xa, np.interp(tq, self.t_odo, Y) - ya
         th_w = np.interp(tq_a, self.t_odo, TH)  # per window
         c, s = np.cos(th_w)[w.label], np.sin(th_w)[w.label]
-        dx, dy = xj - xa, yj - ya
-        d = np.column_stack([c * dx + s * dy, -s * dx + c * dy])  # in the anchor's body frame
-        q = self.p_ref[j] - self.p_ref[a]
-        if self.theta_ref is not None:
-            phi = self.theta_ref[a]
+        bx, by = c * dx + s * dy, c * dy - s * dx  # travel in the anchor's body frame
+        if w.phi is not None:
+            phi = w.phi
         elif self.start_pose is not None:
             # Heading is not re-anchored: dead-reckoned from the declared start heading.
             t_s, th_s, _ = self.start_pose
             phi = th_s + th_w[w.label] - float(np.interp(t_s + st.tau, self.t_odo, TH))
         else:
-            cross = np.bincount(w.label, d[:, 0] * q[:, 1] - d[:, 1] * q[:, 0], w.n)
-            dot = np.bincount(w.label, d[:, 0] * q[:, 0] + d[:, 1] * q[:, 1], w.n)
+            qx, qy = w.q
+            cross = np.bincount(w.label, bx * qy - by * qx, w.n)
+            dot = np.bincount(w.label, bx * qx + by * qy, w.n)
             phi = np.arctan2(cross, dot)[w.label]
         cp, sp = np.cos(phi), np.sin(phi)
-        pred = np.column_stack([cp * d[:, 0] - sp * d[:, 1], sp * d[:, 0] + cp * d[:, 1]])
-        return q - pred, w
+        e = np.empty((2, tq.size))
+        np.subtract(w.q[0], cp * bx - sp * by, out=e[0])
+        np.subtract(w.q[1], sp * bx + cp * by, out=e[1])
+        return e, w  # (2, N): the reference's travel minus the dead-reckoned one
 
     def residuals(
         self, insts: Sequence[EffectInstance], x: FloatArray, part: Part, for_fit: bool = False
     ) -> FloatArray:
         e, _ = self._errors(insts, x, part)
-        return e.T.ravel()
+        return e.reshape(-1).copy()  # x errors, then y; a copy: a robust loss scales it in place
 
     def metric_value(self, insts: Sequence[EffectInstance], x: FloatArray, part: Part) -> float:
         e, _ = self._errors(insts, x, part)
-        return float(np.sqrt(np.mean(np.sum(e**2, axis=1)))) if e.size else float("nan")
+        return float(np.sqrt(np.mean(np.sum(e**2, axis=0)))) if e.size else float("nan")
 
     def heldout_errors(self, insts: Sequence[EffectInstance], x: FloatArray) -> FloatArray:
         """The held-out position error per reference sample (m): its RMS is the metric."""
         e, _ = self._errors(insts, x, "score")
-        return np.asarray(np.linalg.norm(e, axis=1), dtype=float)
+        return np.asarray(np.linalg.norm(e, axis=0), dtype=float)
 
     def independent_count(self, part: Part) -> int | None:
         # Dead-reckoning errors integrate the noise twice (slip -> heading -> position), so
@@ -469,7 +488,7 @@ class OdometryProblem(StreamProblem):
         self, insts: Sequence[EffectInstance], x: FloatArray
     ) -> tuple[FloatArray, FloatArray]:
         e, w = self._errors(insts, x, "all")
-        return self.t_ref[w.ref_idx], np.linalg.norm(e, axis=1)
+        return w.t, np.linalg.norm(e, axis=0)
 
     def describe(self) -> dict[str, Any]:
         return {
