@@ -378,6 +378,9 @@ def keep_only_helpful(problem: StreamProblem, sel: Selection) -> None:
             f"{', '.join(i.name for i, _ in sel.added)} dropped: held-out {problem.metric} "
             f"{score(sel.after):.4g} with them, {base:.4g} under the declared model")
         sel.added = []
+    if not sel.added:
+        # every effect dropped: "after" is the declared model itself, not a refit of it from
+        # another start (which can differ from it in the last digits, either way)
         sel.after = sel.before
 
 
