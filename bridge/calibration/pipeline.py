@@ -26,6 +26,7 @@ from koala_bridge.calibration.problem import (
     SkippedStream,
     StreamProblem,
     effective_size,
+    split_params,
 )
 from koala_bridge.calibration.selection import (
     ALPHA,
@@ -254,6 +255,7 @@ def run_stream(
         _turn_on_bias_check(problem, sel)
     sel.before = declared_fit(problem, sel.before)
     keep_only_helpful(problem, sel)
+    drop_implausible(problem, sel)
     before = problem.metric_value(sel.before.insts, sel.before.x, "score")
     after = problem.metric_value(sel.after.insts, sel.after.x, "score")
     secondary = problem.secondary_metrics(
@@ -384,6 +386,29 @@ def keep_only_helpful(problem: StreamProblem, sel: Selection) -> None:
         sel.after = sel.before
 
 
+def drop_implausible(problem: StreamProblem, sel: Selection) -> None:
+    """The search rejects a candidate fitted outside its physical range
+    (:meth:`Effect.plausible`), but the fits after it move the kept effects again: the backward
+    check refits the rest without a dropped one, and a decimated stream's effects are refitted
+    on the full stream. A kept effect that such a refit takes out of its range (a gain through
+    zero, a singular soft iron) is dropped the same way, the rest refitted, with a note; with
+    none left, "after" is the declared model."""
+    while sel.added:
+        params = split_params(problem, sel.after.insts, sel.after.x)
+        by_inst = {id(i): v for i, v in zip(sel.after.insts, params, strict=True)}
+        bad = next((i for i, _ in sel.added if not i.effect.plausible(i, by_inst[id(i)])), None)
+        if bad is None:
+            return
+        problem.notes.append(
+            f"{bad.name} dropped: refitted, it left its physical range "
+            f"({', '.join(f'{v:.4g}' for v in by_inst[id(bad)])})")
+        insts = [i for i in sel.after.insts if i is not bad]
+        sel.added = [(i, t) for i, t in sel.added if i is not bad]
+        sel.after = fit_model(problem, insts, problem.initial_vector(insts, sel.after.x,
+                                                                     sel.after.insts))
+    sel.after = sel.before
+
+
 def _turn_on_bias_check(problem: StreamProblem, sel: Selection) -> None:
     """A declared per-run bias ``N(mu, sigma^2)`` is a nuisance, fitted in every model (its
     deviation from ``mu`` is ``x[0]``). When the fitted deviation is implausible under that
@@ -474,6 +499,8 @@ def refit_full(full: StreamProblem, small: StreamResult) -> StreamResult:
     )
     added = list(sel.added)
     result = Selection(full, before, after, added, sel.rounds, sel.rho)
+    drop_implausible(full, result)
+    after = result.after
     b = full.metric_value(before.insts, before.x, "score")
     a = full.metric_value(after.insts, after.x, "score")
     secondary = full.secondary_metrics((before.insts, before.x), (after.insts, after.x))
