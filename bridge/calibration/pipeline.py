@@ -178,15 +178,23 @@ class StreamResult:
         return out
 
     def after_written(self) -> float | None:
-        """The held-out metric of the model ``--write-config`` writes, when it leaves out an
-        effect as uncertain (:meth:`not_written`): the written effects alone, refitted on the
-        fit part with the nuisance parameters; None when every effect is written. *after*
-        counts every effect found, so a reader who simulates the written config sees this.
-        Kept for the same final fit: the report asks for it in three places."""
+        """The held-out metric of the model ``--write-config`` writes, when it leaves an effect
+        out of the simulated config: as uncertain (:meth:`not_written`), or as a comment only
+        (an effect the simulator has no key for, a covariate); the simulated effects alone,
+        refitted on the fit part with the nuisance parameters; None when every effect is
+        simulated. *after* counts every effect found, so a reader who simulates the written
+        config sees this. Kept for the same final fit: the report asks for it in three
+        places."""
+        from koala_bridge.calibration.config_update import effect_paths, is_simulated
+
         memo = self._written_memo
         if memo is not None and memo[0] is self.selection.after:
             return memo[1]
-        reasons = self.not_written()
+        reasons = [
+            r if r is not None or any(is_simulated(k) for k in effect_paths(self, inst))
+            else "written as a comment"
+            for inst, r in zip(self.effects, self.not_written(), strict=True)
+        ]
         value = None
         if any(r is not None for r in reasons):
             dropped = {id(inst) for inst, r in zip(self.effects, reasons, strict=True) if r}
@@ -237,6 +245,7 @@ def check_effect_names(names: Sequence[str]) -> None:
 def run_stream(
     problem: StreamProblem, options: Options, progress: Progress | None = None
 ) -> StreamResult:
+    noted = len(problem.notes)  # what proposing and selecting note (an effect not tried, why)
     cands = candidates_for(problem, options.effects)
     done = 0
 
@@ -246,7 +255,6 @@ def run_stream(
         if progress is not None:
             progress(problem.name, done, len(cands))
 
-    noted = len(problem.notes)
     sel = select_effects(problem, cands, options.max_effects, on_trial=tick)
     selection_notes = list(problem.notes[noted:])
     if getattr(problem, "turn_on_bias_sigma", 0.0) > 0 and (
@@ -262,6 +270,7 @@ def run_stream(
         (sel.before.insts, sel.before.x), (sel.after.insts, sel.after.x)
     )
     _note_known_rotation(problem, secondary)
+    _note_secondary_worse(problem, sel, before, after, secondary)
     _note_near_misses(problem, sel)
     return StreamResult(problem, sel, before, after, secondary, selection_notes=selection_notes)
 
@@ -280,7 +289,8 @@ def _note_near_misses(problem: StreamProblem, sel: Selection) -> None:
         return  # the loop stopped at max_effects: the last round's gains are pre-winner
     close = [
         t for t in sel.rounds[-1]
-        if not t.passed and np.isfinite(t.relative_gain) and t.relative_gain >= NEAR_MISS_GAIN
+        if not t.passed and not t.implausible
+        and np.isfinite(t.relative_gain) and t.relative_gain >= NEAR_MISS_GAIN
         and np.isfinite(t.lr) and t.lr <= t.lr_threshold
     ]
     for t in sorted(close, key=lambda t: -t.relative_gain)[:3]:
@@ -299,6 +309,40 @@ def _note_near_misses(problem: StreamProblem, sel: Selection) -> None:
             + (f" (residual lag-1 autocorrelation {sel.rho:.3g} over {n} residuals)"
                if units is None else "")
             + ": few for any effect to pass"
+        )
+
+
+def _note_secondary_worse(
+    problem: StreamProblem,
+    sel: Selection,
+    before: float,
+    after: float,
+    secondary: Sequence[SecondaryMetric],
+) -> None:
+    """Effects are chosen on the stream's metric; a further metric of the same stream that the
+    chosen model makes worse on held-out data is said in words beside the table's "worse", with
+    what it usually means (a gyro whose rate improves while its integrated heading worsens: its
+    response to fast motion, a filter, differs from a gain, and a scale fitted on the rate does
+    not hold for slow turns)."""
+    if not sel.added or not after < before:
+        return
+    names = ", ".join(i.name for i, _ in sel.added)
+    for m in secondary:
+        b, a = (abs(m.before), abs(m.after)) if m.signed else (m.before, m.after)
+        if not (np.isfinite(a) and np.isfinite(b)) or a <= b:
+            continue
+        hint = ""
+        if m.metric.startswith("heading_error_"):
+            hint = (
+                ": the rate's error fell but the heading it integrates to did not: a sensor "
+                "whose response to fast motion (its filter, its timing) differs from a gain "
+                "gets a rate-space scale that slow turns do not share; check the written "
+                "model against a recording of slow, steady turns"
+            )
+        problem.notes.append(
+            f"{m.metric} worse on the held-out part with {names} ({b:.4g} -> {a:.4g} {m.unit}) "
+            f"while {problem.metric} improved ({before:.4g} -> {after:.4g} {problem.unit}); the "
+            f"effects were chosen on {problem.metric}{hint}"
         )
 
 
@@ -505,6 +549,7 @@ def refit_full(full: StreamProblem, small: StreamResult) -> StreamResult:
     a = full.metric_value(after.insts, after.x, "score")
     secondary = full.secondary_metrics((before.insts, before.x), (after.insts, after.x))
     _note_known_rotation(full, secondary)
+    _note_secondary_worse(full, result, b, a, secondary)
     _note_near_misses(full, result)
     return StreamResult(full, result, b, a, secondary, selection_notes=small.selection_notes)
 

@@ -216,7 +216,8 @@ def metric_lines(stage: Stage, res: StreamResult) -> list[str]:
     written = res.after_written()
     for i, m in enumerate(res.metrics()):
         name, before, after, ch = metric_text(m, _before(stage, res, m))
-        tail = (f"; the written model (uncertain effects left out): {_g(abs(written))}"
+        tail = (f"; the written model (uncertain and comment-only effects left out): "
+                f"{_g(abs(written))}"
                 if i == 0 and written is not None else "")
         out.append(
             f"{res.problem.name} {name}: {before} -> {after} {m.unit}, {ch} [{effects or '-'}]"

@@ -130,6 +130,9 @@ class Trial:
     relative_gain: float
     passed: bool
     fit: Fit | None = None
+    #: fitted outside its physical range (:meth:`Effect.plausible`): rejected whatever its
+    #: statistics
+    implausible: bool = False
 
     def evidence(self) -> dict[str, float | int | bool]:
         return {
@@ -466,6 +469,7 @@ def select_effects(
     rho = noise_autocorrelation(problem, current, remaining)
     counts = (problem.independent_count("fit"), problem.independent_count("score"))
     result.rho = rho
+    explained: set[str] = set()  # candidates whose implausible fit the notes explain (once)
     while remaining and len(result.added) < max_effects:
         trials: list[Trial] = []
         for cand in remaining:
@@ -477,13 +481,17 @@ def select_effects(
             x0 = problem.initial_vector(insts, current.x, current.insts)
             new = fit_model(problem, insts, x0)
             trial = judge(current, new, cand.effect.n_tested(cand), len(remaining), rho, counts)
-            if trial.passed and not cand.effect.plausible(
-                cand, split_params(problem, new.insts, new.x)[-1]
-            ):
+            params = split_params(problem, new.insts, new.x)[-1]
+            if not cand.effect.plausible(cand, params):
+                trial.implausible = True
+                if trial.passed:
+                    log.info("%s: %s fitted outside its physical range: rejected",
+                             problem.name, cand.name)
                 trial.passed = False
-                log.info(
-                    "%s: %s fitted outside its physical range: rejected", problem.name, cand.name
-                )
+                why = cand.effect.implausible_reason(cand, params, problem)
+                if why and cand.name not in explained:
+                    explained.add(cand.name)
+                    problem.notes.append(why)
             trials.append(trial)
             if on_trial is not None:
                 on_trial()

@@ -35,7 +35,7 @@ from koala_bridge.calibration.report import metric_text, report_json, report_mar
 from koala_bridge.calibration.selection import Selection, fit_model, judge, parameter_se
 from koala_bridge.calibration.stages import Stage
 from koala_bridge.calibration.streams import build_gyro
-from koala_bridge.calibration.synthetic import DECLARED, make_bundle
+from koala_bridge.calibration.synthetic import DECLARED, Injected, make_bundle
 from koala_bridge.cli import calibrate as cli
 
 DEFAULT_TOML = Path(__file__).parents[2] / "config" / "default.toml"
@@ -376,6 +376,21 @@ def test_an_effect_within_its_uncertainty_is_not_written(tmp_path: Path) -> None
     assert strong.not_written() == [None]
     assert strong.after_written() is None
     assert found_keys([strong])["sensors.gyro.bias_rad_s"] == pytest.approx(20 * se, rel=0.1)
+
+
+def test_the_written_model_leaves_out_an_effect_written_as_a_comment(tmp_path: Path) -> None:
+    # A gyro's time offset has no simulator key: --write-config puts it in a comment, so the
+    # model a reader simulates lacks it, and the written model's error says what that leaves.
+    bundle = load_bundle(make_bundle(tmp_path / "b", 5, Injected(gyro_time_offset=0.05)))
+    (res,) = (r for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
+              if r.problem.name == "gyro")
+    assert [i.name for i in res.effects] == ["time_offset"]
+    assert res.not_written() == [None]               # certain: written, as a comment
+    md = report_markdown([Stage(1, "b", [res])], "", plots=False)
+    assert "written as a comment: the simulator has no key for it" in md
+    # the simulated model is the declared one: its held-out error is *before*, not *after*
+    assert res.after_written() == pytest.approx(res.before)
+    assert res.after < 0.5 * res.before
 
 
 def test_an_effect_of_1_5_standard_errors_is_not_written(tmp_path: Path) -> None:

@@ -103,6 +103,13 @@ class Effect(ABC):
         something else, and the candidate is rejected whatever its statistics."""
         return True
 
+    def implausible_reason(
+        self, inst: EffectInstance, params: NDArray[np.float64], problem: Any
+    ) -> str | None:
+        """What a fit outside :meth:`plausible`'s range says about the data, for the report's
+        notes (default: nothing beyond the rejection)."""
+        return None
+
     def absent(self, inst: EffectInstance) -> NDArray[np.float64]:
         """The parameter values that mean "no such effect": the declared model. Default 0 (an
         increment, a coefficient); an effect whose parameter is the quantity itself (ticks per

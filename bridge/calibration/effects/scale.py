@@ -24,6 +24,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 from koala_bridge.calibration.effects import register_effect
 from koala_bridge.calibration.effects.base import Effect, EffectInstance
 from koala_bridge.calibration.effects.common import reference_dominates, scalar_config
@@ -40,6 +41,18 @@ class Scale(Effect):
 
     def plausible(self, inst: EffectInstance, params: Any) -> bool:
         return bool(1.0 + float(params[0]) > 0.0)
+
+    def implausible_reason(self, inst: EffectInstance, params: Any, problem: Any) -> str | None:
+        gain = 1.0 + float(params[0])
+        if not np.isfinite(gain):
+            return None
+        return (
+            f"scale fitted as {float(params[0]):+.4g} (a gain of {gain:.3g}) and rejected: the "
+            f"readings run against the reference {getattr(problem, 'quantity', 'value')}. A sign "
+            "convention differs between them (the bundle's angles and rates are counter-"
+            "clockwise positive, docs/bundle-format.md), or the sensor is mounted the other way "
+            "up; no effect can stand in for that"
+        )
 
     def apply(self, inst: EffectInstance, state: Any, params: Any) -> None:
         state.gain = state.gain * (1.0 + params[0])

@@ -13,6 +13,10 @@ interval over +-min(0.5 s, 5 % of the fit part), scored by the correlation of th
 the shifted reference on the fit part (the cross-correlation peak, as in Kalibr's or
 imu_utils' temporal alignment).
 
+A fitted ``|tau|`` beyond that window's :data:`MAX_TIME_OFFSET_S` is implausible: least squares
+walked from the grid's best to a shift by a large part of the motion's period, which stands in
+for something else (readings of the opposite sign matched half a period later).
+
 A scalar stream's ``tau`` is determined by the reference's signal, not its noise: with a
 reference that is mostly noise (a still gyro against a differentiated optical heading) a
 fractional shift interpolates, that is smooths, the noise and looks like a gain. So it is
@@ -28,6 +32,9 @@ from koala_bridge.calibration.effects import register_effect
 from koala_bridge.calibration.effects.base import Effect, EffectInstance
 from koala_bridge.calibration.effects.common import reference_dominates
 
+#: The largest latency searched (s), and the largest fitted one that is plausible.
+MAX_TIME_OFFSET_S = 0.5
+
 
 def coarse_lag(problem: Any) -> float:
     """The grid ``tau`` (module docstring) whose shifted reference correlates best with the
@@ -40,7 +47,7 @@ def coarse_lag(problem: Any) -> float:
     if t.size < 10:
         return 0.0
     step = float(np.median(np.diff(t))) / 2
-    span = min(0.5, 0.05 * float(t[-1] - t[0]))
+    span = min(MAX_TIME_OFFSET_S, 0.05 * float(t[-1] - t[0]))
     if not step > 0 or span < step:
         return 0.0
     taus = np.arange(-span, span + step / 2, step)
@@ -67,6 +74,17 @@ class TimeOffset(Effect):
             return []
         tau0 = coarse_lag(problem) if problem.kind == "scalar" else 0.0
         return [EffectInstance(self.name, self, ("tau_s",), (tau0,))]
+
+    def plausible(self, inst: EffectInstance, params: Any) -> bool:
+        return bool(abs(float(params[0])) <= MAX_TIME_OFFSET_S)
+
+    def implausible_reason(self, inst: EffectInstance, params: Any, problem: Any) -> str | None:
+        return (
+            f"time_offset fitted as {float(params[0]):+.4g} s and rejected: beyond the "
+            f"+-{MAX_TIME_OFFSET_S:g} s a latency is searched in, a shift by a large part of the "
+            "motion's period stands in for something else (readings of the opposite sign "
+            "match the reference half a period later)"
+        )
 
     def apply(self, inst: EffectInstance, state: Any, params: Any) -> None:
         state.tau = float(params[0])

@@ -1,0 +1,109 @@
+"""Columns and signs that are not sensor errors (a new-user trial on an MPU-6050 on a rotary rig).
+
+* Another axis of the same chip that sees the same motion through a misalignment is the measured
+  quantity through another channel, not a covariate of the error: its coefficient traded against
+  the scale and wrote a gain of 0.55 into the config. It is not proposed, and a note says why;
+  a column of its own (a temperature) still is.
+* A reference whose sign convention is the opposite of the readings' gets a scale through zero:
+  rejected, and the notes say what it means instead of calling it a near miss.
+* A further metric of the stream made worse while the metric effects are chosen on improved is
+  said in words.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+from koala_bridge.calibration.bundle import load_bundle
+from koala_bridge.calibration.effects import get_effect
+from koala_bridge.calibration.effects.covariate import MAX_REFERENCE_R2, reference_r2
+from koala_bridge.calibration.model import declared_model
+from koala_bridge.calibration.pipeline import _note_secondary_worse, calibrate
+from koala_bridge.calibration.problem import SecondaryMetric
+from koala_bridge.calibration.selection import Selection, Trial, fit_model
+from koala_bridge.calibration.streams import build_gyro
+from koala_bridge.calibration.synthetic import DECLARED
+
+
+def _rig(out: Path, seed: int, sign: float = 1.0) -> Path:
+    """120 s at 50 Hz: a turning rig's truth heading (``sign`` -1: the opposite convention), a
+    yaw gyro (white noise 0.01 rad/s), its x axis seeing 1.5 % of the yaw rate through a
+    misalignment (own noise 0.002 rad/s), and a temperature that drifts on its own."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, 120.0 + 0.01, 0.02)
+    w = 0.3 * np.sin(2 * np.pi * t / 7) + 0.6 * np.sin(2 * np.pi * t / 2.3 + 1.0)
+    theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
+    yaw = w + rng.normal(0, 0.01, t.size)
+    rate_x = 0.015 * w + rng.normal(0, 0.002, t.size)
+    temp = 25 + 2 * np.sin(2 * np.pi * t / 150) + rng.normal(0, 0.05, t.size)
+    out.mkdir(parents=True)
+    np.savetxt(out / "truth_pose.csv", np.column_stack([t, 0 * t, 0 * t, sign * theta]),
+               delimiter=",", header="t,x,y,theta", comments="", fmt="%.10g")
+    np.savetxt(out / "gyro.csv", np.column_stack([t, yaw, rate_x, temp]), delimiter=",",
+               header="t,yaw_rate,rate_x,temperature_c", comments="", fmt="%.10g")
+    (out / "meta.json").write_text(json.dumps({}), encoding="utf-8")
+    return out
+
+
+def test_reference_r2_is_the_squared_correlation() -> None:
+    rng = np.random.default_rng(1)
+    p = rng.normal(size=2000)
+    assert abs(reference_r2(3 * p - 1, p) - 1) < 1e-12
+    # equal parts signal and independent noise of the same variance: R^2 = 1/2, within 4 SE of
+    # the estimate (delta method: SE(r^2) ~ 2 r (1 - r^2) / sqrt(n) = 0.0158)
+    assert abs(reference_r2(p + rng.normal(size=2000), p) - 0.5) < 4 * 0.0158
+    assert reference_r2(np.ones(10), p[:10]) == 0.0
+    assert reference_r2(p[:2], p[:2]) == 0.0
+
+
+def test_another_axis_of_the_same_motion_is_not_a_covariate(tmp_path: Path) -> None:
+    bundle = load_bundle(_rig(tmp_path / "b", 3))
+    problem = build_gyro(bundle, declared_model(DECLARED, bundle.meta))
+    assert problem is not None
+    names = [c.name for c in get_effect("covariate").propose(problem)]
+    assert names == ["covariate:temperature_c"]     # its own variation: still a covariate
+    (note,) = (n for n in problem.notes if n.startswith("covariate:rate_x not tried"))
+    # rate_x = 0.015 w + noise: its R^2 with w is var(0.015 w) / (that + 0.002^2), > 0.9 here
+    assert "of its variance follows the reference yaw rate" in note
+    assert reference_r2(problem.part("fit").columns["rate_x"], problem.part("fit").u) > (
+        MAX_REFERENCE_R2)
+    (res,) = (r for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
+              if r.problem.name == "gyro")
+    assert not any(i.name.startswith("covariate:rate_x") for i in res.effects)
+
+
+def test_a_reference_of_the_opposite_sign_is_said_not_fitted(tmp_path: Path) -> None:
+    bundle = load_bundle(_rig(tmp_path / "b", 4, sign=-1.0))
+    (res,) = (r for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
+              if r.problem.name == "gyro")
+    assert "scale" not in [i.name for i in res.effects]
+    signs = [n for n in res.problem.notes if n.startswith("scale fitted as")]
+    assert len(signs) == 1 and "the readings run against the reference yaw rate" in signs[0]
+    # rejected as implausible, not a near miss "a longer recording would tell"
+    assert not any(n.startswith("scale not added though") for n in res.problem.notes)
+    scale_trials = [t for rnd in res.selection.rounds for t in rnd if t.name == "scale"]
+    assert scale_trials and all(t.implausible and not t.passed for t in scale_trials)
+
+
+def test_a_further_metric_made_worse_is_said(tmp_path: Path) -> None:
+    bundle = load_bundle(_rig(tmp_path / "b", 5))
+    problem = build_gyro(bundle, declared_model(DECLARED, bundle.meta))
+    assert problem is not None
+    (bias,) = get_effect("bias").propose(problem)
+    base = fit_model(problem, [], problem.nuisance_x0())
+    fit = fit_model(problem, [bias], problem.initial_vector([bias], base.x, []))
+    trial = Trial("bias", 1, 0.0, 0.0, 0.0, 0.0, True, fit)
+    sel = Selection(problem, base, fit, [(bias, trial)])
+    heading = SecondaryMetric("heading_error_10s_window_rms", "rad", 0.02, 0.03)
+    _note_secondary_worse(problem, sel, 0.4, 0.1, [heading])
+    (note,) = (n for n in problem.notes if n.startswith("heading_error_10s_window_rms worse"))
+    assert "with bias (0.02 -> 0.03 rad) while rms_rate_error improved" in note
+    assert "whose response to fast motion" in note
+    # better, or the metric itself not improved: nothing to say
+    n = len(problem.notes)
+    _note_secondary_worse(problem, sel, 0.4, 0.1,
+                          [SecondaryMetric("heading_error_10s_window_rms", "rad", 0.03, 0.02)])
+    _note_secondary_worse(problem, sel, 0.1, 0.4, [heading])
+    assert len(problem.notes) == n
