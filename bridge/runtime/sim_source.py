@@ -69,6 +69,11 @@ from koala_bridge.runtime.zenoh_io import ZENOH_BUS, ZenohLink, sensor_topics, t
 from koala_bridge.sim.simulator import Simulator
 from koala_bridge.sim.types import Readings, WheelCommand
 
+#: Held at t = 0, step 0 goes again to a bus whose clients cannot be seen (UDP) this often (s
+#: of wall time): a firmware that starts listening gets it within this, and one that listens
+#: without reading (a debugger's stop) is not flooded (a socket buffer holds ~300 datagrams).
+UNSEEN_RESEND_S = 0.25
+
 log = logging.getLogger(__name__)
 
 DRAIN_PERIOD_S = 0.02       # wall time between reads of the output links' input
@@ -179,6 +184,7 @@ class SimulatedRobotSource:
         # kept by the loop's thread (_capture_thread) while it emits step 0
         self._initial_frames: list[tuple[str, Callable[[], None]]] | None = None
         self._client_marks: dict[str, object] = {}
+        self._unseen_resent: dict[str, float] = {}  # bus -> monotonic time of its last re-send
         self._unpaced_steps = 0             # lockstep steps taken while a fault cut the firmware
         self._awaiting_reconnect = False    # the cycle bus came back: the firmware may reconnect
         self._firmware_seen = False         # a client has been on the cycle bus
@@ -340,7 +346,7 @@ class SimulatedRobotSource:
         if lockstep is None:
             return False
         if not lockstep.engaged:
-            self._resend_initial()
+            self._resend_initial(held=True)
         if self._firmware_left():
             t = self._last_readings.t if self._last_readings is not None else 0.0
             log.info("lockstep: the firmware has disconnected at t = %.3f s; the run ends", t)
@@ -404,19 +410,30 @@ class SimulatedRobotSource:
 
     # -- lockstep ----------------------------------------------------------------------------
 
-    def _resend_initial(self) -> None:
-        """Holding at t = 0: put step 0's frames again on each bus where a client has come
-        since they were last sent (for a firmware that waits for data before its first
-        command; a client there before sees them again), and on every MAVLink poll where
-        clients cannot be seen (UDP). Not recorded: the recording holds each sample once."""
+    def _resend_initial(self, held: bool = False) -> None:
+        """Put step 0's frames again on each bus where a client has come since they were last
+        sent (for a firmware that waits for data before its first command; a client there
+        before sees them again), and where clients cannot be seen (UDP): at the firmware's
+        first command, and while ``held`` at t = 0 every :data:`UNSEEN_RESEND_S` of wall time.
+        Not every poll: a firmware that has bound its port but is not reading yet (starting
+        on a loaded machine, or stopped in a debugger) would find its socket's buffer full of
+        step 0 and the kernel dropping the samples of the steps it then asks for. Not
+        recorded: the recording holds each sample once."""
         # A UDP client of a bridge listening on port 0 (udpout:) says hello first: read it, so
         # that step 0 goes to it before the firmware's first command.
         self._drain_output_links()
+        now = time.monotonic()
         due: dict[str, bool] = {}
         for bus, resend in self._initial_frames or ():
             if bus not in due:
                 mark = self._client_mark(bus)
-                due[bus] = mark is None or (mark != self._client_marks.get(bus) and bool(mark))
+                if mark is None:
+                    due[bus] = not held or (
+                        now - self._unseen_resent.get(bus, -math.inf) >= UNSEEN_RESEND_S)
+                    if due[bus]:
+                        self._unseen_resent[bus] = now
+                else:
+                    due[bus] = mark != self._client_marks.get(bus) and bool(mark)
                 self._client_marks[bus] = mark
             if due[bus]:
                 resend()

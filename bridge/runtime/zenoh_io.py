@@ -279,6 +279,7 @@ class ZenohLink:
         self._counters = counters or BusCounters()
         self._lock = threading.Lock()
         self._publishers: dict[str, zenoh.Publisher] = {}
+        self._closed = False
         self._owns_session = session is None
         self._session = session if session is not None else open_session(settings)
         #: The locators the session listens on (a port 0 resolved to the port bound).
@@ -344,17 +345,22 @@ class ZenohLink:
     def publish_json(self, suffix: str, payload: bytes) -> None:
         """Put ``payload``, already JSON, on ``<prefix>/<suffix>`` as it is (a replay puts the
         recorded bytes back)."""
+        # The put under the lock too: a publisher undeclared by close() while another thread
+        # is in its put() raised "Already borrowed" (a loop not yet stopped, a loaded machine).
+        # After close() nothing is put: the link is gone.
         with self._lock:
+            if self._closed:
+                return
             pub = self._publishers.get(suffix)
             if pub is None:
                 pub = self._session.declare_publisher(
                     f"{self.prefix}/{suffix}", encoding=zenoh.Encoding.APPLICATION_JSON
                 )
                 self._publishers[suffix] = pub
-        try:
-            pub.put(payload)
-        except zenoh.ZError as e:
-            raise TransportError(f"zenoh: cannot publish {self.prefix}/{suffix}: {e}") from e
+            try:
+                pub.put(payload)
+            except zenoh.ZError as e:
+                raise TransportError(f"zenoh: cannot publish {self.prefix}/{suffix}: {e}") from e
         self._counters.sent(ZENOH_BUS)
 
     def publish_readings(self, r: Readings, with_pose: bool) -> None:
@@ -365,7 +371,12 @@ class ZenohLink:
             self.publish(suffix, message)
 
     def close(self) -> None:
+        """Undeclare everything and close an owned session; a publish after it does nothing.
+        Idempotent."""
         with self._lock:
+            if self._closed:
+                return
+            self._closed = True
             for pub in self._publishers.values():
                 pub.undeclare()
             self._publishers.clear()

@@ -196,3 +196,30 @@ def test_the_step_queryable_says_so_in_another_clock() -> None:
         (error,) = step_query(z, source.settings.zenoh.prefix, None)
         assert error == ("error", "lockstep/step: the bridge runs the fast clock; only "
                                   "--clock lockstep is stepped")
+
+
+def test_held_step_0_goes_again_to_udp_at_most_every_quarter_second(monkeypatch) -> None:
+    # Where clients cannot be seen (MAVLink over UDP) step 0 is re-sent while held, but not at
+    # every poll: a firmware that bound its port and is not reading yet would find its socket
+    # buffer full of step 0 and the kernel dropping the samples it then asks for. At the first
+    # command it goes once more, whenever the last one went.
+    from koala_bridge.runtime import sim_source as mod
+
+    now = [100.0]
+    monkeypatch.setattr(mod.time, "monotonic", lambda: now[0])
+    config = lockstep_config()
+    source = SimulatedRobotSource(config, BridgeSettings.from_config(config))
+    sent: list[float] = []
+    source._initial_frames = [("mavlink", lambda: sent.append(now[0]))]
+    monkeypatch.setattr(source, "_client_mark", lambda bus: None)    # UDP: nobody seen
+    for _ in range(10):                         # ten polls within one instant: one re-send
+        source._resend_initial(held=True)
+    assert sent == [100.0]
+    now[0] += mod.UNSEEN_RESEND_S / 2
+    source._resend_initial(held=True)
+    assert sent == [100.0]
+    now[0] += mod.UNSEEN_RESEND_S / 2
+    source._resend_initial(held=True)
+    assert sent == [100.0, 100.0 + mod.UNSEEN_RESEND_S]
+    source._resend_initial()                    # the firmware's first command: at once
+    assert len(sent) == 3
