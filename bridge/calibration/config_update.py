@@ -29,16 +29,12 @@ import numpy as np
 import tomli_w
 from koala_bridge.calibration.pipeline import StreamResult
 from koala_bridge.calibration.problem import split_params
-
-#: Keys the simulator reads, per section: written into the config.
-SIMULATED_KEYS: Mapping[str, frozenset[str]] = {
-    "robot": frozenset({"ticks_per_metre", "wheel_base_m", "wheel_diameter_ratio"}),
-    "sensors.gyro": frozenset({"bias_rad_s", "scale_factor_error", "gyroscope_noise_density"}),
-    "sensors.compass": frozenset({"hard_iron_uT", "soft_iron", "noise_sigma_uT"}),
-    "sensors.ir": frozenset(
-        {"response_range_m", "response_counts", "per_sensor_offset_counts", "count_noise_sigma"}
-    ),
-}
+from koala_bridge.calibration.sim_keys import (  # noqa: F401 - re-exported
+    SIMULATED_KEYS,
+    _section_and_key,
+    config_path,
+    is_simulated,
+)
 
 #: Config section -> the simulator's error-model name (sim.sections.ERROR_PARAMS).
 _MODEL_OF = {"sensors.gyro": "gyro", "sensors.compass": "compass", "sensors.ir": "ir"}
@@ -54,24 +50,6 @@ def _set(doc: dict[str, Any], dotted: str, value: Any) -> None:
             node[key] = nxt
         node = nxt
     node[last] = value
-
-
-def _section_and_key(dotted: str) -> tuple[str, str]:
-    section, _, key = dotted.rpartition(".")
-    return section, key
-
-
-def is_simulated(dotted: str) -> bool:
-    section, key = _section_and_key(dotted)
-    return key in SIMULATED_KEYS.get(section, frozenset())
-
-
-def config_path(section: str, key: str) -> str:
-    """The dotted path of an effect's config key (module docstring): ``"/a.b"`` is absolute, a
-    ``"+"`` prefix (per-element increments) is not part of the name, the rest is relative to
-    the stream's ``section``."""
-    key = key.removeprefix("+")
-    return key[1:] if key.startswith("/") else f"{section}.{key}"
 
 
 def effect_paths(res: StreamResult, inst: Any) -> list[str]:

@@ -39,6 +39,7 @@ from koala_bridge.calibration.selection import (
     parameter_se,
     select_effects,
 )
+from koala_bridge.calibration.sim_keys import config_path, is_simulated
 from koala_bridge.calibration.streams import (
     build_beacons,
     build_compass,
@@ -185,14 +186,18 @@ class StreamResult:
         simulated. *after* counts every effect found, so a reader who simulates the written
         config sees this. Kept for the same final fit: the report asks for it in three
         places."""
-        from koala_bridge.calibration.config_update import effect_paths, is_simulated
-
         memo = self._written_memo
         if memo is not None and memo[0] is self.selection.after:
             return memo[1]
+        p, after = self.problem, self.selection.after
+        params = split_params(p, after.insts, after.x)
+
+        def simulated(inst: EffectInstance) -> bool:
+            keys = inst.config(params[after.insts.index(inst)], p)
+            return any(is_simulated(config_path(p.section, k)) for k in keys)
+
         reasons = [
-            r if r is not None or any(is_simulated(k) for k in effect_paths(self, inst))
-            else "written as a comment"
+            r if r is not None or simulated(inst) else "written as a comment"
             for inst, r in zip(self.effects, self.not_written(), strict=True)
         ]
         value = None
@@ -200,8 +205,11 @@ class StreamResult:
             dropped = {id(inst) for inst, r in zip(self.effects, reasons, strict=True) if r}
             sel, p = self.selection, self.problem
             keep = [i for i in sel.after.insts if id(i) not in dropped]
-            fit = fit_model(p, keep, p.initial_vector(keep, sel.after.x, sel.after.insts))
-            value = float(p.metric_value(fit.insts, fit.x, "score"))
+            if not keep:    # the declared model itself: no refit (a 1-hour stream's is dear)
+                value = float(p.metric_value(sel.before.insts, sel.before.x, "score"))
+            else:
+                fit = fit_model(p, keep, p.initial_vector(keep, sel.after.x, sel.after.insts))
+                value = float(p.metric_value(fit.insts, fit.x, "score"))
         self._written_memo = (self.selection.after, value)
         return value
 
@@ -329,10 +337,10 @@ def _note_secondary_worse(
     names = ", ".join(i.name for i, _ in sel.added)
     for m in secondary:
         b, a = (abs(m.before), abs(m.after)) if m.signed else (m.before, m.after)
-        if not (np.isfinite(a) and np.isfinite(b)) or a <= b:
+        if not (np.isfinite(a) and np.isfinite(b)) or f"{a:.4g}" == f"{b:.4g}" or a < b:
             continue
         hint = ""
-        if m.metric.startswith("heading_error_"):
+        if m.metric.startswith("heading_error_") and m.metric.endswith("s_window_rms"):
             hint = (
                 ": the rate's error fell but the heading it integrates to did not: a sensor "
                 "whose response to fast motion (its filter, its timing) differs from a gain "
@@ -435,14 +443,17 @@ def drop_implausible(problem: StreamProblem, sel: Selection) -> None:
     (:meth:`Effect.plausible`), but the fits after it move the kept effects again: the backward
     check refits the rest without a dropped one, and a decimated stream's effects are refitted
     on the full stream. A kept effect that such a refit takes out of its range (a gain through
-    zero, a singular soft iron) is dropped the same way, the rest refitted, with a note; with
-    none left, "after" is the declared model."""
+    zero, a singular soft iron) is dropped the same way, the rest refitted, with a note; what is
+    left then passes the backward check again (:func:`keep_only_helpful`: each must still
+    improve the held-out part, and the whole beat "before"); with none left, "after" is the
+    declared model."""
+    dropped = False
     while sel.added:
         params = split_params(problem, sel.after.insts, sel.after.x)
         by_inst = {id(i): v for i, v in zip(sel.after.insts, params, strict=True)}
         bad = next((i for i, _ in sel.added if not i.effect.plausible(i, by_inst[id(i)])), None)
         if bad is None:
-            return
+            break
         problem.notes.append(
             f"{bad.name} dropped: refitted, it left its physical range "
             f"({', '.join(f'{v:.4g}' for v in by_inst[id(bad)])})")
@@ -450,7 +461,13 @@ def drop_implausible(problem: StreamProblem, sel: Selection) -> None:
         sel.added = [(i, t) for i, t in sel.added if i is not bad]
         sel.after = fit_model(problem, insts, problem.initial_vector(insts, sel.after.x,
                                                                      sel.after.insts))
-    sel.after = sel.before
+        dropped = True
+    if dropped:
+        # what is left must still each improve the held-out part, and the whole beat before
+        keep_only_helpful(problem, sel)
+        drop_implausible(problem, sel)
+    elif not sel.added:
+        sel.after = sel.before
 
 
 def _turn_on_bias_check(problem: StreamProblem, sel: Selection) -> None:

@@ -481,17 +481,24 @@ def select_effects(
             x0 = problem.initial_vector(insts, current.x, current.insts)
             new = fit_model(problem, insts, x0)
             trial = judge(current, new, cand.effect.n_tested(cand), len(remaining), rho, counts)
-            params = split_params(problem, new.insts, new.x)[-1]
+            *earlier, params = split_params(problem, new.insts, new.x)
             if not cand.effect.plausible(cand, params):
                 trial.implausible = True
-                if trial.passed:
+                would_pass, trial.passed = trial.passed, False
+                if would_pass:
                     log.info("%s: %s fitted outside its physical range: rejected",
                              problem.name, cand.name)
-                trial.passed = False
+                # said for what it is when fitted alone against the model so far, or when it
+                # would otherwise have passed (later, another effect may have dragged it there)
                 why = cand.effect.implausible_reason(cand, params, problem)
-                if why and cand.name not in explained:
+                if why and cand.name not in explained and (not result.added or would_pass):
                     explained.add(cand.name)
                     problem.notes.append(why)
+            elif not all(i.effect.plausible(i, v)
+                         for i, v in zip(new.insts[:-1], earlier, strict=True)):
+                # the candidate drags an effect already in the model out of its range
+                trial.passed = False
+                trial.implausible = True
             trials.append(trial)
             if on_trial is not None:
                 on_trial()

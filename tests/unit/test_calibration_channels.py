@@ -16,13 +16,14 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 from koala_bridge.calibration.bundle import load_bundle
 from koala_bridge.calibration.effects import get_effect
-from koala_bridge.calibration.effects.covariate import MAX_REFERENCE_R2, reference_r2
+from koala_bridge.calibration.effects.covariate import MAX_REFERENCE_R2, fast_r2, reference_r2
 from koala_bridge.calibration.model import declared_model
 from koala_bridge.calibration.pipeline import _note_secondary_worse, calibrate
-from koala_bridge.calibration.problem import SecondaryMetric
-from koala_bridge.calibration.selection import Selection, Trial, fit_model
+from koala_bridge.calibration.problem import SecondaryMetric, split_params
+from koala_bridge.calibration.selection import Selection, Trial, fit_model, parameter_se
 from koala_bridge.calibration.streams import build_gyro
 from koala_bridge.calibration.synthetic import DECLARED
 
@@ -47,6 +48,41 @@ def _rig(out: Path, seed: int, sign: float = 1.0) -> Path:
     return out
 
 
+def test_a_covariate_that_rises_with_the_motion_but_not_with_each_reading_stays(
+    tmp_path: Path,
+) -> None:
+    # A rate table steps its rate up and the chip warms as it goes: the temperature's levels
+    # follow the reference (R^2 > 1/2), its increments within 0.5 s do not follow the
+    # readings'. Its bias per degree is a covariate; a gain in its place would be wrong.
+    rng = np.random.default_rng(1)
+    t = np.arange(0.0, 300.0 + 0.01, 0.02)
+    w = 0.2 * (1 + np.floor(t / 50)) + 0.1 * np.sin(2 * np.pi * t / 3.1)
+    theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
+    temp = (25 + 8 * (1 - np.exp(-t / 200)) + np.sin(2 * np.pi * t / 40)
+            + rng.normal(0, 0.05, t.size))
+    out = tmp_path / "b"
+    out.mkdir()
+    np.savetxt(out / "truth_pose.csv", np.column_stack([t, 0 * t, 0 * t, theta]),
+               delimiter=",", header="t,x,y,theta", comments="", fmt="%.10g")
+    np.savetxt(out / "gyro.csv", np.column_stack(
+        [t, w + 0.01 * (temp - 25) + rng.normal(0, 0.01, t.size), temp]), delimiter=",",
+        header="t,yaw_rate,temperature_c", comments="", fmt="%.10g")
+    (out / "meta.json").write_text("{}", encoding="utf-8")
+    bundle = load_bundle(out)
+    (res,) = (r for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
+              if r.problem.name == "gyro")
+    fit = res.problem.part("fit")
+    assert reference_r2(fit.columns["temperature_c"], fit.u) > MAX_REFERENCE_R2
+    names = [i.name for i in res.effects]
+    assert "covariate:temperature_c" in names and "scale" not in names
+    after = res.selection.after
+    k = after.insts.index(next(i for i in res.effects if i.name == "covariate:temperature_c"))
+    c = float(split_params(res.problem, after.insts, after.x)[k][0])
+    at = len(res.problem.nuisance_x0()) + sum(i.n_free for i in after.insts[:k])
+    se = float(parameter_se(res.problem, after)[at])
+    assert abs(c - 0.01) < 4 * se                    # the injected 0.01 rad/s per degC
+
+
 def test_reference_r2_is_the_squared_correlation() -> None:
     rng = np.random.default_rng(1)
     p = rng.normal(size=2000)
@@ -65,10 +101,12 @@ def test_another_axis_of_the_same_motion_is_not_a_covariate(tmp_path: Path) -> N
     names = [c.name for c in get_effect("covariate").propose(problem)]
     assert names == ["covariate:temperature_c"]     # its own variation: still a covariate
     (note,) = (n for n in problem.notes if n.startswith("covariate:rate_x not tried"))
-    # rate_x = 0.015 w + noise: its R^2 with w is var(0.015 w) / (that + 0.002^2), > 0.9 here
-    assert "of its variance follows the reference yaw rate" in note
-    assert reference_r2(problem.part("fit").columns["rate_x"], problem.part("fit").u) > (
-        MAX_REFERENCE_R2)
+    assert "follows the reference yaw rate" in note and "moves with the readings" in note
+    fit = problem.part("fit")
+    # rate_x = 0.015 w + noise 0.002: R^2 with w is var(0.015 w) / (that + 0.002^2), 0.93 here;
+    # over 0.3 s w moves far more than the noise, and both channels see it
+    assert reference_r2(fit.columns["rate_x"], fit.u) > MAX_REFERENCE_R2
+    assert fast_r2(fit.columns["rate_x"], fit.y, fit.t) > MAX_REFERENCE_R2
     (res,) = (r for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
               if r.problem.name == "gyro")
     assert not any(i.name.startswith("covariate:rate_x") for i in res.effects)
@@ -101,9 +139,48 @@ def test_a_further_metric_made_worse_is_said(tmp_path: Path) -> None:
     (note,) = (n for n in problem.notes if n.startswith("heading_error_10s_window_rms worse"))
     assert "with bias (0.02 -> 0.03 rad) while rms_rate_error improved" in note
     assert "whose response to fast motion" in note
-    # better, or the metric itself not improved: nothing to say
+    # a compass's heading against the declared gyro: the gyro hint is not its
+    _note_secondary_worse(problem, sel, 0.4, 0.1, [
+        SecondaryMetric("heading_error_vs_declared_gyro_rms", "rad", 0.02, 0.03)])
+    assert "whose response to fast motion" not in problem.notes[-1]
+    assert problem.notes[-1].startswith("heading_error_vs_declared_gyro_rms worse")
+    # better, the same to 4 digits, or the metric itself not improved: nothing to say
     n = len(problem.notes)
     _note_secondary_worse(problem, sel, 0.4, 0.1,
                           [SecondaryMetric("heading_error_10s_window_rms", "rad", 0.03, 0.02)])
     _note_secondary_worse(problem, sel, 0.1, 0.4, [heading])
+    _note_secondary_worse(problem, sel, 0.4, 0.1,
+                          [SecondaryMetric("heading_error_10s_window_rms", "rad", 0.02, 0.020001)])
     assert len(problem.notes) == n
+
+
+def test_a_scalar_time_offset_is_bounded_by_its_search_and_odometry_is_not(
+    tmp_path: Path,
+) -> None:
+    from koala_bridge.calibration.effects.time_offset import MAX_TIME_OFFSET_S, search_window
+    from koala_bridge.calibration.synthetic import Injected, make_bundle
+
+    bundle_dir = make_bundle(tmp_path / "b", 4, Injected(), duration_s=180)
+    # the odometry logged on a clock 0.7 s late: a latency beyond any scalar stream's window
+    odo = bundle_dir / "odometry.csv"
+    head, *rows = odo.read_text().splitlines()
+    ti = head.split(",").index("t")
+    odo.write_text("\n".join([head] + [
+        ",".join(repr(float(c) + 0.7) if k == ti else c for k, c in enumerate(r.split(",")))
+        for r in rows]) + "\n")
+    bundle = load_bundle(bundle_dir)
+    results = {r.problem.name: r for r in calibrate(bundle, declared_model(DECLARED,
+                                                                           bundle.meta))}
+    odometry = results["odometry"]
+    (tau,) = (i for i in odometry.effects if i.name == "time_offset")
+    assert tau.effect.plausible(tau, np.array([0.7]))     # no bound for odometry
+    after = odometry.selection.after
+    (value,) = split_params(odometry.problem, after.insts, after.x)[after.insts.index(tau)]
+    assert float(value) == pytest.approx(0.7, abs=0.02)
+    # a scalar stream's: the grid's window, at most MAX_TIME_OFFSET_S plus half a sample
+    gyro = results["gyro"].problem
+    (cand,) = get_effect("time_offset").propose(gyro)
+    step, span = search_window(gyro)
+    assert span == MAX_TIME_OFFSET_S and cand.data["window_s"] == span + step
+    assert cand.effect.plausible(cand, np.array([span]))
+    assert not cand.effect.plausible(cand, np.array([-(span + 2 * step)]))

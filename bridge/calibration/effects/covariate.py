@@ -7,15 +7,23 @@ centring on the fit-part mean keeps ``c`` separate from a bias. Writes
 ``[sensors.<stream>.calibration] covariate_<column> = {coefficient, reference}``.
 
 A covariate is an influence on the *error*, apart from the measured quantity. A column that
-mostly follows the reference is that quantity seen through another channel (another axis of the
-same chip through its misalignment, a second sensor of the same motion): more than
-:data:`MAX_REFERENCE_R2` of its variance on a line through the declared prediction, and it is not
-proposed (a note says so). Its coefficient would trade against ``scale``, and since the channel
-carries the sensor's own response to fast motion (its filter, its timing), fitting it fits that
-response, not an error. An MPU-6050 on a rotary rig (ssong47/compute_relative_angle_between_two_
-IMUs): the x-axis rate, R^2 0.83 with the reference yaw rate through a 1 % misalignment, came
-with a coefficient of 35 and pulled the scale to -0.45, and the held-out heading error grew
+follows the measured quantity and moves with the readings from instant to instant is that
+quantity seen through another channel (another axis of the same chip through its misalignment, a
+second sensor of the same motion): where more than :data:`MAX_REFERENCE_R2` of its variance lies
+on a line through the reference seen through the declared curve (:func:`reference_r2`) *and*
+more than that share of its increments over some interval up to ``MAX_LAG_S`` (0.5 s) on a line
+through the readings' (:func:`fast_r2`), it is not proposed, and a note says so. Its coefficient
+would trade against ``scale``, and since the channel carries the sensor's own response to fast
+motion (its filter, its timing), fitting it fits that response, not an error. An MPU-6050 on a
+rotary rig (ssong47/compute_relative_angle_between_two_IMUs): the x-axis rate (R^2 0.83 with the
+reference yaw rate, 0.98 of its 40 ms increments with the yaw readings', a 1 % misalignment)
+came with a coefficient of 35 and pulled the scale to -0.45, and the held-out heading error grew
 sevenfold while the rate error fell.
+
+Both, not the levels alone: a real influence can co-vary with the motion through how the
+recording went -- a chip that warms as a rate table steps its rate up (R^2 0.63 with the
+reference), a supply that sags on long runs -- without moving with the readings within a second
+(R^2 0.002 of the increments there); its coefficient is separable from a gain by that.
 """
 
 from __future__ import annotations
@@ -25,11 +33,12 @@ from typing import Any
 import numpy as np
 from koala_bridge.calibration.effects import register_effect
 from koala_bridge.calibration.effects.base import Effect, EffectInstance
-from koala_bridge.calibration.effects.common import config_name, note_once
+from koala_bridge.calibration.effects.common import MAX_LAG_S, config_name, note_once
 
-#: The largest share of a covariate's fit-part variance that may follow the declared prediction
-#: (R^2 of a line through it): beyond half, the column is more the measured quantity than
-#: anything of its own, and its coefficient is more a second gain than an influence on the error.
+#: The share of a covariate's variance on a line through the reference (through the declared
+#: curve), and of its
+#: increments on a line through the readings', beyond which (both) the column is the measured
+#: quantity through another channel: more of it follows the quantity than varies on its own.
 MAX_REFERENCE_R2 = 0.5
 
 
@@ -45,6 +54,28 @@ def reference_r2(z: np.ndarray, pred: np.ndarray) -> float:
     return float(np.dot(zc, pc) ** 2 / den) if den > 0 else 0.0
 
 
+def fast_r2(
+    z: np.ndarray, other: np.ndarray, t: np.ndarray, keys: np.ndarray | None = None
+) -> float:
+    """The largest :func:`reference_r2` of ``m``-sample increments of ``z`` against those of
+    ``other``, over ``m = 1, 2, 4, ...`` while ``m`` samples span at most ``MAX_LAG_S``; rows
+    are taken in time order within each series (``keys``: one value per row, None: one series),
+    increments never across two series."""
+    n = z.size
+    key = np.zeros(n) if keys is None else np.nan_to_num(np.asarray(keys, dtype=float), nan=-1e300)
+    order = np.lexsort((t, key))
+    z, other, t, key = z[order], other[order], t[order], key[order]
+    same1 = key[1:] == key[:-1]
+    dt = np.diff(t)[same1]
+    step = float(np.median(dt)) if dt.size else 0.0
+    best, m = 0.0, 1
+    while m < n // 2 and (m == 1 or (step > 0 and m * step <= MAX_LAG_S)):
+        same = key[m:] == key[:-m]
+        best = max(best, reference_r2((z[m:] - z[:-m])[same], (other[m:] - other[:-m])[same]))
+        m *= 2
+    return best
+
+
 @register_effect("covariate")
 class Covariate(Effect):
     kinds = frozenset({"scalar"})
@@ -53,20 +84,26 @@ class Covariate(Effect):
         out = []
         fit = problem.part("fit")
         pred = np.asarray(problem.curve(fit.u), dtype=float)
+        keys = _series_keys(problem)
         for col in problem.covariate_names:
             z = fit.columns[col]
-            r2 = reference_r2(np.asarray(z, dtype=float), pred)
-            z = z[np.isfinite(z)]
-            if z.size < 3 or float(np.std(z)) == 0.0:
+            finite = z[np.isfinite(z)]
+            if finite.size < 3 or float(np.std(finite)) == 0.0:
                 continue
-            if r2 > MAX_REFERENCE_R2:
+            zf = np.asarray(z, dtype=float)
+            level = reference_r2(zf, pred)
+            fast = fast_r2(zf, np.asarray(fit.y, dtype=float), fit.t, keys) if (
+                level > MAX_REFERENCE_R2) else 0.0
+            if fast > MAX_REFERENCE_R2:
                 note_once(
                     problem,
-                    f"covariate:{col} not tried: {100 * r2:.3g} % of its variance follows the "
-                    f"reference {problem.quantity} (R^2 on the fit part): it is the measured "
-                    "quantity seen through another channel (another axis through a misalignment, "
-                    "a second sensor of the same motion), and its coefficient would be a second "
-                    "gain fitted to that channel's response, not an influence on the error",
+                    f"covariate:{col} not tried: it follows the reference {problem.quantity} "
+                    f"(R^2 {level:.2g} on the fit part) and moves with the readings from instant "
+                    f"to instant (R^2 {fast:.2g} of their increments within {MAX_LAG_S:g} s): it "
+                    "is the measured quantity seen through another channel (another axis through "
+                    "a misalignment, a second sensor of the same motion), and its coefficient "
+                    "would be a second gain fitted to that channel's response, not an influence "
+                    "on the error",
                 )
                 continue
             out.append(
@@ -76,7 +113,7 @@ class Covariate(Effect):
                     ("coefficient",),
                     (0.0,),
                     column=col,
-                    data={"mean": float(np.mean(z))},
+                    data={"mean": float(np.mean(finite))},
                 )
             )
         return out
@@ -93,3 +130,18 @@ class Covariate(Effect):
                 "reference": float(f"{inst.data['mean']:.6g}"),
             }
         }
+
+
+def _series_keys(problem: Any) -> np.ndarray | None:
+    """One number per fit-part row naming its series (the stream's categorical columns and its
+    ``series``, combined), None for one series."""
+    fit = problem.part("fit")
+    cols = [np.asarray(fit.columns[n], dtype=float)
+            for n in getattr(problem, "categorical_names", ()) if n in fit.columns]
+    series = getattr(problem, "series", None)
+    if series is not None:
+        cols.append(np.asarray(series, dtype=float)[problem.split.mask(problem.t, "fit")])
+    if not cols:
+        return None
+    rows = np.nan_to_num(np.column_stack(cols), nan=-1e300)
+    return np.unique(rows, axis=0, return_inverse=True)[1].ravel().astype(float)

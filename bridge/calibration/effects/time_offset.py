@@ -13,9 +13,11 @@ interval over +-min(0.5 s, 5 % of the fit part), scored by the correlation of th
 the shifted reference on the fit part (the cross-correlation peak, as in Kalibr's or
 imu_utils' temporal alignment).
 
-A fitted ``|tau|`` beyond that window's :data:`MAX_TIME_OFFSET_S` is implausible: least squares
+On a scalar stream a fitted ``tau`` outside the window searched is implausible: least squares
 walked from the grid's best to a shift by a large part of the motion's period, which stands in
-for something else (readings of the opposite sign matched half a period later).
+for something else (readings of the opposite sign matched half a period later). Odometry's
+``tau`` is not searched (it starts at 0, its windows re-anchored to the reference) and has no
+such bound: an odometry log stamped on another clock is a latency of any size.
 
 A scalar stream's ``tau`` is determined by the reference's signal, not its noise: with a
 reference that is mostly noise (a still gyro against a differentiated optical heading) a
@@ -32,8 +34,22 @@ from koala_bridge.calibration.effects import register_effect
 from koala_bridge.calibration.effects.base import Effect, EffectInstance
 from koala_bridge.calibration.effects.common import reference_dominates
 
-#: The largest latency searched (s), and the largest fitted one that is plausible.
+#: The largest latency searched on a scalar stream (s); the window searched, at most this, is
+#: where a fitted one is plausible.
 MAX_TIME_OFFSET_S = 0.5
+
+
+def search_window(problem: Any) -> tuple[float, float]:
+    """``(step, span)`` of the grid a scalar stream's ``tau`` is searched on: half the median
+    sample interval, over +-min(:data:`MAX_TIME_OFFSET_S`, 5 % of the fit part); (0, 0) when
+    the fit part is too short for one."""
+    fit = problem.split.mask(problem.t, "fit")
+    t = problem.t[fit][np.isfinite(problem.y[fit])]
+    if t.size < 10:
+        return 0.0, 0.0
+    step = float(np.median(np.diff(t))) / 2
+    span = min(MAX_TIME_OFFSET_S, 0.05 * float(t[-1] - t[0]))
+    return (step, span) if step > 0 and span >= step else (0.0, 0.0)
 
 
 def coarse_lag(problem: Any) -> float:
@@ -44,11 +60,8 @@ def coarse_lag(problem: Any) -> float:
     t, y = problem.t[fit], problem.y[fit]
     ok = np.isfinite(y)
     t, y = t[ok], y[ok]
-    if t.size < 10:
-        return 0.0
-    step = float(np.median(np.diff(t))) / 2
-    span = min(MAX_TIME_OFFSET_S, 0.05 * float(t[-1] - t[0]))
-    if not step > 0 or span < step:
+    step, span = search_window(problem)
+    if not span:
         return 0.0
     taus = np.arange(-span, span + step / 2, step)
     yc = y - y.mean()
@@ -72,18 +85,22 @@ class TimeOffset(Effect):
             problem.reference is None or not reference_dominates(problem, self.name)
         ):
             return []
-        tau0 = coarse_lag(problem) if problem.kind == "scalar" else 0.0
-        return [EffectInstance(self.name, self, ("tau_s",), (tau0,))]
+        if problem.kind != "scalar":
+            return [EffectInstance(self.name, self, ("tau_s",), (0.0,))]
+        step, span = search_window(problem)
+        return [EffectInstance(self.name, self, ("tau_s",), (coarse_lag(problem),),
+                               data={"window_s": span + step})]
 
     def plausible(self, inst: EffectInstance, params: Any) -> bool:
-        return bool(abs(float(params[0])) <= MAX_TIME_OFFSET_S)
+        window = inst.data.get("window_s")
+        return window is None or bool(abs(float(params[0])) <= window)
 
     def implausible_reason(self, inst: EffectInstance, params: Any, problem: Any) -> str | None:
         return (
             f"time_offset fitted as {float(params[0]):+.4g} s and rejected: beyond the "
-            f"+-{MAX_TIME_OFFSET_S:g} s a latency is searched in, a shift by a large part of the "
-            "motion's period stands in for something else (readings of the opposite sign "
-            "match the reference half a period later)"
+            f"+-{inst.data['window_s']:.3g} s a latency is searched in, a shift by a large part "
+            "of the motion's period stands in for something else (readings of the opposite "
+            "sign match the reference half a period later)"
         )
 
     def apply(self, inst: EffectInstance, state: Any, params: Any) -> None:
