@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -18,8 +19,10 @@ from koala_bridge.calibration.pipeline import (
     calibrate,
     candidates_for,
     declared_fit,
+    drop_implausible,
     keep_only_helpful,
 )
+from koala_bridge.calibration.problem import split_params
 from koala_bridge.calibration.selection import Selection, Trial, fit_model, parameter_se
 from koala_bridge.calibration.synthetic import DECLARED, Injected, make_bundle
 from scipy import stats
@@ -81,26 +84,32 @@ def test_kept_effects_each_improve_held_out_and_after_is_never_worse(tmp_path: P
     assert checked >= 8
 
 
-def test_a_kept_effect_refitted_out_of_its_physical_range_is_dropped(tmp_path: Path) -> None:
-    # The search rejects a gain through zero; a later refit (the backward check's, or the full
-    # stream's after a decimated search) must not let one through either, and what is left
-    # passes the backward check again.
-    from dataclasses import replace
-
-    from koala_bridge.calibration.pipeline import drop_implausible
-    from koala_bridge.calibration.problem import split_params
-
-    bundle = load_bundle(make_bundle(tmp_path / "b", 7, Injected(gyro_bias=0.01)))
+def _bias_and_implausible_scale(tmp_path: Path, inj: Injected, stream: str) -> Selection:
+    """``stream`` of a synthetic bundle with ``bias`` and ``scale`` kept, the scale then set to
+    -1.5 (a gain of -0.5: no sensor's), as a later refit might leave it."""
+    bundle = load_bundle(make_bundle(tmp_path / "b", 7, inj))
     (problem,) = (r.problem for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
-                  if r.problem.name == "gyro")
+                  if r.problem.name == stream)
     cands = {c.name: c for c in candidates_for(problem)}
     bias, scale = cands["bias"], cands["scale"]
     base = declared_fit(problem, fit_model(problem, [], problem.nuisance_x0()))
     both = fit_model(problem, [bias, scale], problem.initial_vector([bias, scale], base.x, []))
     x = both.x.copy()
-    x[len(problem.nuisance_x0()) + bias.n_free] = -1.5     # a gain of -0.5: no gyro's
+    x[len(problem.nuisance_x0()) + bias.n_free] = -1.5
     trial = Trial("x", 1, 0.0, 0.0, 0.0, 0.0, True, both)
-    sel = Selection(problem, base, replace(both, x=x), [(bias, trial), (scale, trial)])
+    return Selection(problem, base, replace(both, x=x), [(bias, trial), (scale, trial)])
+
+
+def _score(sel: Selection, fit) -> float:
+    return float(sel.problem.metric_value(fit.insts, fit.x, "score"))
+
+
+def test_a_kept_effect_refitted_out_of_its_physical_range_is_dropped(tmp_path: Path) -> None:
+    # The search rejects a gain through zero; a later refit (the backward check's, or the full
+    # stream's after a decimated search) must not let one through either.
+    sel = _bias_and_implausible_scale(tmp_path, Injected(gyro_bias=0.01), "gyro")
+    problem, base = sel.problem, sel.before
+    scale = sel.added[1][0]
     drop_implausible(problem, sel)
     assert [i.name for i, _ in sel.added] == ["bias"]     # the injected bias stays
     assert [i.name for i in sel.after.insts] == ["bias"]
@@ -108,16 +117,12 @@ def test_a_kept_effect_refitted_out_of_its_physical_range_is_dropped(tmp_path: P
     assert abs(float(b[0]) - 0.01) < 4 * float(parameter_se(problem, sel.after)[-1])
     assert any(n.startswith("scale dropped: refitted, it left its physical range")
                for n in problem.notes)
-
-    def score(fit) -> float:
-        return float(problem.metric_value(fit.insts, fit.x, "score"))
-
-    assert score(sel.after) < score(sel.before)
+    assert _score(sel, sel.after) < _score(sel, sel.before)
     # the one effect kept, out of its range: "after" is the declared model
     alone = fit_model(problem, [scale], problem.initial_vector([scale], base.x, []))
     x = alone.x.copy()
     x[len(problem.nuisance_x0())] = -1.5
-    sel = Selection(problem, base, replace(alone, x=x), [(scale, trial)])
+    sel = Selection(problem, base, replace(alone, x=x), [(scale, sel.added[0][1])])
     drop_implausible(problem, sel)
     assert sel.added == [] and sel.after is base
 
@@ -127,28 +132,10 @@ def test_what_an_implausible_drop_leaves_passes_the_backward_check_again(
 ) -> None:
     # On clean data a useless effect left beside the dropped one goes too: "after" is then
     # never worse than "before".
-    from dataclasses import replace
-
-    from koala_bridge.calibration.pipeline import drop_implausible
-
-    bundle = load_bundle(make_bundle(tmp_path / "b", 7, Injected()))
-    (problem,) = (r.problem for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
-                  if r.problem.name == "range")
-    cands = {c.name: c for c in candidates_for(problem)}
-    bias, scale = cands["bias"], cands["scale"]
-    base = declared_fit(problem, fit_model(problem, [], problem.nuisance_x0()))
-    both = fit_model(problem, [bias, scale], problem.initial_vector([bias, scale], base.x, []))
-    x = both.x.copy()
-    x[len(problem.nuisance_x0()) + bias.n_free] = -1.5
-    trial = Trial("x", 1, 0.0, 0.0, 0.0, 0.0, True, both)
-    sel = Selection(problem, base, replace(both, x=x), [(bias, trial), (scale, trial)])
-    drop_implausible(problem, sel)
-
-    def score(fit) -> float:
-        return float(problem.metric_value(fit.insts, fit.x, "score"))
-
-    assert score(sel.after) <= score(sel.before)
+    sel = _bias_and_implausible_scale(tmp_path, Injected(), "range")
+    drop_implausible(sel.problem, sel)
+    assert _score(sel, sel.after) <= _score(sel, sel.before)
     if sel.added:           # the bias kept: it must beat the declared model without it
-        assert score(sel.after) < score(sel.before)
+        assert _score(sel, sel.after) < _score(sel, sel.before)
     else:
         assert sel.after is sel.before
