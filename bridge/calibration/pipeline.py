@@ -76,6 +76,16 @@ class Options:
     max_rows: int = 20_000  # longer tables: select on a subset, refit on everything
 
 
+def _better(value: float, declared: float) -> bool:
+    """Whether a held-out metric ``value`` beats the declared model's (by magnitude: a signed
+    metric's sign says on which side, not how far)."""
+    return bool(abs(value) < abs(declared))
+
+
+def _g(v: float) -> str:
+    return f"{v:.4g}"
+
+
 @dataclass
 class StreamResult:
     """Everything the report needs about one stream."""
@@ -90,8 +100,8 @@ class StreamResult:
     #: the notes the selection added to the stream (an effect not tried, and why): a stream
     #: selected on a decimated subset carries them to the full stream's result
     selection_notes: list[str] = field(default_factory=list)
-    #: :meth:`after_written`, with the final fit it was computed for
-    _written_memo: tuple[Any, float | None] | None = field(
+    #: :meth:`_written_eval`, with the final fit it was computed for
+    _written_memo: tuple[Any, tuple[float | None, float, list[str]]] | None = field(
         default=None, init=False, repr=False, compare=False)
     #: :meth:`_params_and_se` of the final fit it was computed for
     _se_memo: tuple[tuple[Any, ...], list[tuple[FloatArray, FloatArray | None]]] | None = field(
@@ -151,13 +161,30 @@ class StreamResult:
         return out
 
     def not_written(self) -> list[str | None]:
-        """Per added effect: why ``--write-config`` must not write it, or None (module
-        constant :data:`WRITE_Z`). An effect is uncertain when its size, ``d = params -
-        absent``, is within ``WRITE_Z`` standard errors of nothing: ``sum d^2 < WRITE_Z^2 sum
-        SE^2`` (``|d| < WRITE_Z SE`` for one parameter: the declared value lies inside the
-        effect's 99 % interval). Fixed parameters (a glitch value, a quantisation step, a
-        turn-on bias judged against its declared spread) have no standard error here and are
-        written."""
+        """Per added effect: why ``--write-config`` must not write it, or None. An effect is
+        *uncertain* when its size, ``d = params - absent``, is within ``WRITE_Z`` standard
+        errors of nothing: ``sum d^2 < WRITE_Z^2 sum SE^2`` (``|d| < WRITE_Z SE`` for one
+        parameter: the declared value lies inside the effect's 99 % interval). Fixed parameters
+        (a glitch value, a quantisation step, a turn-on bias judged against its declared
+        spread) have no standard error here. And the simulated effects are not written when,
+        at their values, without the effects the written config cannot hold (uncertain ones,
+        and those the simulator has no key for: a time offset, a covariate), they leave the
+        held-out error no better than the declared model's: they only help beside those (a
+        gyro's +2.2 % scale with the time offset it was fitted with, worse than none alone)."""
+        out = self._uncertain()
+        value, before, comments = self._written_eval()
+        if value is not None and not _better(value, before):
+            alone = (f"without {', '.join(comments)} (written only as a comment)" if comments
+                     else "without the uncertain effects")
+            out = [
+                r if r is not None or self.is_comment(inst) else (
+                    f"alone it does not improve the held-out error: {_g(value)} {alone} "
+                    f"against {_g(before)} declared")
+                for inst, r in zip(self.effects, out, strict=True)
+            ]
+        return out
+
+    def _uncertain(self) -> list[str | None]:
         out: list[str | None] = []
         for inst, (p, se) in zip(self.effects, self._params_and_se(), strict=True):
             if se is None:
@@ -178,40 +205,45 @@ class StreamResult:
                 out.append(None)
         return out
 
-    def after_written(self) -> float | None:
-        """The held-out metric of the model ``--write-config`` writes, when it leaves an effect
-        out of the simulated config: as uncertain (:meth:`not_written`), or as a comment only
-        (an effect the simulator has no key for, a covariate); the simulated effects alone,
-        refitted on the fit part with the nuisance parameters; None when every effect is
-        simulated. *after* counts every effect found, so a reader who simulates the written
-        config sees this. Kept for the same final fit: the report asks for it in three
-        places."""
+    def is_comment(self, inst: EffectInstance) -> bool:
+        """Whether ``--write-config`` can write ``inst`` only as a comment (no simulator key)."""
+        p, after = self.problem, self.selection.after
+        params = split_params(p, after.insts, after.x)[after.insts.index(inst)]
+        return not any(is_simulated(config_path(p.section, k)) for k in inst.config(params, p))
+
+    def _written_eval(self) -> tuple[float | None, float, list[str]]:
+        """``(metric, declared, comments)``: the held-out metric of the effects the written
+        config can hold (certain and simulated), at the values the final fit gave them -- what a
+        reader who simulates it gets, no refit -- or None when that is every effect; the
+        declared model's; the names of the effects written only as comments. Kept for the same
+        final fit: the report asks for it in several places."""
         memo = self._written_memo
         if memo is not None and memo[0] is self.selection.after:
             return memo[1]
-        p, after = self.problem, self.selection.after
-        params = split_params(p, after.insts, after.x)
-
-        def simulated(inst: EffectInstance) -> bool:
-            keys = inst.config(params[after.insts.index(inst)], p)
-            return any(is_simulated(config_path(p.section, k)) for k in keys)
-
-        reasons = [
-            r if r is not None or simulated(inst) else "written as a comment"
-            for inst, r in zip(self.effects, self.not_written(), strict=True)
-        ]
-        value = None
-        if any(r is not None for r in reasons):
-            dropped = {id(inst) for inst, r in zip(self.effects, reasons, strict=True) if r}
-            sel, p = self.selection, self.problem
+        sel, p = self.selection, self.problem
+        declared = float(p.metric_value(sel.before.insts, sel.before.x, "score"))
+        comments = [i.name for i in self.effects if self.is_comment(i)]
+        dropped = {id(i) for i, r in zip(self.effects, self._uncertain(), strict=True)
+                   if r is not None or self.is_comment(i)}
+        value: float | None = None
+        if dropped:
             keep = [i for i in sel.after.insts if id(i) not in dropped]
-            if not keep:    # the declared model itself: no refit (a 1-hour stream's is dear)
-                value = float(p.metric_value(sel.before.insts, sel.before.x, "score"))
-            else:
-                fit = fit_model(p, keep, p.initial_vector(keep, sel.after.x, sel.after.insts))
-                value = float(p.metric_value(fit.insts, fit.x, "score"))
-        self._written_memo = (self.selection.after, value)
-        return value
+            value = declared if not keep else float(p.metric_value(
+                keep, p.initial_vector(keep, sel.after.x, sel.after.insts), "score"))
+        result = (value, declared, comments)
+        self._written_memo = (sel.after, result)
+        return result
+
+    def after_written(self) -> float | None:
+        """The held-out metric of the model ``--write-config`` writes when that leaves an
+        effect out (:meth:`not_written`, or written only as a comment), None when it writes
+        them all: *after* counts every effect found, and a reader who simulates the written
+        config sees this. The written effects at the values the final fit gave them, or the
+        declared model when those would not beat it (then none is written)."""
+        value, before, _ = self._written_eval()
+        if value is None:
+            return None
+        return value if _better(value, before) else before
 
     def heldout_statistics(self, before: FloatArray | None = None) -> HeldOutStatistics:
         """Robust statistics of the held-out errors before and after
@@ -299,7 +331,7 @@ def _note_near_misses(problem: StreamProblem, sel: Selection) -> None:
         t for t in sel.rounds[-1]
         if not t.passed and not t.implausible
         and np.isfinite(t.relative_gain) and t.relative_gain >= NEAR_MISS_GAIN
-        and np.isfinite(t.lr) and t.lr <= t.lr_threshold
+        and np.isfinite(t.lr) and 0 < t.lr <= t.lr_threshold
     ]
     for t in sorted(close, key=lambda t: -t.relative_gain)[:3]:
         problem.notes.append(
@@ -340,7 +372,8 @@ def _note_secondary_worse(
         if not (np.isfinite(a) and np.isfinite(b)) or f"{a:.4g}" == f"{b:.4g}" or a < b:
             continue
         hint = ""
-        if m.metric.startswith("heading_error_") and m.metric.endswith("s_window_rms"):
+        if (m.metric.startswith("heading_error_") and m.metric.endswith("s_window_rms")
+                and any(i.name == "scale" for i, _ in sel.added)):
             hint = (
                 ": the rate's error fell but the heading it integrates to did not: a sensor "
                 "whose response to fast motion (its filter, its timing) differs from a gain "

@@ -41,7 +41,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from koala_bridge.calibration.config_update import effect_paths, is_simulated
 from koala_bridge.calibration.metrics import (
     OUTLIER_SIGMAS,
     ErrorStatistics,
@@ -81,6 +80,8 @@ def _effect_entries(res: StreamResult) -> list[dict[str, Any]]:
         }
         if reason is not None:
             entry["not_written"] = reason
+        elif res.is_comment(inst):
+            entry["written_as"] = "comment"   # the simulator has no key for it
         out.append(entry)
     return out
 
@@ -90,7 +91,7 @@ def _written_cell(res: StreamResult, inst: Any, e: dict[str, Any]) -> str:
     simulator has no key for: the model change's diff shows none), or not written and why."""
     if not e["written"]:
         return f"**not written**: {e['not_written']}"
-    if not any(is_simulated(path) for path in effect_paths(res, inst)):
+    if res.is_comment(inst):
         return "written as a comment: the simulator has no key for it"
     return "written"
 

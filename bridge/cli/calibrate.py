@@ -9,6 +9,17 @@ motion. For each stream the declared model predicts the measurements from the re
 candidate effects are added greedily while they improve the held-out error beyond chance
 (docs/calibration.md). Writes DIR/report.json, DIR/report.md with residual plots,
 and optionally the model with the found effects.
+
+Reading the report: each stream is fitted on the first 60 % of its time span and scored on the
+last 40 % (held out); "before" is the declared model exactly as declared, "after" the model with
+the effects found. --write-config writes an effect only when it is certain (at least 2.58
+standard errors from the declared value) and when the written effects, at their values, beat the
+declared model on held-out data without the ones it cannot hold; an effect the simulator has no
+key for (a time offset, a covariate, a range bias of a sonar) is written as a comment, and "the
+written model" is the held-out error of what is written. Every stream, and every candidate not
+tried or not kept, has a note saying why (a column that is another channel of the measured
+quantity, a scale through zero: a sign convention, a time offset at the edge of its +-0.5 s
+search: clocks apart).
 """
 # The docstring above is this subcommand's --help (cli/main.py reads it): plain text, no reST.
 
@@ -24,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from koala_bridge.calibration.config_update import config_diff, not_simulated, write_config
+from koala_bridge.calibration.effects import available_effects
 from koala_bridge.calibration.model import read_config
 from koala_bridge.calibration.pipeline import Options, check_effect_names
 from koala_bridge.calibration.report import metric_lines, write_report
@@ -113,7 +125,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--effects",
         default=None,
-        help="comma-separated effect names to consider (default: all registered)",
+        help="comma-separated effect names to consider (default: all registered: "
+        + ", ".join(available_effects()) + "; a per-column one as covariate:<column>)",
     )
     parser.add_argument("--no-plots", action="store_true", help="skip the residual PNGs")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -422,3 +422,42 @@ def test_an_effect_without_a_simulator_key_is_written_as_a_comment(tmp_path: Pat
     md = (tmp_path / "out" / "report.md").read_text()
     (row,) = [line for line in md.splitlines() if line.startswith("| time_offset | {")]
     assert row.endswith("| written as a comment: the simulator has no key for it |")
+
+
+def test_a_simulated_effect_that_helps_only_beside_a_comment_is_not_written(
+    tmp_path: Path,
+) -> None:
+    # A gyro's scale fitted together with its time offset (which the simulator cannot hold)
+    # can leave the simulated config worse than the declared one: written alone, at its
+    # value, it must beat the declared model on held-out data, or it is not written.
+    from dataclasses import replace
+
+    from koala_bridge.calibration.pipeline import candidates_for
+
+    bundle = load_bundle(make_bundle(tmp_path / "b", 5, Injected(gyro_time_offset=0.05)))
+    (problem,) = (r.problem for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
+                  if r.problem.name == "gyro")
+    cands = {c.name: c for c in candidates_for(problem)}
+    tau, scale = cands["time_offset"], cands["scale"]
+    before = fit_model(problem, [], problem.nuisance_x0())
+    both = fit_model(problem, [tau, scale], problem.initial_vector([tau, scale], before.x, []))
+    x = both.x.copy()
+    x[len(problem.nuisance_x0()) + tau.n_free] = 0.2        # a gain 20 % high, kept
+    after = replace(both, x=x)
+    trial = judge(before, after, 1, 1, 0.0)
+    res = StreamResult(problem, Selection(problem, before, after, [(tau, trial), (scale, trial)]),
+                       problem.metric_value([], before.x, "score"),
+                       problem.metric_value(after.insts, after.x, "score"))
+    alone = problem.metric_value([scale], problem.initial_vector([scale], x, [tau, scale]),
+                                 "score")
+    assert alone > res.before                   # the scale alone, at its value, is worse
+    assert res.not_written()[0] is None         # the time offset: written, as a comment
+    reason = res.not_written()[1]
+    assert reason is not None and reason.startswith("alone it does not improve")
+    assert "without time_offset (written only as a comment)" in reason
+    assert "sensors.gyro.scale_factor_error" not in found_keys([res])
+    assert res.after_written() == pytest.approx(res.before)    # nothing simulated is written
+    (entry,) = (e for e in report_json([Stage(1, "b", [res])])["streams"]
+                if e["metric"] == "rms_rate_error")
+    assert entry["effects"][0]["written_as"] == "comment"
+    assert entry["effects"][1]["written"] is False

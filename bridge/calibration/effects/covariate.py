@@ -7,22 +7,24 @@ centring on the fit-part mean keeps ``c`` separate from a bias. Writes
 ``[sensors.<stream>.calibration] covariate_<column> = {coefficient, reference}``.
 
 A covariate is an influence on the *error*, apart from the measured quantity. A column that
-follows the measured quantity and moves with the readings from instant to instant is that
-quantity seen through another channel (another axis of the same chip through its misalignment, a
-second sensor of the same motion): where more than :data:`MAX_REFERENCE_R2` of its variance lies
-on a line through the reference seen through the declared curve (:func:`reference_r2`) *and*
-more than that share of its increments over some interval up to ``MAX_LAG_S`` (0.5 s) on a line
-through the readings' (:func:`fast_r2`), it is not proposed, and a note says so. Its coefficient
-would trade against ``scale``, and since the channel carries the sensor's own response to fast
-motion (its filter, its timing), fitting it fits that response, not an error. An MPU-6050 on a
-rotary rig (ssong47/compute_relative_angle_between_two_IMUs): the x-axis rate (R^2 0.83 with the
-reference yaw rate, 0.98 of its 40 ms increments with the yaw readings', a 1 % misalignment)
-came with a coefficient of 35 and pulled the scale to -0.45, and the held-out heading error grew
+moves with the readings, in level and from instant to instant, is the measured quantity seen
+through another channel (another axis of the same chip through its misalignment, a second sensor
+of the same motion): where more than :data:`MAX_REFERENCE_R2` of its variance lies on a line
+through the readings (:func:`reference_r2`) *and* more than that share of its increments over
+some interval up to ``MAX_LAG_S`` (0.5 s) on a line through the readings' increments
+(:func:`fast_r2`), it is not proposed, and a note says so. Its coefficient would trade against
+``scale``, and since the channel carries the sensor's own response to fast motion (its filter,
+its timing), fitting it fits that response, not an error. Against the readings, not the
+reference: the column shares the readings' clock, which the reference may not (with the gyro's
+log stamped 0.3 s late the x rate followed the reference poorly and was fitted again). An
+MPU-6050 on a rotary rig (ssong47/compute_relative_angle_between_two_IMUs): the x-axis rate (R^2
+0.98 with the yaw readings, and of its 40 ms increments with theirs: a 1 % misalignment) came
+with a coefficient of 35 and pulled the scale to -0.45, and the held-out heading error grew
 sevenfold while the rate error fell.
 
-Both, not the levels alone: a real influence can co-vary with the motion through how the
-recording went -- a chip that warms as a rate table steps its rate up (R^2 0.63 with the
-reference), a supply that sags on long runs -- without moving with the readings within a second
+Both, not the levels alone: a real influence can co-vary with the measured quantity through how
+the recording went -- a chip that warms as a rate table steps its rate up (R^2 0.66 with the
+readings), a supply that sags on long runs -- without moving with the readings within a second
 (R^2 0.002 of the increments there); its coefficient is separable from a gain by that.
 """
 
@@ -35,10 +37,9 @@ from koala_bridge.calibration.effects import register_effect
 from koala_bridge.calibration.effects.base import Effect, EffectInstance
 from koala_bridge.calibration.effects.common import MAX_LAG_S, config_name, note_once
 
-#: The share of a covariate's variance on a line through the reference (through the declared
-#: curve), and of its
-#: increments on a line through the readings', beyond which (both) the column is the measured
-#: quantity through another channel: more of it follows the quantity than varies on its own.
+#: The share of a covariate's variance on a line through the readings, and of its increments on
+#: a line through theirs, beyond which (both) the column is the measured quantity through another
+#: channel: more of it follows the readings than varies on its own.
 MAX_REFERENCE_R2 = 0.5
 
 
@@ -83,7 +84,6 @@ class Covariate(Effect):
     def _propose(self, problem: Any) -> list[EffectInstance]:
         out = []
         fit = problem.part("fit")
-        pred = np.asarray(problem.curve(fit.u), dtype=float)
         keys = _series_keys(problem)
         for col in problem.covariate_names:
             z = fit.columns[col]
@@ -91,15 +91,17 @@ class Covariate(Effect):
             if finite.size < 3 or float(np.std(finite)) == 0.0:
                 continue
             zf = np.asarray(z, dtype=float)
-            level = reference_r2(zf, pred)
-            fast = fast_r2(zf, np.asarray(fit.y, dtype=float), fit.t, keys) if (
-                level > MAX_REFERENCE_R2) else 0.0
+            y = np.asarray(fit.y, dtype=float)
+            # against the readings, not the reference: the column and the readings share a
+            # clock, which the reference may not (a log stamped 0.3 s late hid the x rate)
+            level = reference_r2(zf, y)
+            fast = fast_r2(zf, y, fit.t, keys) if level > MAX_REFERENCE_R2 else 0.0
             if fast > MAX_REFERENCE_R2:
                 note_once(
                     problem,
-                    f"covariate:{col} not tried: it follows the reference {problem.quantity} "
-                    f"(R^2 {level:.2g} on the fit part) and moves with the readings from instant "
-                    f"to instant (R^2 {fast:.2g} of their increments within {MAX_LAG_S:g} s): it "
+                    f"covariate:{col} not tried: it follows the {problem.quantity} readings, "
+                    f"in level (R^2 {level:.2g} on the fit part) and from instant to instant "
+                    f"(R^2 {fast:.2g} of their increments within {MAX_LAG_S:g} s): it "
                     "is the measured quantity seen through another channel (another axis through "
                     "a misalignment, a second sensor of the same motion), and its coefficient "
                     "would be a second gain fitted to that channel's response, not an influence "

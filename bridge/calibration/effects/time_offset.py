@@ -13,9 +13,12 @@ interval over +-min(0.5 s, 5 % of the fit part), scored by the correlation of th
 the shifted reference on the fit part (the cross-correlation peak, as in Kalibr's or
 imu_utils' temporal alignment).
 
-On a scalar stream a fitted ``tau`` outside the window searched is implausible: least squares
-walked from the grid's best to a shift by a large part of the motion's period, which stands in
-for something else (readings of the opposite sign matched half a period later). Odometry's
+On a scalar stream a fitted ``tau`` that is not inside the window searched, by a grid step at
+least, is implausible: at its edge the best latency may lie beyond it (the stream and the
+reference stamped on clocks 0.8 s apart gave 0.499 s, and a gain of 0.07 came with it), and
+beyond it least squares walked from the grid's best to a shift by a large part of the motion's
+period, which stands in for something else (readings of the opposite sign matched half a period
+later). Odometry's
 ``tau`` is not searched (it starts at 0, its windows re-anchored to the reference) and has no
 such bound: an odometry log stamped on another clock is a latency of any size.
 
@@ -89,18 +92,19 @@ class TimeOffset(Effect):
             return [EffectInstance(self.name, self, ("tau_s",), (0.0,))]
         step, span = search_window(problem)
         return [EffectInstance(self.name, self, ("tau_s",), (coarse_lag(problem),),
-                               data={"window_s": span + step})]
+                               data={"span_s": span, "inside_s": span - step})]
 
     def plausible(self, inst: EffectInstance, params: Any) -> bool:
-        window = inst.data.get("window_s")
-        return window is None or bool(abs(float(params[0])) <= window)
+        inside = inst.data.get("inside_s")
+        return inside is None or bool(abs(float(params[0])) <= inside)
 
     def implausible_reason(self, inst: EffectInstance, params: Any, problem: Any) -> str | None:
         return (
-            f"time_offset fitted as {float(params[0]):+.4g} s and rejected: beyond the "
-            f"+-{inst.data['window_s']:.3g} s a latency is searched in, a shift by a large part "
-            "of the motion's period stands in for something else (readings of the opposite "
-            "sign match the reference half a period later)"
+            f"time_offset fitted as {float(params[0]):+.4g} s and rejected: at or beyond the "
+            f"edge of the +-{inst.data['span_s']:.3g} s a latency is searched in. Either the "
+            "stream and the reference are stamped on clocks further apart (stamp both on one "
+            "clock, or shift one; docs/bundle-format.md), or the shift stands in for something "
+            "else (readings of the opposite sign match the reference half a period later)"
         )
 
     def apply(self, inst: EffectInstance, state: Any, params: Any) -> None:
