@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from koala_bridge.calibration.bundle import load_bundle
 from koala_bridge.calibration.effects import get_effect
-from koala_bridge.calibration.effects.covariate import MAX_REFERENCE_R2, fast_r2, reference_r2
+from koala_bridge.calibration.effects.covariate import MAX_CHANNEL_R2, fast_r2, line_r2
 from koala_bridge.calibration.model import declared_model
 from koala_bridge.calibration.pipeline import _note_secondary_worse, calibrate
 from koala_bridge.calibration.problem import SecondaryMetric, split_params
@@ -72,7 +72,7 @@ def test_a_covariate_that_rises_with_the_motion_but_not_with_each_reading_stays(
     (res,) = (r for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
               if r.problem.name == "gyro")
     fit = res.problem.part("fit")
-    assert reference_r2(fit.columns["temperature_c"], fit.y) > MAX_REFERENCE_R2
+    assert line_r2(fit.columns["temperature_c"], fit.y) > MAX_CHANNEL_R2
     names = [i.name for i in res.effects]
     assert "covariate:temperature_c" in names and "scale" not in names
     after = res.selection.after
@@ -83,15 +83,15 @@ def test_a_covariate_that_rises_with_the_motion_but_not_with_each_reading_stays(
     assert abs(c - 0.01) < 4 * se                    # the injected 0.01 rad/s per degC
 
 
-def test_reference_r2_is_the_squared_correlation() -> None:
+def test_line_r2_is_the_squared_correlation() -> None:
     rng = np.random.default_rng(1)
     p = rng.normal(size=2000)
-    assert abs(reference_r2(3 * p - 1, p) - 1) < 1e-12
+    assert abs(line_r2(3 * p - 1, p) - 1) < 1e-12
     # equal parts signal and independent noise of the same variance: R^2 = 1/2, within 4 SE of
     # the estimate (delta method: SE(r^2) ~ 2 r (1 - r^2) / sqrt(n) = 0.0158)
-    assert abs(reference_r2(p + rng.normal(size=2000), p) - 0.5) < 4 * 0.0158
-    assert reference_r2(np.ones(10), p[:10]) == 0.0
-    assert reference_r2(p[:2], p[:2]) == 0.0
+    assert abs(line_r2(p + rng.normal(size=2000), p) - 0.5) < 4 * 0.0158
+    assert line_r2(np.ones(10), p[:10]) == 0.0
+    assert line_r2(p[:2], p[:2]) == 0.0
 
 
 @pytest.mark.parametrize("late_s", [0.0, -0.3])
@@ -108,8 +108,8 @@ def test_another_axis_of_the_same_motion_is_not_a_covariate(tmp_path: Path, late
     # rate_x = 0.015 w + noise 0.002 and the readings w + noise 0.01: R^2 of the levels about
     # var(w) / (var(w) + (0.002/0.015)^2 + 0.01^2), 0.9 here; over 0.3 s w moves far more than
     # either noise, and both channels see it
-    assert reference_r2(fit.columns["rate_x"], fit.y) > MAX_REFERENCE_R2
-    assert fast_r2(fit.columns["rate_x"], fit.y, fit.t) > MAX_REFERENCE_R2
+    assert line_r2(fit.columns["rate_x"], fit.y) > MAX_CHANNEL_R2
+    assert fast_r2(fit.columns["rate_x"], fit.y, fit.t) > MAX_CHANNEL_R2
     (res,) = (r for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
               if r.problem.name == "gyro")
     assert not any(i.name.startswith("covariate:rate_x") for i in res.effects)
@@ -185,7 +185,7 @@ def test_a_scalar_time_offset_is_bounded_inside_its_search_and_odometry_is_not(
     after = odometry.selection.after
     (value,) = split_params(odometry.problem, after.insts, after.x)[after.insts.index(tau)]
     assert float(value) == pytest.approx(0.7, abs=0.02)
-    # a scalar stream's: the grid's window, at most MAX_TIME_OFFSET_S plus half a sample
+    # a scalar stream's: inside the grid's window (at most MAX_TIME_OFFSET_S) by a grid step
     gyro = results["gyro"].problem
     (cand,) = get_effect("time_offset").propose(gyro)
     step, span = search_window(gyro)

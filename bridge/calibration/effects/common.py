@@ -116,17 +116,9 @@ def reference_noise_share(problem: Any) -> float:
     curve = getattr(problem, "curve", None)
     pf = getattr(problem, "base_gain", 1.0) * (curve(uf) if curve is not None else uf)
     yf = np.asarray(y, dtype=float)[rows]
-    # the series of one sensor (landmark, tag, ...): the stream's categorical columns together
-    columns = dict(getattr(problem, "columns", {}))
-    names = [n for n in getattr(problem, "categorical_names", ()) if n in columns] or [
-        n for n in ("sensor",) if n in columns]
-    series = getattr(problem, "series", None)
-    if series is not None:
-        columns["series"] = np.asarray(series, dtype=float)
-        names.append("series")
     ok = np.isfinite(pf) & np.isfinite(yf)
-    if names:
-        cats = np.column_stack([np.asarray(columns[n], dtype=float)[rows] for n in names])
+    cats = series_columns(problem, rows)
+    if cats is not None:
         ok &= np.all(np.isfinite(cats), axis=1)
         keys = np.unique(cats[ok], axis=0, return_inverse=True)[1].ravel()
     else:
@@ -167,6 +159,21 @@ def reference_noise_share(problem: Any) -> float:
                                          k_max))
             m *= 2
     return 0.5 * float(noise) / var if np.isfinite(noise) else 0.0
+
+
+def series_columns(problem: Any, rows: np.ndarray) -> np.ndarray | None:
+    """``(len(rows), k)``: the columns naming the series each of ``rows`` belongs to (one
+    sensor, landmark, tag...: the stream's categorical columns together, else its ``sensor``
+    column, and its ``series``), None for a stream of one series. Increments, differences and
+    lags are taken within a series, never across two."""
+    columns = getattr(problem, "columns", {})
+    names = [n for n in getattr(problem, "categorical_names", ()) if n in columns] or [
+        n for n in ("sensor",) if n in columns]
+    cols = [np.asarray(columns[n], dtype=float)[rows] for n in names]
+    series = getattr(problem, "series", None)
+    if series is not None:
+        cols.append(np.asarray(series, dtype=float)[rows])
+    return np.column_stack(cols) if cols else None
 
 
 def _unshared(dp: np.ndarray, dy: np.ndarray, angle: bool, k_max: int) -> float:

@@ -9,8 +9,8 @@ centring on the fit-part mean keeps ``c`` separate from a bias. Writes
 A covariate is an influence on the *error*, apart from the measured quantity. A column that
 moves with the readings, in level and from instant to instant, is the measured quantity seen
 through another channel (another axis of the same chip through its misalignment, a second sensor
-of the same motion): where more than :data:`MAX_REFERENCE_R2` of its variance lies on a line
-through the readings (:func:`reference_r2`) *and* more than that share of its increments over
+of the same motion): where more than :data:`MAX_CHANNEL_R2` of its variance lies on a line
+through the readings (:func:`line_r2`) *and* more than that share of its increments over
 some interval up to ``MAX_LAG_S`` (0.5 s) on a line through the readings' increments
 (:func:`fast_r2`), it is not proposed, and a note says so. Its coefficient would trade against
 ``scale``, and since the channel carries the sensor's own response to fast motion (its filter,
@@ -35,22 +35,27 @@ from typing import Any
 import numpy as np
 from koala_bridge.calibration.effects import register_effect
 from koala_bridge.calibration.effects.base import Effect, EffectInstance
-from koala_bridge.calibration.effects.common import MAX_LAG_S, config_name, note_once
+from koala_bridge.calibration.effects.common import (
+    MAX_LAG_S,
+    config_name,
+    note_once,
+    series_columns,
+)
 
 #: The share of a covariate's variance on a line through the readings, and of its increments on
 #: a line through theirs, beyond which (both) the column is the measured quantity through another
 #: channel: more of it follows the readings than varies on its own.
-MAX_REFERENCE_R2 = 0.5
+MAX_CHANNEL_R2 = 0.5
 
 
-def reference_r2(z: np.ndarray, pred: np.ndarray) -> float:
-    """R^2 of the line through ``pred`` that best predicts ``z`` (the squared correlation; 0
+def line_r2(z: np.ndarray, other: np.ndarray) -> float:
+    """R^2 of the line through ``other`` that best predicts ``z`` (the squared correlation; 0
     when either is constant or fewer than 3 rows are finite in both)."""
-    ok = np.isfinite(z) & np.isfinite(pred)
-    z, pred = z[ok], pred[ok]
+    ok = np.isfinite(z) & np.isfinite(other)
+    z, other = z[ok], other[ok]
     if z.size < 3:
         return 0.0
-    zc, pc = z - z.mean(), pred - pred.mean()
+    zc, pc = z - z.mean(), other - other.mean()
     den = float(np.dot(zc, zc) * np.dot(pc, pc))
     return float(np.dot(zc, pc) ** 2 / den) if den > 0 else 0.0
 
@@ -58,7 +63,7 @@ def reference_r2(z: np.ndarray, pred: np.ndarray) -> float:
 def fast_r2(
     z: np.ndarray, other: np.ndarray, t: np.ndarray, keys: np.ndarray | None = None
 ) -> float:
-    """The largest :func:`reference_r2` of ``m``-sample increments of ``z`` against those of
+    """The largest :func:`line_r2` of ``m``-sample increments of ``z`` against those of
     ``other``, over ``m = 1, 2, 4, ...`` while ``m`` samples span at most ``MAX_LAG_S``; rows
     are taken in time order within each series (``keys``: one value per row, None: one series),
     increments never across two series."""
@@ -72,7 +77,7 @@ def fast_r2(
     best, m = 0.0, 1
     while m < n // 2 and (m == 1 or (step > 0 and m * step <= MAX_LAG_S)):
         same = key[m:] == key[:-m]
-        best = max(best, reference_r2((z[m:] - z[:-m])[same], (other[m:] - other[:-m])[same]))
+        best = max(best, line_r2((z[m:] - z[:-m])[same], (other[m:] - other[:-m])[same]))
         m *= 2
     return best
 
@@ -84,19 +89,20 @@ class Covariate(Effect):
     def _propose(self, problem: Any) -> list[EffectInstance]:
         out = []
         fit = problem.part("fit")
-        keys = _series_keys(problem)
+        cats = series_columns(problem, np.flatnonzero(problem.split.mask(problem.t, "fit")))
+        keys = (None if cats is None else np.unique(
+            np.nan_to_num(cats, nan=-1e300), axis=0, return_inverse=True)[1].ravel())
+        # against the readings, not the reference: the column and the readings share a clock,
+        # which the reference may not (a log stamped 0.3 s late hid the x rate)
+        y = np.asarray(fit.y, dtype=float)
         for col in problem.covariate_names:
-            z = fit.columns[col]
+            z = np.asarray(fit.columns[col], dtype=float)
             finite = z[np.isfinite(z)]
             if finite.size < 3 or float(np.std(finite)) == 0.0:
                 continue
-            zf = np.asarray(z, dtype=float)
-            y = np.asarray(fit.y, dtype=float)
-            # against the readings, not the reference: the column and the readings share a
-            # clock, which the reference may not (a log stamped 0.3 s late hid the x rate)
-            level = reference_r2(zf, y)
-            fast = fast_r2(zf, y, fit.t, keys) if level > MAX_REFERENCE_R2 else 0.0
-            if fast > MAX_REFERENCE_R2:
+            level = line_r2(z, y)
+            fast = fast_r2(z, y, fit.t, keys) if level > MAX_CHANNEL_R2 else 0.0
+            if fast > MAX_CHANNEL_R2:
                 note_once(
                     problem,
                     f"covariate:{col} not tried: it follows the {problem.quantity} readings, "
@@ -133,17 +139,3 @@ class Covariate(Effect):
             }
         }
 
-
-def _series_keys(problem: Any) -> np.ndarray | None:
-    """One number per fit-part row naming its series (the stream's categorical columns and its
-    ``series``, combined), None for one series."""
-    fit = problem.part("fit")
-    cols = [np.asarray(fit.columns[n], dtype=float)
-            for n in getattr(problem, "categorical_names", ()) if n in fit.columns]
-    series = getattr(problem, "series", None)
-    if series is not None:
-        cols.append(np.asarray(series, dtype=float)[problem.split.mask(problem.t, "fit")])
-    if not cols:
-        return None
-    rows = np.nan_to_num(np.column_stack(cols), nan=-1e300)
-    return np.unique(rows, axis=0, return_inverse=True)[1].ravel().astype(float)
