@@ -5,8 +5,9 @@ Each effect's ``config`` gives keys relative to its stream's section (``[sensors
 simulator key, and ``"/robot.wheel_base_m"`` is absolute.
 
 The written config must still load in the simulator (``sim/config.py`` rejects unknown keys),
-so only the keys of :data:`SIMULATED_KEYS` go into the TOML document; every other finding is
-written as a comment block at the end of the file (and is in report.json). docs/calibration.md
+so only the keys of :data:`.sim_keys.SIMULATED_KEYS` go into the TOML document; every other
+finding is written as a comment block at the end of the file (and is in report.json).
+docs/calibration.md
 "What the simulator reproduces" says which effects are which, and why.
 
 When a sensor declared ``ideal = true`` gets a found effect, its error model is switched on;
@@ -29,12 +30,7 @@ import numpy as np
 import tomli_w
 from koala_bridge.calibration.pipeline import StreamResult
 from koala_bridge.calibration.problem import split_params
-from koala_bridge.calibration.sim_keys import (  # noqa: F401 - re-exported
-    SIMULATED_KEYS,
-    _section_and_key,
-    config_path,
-    is_simulated,
-)
+from koala_bridge.calibration.sim_keys import _section_and_key, config_path, is_simulated
 
 #: Config section -> the simulator's error-model name (sim.sections.ERROR_PARAMS).
 _MODEL_OF = {"sensors.gyro": "gyro", "sensors.compass": "compass", "sensors.ir": "ir"}
@@ -50,13 +46,6 @@ def _set(doc: dict[str, Any], dotted: str, value: Any) -> None:
             node[key] = nxt
         node = nxt
     node[last] = value
-
-
-def effect_paths(res: StreamResult, inst: Any) -> list[str]:
-    """The dotted config keys one effect of ``res`` writes (simulated or not)."""
-    problem, after = res.problem, res.selection.after
-    params = split_params(problem, after.insts, after.x)[after.insts.index(inst)]
-    return [config_path(problem.section, key) for key in inst.config(params, problem)]
 
 
 def found_keys(results: Sequence[StreamResult]) -> dict[str, Any]:

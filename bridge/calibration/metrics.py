@@ -58,6 +58,11 @@ def _num(v: float) -> float | None:
     return float(f"{v:.6g}") if np.isfinite(v) else None
 
 
+def g4(v: float) -> str:
+    """A metric as the report and the notes print it: 4 significant digits, "-" for none."""
+    return f"{v:.4g}" if np.isfinite(v) else "-"
+
+
 def robust_sigma(r: FloatArray) -> float:
     """``1.4826 MAD``, MAD the median absolute deviation of ``r`` from its median: the standard
     deviation of the bulk of the errors, which a few gross ones do not move. When more than half

@@ -17,7 +17,7 @@ from koala_bridge.calibration.effects import available_effects, get_effect
 from koala_bridge.calibration.effects.base import EffectInstance
 from koala_bridge.calibration.effects.common import reference_noise_share
 from koala_bridge.calibration.errors import EffectRegistryError
-from koala_bridge.calibration.metrics import HeldOutStatistics, heldout_statistics
+from koala_bridge.calibration.metrics import HeldOutStatistics, g4, heldout_statistics
 from koala_bridge.calibration.model import DeclaredModel
 from koala_bridge.calibration.noise import StreamNoise, identify_noise
 from koala_bridge.calibration.problem import (
@@ -80,10 +80,6 @@ def _better(value: float, declared: float) -> bool:
     """Whether a held-out metric ``value`` beats the declared model's (by magnitude: a signed
     metric's sign says on which side, not how far)."""
     return bool(abs(value) < abs(declared))
-
-
-def _g(v: float) -> str:
-    return f"{v:.4g}"
 
 
 @dataclass
@@ -178,8 +174,8 @@ class StreamResult:
                      else "without the uncertain effects")
             out = [
                 r if r is not None or self.is_comment(inst) else (
-                    f"alone it does not improve the held-out error: {_g(value)} {alone} "
-                    f"against {_g(before)} declared")
+                    f"alone it does not improve the held-out error: {g4(value)} {alone} "
+                    f"against {g4(before)} declared")
                 for inst, r in zip(self.effects, out, strict=True)
             ]
         return out
@@ -205,11 +201,15 @@ class StreamResult:
                 out.append(None)
         return out
 
-    def is_comment(self, inst: EffectInstance) -> bool:
-        """Whether ``--write-config`` can write ``inst`` only as a comment (no simulator key)."""
+    def effect_paths(self, inst: EffectInstance) -> list[str]:
+        """The dotted config keys ``inst`` writes, simulated or not, at its final values."""
         p, after = self.problem, self.selection.after
         params = split_params(p, after.insts, after.x)[after.insts.index(inst)]
-        return not any(is_simulated(config_path(p.section, k)) for k in inst.config(params, p))
+        return [config_path(p.section, key) for key in inst.config(params, p)]
+
+    def is_comment(self, inst: EffectInstance) -> bool:
+        """Whether ``--write-config`` can write ``inst`` only as a comment (no simulator key)."""
+        return not any(is_simulated(path) for path in self.effect_paths(inst))
 
     def _written_eval(self) -> tuple[float | None, float, list[str]]:
         """``(metric, declared, comments)``: the held-out metric of the effects the written
@@ -222,9 +222,10 @@ class StreamResult:
             return memo[1]
         sel, p = self.selection, self.problem
         declared = float(p.metric_value(sel.before.insts, sel.before.x, "score"))
-        comments = [i.name for i in self.effects if self.is_comment(i)]
-        dropped = {id(i) for i, r in zip(self.effects, self._uncertain(), strict=True)
-                   if r is not None or self.is_comment(i)}
+        comment = [self.is_comment(i) for i in self.effects]
+        comments = [i.name for i, c in zip(self.effects, comment, strict=True) if c]
+        dropped = {id(i) for i, r, c in zip(self.effects, self._uncertain(), comment, strict=True)
+                   if r is not None or c}
         value: float | None = None
         if dropped:
             keep = [i for i in sel.after.insts if id(i) not in dropped]
@@ -369,7 +370,7 @@ def _note_secondary_worse(
     names = ", ".join(i.name for i, _ in sel.added)
     for m in secondary:
         b, a = (abs(m.before), abs(m.after)) if m.signed else (m.before, m.after)
-        if not (np.isfinite(a) and np.isfinite(b)) or f"{a:.4g}" == f"{b:.4g}" or a < b:
+        if not (np.isfinite(a) and np.isfinite(b)) or g4(a) == g4(b) or a < b:
             continue
         hint = ""
         if (m.metric.startswith("heading_error_") and m.metric.endswith("s_window_rms")
@@ -381,8 +382,8 @@ def _note_secondary_worse(
                 "model against a recording of slow, steady turns"
             )
         problem.notes.append(
-            f"{m.metric} worse on the held-out part with {names} ({b:.4g} -> {a:.4g} {m.unit}) "
-            f"while {problem.metric} improved ({before:.4g} -> {after:.4g} {problem.unit}); the "
+            f"{m.metric} worse on the held-out part with {names} ({g4(b)} -> {g4(a)} {m.unit}) "
+            f"while {problem.metric} improved ({g4(before)} -> {g4(after)} {problem.unit}); the "
             f"effects were chosen on {problem.metric}{hint}"
         )
 
@@ -480,27 +481,31 @@ def drop_implausible(problem: StreamProblem, sel: Selection) -> None:
     left then passes the backward check again (:func:`keep_only_helpful`: each must still
     improve the held-out part, and the whole beat "before"); with none left, "after" is the
     declared model."""
-    dropped = False
-    while sel.added:
-        params = split_params(problem, sel.after.insts, sel.after.x)
-        by_inst = {id(i): v for i, v in zip(sel.after.insts, params, strict=True)}
-        bad = next((i for i, _ in sel.added if not i.effect.plausible(i, by_inst[id(i)])), None)
-        if bad is None:
-            break
-        problem.notes.append(
-            f"{bad.name} dropped: refitted, it left its physical range "
-            f"({', '.join(f'{v:.4g}' for v in by_inst[id(bad)])})")
-        insts = [i for i in sel.after.insts if i is not bad]
-        sel.added = [(i, t) for i, t in sel.added if i is not bad]
-        sel.after = fit_model(problem, insts, problem.initial_vector(insts, sel.after.x,
-                                                                     sel.after.insts))
-        dropped = True
-    if dropped:
+    while _drop_one_implausible(problem, sel):
+        while _drop_one_implausible(problem, sel):
+            pass
         # what is left must still each improve the held-out part, and the whole beat before
         keep_only_helpful(problem, sel)
-        drop_implausible(problem, sel)
-    elif not sel.added:
+    if not sel.added:
         sel.after = sel.before
+
+
+def _drop_one_implausible(problem: StreamProblem, sel: Selection) -> bool:
+    """Drop the first kept effect outside its physical range, the rest refitted, with a note;
+    False when there is none."""
+    params = split_params(problem, sel.after.insts, sel.after.x)
+    by_inst = {id(i): v for i, v in zip(sel.after.insts, params, strict=True)}
+    bad = next((i for i, _ in sel.added if not i.effect.plausible(i, by_inst[id(i)])), None)
+    if bad is None:
+        return False
+    problem.notes.append(
+        f"{bad.name} dropped: refitted, it left its physical range "
+        f"({', '.join(f'{v:.4g}' for v in by_inst[id(bad)])})")
+    insts = [i for i in sel.after.insts if i is not bad]
+    sel.added = [(i, t) for i, t in sel.added if i is not bad]
+    sel.after = fit_model(problem, insts, problem.initial_vector(insts, sel.after.x,
+                                                                 sel.after.insts))
+    return True
 
 
 def _turn_on_bias_check(problem: StreamProblem, sel: Selection) -> None:

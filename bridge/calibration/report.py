@@ -40,13 +40,13 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from koala_bridge.calibration.metrics import (
     OUTLIER_SIGMAS,
     ErrorStatistics,
     HeldOutStatistics,
     _num,
     change,
+    g4,
 )
 from koala_bridge.calibration.noise import noise_json, noise_markdown, plot_allan
 from koala_bridge.calibration.pipeline import StreamResult
@@ -192,18 +192,14 @@ def report_json(stages: Sequence[Stage]) -> dict[str, Any]:
     return out
 
 
-def _g(v: float) -> str:
-    return f"{v:.4g}" if np.isfinite(v) else "-"
-
-
 def metric_text(m: SecondaryMetric, before: float) -> tuple[str, str, str, str]:
     """``(metric, before, after, change)`` as people read them: a signed metric by its
     magnitude, ``known_rotation_error magnitude (signed +0.23 -> -0.24)``."""
     ch = change(before, m.after).text
     if _is_signed(m, before, m.after):
         name = f"{m.metric} magnitude (signed {before:+.4g} -> {m.after:+.4g})"
-        return name, _g(abs(before)), _g(abs(m.after)), ch
-    return m.metric, _g(before), _g(m.after), ch
+        return name, g4(abs(before)), g4(abs(m.after)), ch
+    return m.metric, g4(before), g4(m.after), ch
 
 
 def metric_lines(stage: Stage, res: StreamResult) -> list[str]:
@@ -218,7 +214,7 @@ def metric_lines(stage: Stage, res: StreamResult) -> list[str]:
     for i, m in enumerate(res.metrics()):
         name, before, after, ch = metric_text(m, _before(stage, res, m))
         tail = (f"; the written model (uncertain and comment-only effects left out): "
-                f"{_g(abs(written))}"
+                f"{g4(abs(written))}"
                 if i == 0 and written is not None else "")
         out.append(
             f"{res.problem.name} {name}: {before} -> {after} {m.unit}, {ch} [{effects or '-'}]"
@@ -239,10 +235,10 @@ def metric_lines(stage: Stage, res: StreamResult) -> list[str]:
 
 def _stats_cells(b: ErrorStatistics, a: ErrorStatistics) -> list[str]:
     return [
-        f"{_g(b.rms)} -> {_g(a.rms)}",
-        f"{_g(b.median_abs)} -> {_g(a.median_abs)}",
-        f"{_g(b.p95_abs)} -> {_g(a.p95_abs)}",
-        f"{_g(100 * b.outlier_fraction)} % -> {_g(100 * a.outlier_fraction)} %",
+        f"{g4(b.rms)} -> {g4(a.rms)}",
+        f"{g4(b.median_abs)} -> {g4(a.median_abs)}",
+        f"{g4(b.p95_abs)} -> {g4(a.p95_abs)}",
+        f"{g4(100 * b.outlier_fraction)} % -> {g4(100 * a.outlier_fraction)} %",
     ]
 
 
@@ -266,7 +262,7 @@ def _heldout_table(stages: Sequence[Stage], staged: bool) -> list[str]:
         for res in stage.results:
             st = heldout_statistics(res, stage)
             row = [res.problem.name, res.problem.unit, str(st.n)]
-            row += _stats_cells(st.before, st.after) + [_g(st.threshold)]
+            row += _stats_cells(st.before, st.after) + [g4(st.threshold)]
             lines.append(
                 ("| `" + stage.source + "` " if staged else "") + "| " + " | ".join(row) + " |"
             )
@@ -405,7 +401,7 @@ def report_markdown(stages: Sequence[Stage], diff: str, plots: bool) -> str:
             for i, m in enumerate(res.metrics()):
                 name, before, after, ch = metric_text(m, _before(stage, res, m))
                 if i == 0 and written is not None:
-                    after += f" (written model: {_g(abs(written))})"
+                    after += f" (written model: {g4(abs(written))})"
                 lines.append(
                     prefix + f"| {res.problem.name} | {name} | {m.unit} | {before} | {after} | "
                     f"{ch} | {', '.join(names) or '-'} |"

@@ -31,9 +31,7 @@ from typing import Any
 
 from koala_bridge.calibration.bundle import load_input
 from koala_bridge.calibration.config_update import (
-    effect_paths,
     found_keys,
-    is_simulated,
     noise_keys,
     updated_config,
 )
@@ -47,6 +45,7 @@ from koala_bridge.calibration.model import (
 )
 from koala_bridge.calibration.pipeline import Options, Progress, StreamResult, calibrate
 from koala_bridge.calibration.problem import FloatArray, SkippedStream
+from koala_bridge.calibration.sim_keys import is_simulated
 
 log = logging.getLogger(__name__)
 
@@ -87,7 +86,7 @@ def _effect_keys(res: StreamResult) -> list[tuple[str, dict[str, float], dict[st
     written = found_keys([res])
     out = []
     for inst, (named, _) in zip(res.effects, res.effect_params(), strict=True):
-        paths = effect_paths(res, inst)
+        paths = res.effect_paths(inst)
         keys = {p: written[p] for p in paths if is_simulated(p) and p in written}
         out.append((inst.name, named, keys))
     return out
