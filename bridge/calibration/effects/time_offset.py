@@ -18,9 +18,9 @@ least, is implausible: at its edge the best latency may lie beyond it (the strea
 reference stamped on clocks 0.8 s apart gave 0.499 s, and a gain of 0.07 came with it), and
 beyond it least squares walked from the grid's best to a shift by a large part of the motion's
 period, which stands in for something else (readings of the opposite sign matched half a period
-later). Odometry's
-``tau`` is not searched (it starts at 0, its windows re-anchored to the reference) and has no
-such bound: an odometry log stamped on another clock is a latency of any size.
+later). Odometry's ``tau`` is not searched (it starts at 0, its windows re-anchored to the
+reference) and has no such bound: an odometry log stamped on another clock is a latency of any
+size.
 
 A scalar stream's ``tau`` is determined by the reference's signal, not its noise: with a
 reference that is mostly noise (a still gyro against a differentiated optical heading) a
@@ -55,17 +55,17 @@ def search_window(problem: Any) -> tuple[float, float]:
     return (step, span) if step > 0 and span >= step else (0.0, 0.0)
 
 
-def coarse_lag(problem: Any) -> float:
-    """The grid ``tau`` (module docstring) whose shifted reference correlates best with the
-    readings on the fit part; 0 when nothing correlates."""
+def coarse_lag(problem: Any, step: float, span: float) -> float:
+    """The ``tau`` of the grid ``(step, span)`` (:func:`search_window`) whose shifted reference
+    correlates best with the readings on the fit part; 0 without a grid, or when nothing
+    correlates."""
+    if not span:
+        return 0.0
     t_ref, u_ref = problem.reference
     fit = problem.split.mask(problem.t, "fit")
     t, y = problem.t[fit], problem.y[fit]
     ok = np.isfinite(y)
     t, y = t[ok], y[ok]
-    step, span = search_window(problem)
-    if not span:
-        return 0.0
     taus = np.arange(-span, span + step / 2, step)
     yc = y - y.mean()
     best, best_r = 0.0, -np.inf
@@ -91,7 +91,7 @@ class TimeOffset(Effect):
         if problem.kind != "scalar":
             return [EffectInstance(self.name, self, ("tau_s",), (0.0,))]
         step, span = search_window(problem)
-        return [EffectInstance(self.name, self, ("tau_s",), (coarse_lag(problem),),
+        return [EffectInstance(self.name, self, ("tau_s",), (coarse_lag(problem, step, span),),
                                data={"span_s": span, "inside_s": span - step})]
 
     def plausible(self, inst: EffectInstance, params: Any) -> bool:
