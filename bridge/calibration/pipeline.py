@@ -82,6 +82,23 @@ def _better(value: float, declared: float) -> bool:
     return bool(abs(value) < abs(declared))
 
 
+@dataclass(frozen=True)
+class WrittenModel:
+    """What ``--write-config`` writes of a stream, scored on the held-out part
+    (:meth:`StreamResult._written_eval`)."""
+
+    #: held-out metric of the written effects at their final values; None when every effect
+    #: is written (then it is *after*)
+    value: float | None
+    #: the declared model's
+    declared: float
+    #: effects written only as comments (the simulator has no key for them)
+    comments: list[str]
+    #: simulated effects left out because the written model beats the declared one only
+    #: without them: name -> the written model's metric with it (before it was left out)
+    unhelpful: dict[str, float]
+
+
 @dataclass
 class StreamResult:
     """Everything the report needs about one stream."""
@@ -97,7 +114,7 @@ class StreamResult:
     #: selected on a decimated subset carries them to the full stream's result
     selection_notes: list[str] = field(default_factory=list)
     #: :meth:`_written_eval`, with the final fit it was computed for
-    _written_memo: tuple[Any, tuple[float | None, float, list[str]]] | None = field(
+    _written_memo: tuple[Any, WrittenModel] | None = field(
         default=None, init=False, repr=False, compare=False)
     #: :meth:`_params_and_se` of the final fit it was computed for
     _se_memo: tuple[tuple[Any, ...], list[tuple[FloatArray, FloatArray | None]]] | None = field(
@@ -168,17 +185,25 @@ class StreamResult:
         held-out error no better than the declared model's: they only help beside those (a
         gyro's +2.2 % scale with the time offset it was fitted with, worse than none alone)."""
         out = self._uncertain()
-        value, before, comments = self._written_eval()
-        if value is not None and not _better(value, before):
-            alone = (f"without {', '.join(comments)} (written only as a comment)" if comments
-                     else "without the uncertain effects")
-            out = [
-                r if r is not None or self.is_comment(inst) else (
-                    f"alone it does not improve the held-out error: {g4(value)} {alone} "
-                    f"against {g4(before)} declared")
-                for inst, r in zip(self.effects, out, strict=True)
-            ]
-        return out
+        w = self._written_eval()
+        if not w.unhelpful:
+            return out
+        alone = (f"without {', '.join(w.comments)} (written only as a comment)" if w.comments
+                 else "without the uncertain effects")
+        besides = (f"{', '.join(w.comments)} written only as a comment" if w.comments
+                   else "the uncertain effects left out")
+        shown = g4(w.value if w.value is not None else w.declared)
+        if len(w.unhelpful) == sum(r is None and not self.is_comment(i)
+                                   for i, r in zip(self.effects, out, strict=True)):
+            # none is left to write
+            first = next(iter(w.unhelpful.values()))
+            why = {name: (f"alone it does not improve the held-out error: {g4(first)} {alone} "
+                          f"against {g4(w.declared)} declared") for name in w.unhelpful}
+        else:
+            why = {name: (f"the written model does not beat the declared one with it: "
+                          f"{g4(with_it)} with it, {shown} without it ({besides}), against "
+                          f"{g4(w.declared)} declared") for name, with_it in w.unhelpful.items()}
+        return [why.get(inst.name, r) for inst, r in zip(self.effects, out, strict=True)]
 
     def _uncertain(self) -> list[str | None]:
         out: list[str | None] = []
@@ -211,12 +236,14 @@ class StreamResult:
         """Whether ``--write-config`` can write ``inst`` only as a comment (no simulator key)."""
         return not any(is_simulated(path) for path in self.effect_paths(inst))
 
-    def _written_eval(self) -> tuple[float | None, float, list[str]]:
-        """``(metric, declared, comments)``: the held-out metric of the effects the written
-        config can hold (certain and simulated), at the values the final fit gave them -- what a
-        reader who simulates it gets, no refit -- or None when that is every effect; the
-        declared model's; the names of the effects written only as comments. Kept for the same
-        final fit: the report asks for it in several places."""
+    def _written_eval(self) -> WrittenModel:
+        """The effects the written config can hold (certain and simulated), at the values the
+        final fit gave them -- what a reader who simulates it gets, no refit -- scored on the
+        held-out part. When they do not beat the declared model, the simulated effect whose
+        removal leaves the best held-out metric is left out, in turn, until they do or none is
+        left: a gyro's +2.2 % scale that helps only beside the time offset it was fitted with
+        is left out, the bias beside it written. Kept for the same final fit: the report asks
+        for it in several places."""
         memo = self._written_memo
         if memo is not None and memo[0] is self.selection.after:
             return memo[1]
@@ -226,12 +253,27 @@ class StreamResult:
         comments = [i.name for i, c in zip(self.effects, comment, strict=True) if c]
         dropped = {id(i) for i, r, c in zip(self.effects, self._uncertain(), comment, strict=True)
                    if r is not None or c}
+
+        def score(keep: list[EffectInstance]) -> float:
+            if not keep:
+                return declared
+            return float(p.metric_value(
+                keep, p.initial_vector(keep, sel.after.x, sel.after.insts), "score"))
+
         value: float | None = None
+        unhelpful: dict[str, float] = {}
         if dropped:
             keep = [i for i in sel.after.insts if id(i) not in dropped]
-            value = declared if not keep else float(p.metric_value(
-                keep, p.initial_vector(keep, sel.after.x, sel.after.insts), "score"))
-        result = (value, declared, comments)
+            value = score(keep)
+            simulated = {id(i) for i in self.effects}  # the nuisance instances stay
+            while not _better(value, declared) and any(id(i) in simulated for i in keep):
+                options = [[j for j in keep if j is not i] for i in keep if id(i) in simulated]
+                scores = [score(o) for o in options]
+                best = int(np.argmin(np.abs(scores)))
+                (gone,) = [i for i in keep if i not in options[best]]
+                unhelpful[gone.name] = value
+                keep, value = options[best], scores[best]
+        result = WrittenModel(value, declared, comments, unhelpful)
         self._written_memo = (sel.after, result)
         return result
 
@@ -241,10 +283,10 @@ class StreamResult:
         them all: *after* counts every effect found, and a reader who simulates the written
         config sees this. The written effects at the values the final fit gave them, or the
         declared model when those would not beat it (then none is written)."""
-        value, before, _ = self._written_eval()
-        if value is None:
+        w = self._written_eval()
+        if w.value is None:
             return None
-        return value if _better(value, before) else before
+        return w.value if _better(w.value, w.declared) else w.declared
 
     def heldout_statistics(self, before: FloatArray | None = None) -> HeldOutStatistics:
         """Robust statistics of the held-out errors before and after
@@ -641,6 +683,7 @@ def calibrate(
             if isinstance(p, ScalarProblem) and isinstance(full, ScalarProblem) and full is not p:
                 # measured on the stream's consecutive samples, not the subset's random rows
                 p.reference_share = reference_noise_share(full)
+                p.full = full
             res = run_stream(p, options, progress)
             out.append(res if small is bundle or full is None else refit_full(full, res))
         return out

@@ -155,6 +155,17 @@ class StreamProblem(ABC):
         """Further metrics on the score part (default: none)."""
         return []
 
+    def further_errors(
+        self,
+        old: tuple[Sequence[EffectInstance], FloatArray],
+        new: tuple[Sequence[EffectInstance], FloatArray],
+    ) -> tuple[str, FloatArray, FloatArray] | None:
+        """A further held-out metric that may show an effect's practical size when the
+        stream's own metric cannot (:mod:`koala_bridge.calibration.selection`): its name and
+        its independent errors (one per unit, say per window) under ``old`` and ``new``, in
+        the same order; default: none."""
+        return None
+
     def heldout_errors(self, insts: Sequence[EffectInstance], x: FloatArray) -> FloatArray:
         """One error per held-out measurement, in :attr:`unit`, for the report's robust
         statistics (:mod:`koala_bridge.calibration.metrics`); default: the score residual."""

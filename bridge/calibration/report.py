@@ -51,6 +51,7 @@ from koala_bridge.calibration.metrics import (
 from koala_bridge.calibration.noise import noise_json, noise_markdown, plot_allan
 from koala_bridge.calibration.pipeline import StreamResult
 from koala_bridge.calibration.problem import SecondaryMetric
+from koala_bridge.calibration.selection import Trial
 from koala_bridge.calibration.stages import Stage
 
 log = logging.getLogger(__name__)
@@ -213,7 +214,7 @@ def metric_lines(stage: Stage, res: StreamResult) -> list[str]:
     written = res.after_written()
     for i, m in enumerate(res.metrics()):
         name, before, after, ch = metric_text(m, _before(stage, res, m))
-        tail = (f"; the written model (uncertain and comment-only effects left out): "
+        tail = (f"; the written model (uncertain, comment-only and unhelpful effects left out): "
                 f"{g4(abs(written))}"
                 if i == 0 and written is not None else "")
         out.append(
@@ -338,7 +339,9 @@ def _stream_markdown(res: StreamResult, stage: Stage, plot: str | None, heading:
             )
     lines += [
         "",
-        "Candidates per round (dBIC < 0, LR > threshold, gain >= 1 % to pass):",
+        "Candidates per round (dBIC < 0, LR > threshold, gain >= 1 % to pass; a gain in "
+        "brackets is of the further metric named, asked when the stream's own gain was below "
+        "1 %, and must pass a one-sided paired t-test too):",
         "",
         "| round | candidate | dBIC (fit) | held-out LR | threshold | held-out gain | pass |",
         "|---|---|---|---|---|---|---|",
@@ -347,14 +350,21 @@ def _stream_markdown(res: StreamResult, stage: Stage, plot: str | None, heading:
         for t in trials:
             lines.append(
                 f"| {i} | {t.name} | {t.delta_bic:.4g} | {t.lr:.4g} | "
-                f"{t.lr_threshold:.3g} | {100 * t.relative_gain:.2f} % | "
-                f"{'yes' if t.passed else ''} |"
+                f"{t.lr_threshold:.3g} | {_gain_cell(t)} | {'yes' if t.passed else ''} |"
             )
     if plot is not None:
         lines += ["", f"![{p.name} residuals]({plot})"]
     if res.noise is not None:
         lines += noise_markdown(res.noise, plot and plot.replace("residuals_", "allan_", 1))
     return lines
+
+
+def _gain_cell(t: Trial) -> str:
+    cell = f"{100 * t.relative_gain:.2f} %"
+    if t.further is not None:
+        f = t.further
+        cell += f" ({f.metric}: {100 * f.gain:.2f} %, paired t {f.t:.3g}/{f.t_threshold:.3g})"
+    return cell
 
 
 def _plot_name(stage: Stage, res: StreamResult, staged: bool) -> str:

@@ -14,7 +14,8 @@ Reading the report: each stream is fitted on the first 60 % of its time span and
 last 40 % (held out); "before" is the declared model exactly as declared, "after" the model with
 the effects found. --write-config writes an effect only when it is certain (at least 2.58
 standard errors from the declared value) and when the written effects, at their values, beat the
-declared model on held-out data without the ones it cannot hold; an effect the simulator has no
+declared model on held-out data without the ones it cannot hold (when they do not, the effect
+that helps least is left out, in turn, until they do); an effect the simulator has no
 key for (a time offset, a covariate, a range bias of a sonar) is written as a comment, and "the
 written model" is the held-out error of what is written. Every stream, and every candidate not
 tried or not kept, has a note saying why (a column that is another channel of the measured

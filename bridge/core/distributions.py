@@ -1,11 +1,11 @@
 """The few distribution functions the filters and the calibration need, from ``scipy.special``.
 
 ``scipy.stats`` builds every distribution object of its catalogue on import: ~0.5 s of a
-command's start-up (``koala-bridge calibrate``, ``run`` with the localisation node) for four
+command's start-up (``koala-bridge calibrate``, ``run`` with the localisation node) for five
 numbers. ``scipy.stats`` computes these same quantities with the same ``scipy.special``
-functions (its ``chi2._ppf``/``_isf``, ``norm._sf``/``_ppf``, ``binom._sf``), so the values are
-the same to the last bit or two (``tests/unit/test_distributions.py`` holds them to 1e-12 of
-``scipy.stats``).
+functions (its ``chi2._ppf``/``_isf``, ``norm._sf``/``_ppf``, ``t._ppf``, ``binom._sf``), so
+the values are the same to the last bit or two (``tests/unit/test_distributions.py`` holds
+them to 1e-12 of ``scipy.stats``).
 """
 
 from __future__ import annotations
@@ -21,6 +21,11 @@ def chi2_ppf(q: float, dof: float) -> float:
 def norm_ppf(q: float) -> float:
     """Quantile of the standard normal distribution (``stats.norm.ppf``)."""
     return float(special.ndtri(q))
+
+
+def t_ppf(q: float, dof: float) -> float:
+    """Quantile of Student's t distribution with ``dof`` degrees of freedom (``stats.t.ppf``)."""
+    return float(special.stdtrit(dof, q))
 
 
 def norm_sf(z: float) -> float:

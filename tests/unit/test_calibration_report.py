@@ -461,3 +461,44 @@ def test_a_simulated_effect_that_helps_only_beside_a_comment_is_not_written(
                 if e["metric"] == "rms_rate_error")
     assert entry["effects"][0]["written_as"] == "comment"
     assert entry["effects"][1]["written"] is False
+
+
+def test_the_simulated_effect_that_spoils_the_written_model_is_left_out_and_the_rest_written(
+    tmp_path: Path,
+) -> None:
+    # The scale above beside a real bias: written together (without the time offset) they lose
+    # to the declared model; left out in turn, the scale goes (its removal leaves the better
+    # model) and the bias, which beats the declared model on its own, is written.
+    from dataclasses import replace
+
+    from koala_bridge.calibration.pipeline import candidates_for
+
+    inj = Injected(gyro_time_offset=0.05, gyro_bias=0.05)
+    bundle = load_bundle(make_bundle(tmp_path / "b", 5, inj))
+    (problem,) = (r.problem for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
+                  if r.problem.name == "gyro")
+    cands = {c.name: c for c in candidates_for(problem)}
+    tau, scale, bias = cands["time_offset"], cands["scale"], cands["bias"]
+    insts = [tau, scale, bias]
+    before = fit_model(problem, [], problem.nuisance_x0())
+    full = fit_model(problem, insts, problem.initial_vector(insts, before.x, []))
+    x = full.x.copy()
+    x[len(problem.nuisance_x0()) + tau.n_free] = 0.2        # a gain 20 % high, kept
+    after = replace(full, x=x)
+    trial = judge(before, after, 1, 1, 0.0)
+    res = StreamResult(problem, Selection(problem, before, after, [(i, trial) for i in insts]),
+                       problem.metric_value([], before.x, "score"),
+                       problem.metric_value(after.insts, after.x, "score"))
+
+    def alone(keep: list) -> float:
+        return problem.metric_value(keep, problem.initial_vector(keep, x, insts), "score")
+
+    assert alone([scale, bias]) > res.before           # both, as written, lose
+    assert alone([bias]) < res.before < alone([scale])  # the bias alone wins, the scale loses
+    tau_why, scale_why, bias_why = res.not_written()
+    assert tau_why is None and bias_why is None
+    assert scale_why is not None
+    assert scale_why.startswith("the written model does not beat the declared one with it")
+    keys = found_keys([res])
+    assert "sensors.gyro.bias_rad_s" in keys and "sensors.gyro.scale_factor_error" not in keys
+    assert res.after_written() == pytest.approx(alone([bias]))

@@ -18,6 +18,12 @@ def test_norm_ppf(q: float) -> None:
     assert d.norm_ppf(q) == pytest.approx(stats.norm.ppf(q), rel=1e-12)
 
 
+@pytest.mark.parametrize("q", [0.01, 0.5, 0.99, 1 - 0.01 / 7])
+@pytest.mark.parametrize("dof", [1, 2, 7, 28, 1000])
+def test_t_ppf(q: float, dof: int) -> None:
+    assert d.t_ppf(q, dof) == pytest.approx(stats.t.ppf(q, dof), rel=1e-12)
+
+
 @pytest.mark.parametrize("z", [-2.0, 0.0, 3.0, 8.0])
 def test_norm_sf(z: float) -> None:
     assert d.norm_sf(z) == pytest.approx(stats.norm.sf(z), rel=1e-12)
