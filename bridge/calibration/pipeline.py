@@ -339,13 +339,14 @@ def run_stream(
             progress(problem.name, done, len(cands))
 
     sel = select_effects(problem, cands, options.max_effects, on_trial=tick)
-    selection_notes = list(problem.notes[noted:])
     if getattr(problem, "turn_on_bias_sigma", 0.0) > 0 and (
         options.effects is None or "bias" in options.effects
     ):
         _turn_on_bias_check(problem, sel)
     sel.before = declared_fit(problem, sel.before)
     keep_only_helpful(problem, sel)
+    # what was decided here holds for the whole stream (refit_full checks plausibility again)
+    selection_notes = list(problem.notes[noted:])
     drop_implausible(problem, sel)
     before = problem.metric_value(sel.before.insts, sel.before.x, "score")
     after = problem.metric_value(sel.after.insts, sel.after.x, "score")

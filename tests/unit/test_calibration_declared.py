@@ -139,3 +139,24 @@ def test_what_an_implausible_drop_leaves_passes_the_backward_check_again(
         assert _score(sel, sel.after) < _score(sel, sel.before)
     else:
         assert sel.after is sel.before
+
+
+@pytest.mark.parametrize("injected", [0.0, 20.0])
+def test_the_turn_on_bias_verdict_reaches_a_decimated_streams_report(
+    tmp_path: Path, injected: float
+) -> None:
+    # A stream longer than max_rows is selected on a subset and refitted whole; the turn-on
+    # bias is judged on the subset, and its note (within the spread, or beyond it: a bias the
+    # model lacks) was lost on the way to the whole stream's report.
+    from koala_bridge.calibration.pipeline import Options
+
+    sigma = 0.002
+    bundle = load_bundle(make_bundle(tmp_path / "b", 3, Injected(gyro_bias=injected * sigma)))
+    assert len(bundle.tables["gyro"]) > 2 * 400
+    (gyro,) = (r for r in calibrate(bundle, declared_model(_declared_with_turn_on(sigma),
+                                                           bundle.meta),
+                                    Options(max_rows=400))
+               if r.problem.name == "gyro")
+    (note,) = (n for n in gyro.problem.notes if n.startswith("turn-on bias fitted"))
+    assert ("beyond the declared spread" in note) == (injected > 0)
+    assert ("bias" in [i.name for i in gyro.effects]) == (injected > 0)
