@@ -388,7 +388,9 @@ def report_markdown(stages: Sequence[Stage], diff: str, plots: bool) -> str:
         "Fit on the first 60 % of each stream's time span, scored on the last 40 %. "
         "An effect is added when it lowers the fit-part BIC, passes the held-out "
         "likelihood-ratio test (alpha = 0.01, Bonferroni over the round's candidates, "
-        "effective sample size) and lowers the held-out RMS by at least 1 %.",
+        "effective sample size) and lowers the held-out RMS by at least 1 % (a gyro's bias or "
+        "bias drift that lowers it by less: its held-out heading by at least 1 %, "
+        "significantly).",
         "",
     ]
     lines += [

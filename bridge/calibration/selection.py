@@ -11,12 +11,13 @@ Per stream, starting from the declared model (nuisance parameters fitted):
      chi-square quantile ``chi2_k(1 - alpha / K)``; ``alpha = 0.01``, ``K`` the number of
      candidates tried in this round (Bonferroni), ``k`` the effect's parameter count;
    * **practical size**: held-out RMS drops by at least 1 %, or, when it drops by less (but
-     does drop), a further held-out metric the stream names (:meth:`StreamProblem.further_errors`:
-     a gyro's heading, where a bias too small to show beside the rate error of fast motion is
-     most of the heading error) drops by at least 1 % *and* significantly: a one-sided paired
-     t-test over its independent errors (the heading windows) of ``e_old^2 - e_new^2``, level
-     ``alpha``. A few windows' RMS moves by several per cent by chance; the test keeps an effect
-     from passing on that;
+     does drop), a further held-out metric the stream names for the candidate
+     (:meth:`StreamProblem.further_errors`: a gyro's heading for its bias or bias drift, where
+     a bias too small to show beside the rate error of fast motion is most of the heading
+     error) drops by at least 1 % *and* significantly: a one-sided paired t-test over its
+     independent errors (the heading windows) of ``e_old^2 - e_new^2``, level ``alpha / K``.
+     A few windows' RMS moves by several per cent by chance; the test keeps an effect from
+     passing on that;
 
    where the residual sums are of *prewhitened* residuals ``w_i = r_i - rho r_(i-1)``
    (Cochrane & Orcutt 1949) and ``n_f``, ``n_s`` their counts, so that correlated residuals do
@@ -139,18 +140,24 @@ class FurtherGain:
         return bool(self.gain >= MIN_RELATIVE_GAIN and self.t > self.t_threshold)
 
 
-def further_gain(metric: str, old: FloatArray, new: FloatArray) -> FurtherGain:
+def further_gain(metric: str, old: FloatArray, new: FloatArray, n_tests: int = 1) -> FurtherGain:
     """The relative drop ``1 - rms(new) / rms(old)`` of paired independent errors, and the
-    one-sided paired t-test of ``old^2 - new^2`` at level ``ALPHA`` (nan below 3 pairs)."""
-    n = min(old.size, new.size)
-    if n < 3 or not np.all(np.isfinite(old[:n])) or not np.all(np.isfinite(new[:n])):
+    one-sided paired t-test of ``old^2 - new^2`` at level ``ALPHA / n_tests`` (Bonferroni over
+    a round's candidates, as the likelihood-ratio test; nan below 3 pairs)."""
+    if old.shape != new.shape:
+        raise ValueError(f"{metric}: {old.size} errors before, {new.size} after: not paired")
+    n = old.size
+    if n < 3 or not np.all(np.isfinite(old)) or not np.all(np.isfinite(new)):
         return FurtherGain(metric, np.nan, np.nan, np.nan)
-    ss_old, ss_new = _ss(old[:n]), _ss(new[:n])
+    ss_old, ss_new = _ss(old), _ss(new)
     gain = 1 - np.sqrt(ss_new / ss_old) if ss_old > 0 else np.nan
-    d = old[:n] ** 2 - new[:n] ** 2
-    sd = float(np.std(d, ddof=1))
-    t = float(np.mean(d)) / (sd / np.sqrt(n)) if sd > 0 else np.nan
-    return FurtherGain(metric, float(gain), t, t_ppf(1 - ALPHA, n - 1))
+    d = old**2 - new**2
+    mean, sd = float(np.mean(d)), float(np.std(d, ddof=1))
+    if sd > 0:
+        t = mean / (sd / np.sqrt(n))
+    else:  # the same change in every window: certain, whichever way it goes
+        t = float(np.sign(mean)) * np.inf if mean != 0 else np.nan
+    return FurtherGain(metric, float(gain), t, t_ppf(1 - ALPHA / max(n_tests, 1), n - 1))
 
 
 @dataclass
@@ -478,7 +485,9 @@ def _judge_likelihood(old: Fit, new: Fit, k: int, n_candidates: int, rho: float)
     return Trial(name, k, float(dbic), float(lr), thr, gain, passed, new)
 
 
-def _practical_by_further(problem: StreamProblem, old: Fit, trial: Trial) -> None:
+def _practical_by_further(
+    problem: StreamProblem, old: Fit, trial: Trial, n_candidates: int
+) -> None:
     """Pass ``trial`` on the further metric's practical size (module docstring) when it
     failed on the practical size alone: significant on the fit and held-out parts, and the
     stream's own held-out metric not worse."""
@@ -494,7 +503,8 @@ def _practical_by_further(problem: StreamProblem, old: Fit, trial: Trial) -> Non
         return
     errors = problem.further_errors((old.insts, old.x), (new.insts, new.x))
     if errors is not None:
-        trial.further = further_gain(*errors)
+        metric, before, after = errors
+        trial.further = further_gain(metric, before, after, n_candidates)
         trial.passed = trial.further.passed
 
 
@@ -547,7 +557,7 @@ def select_effects(
             x0 = problem.initial_vector(insts, current.x, current.insts)
             new = fit_model(problem, insts, x0)
             trial = judge(current, new, cand.effect.n_tested(cand), len(remaining), rho, counts)
-            _practical_by_further(problem, current, trial)
+            _practical_by_further(problem, current, trial, len(remaining))
             *earlier, params = split_params(problem, new.insts, new.x)
             if not cand.effect.plausible(cand, params):
                 trial.implausible = True

@@ -72,6 +72,16 @@ class ScalarState:
         return np.asarray(y, dtype=float)
 
 
+#: the effects a gyro's heading may show the practical size of
+#: (:meth:`ScalarProblem.further_errors`): a rate offset, constant or linear in time, is a
+#: heading drift by its physical reading. Any other would earn it through a correlation with a
+#: slow error the held-out windows share: a bias that wanders (a random walk over a 10-minute
+#: run) has the same sign in every window, so a slowly varying column (a warming chip's
+#: temperature) that takes up a part of it lowers every window's heading error a little,
+#: "significantly", and is no influence at all.
+HEADING_EFFECTS = frozenset({"bias", "bias_drift"})
+
+
 @dataclass
 class ScalarProblem(StreamProblem):
     """A scalar stream; see the module docstring. Built by :mod:`calibration.streams`."""
@@ -315,11 +325,12 @@ class ScalarProblem(StreamProblem):
         old: tuple[Sequence[EffectInstance], FloatArray],
         new: tuple[Sequence[EffectInstance], FloatArray],
     ) -> tuple[str, FloatArray, FloatArray] | None:
-        """A rate sensor's heading (:meth:`heading_window_errors`): what a gyro is read for. A
-        rate error small beside the fast motion's (filter lag, vibration) can be most of the
-        heading error it integrates to, as a bias of 0.02 rad/s beside a 12.5 Hz oscillation is."""
+        """A rate sensor's heading (:meth:`heading_window_errors`), what a gyro is read for, for
+        a candidate (``new``'s last effect) of :data:`HEADING_EFFECTS`. A rate error small
+        beside the fast motion's (filter lag, vibration) can be most of the heading error it
+        integrates to, as a bias of 0.02 rad/s beside a 12.5 Hz oscillation is."""
         src = self.full or self
-        if src.heading_window_s is None:
+        if src.heading_window_s is None or new[0][-1].name not in HEADING_EFFECTS:
             return None
         w = src.heading_window_s
         return (
