@@ -34,6 +34,7 @@ from koala_bridge.calibration.selection import (
     Fit,
     Selection,
     Trial,
+    at_values,
     fit_model,
     heldout_score,
     parameter_se,
@@ -344,6 +345,7 @@ def run_stream(
     ):
         _turn_on_bias_check(problem, sel)
     sel.before = declared_fit(problem, sel.before)
+    sel.after = declared_fit(problem, sel.after)
     keep_only_helpful(problem, sel)
     # what was decided here holds for the whole stream (refit_full checks plausibility again)
     selection_notes = list(problem.notes[noted:])
@@ -448,15 +450,19 @@ def _note_known_rotation(problem: StreamProblem, secondary: Sequence[SecondaryMe
 
 
 def declared_fit(problem: StreamProblem, fit: Fit) -> Fit:
-    """``fit`` with the declared model's per-run (turn-on) bias held to what it declares.
+    """``fit`` with the declared model's per-run (turn-on) bias held to what it declares
+    (:func:`koala_bridge.calibration.selection.at_values`: the other parameters as fitted).
 
     "Before" is the declared model exactly as declared (issue 16): a turn-on bias declared as
     ``N(mu, sigma^2)`` says the run's bias is unknown *within that spread*, so "before" may fit
     it, but only inside ``mu +- z(1 - alpha/2) sigma`` (2.58 sigma). Fitting it without a bound
     absorbed any bias, however far beyond the declared spread, and before equalled after on a
     gyro whose bias the model lacked. A bias beyond the bound is then a found effect
-    (:func:`_turn_on_bias_check`). Other nuisance parameters (magnetic north, the field's
-    magnitude) are quantities the declared model itself leaves unknown and stay fitted.
+    (:func:`_turn_on_bias_check`). "After" and every model the backward checks refit are held
+    the same way: a nuisance beyond the bound that the z test did not call a bias (its
+    standard error large) would otherwise be a fitted parameter that improves the held-out
+    error unreported. Other nuisance parameters (magnetic north, the field's magnitude) are
+    quantities the declared model itself leaves unknown and stay fitted.
     """
     sigma = float(getattr(problem, "turn_on_bias_sigma", 0.0))
     if sigma <= 0 or not len(fit.x):
@@ -466,8 +472,13 @@ def declared_fit(problem: StreamProblem, fit: Fit) -> Fit:
         return fit
     x = fit.x.copy()
     x[0] = float(np.clip(x[0], -bound, bound))
-    return Fit(list(fit.insts), x, problem.residuals(fit.insts, x, "fit"),
-               problem.residuals(fit.insts, x, "score"))
+    return at_values(problem, fit, x)
+
+
+def _declared_refit(problem: StreamProblem, insts: list[EffectInstance], start: Fit) -> Fit:
+    """``insts`` refitted from ``start``'s values, the turn-on bias held (:func:`declared_fit`)."""
+    return declared_fit(problem, fit_model(
+        problem, insts, problem.initial_vector(insts, start.x, start.insts)))
 
 
 def keep_only_helpful(problem: StreamProblem, sel: Selection) -> None:
@@ -489,9 +500,8 @@ def keep_only_helpful(problem: StreamProblem, sel: Selection) -> None:
             if inst.name == "bias" and getattr(problem, "turn_on_bias_sigma", 0.0) > 0:
                 continue    # judged by its z test against the declared spread (without
                 #             it the nuisance takes the same value back)
-            insts = [i for i in sel.after.insts if i is not inst]
-            fit = fit_model(problem, insts, problem.initial_vector(insts, sel.after.x,
-                                                                   sel.after.insts))
+            fit = _declared_refit(problem, [i for i in sel.after.insts if i is not inst],
+                                  sel.after)
             s = score(fit)
             if s <= current and (best is None or s < best[0]):
                 best = (s, inst, fit)
@@ -546,8 +556,7 @@ def _drop_one_implausible(problem: StreamProblem, sel: Selection) -> bool:
         f"({', '.join(f'{v:.4g}' for v in by_inst[id(bad)])})")
     insts = [i for i in sel.after.insts if i is not bad]
     sel.added = [(i, t) for i, t in sel.added if i is not bad]
-    sel.after = fit_model(problem, insts, problem.initial_vector(insts, sel.after.x,
-                                                                 sel.after.insts))
+    sel.after = _declared_refit(problem, insts, sel.after)
     return True
 
 
@@ -564,9 +573,14 @@ def _turn_on_bias_check(problem: StreamProblem, sel: Selection) -> None:
     se = float(parameter_se(problem, fit)[0])
     z = abs(b) / float(np.hypot(sigma, se))
     threshold = WRITE_Z
+    held = ""
+    if z <= threshold and abs(b) > WRITE_Z * sigma:
+        held = (f"; its standard error is too large to call it more, so it is held at the "
+                f"declared bound {np.copysign(WRITE_Z * sigma, b):+.4g} in before and after")
     problem.notes.append(
         f"turn-on bias fitted: {b:+.4g} (declared sigma {sigma:g}, SE {se:.2g}, z = {z:.2f}: "
-        + ("within the declared spread: this run's turn-on bias, part of the declared model)"
+        + ("within the declared spread: this run's turn-on bias, part of the declared model"
+           + held + ")"
            if z <= threshold else "beyond the declared spread: a bias the model lacks)"))
     if z <= threshold or len(sel.added) >= MAX_EFFECTS:
         return
@@ -634,11 +648,11 @@ def refit_full(full: StreamProblem, small: StreamResult) -> StreamResult:
     full.notes.extend(n for n in small.selection_notes if n not in full.notes)
     before = declared_fit(full, fit_model(full, [], full.nuisance_x0()))
     insts = list(sel.after.insts)
-    after = fit_model(
+    after = declared_fit(full, fit_model(
         full,
         insts,
         full.initial_vector(insts, sel.after.x, insts) if len(sel.after.x) else full.nuisance_x0(),
-    )
+    ))
     added = list(sel.added)
     result = Selection(full, before, after, added, sel.rounds, sel.rho)
     drop_implausible(full, result)

@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -306,6 +306,26 @@ def _fit_mixture(
             break
         prev = ll
     return x, jac
+
+
+def at_values(problem: StreamProblem, fit: Fit, x: FloatArray) -> Fit:
+    """``fit`` moved to the parameters ``x`` without refitting: its residuals, and what follows
+    from them, recomputed; its Jacobian kept, for the standard errors (a parameter held at a
+    bound: to first order what a fit with that bound gives the others)."""
+    insts = fit.insts
+    r_fit = problem.residuals(insts, x, "fit")
+    r_score = problem.residuals(insts, x, "score")
+    smooth = None
+    if fit.smooth is not None:
+        smooth = (problem.residuals(insts, x, "fit", for_fit=True),
+                  problem.residuals(insts, x, "score", for_fit=True))
+    log_g = fit.log_g
+    if fit.em_slice is not None:
+        mix = next(i for i in insts if i.effect.mixture)
+        em = fit.em_slice
+        log_g = (mix.effect.log_density(mix, x[em], problem.readings("fit"), r_fit),
+                 mix.effect.log_density(mix, x[em], problem.readings("score"), r_score))
+    return replace(fit, x=x, r_fit=r_fit, r_score=r_score, smooth=smooth, log_g=log_g)
 
 
 def fit_model(problem: StreamProblem, insts: Sequence[EffectInstance], x0: FloatArray) -> Fit:
