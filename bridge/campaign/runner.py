@@ -37,9 +37,14 @@ log = logging.getLogger(__name__)
 
 #: Wall seconds the bridge may take to announce its endpoints.
 START_TIMEOUT_S = 60.0
-#: After one side ended, wall seconds the other gets to end by itself (the firmware closing its
-#: port ends a lockstep bridge; the bridge's --duration ends the firmware's link).
+#: After the bridge ended (its --duration), wall seconds the firmware gets to notice its link
+#: is gone and end by itself (writing its report).
 GRACE_S = 20.0
+#: After the firmware ended, wall seconds the bridge gets to end by itself: in lockstep nothing
+#: can advance it any more. The firmware closing its port ends it at once; one that never
+#: opened it (exited before its first cycle) leaves it held at t = 0, and SIGTERM stops it as
+#: cleanly (its recording closed), so waiting longer only wastes the run's wall time.
+BRIDGE_GRACE_S = 3.0
 #: Between SIGTERM and SIGKILL of a process group.
 TERM_WAIT_S = 10.0
 POLL_S = 0.05
@@ -199,7 +204,8 @@ def _wait_both(task: CaseTask, bridge: subprocess.Popen[bytes],
             return firmware.poll() if fw is not None else None, True
         if fw is not None or br is not None:
             first_end = first_end or now
-            if now - first_end > GRACE_S:  # the other side did not follow: end it
+            grace = BRIDGE_GRACE_S if br is None else GRACE_S
+            if now - first_end > grace:  # the other side did not follow: end it
                 end_groups([firmware, bridge])
                 return firmware.returncode, False
         time.sleep(POLL_S)
