@@ -24,9 +24,13 @@ run: $(STAMP)
 	$(VENV)/bin/koala-bridge run --config $(CONFIG) --clock realtime
 
 # pytest exits 5 when it collected no test; make treats any non-zero exit as failure.
+# TEST_WORKERS pytest-xdist workers (the CI machine has two cores), a test file per worker at a
+# time (--dist loadfile: a module's fixtures, a simulator recording say, are built once);
+# `make test TEST_WORKERS=0` runs the suite in this process, one test after another.
 # Then the installed product: packaging cannot break unseen.
+TEST_WORKERS ?= 2
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 	$(MAKE) --no-print-directory smoke
 
 # Build the wheel from a clean build folder (setuptools would ship stale files left in
