@@ -61,8 +61,12 @@ class FoxgloveClient:
     times: list[int] = field(default_factory=list)
 
     def __enter__(self) -> FoxgloveClient:
+        # close_timeout: the server (foxglove-sdk) ends the TCP connection on a close frame
+        # without one of its own (1006); behind a receive queue full of a subscription's data
+        # the client only sees that after websockets' default 10 s
         self.ws = connect(self.url, subprotocols=list(SUBPROTOCOLS),  # type: ignore[arg-type]
-                          open_timeout=30, proxy=None).__enter__()  # loopback: never a proxy
+                          open_timeout=30, close_timeout=2,
+                          proxy=None).__enter__()  # loopback: never a proxy
         assert self.ws.subprotocol in SUBPROTOCOLS
         return self
 
