@@ -12,11 +12,11 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+from _bundles import gyro_bundle
 from koala_bridge.calibration.bundle import load_bundle
 from koala_bridge.calibration.effects import get_effect
 from koala_bridge.calibration.effects.covariate import MAX_CHANNEL_R2, fast_r2, line_r2
@@ -39,13 +39,8 @@ def _rig(out: Path, seed: int, sign: float = 1.0, late_s: float = 0.0) -> Path:
     yaw = w + rng.normal(0, 0.01, t.size)
     rate_x = 0.015 * w + rng.normal(0, 0.002, t.size)
     temp = 25 + 2 * np.sin(2 * np.pi * t / 150) + rng.normal(0, 0.05, t.size)
-    out.mkdir(parents=True)
-    np.savetxt(out / "truth_pose.csv", np.column_stack([t, 0 * t, 0 * t, sign * theta]),
-               delimiter=",", header="t,x,y,theta", comments="", fmt="%.10g")
-    np.savetxt(out / "gyro.csv", np.column_stack([t + late_s, yaw, rate_x, temp]), delimiter=",",
-               header="t,yaw_rate,rate_x,temperature_c", comments="", fmt="%.10g")
-    (out / "meta.json").write_text(json.dumps({}), encoding="utf-8")
-    return out
+    return gyro_bundle(out, t, sign * theta, yaw, t + late_s, rate_x=rate_x,
+                       temperature_c=temp)
 
 
 def test_a_covariate_that_rises_with_the_motion_but_not_with_each_reading_stays(
@@ -60,14 +55,8 @@ def test_a_covariate_that_rises_with_the_motion_but_not_with_each_reading_stays(
     theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
     temp = (25 + 8 * (1 - np.exp(-t / 200)) + np.sin(2 * np.pi * t / 40)
             + rng.normal(0, 0.05, t.size))
-    out = tmp_path / "b"
-    out.mkdir()
-    np.savetxt(out / "truth_pose.csv", np.column_stack([t, 0 * t, 0 * t, theta]),
-               delimiter=",", header="t,x,y,theta", comments="", fmt="%.10g")
-    np.savetxt(out / "gyro.csv", np.column_stack(
-        [t, w + 0.01 * (temp - 25) + rng.normal(0, 0.01, t.size), temp]), delimiter=",",
-        header="t,yaw_rate,temperature_c", comments="", fmt="%.10g")
-    (out / "meta.json").write_text("{}", encoding="utf-8")
+    out = gyro_bundle(tmp_path / "b", t, theta,
+                      w + 0.01 * (temp - 25) + rng.normal(0, 0.01, t.size), temperature_c=temp)
     bundle = load_bundle(out)
     (res,) = (r for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
               if r.problem.name == "gyro")

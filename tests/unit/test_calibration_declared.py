@@ -13,6 +13,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
+from _bundles import gyro_bundle
 from koala_bridge.calibration.bundle import load_bundle
 from koala_bridge.calibration.model import declared_model
 from koala_bridge.calibration.pipeline import (
@@ -180,14 +181,7 @@ def test_after_holds_the_turn_on_bias_to_the_declared_spread_as_before_does(
     theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
     y = (np.interp(t - 0.05, t, w) + 3 * sigma + 0.4 * np.sin(2 * np.pi * t / 4.7 + 1)
          + rng.normal(0, 0.01, t.size))
-    out = tmp_path / "b"
-    out.mkdir()
-    np.savetxt(out / "truth_pose.csv", np.column_stack([t, 0 * t, 0 * t, theta]),
-               delimiter=",", header="t,x,y,theta", comments="", fmt="%.10g")
-    np.savetxt(out / "gyro.csv", np.column_stack([t, y]), delimiter=",", header="t,yaw_rate",
-               comments="", fmt="%.10g")
-    (out / "meta.json").write_text("{}", encoding="utf-8")
-    bundle = load_bundle(out)
+    bundle = load_bundle(gyro_bundle(tmp_path / "b", t, theta, y))
     (gyro,) = (r for r in calibrate(bundle, declared_model(_declared_with_turn_on(sigma),
                                                            bundle.meta))
                if r.problem.name == "gyro")

@@ -11,11 +11,11 @@ a bias or a bias drift is judged so (a column can take up part of a bias that wa
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+from _bundles import gyro_bundle
 from koala_bridge.calibration.bundle import load_bundle
 from koala_bridge.calibration.model import declared_model
 from koala_bridge.calibration.pipeline import calibrate
@@ -33,13 +33,7 @@ def _gyro(out: Path, seed: int, bias: float) -> Path:
     t = np.arange(0.0, 600.0 + 0.005, 0.01)
     w = 0.4 * np.sin(2 * np.pi * t / 23) + 0.2 * np.sin(2 * np.pi * t / 7.3 + 0.5)
     theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
-    out.mkdir(parents=True)
-    np.savetxt(out / "truth_pose.csv", np.column_stack([t, 0 * t, 0 * t, theta]),
-               delimiter=",", header="t,x,y,theta", comments="", fmt="%.10g")
-    np.savetxt(out / "gyro.csv", np.column_stack([t, w + bias + rng.normal(0, NOISE, t.size)]),
-               delimiter=",", header="t,yaw_rate", comments="", fmt="%.10g")
-    (out / "meta.json").write_text(json.dumps({}), encoding="utf-8")
-    return out
+    return gyro_bundle(out, t, theta, w + bias + rng.normal(0, NOISE, t.size))
 
 
 def _gyro_result(path: Path):  # noqa: ANN202 - a StreamResult
@@ -119,14 +113,7 @@ def test_a_column_that_takes_up_part_of_a_wandering_bias_is_not_passed_on_the_he
     theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
     temp = 25 + 8 * (1 - np.exp(-t / 200)) + _gauss_markov(rng, t.size, 0.3, 30.0)
     y = w + _gauss_markov(rng, t.size, 0.01, 300.0) + rng.normal(0, 0.05, t.size)
-    out = tmp_path / "b"
-    out.mkdir()
-    np.savetxt(out / "truth_pose.csv", np.column_stack([t, 0 * t, 0 * t, theta]),
-               delimiter=",", header="t,x,y,theta", comments="", fmt="%.10g")
-    np.savetxt(out / "gyro.csv", np.column_stack([t, y, temp]), delimiter=",",
-               header="t,yaw_rate,temperature_c", comments="", fmt="%.10g")
-    (out / "meta.json").write_text("{}", encoding="utf-8")
-    res = _gyro_result(out)
+    res = _gyro_result(gyro_bundle(tmp_path / "b", t, theta, y, temperature_c=temp))
     columns = [t for r in res.selection.rounds for t in r if t.name.startswith("covariate:")]
     # the case the heading was asked for: significant, but under the practical size
     assert any(t.delta_bic < 0 and t.lr > t.lr_threshold and 0 < t.relative_gain
