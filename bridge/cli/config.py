@@ -123,6 +123,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"koala-bridge config init: {blocking} is a file, not a folder: "
               "DIR must be a folder (new or existing)", file=sys.stderr)
         return 2
+    if args.directory.suffix.lower() == ".toml" and not args.directory.exists():
+        # `config init my.toml` made a folder named my.toml, and `run --config my.toml` then
+        # said "Is a directory"
+        print(f"koala-bridge config init: {args.directory} looks like a config file's name, "
+              "but DIR is a folder to write several files into (default.toml, koala.dbc, "
+              "worlds/...): e.g. `koala-bridge config init my-koala`, then "
+              "`koala-bridge run --config my-koala/default.toml`", file=sys.stderr)
+        return 2
     try:
         written = write_copy(args.directory, force=args.force)
     except FileExistsError as e:

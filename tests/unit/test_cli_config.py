@@ -73,6 +73,18 @@ def test_init_into_a_file_is_one_clear_line(tmp_path, capsys, where) -> None:
     assert (tmp_path / "notes.txt").read_text() == "mine\n"
 
 
+def test_init_into_a_new_name_ending_in_toml_says_dir_is_a_folder(tmp_path, capsys) -> None:
+    # A new user typed `config init my.toml`, got a folder of that name, and `run --config
+    # my.toml` answered "Is a directory".
+    assert main(["config", "init", str(tmp_path / "my.toml")]) == 2
+    err = capsys.readouterr().err
+    assert "looks like a config file's name" in err and "config init my-koala" in err
+    assert not (tmp_path / "my.toml").exists()
+    (tmp_path / "old.toml").mkdir()              # a folder that exists under such a name: used
+    assert main(["config", "init", str(tmp_path / "old.toml")]) == 0
+    assert (tmp_path / "old.toml" / "default.toml").is_file()
+
+
 def test_path_prints_the_shipped_folder(capsys) -> None:
     assert main(["config", "path"]) == 0
     printed = Path(capsys.readouterr().out.strip())
