@@ -15,7 +15,10 @@ import numpy as np
 from koala_bridge.calibration.bundle import Bundle
 from koala_bridge.calibration.effects import available_effects, get_effect
 from koala_bridge.calibration.effects.base import EffectInstance
-from koala_bridge.calibration.effects.common import reference_noise_share
+from koala_bridge.calibration.effects.common import (
+    MAX_REFERENCE_NOISE_SHARE,
+    reference_noise_share,
+)
 from koala_bridge.calibration.errors import EffectRegistryError
 from koala_bridge.calibration.metrics import HeldOutStatistics, g4, heldout_statistics
 from koala_bridge.calibration.model import DeclaredModel
@@ -49,6 +52,7 @@ from koala_bridge.calibration.streams import (
     build_odometry,
     build_ranges,
     bundle_streams,
+    to_heading_space,
     unknown_files,
 )
 from koala_bridge.calibration.streams.compass import CompassProblem
@@ -640,6 +644,24 @@ def _problems(
     return [p for p in out if p is not None]
 
 
+def _heading_space_if_noisy(small: StreamProblem, full: StreamProblem | None) -> None:
+    """A gyro compared rate with rate against a dense reference that proves mostly its own
+    noise (:func:`koala_bridge.calibration.effects.common.reference_noise_share` of the whole
+    stream's consecutive samples above ``MAX_REFERENCE_NOISE_SHARE``) is compared in heading
+    space instead (:func:`koala_bridge.calibration.streams.to_heading_space`), the subset it is
+    selected on and the whole stream alike."""
+    if small.name != "gyro" or not isinstance(small, ScalarProblem):
+        return
+    if small.heading_window_s is None:  # already in heading space (a compass reference)
+        return
+    whole = full if isinstance(full, ScalarProblem) else small
+    share = reference_noise_share(whole)
+    if not np.isfinite(share) or share <= MAX_REFERENCE_NOISE_SHARE:
+        return  # a clean reference, or a constant one (a still gyro: its noise, by Allan)
+    for q in {id(small): small, id(whole): whole}.values():
+        to_heading_space(q, share)
+
+
 def refit_full(full: StreamProblem, small: StreamResult) -> StreamResult:
     """Refit the effects selected on a decimated stream on the full stream; metrics on it."""
     sel = small.selection
@@ -699,6 +721,7 @@ def calibrate(
                 # measured on the stream's consecutive samples, not the subset's random rows
                 p.reference_share = reference_noise_share(full)
                 p.full = full
+            _heading_space_if_noisy(p, full)
             res = run_stream(p, options, progress)
             out.append(res if small is bundle or full is None else refit_full(full, res))
         return out

@@ -46,6 +46,15 @@ class Scale(Effect):
         gain = 1.0 + float(params[0])
         if not np.isfinite(gain):
             return None
+        r = _fit_correlation(problem)
+        if r is not None and r > 0:
+            # the readings follow the reference: no sign convention, another error drives it
+            return (
+                f"scale fitted as {float(params[0]):+.4g} (a gain of {gain:.3g}) and rejected: a "
+                "gain through zero is no sensor's. The readings do follow the reference "
+                f"(correlation {r:+.2f} on the fit part), so an error the model lacks so far (a "
+                "bias, a time offset) pulled it there; it is tried again beside the others"
+            )
         return (
             f"scale fitted as {float(params[0]):+.4g} (a gain of {gain:.3g}) and rejected: the "
             f"readings run against the reference {getattr(problem, 'quantity', 'value')}. A sign "
@@ -59,3 +68,17 @@ class Scale(Effect):
 
     def config(self, inst: EffectInstance, params: Any, problem: Any) -> dict[str, Any]:
         return scalar_config(inst, params, problem, combine="mul")
+
+
+def _fit_correlation(problem: Any) -> float | None:
+    """Correlation of a scalar stream's readings with its reference on the fit part (None
+    without one)."""
+    y, u, t, split = (getattr(problem, k, None) for k in ("y", "u", "t", "split"))
+    if y is None or u is None or t is None or split is None:
+        return None
+    m = split.mask(t, "fit")
+    yf, uf = np.asarray(y, dtype=float)[m], np.asarray(u, dtype=float)[m]
+    ok = np.isfinite(yf) & np.isfinite(uf)
+    if ok.sum() < 3 or np.std(yf[ok]) == 0 or np.std(uf[ok]) == 0:
+        return None
+    return float(np.corrcoef(yf[ok], uf[ok])[0, 1])
