@@ -655,7 +655,9 @@ def _heading_space_if_noisy(small: StreamProblem, full: StreamProblem | None) ->
     if small.heading_window_s is None:  # already in heading space (a compass reference)
         return
     whole = full if isinstance(full, ScalarProblem) else small
-    share = reference_noise_share(whole)
+    share = small.reference_share  # the whole stream's, set by calibrate for a subset
+    if share is None:
+        share = small.reference_share = reference_noise_share(whole)
     if not np.isfinite(share) or share <= MAX_REFERENCE_NOISE_SHARE:
         return  # a clean reference, or a constant one (a still gyro: its noise, by Allan)
     for q in {id(small): small, id(whole): whole}.values():
