@@ -48,12 +48,13 @@ class Scale(Effect):
             return None
         r = _fit_correlation(problem)
         if r is not None and r > 0:
-            # the readings follow the reference: no sign convention, another error drives it
+            # the readings do not run against the reference: another error drives it
             return (
                 f"scale fitted as {float(params[0]):+.4g} (a gain of {gain:.3g}) and rejected: a "
-                "gain through zero is no sensor's. The readings do follow the reference "
-                f"(correlation {r:+.2f} on the fit part), so an error the model lacks so far (a "
-                "bias, a time offset) pulled it there; it is tried again beside the others"
+                "gain through zero is no sensor's. The readings do not run against the "
+                f"reference (correlation {r:+.2f} on the fit part), so an error the model lacks "
+                "so far (a bias, a time offset) pulled it there; it is tried again beside the "
+                "others"
             )
         return (
             f"scale fitted as {float(params[0]):+.4g} (a gain of {gain:.3g}) and rejected: the "

@@ -112,10 +112,6 @@ class ScalarProblem(StreamProblem):
     #: (:meth:`further_errors`) is measured on it, since a random subset's rows integrate a white
     #: rate error into heading with ``k`` times its variance (``k`` the decimation factor)
     full: ScalarProblem | None = None
-    #: a gyro against a dense heading: the reference's noise share in heading space
-    #: (:func:`koala_bridge.calibration.streams.heading_noise_share`), for
-    #: :func:`koala_bridge.calibration.streams.to_heading_space`
-    heading_share: float | None = None
     #: compare in heading space: the residual rate integrated over windows of this length
     #: (re-anchored at each window start) instead of the rate residual itself; used when the
     #: reference heading is noisy (a compass), whose derivative is far noisier than its integral.
