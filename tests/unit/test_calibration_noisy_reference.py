@@ -82,3 +82,17 @@ def test_a_scale_through_zero_is_a_sign_only_when_the_readings_run_against(
     inst = EffectInstance("scale", effect, ("scale_error",), (0.0,))
     why = effect.implausible_reason(inst, np.array([-1.5]), problem)
     assert why is not None and says in why
+
+
+def test_a_held_out_part_without_motion_is_said(tmp_path: Path) -> None:
+    # the turn is in the first 60 % of the time: a gain is scored on the rest only through
+    # the bias; a recording that turns in both parts gets no such note
+    res = _gyro(_bundle(tmp_path / "b", 0))
+    (note,) = (n for n in res.problem.notes if n.startswith("the held-out part holds little"))
+    assert "record turns in the last 40 %" in note
+    t = np.arange(0.0, 100.0 + 0.005, 0.01)
+    w = 0.5 * np.sin(2 * np.pi * t / 13)
+    theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
+    turning = _gyro(gyro_bundle(tmp_path / "c", t, theta, w + BIAS))
+    assert not any(n.startswith("the held-out part holds little")
+                   for n in turning.problem.notes)

@@ -123,6 +123,31 @@ def _rate_of(t: FloatArray, theta: FloatArray, t_out: FloatArray) -> FloatArray:
     return np.interp(t_out, mid, rate)
 
 
+#: the held-out part's heading span, as a share of the fit part's, below which the report says
+#: the held-out part holds little motion
+STILL_HELDOUT_SHARE = 0.1
+
+
+def _note_still_heldout(problem: ScalarProblem, t: FloatArray, theta: FloatArray) -> None:
+    """Say so when the held-out part holds little of the motion: a gain or a time offset is
+    scored there only through what it does to the bias (a new user's gyro turned once, by hand,
+    in the first 60 % of the recording). The span is the 2nd-98th percentile range of the
+    reference heading over each part, so its own noise does not count as motion."""
+    split = problem.split
+
+    def span(a: float, b: float) -> float:
+        th = theta[(t >= a) & (t <= b)]
+        return float(np.subtract(*np.percentile(th, [98, 2]))) if th.size > 1 else 0.0
+
+    fit, held = span(split.t0, split.t1), span(split.t1, split.t2)
+    if fit > 0 and held < STILL_HELDOUT_SHARE * fit:
+        problem.notes.append(
+            f"the held-out part holds little motion (its heading spans {held:.3g} rad, the fit "
+            f"part's {fit:.3g}): a gain or a time offset is scored there only through what it "
+            "does to the bias; record turns in the last 40 % of the time too"
+        )
+
+
 def to_heading_space(problem: ScalarProblem, share: float) -> None:
     """Compare a gyro with its dense reference in heading space, as with a compass: over
     :data:`HEADING_WINDOW_S` windows, the residual rate integrated
@@ -290,6 +315,8 @@ def build_gyro(
         )
     if interval is not None and dense:
         problem.notes.append(f"declared sample: mean rate over the {interval:g} s before it")
+    if dense:
+        _note_still_heldout(problem, *ref)
     if model.gyro_turn_on_bias_sigma > 0:
         problem.notes.append(
             "declared turn-on bias N(bias_rad_s, "
