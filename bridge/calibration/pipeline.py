@@ -594,7 +594,12 @@ def _turn_on_bias_check(problem: StreamProblem, sel: Selection) -> None:
     declared = declared_fit(problem, fit)
     before = problem.metric_value(declared.insts, declared.x, "score")
     gain = 1.0 - problem.metric_value(new.insts, new.x, "score") / before if before else 0.0
-    trial = Trial("bias", 1, float("nan"), z * z, threshold**2, gain, True, new)
+    trial = Trial("bias", 1, float("nan"), z * z, threshold**2, gain, True, new,
+                  other_test={"turn_on_bias_z": float(f"{z:.4g}"),
+                              "turn_on_bias_z_threshold": float(f"{threshold:.4g}"),
+                              "turn_on_bias_se": float(f"{se:.3g}"),
+                              "declared_sigma": sigma,
+                              "heldout_relative_gain": float(f"{gain:.6g}")})
     sel.added.append((inst, trial))
     sel.after = new
 

@@ -177,8 +177,13 @@ class Trial:
     implausible: bool = False
     #: the further metric, when it was asked for the practical size
     further: FurtherGain | None = None
+    #: evidence of another test than the stopping rule's, reported in place of its statistics
+    #: (a declared turn-on bias's z test: pipeline._turn_on_bias_check)
+    other_test: dict[str, Any] | None = None
 
     def evidence(self) -> dict[str, Any]:
+        if self.other_test is not None:
+            return {**self.other_test, "n_params": self.k}
         out: dict[str, Any] = {
             "delta_bic_fit": _r(self.delta_bic),
             "heldout_lr": _r(self.lr),

@@ -45,6 +45,11 @@ def test_a_bias_beyond_the_declared_spread_shows_in_before_and_after(tmp_path: P
                if r.problem.name == "gyro")
     assert "bias" in [i.name for i in gyro.effects]
     assert gyro.after < 0.5 * gyro.before
+    # its evidence is the z test's, not the stopping rule's NaN and an empty SE
+    (trial,) = (t for i, t in gyro.selection.added if i.name == "bias")
+    ev = trial.evidence()
+    assert ev["turn_on_bias_z"] > ev["turn_on_bias_z_threshold"] and ev["turn_on_bias_se"] > 0
+    assert ev["declared_sigma"] == sigma and "delta_bic_fit" not in ev
     # before kept the turn-on bias at the edge of its declared spread
     bound = stats.norm.ppf(1 - 0.01 / 2) * sigma
     assert gyro.selection.before.x[0] == pytest.approx(bound)
