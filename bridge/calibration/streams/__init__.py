@@ -36,7 +36,11 @@ from koala_bridge.calibration.streams.beacons import (
 )
 from koala_bridge.calibration.streams.compass import CompassProblem
 from koala_bridge.calibration.streams.odometry import OdometryProblem
-from koala_bridge.calibration.streams.scalar import ScalarProblem, fit_shared_curve
+from koala_bridge.calibration.streams.scalar import (
+    ScalarProblem,
+    fit_shared_curve,
+    heading_metric,
+)
 from koala_bridge.core.geometry import wrap_angle
 from numpy.typing import NDArray
 from scipy.integrate import cumulative_trapezoid
@@ -148,6 +152,15 @@ def _note_still_heldout(problem: ScalarProblem, t: FloatArray, theta: FloatArray
         )
 
 
+def _in_heading_space(problem: ScalarProblem) -> None:
+    """A gyro scored by its heading over :data:`HEADING_WINDOW_S` windows, the residual rate
+    integrated (:attr:`ScalarProblem.integrate_window_s`), instead of by its rate."""
+    problem.metric = heading_metric(HEADING_WINDOW_S)
+    problem.unit = "rad"
+    problem.heading_window_s = None
+    problem.integrate_window_s = HEADING_WINDOW_S
+
+
 def to_heading_space(problem: ScalarProblem, share: float) -> None:
     """Compare a gyro with its dense reference in heading space, as with a compass: over
     :data:`HEADING_WINDOW_S` windows, the residual rate integrated
@@ -161,10 +174,7 @@ def to_heading_space(problem: ScalarProblem, share: float) -> None:
     A heading-space share measured from the reference alone was tried and let a false -15 %
     scale through on a clean heading with jittered stamps (a reviewer's case), whose error
     does not telescope away when its differenced rate is integrated over the gyro's times."""
-    problem.metric = f"heading_error_{HEADING_WINDOW_S:g}s_window_rms"
-    problem.unit = "rad"
-    problem.heading_window_s = None
-    problem.integrate_window_s = HEADING_WINDOW_S
+    _in_heading_space(problem)
     problem.notes.append(
         f"compared in heading space ({HEADING_WINDOW_S:g} s windows): the reference rate is "
         f"{100 * share:.3g} % its own noise once differenced (white noise grows with "
@@ -252,7 +262,6 @@ def build_gyro(
         return None
     dense = source == "truth_pose.theta"
     t = gyro["t"]
-    rate_space = dense  # a dense reference that proves mostly noise: to_heading_space
     inside = (t >= ref[0][0]) & (t <= ref[0][-1]) & np.isfinite(gyro["yaw_rate"])
     if inside.sum() < MIN_ROWS:
         _skip(
@@ -279,8 +288,8 @@ def build_gyro(
     problem = ScalarProblem(
         "gyro",
         "scalar",
-        "rms_rate_error" if rate_space else f"heading_error_{HEADING_WINDOW_S:g}s_window_rms",
-        "rad/s" if rate_space else "rad",
+        "rms_rate_error",
+        "rad/s",
         "sensors.gyro",
         split,
         t=t,
@@ -296,9 +305,8 @@ def build_gyro(
         reference=ref_series,
         base_gain=1.0 + model.gyro_scale_error,
         base_add=model.gyro_bias_rad_s,
-        heading_window_s=float(f"{window:.3g}") if rate_space else None,
+        heading_window_s=float(f"{window:.3g}"),
         quantity="yaw rate",
-        integrate_window_s=None if rate_space else HEADING_WINDOW_S,
         native_keys={"bias": "bias_rad_s", "scale": "scale_factor_error"},
         declared_values={"bias": model.gyro_bias_rad_s, "scale": model.gyro_scale_error},
         turn_on_bias_sigma=model.gyro_turn_on_bias_sigma,
@@ -307,6 +315,7 @@ def build_gyro(
     )
     problem.notes.append(f"reference: {source}")
     if not dense:
+        _in_heading_space(problem)
         problem.notes.append(
             "a compass heading holds errors of its own (tilt, iron) that can hide a gyro bias "
             "or scale: measure those on a recording with a better reference (the sensor lying "

@@ -72,6 +72,12 @@ class ScalarState:
         return np.asarray(y, dtype=float)
 
 
+def heading_metric(window_s: float) -> str:
+    """The name of the heading error over ``window_s`` windows a rate stream is scored by, in
+    heading space or as a further metric."""
+    return f"heading_error_{window_s:g}s_window_rms"
+
+
 #: the effects a gyro's heading may show the practical size of
 #: (:meth:`ScalarProblem.further_errors`): a rate offset, constant or linear in time, is a
 #: heading drift by its physical reading. Any other would earn it through a correlation with a
@@ -334,7 +340,7 @@ class ScalarProblem(StreamProblem):
             return None
         w = src.heading_window_s
         return (
-            f"heading_error_{w:g}s_window_rms",
+            heading_metric(w),
             src.heading_window_errors(*old, w),
             src.heading_window_errors(*new, w),
         )
@@ -361,7 +367,7 @@ class ScalarProblem(StreamProblem):
             w = self.heading_window_s
             out.append(
                 SecondaryMetric(
-                    f"heading_error_{w:g}s_window_rms",
+                    heading_metric(w),
                     "rad",
                     self.heading_window_error(*before, w),
                     self.heading_window_error(*after, w),
