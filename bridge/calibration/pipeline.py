@@ -102,6 +102,8 @@ class WrittenModel:
     #: simulated effects left out because the written model beats the declared one only
     #: without them: name -> the written model's metric with it (before it was left out)
     unhelpful: dict[str, float]
+    #: no simulated effect is left to write
+    none_left: bool
 
 
 @dataclass
@@ -198,9 +200,7 @@ class StreamResult:
         besides = (f"{', '.join(w.comments)} written only as a comment" if w.comments
                    else "the uncertain effects left out")
         shown = g4(w.value if w.value is not None else w.declared)
-        if len(w.unhelpful) == sum(r is None and not self.is_comment(i)
-                                   for i, r in zip(self.effects, out, strict=True)):
-            # none is left to write
+        if w.none_left:
             first = next(iter(w.unhelpful.values()))
             why = {name: (f"alone it does not improve the held-out error: {g4(first)} {alone} "
                           f"against {g4(w.declared)} declared") for name in w.unhelpful}
@@ -267,18 +267,19 @@ class StreamResult:
 
         value: float | None = None
         unhelpful: dict[str, float] = {}
+        found = {id(i) for i in self.effects}  # the rest of the model: nuisance instances
+        keep = [i for i in sel.after.insts if id(i) not in dropped]
         if dropped:
-            keep = [i for i in sel.after.insts if id(i) not in dropped]
             value = score(keep)
-            simulated = {id(i) for i in self.effects}  # the nuisance instances stay
-            while not _better(value, declared) and any(id(i) in simulated for i in keep):
-                options = [[j for j in keep if j is not i] for i in keep if id(i) in simulated]
+            while not _better(value, declared) and any(id(i) in found for i in keep):
+                options = [[j for j in keep if j is not i] for i in keep if id(i) in found]
                 scores = [score(o) for o in options]
                 best = int(np.argmin(np.abs(scores)))
                 (gone,) = [i for i in keep if i not in options[best]]
                 unhelpful[gone.name] = value
                 keep, value = options[best], scores[best]
-        result = WrittenModel(value, declared, comments, unhelpful)
+        result = WrittenModel(value, declared, comments, unhelpful,
+                              none_left=not any(id(i) in found for i in keep))
         self._written_memo = (sel.after, result)
         return result
 
@@ -657,7 +658,7 @@ def _heading_space_if_noisy(small: StreamProblem, full: StreamProblem | None) ->
     selected on and the whole stream alike."""
     if small.name != "gyro" or not isinstance(small, ScalarProblem):
         return
-    if small.heading_window_s is None:  # already in heading space (a compass reference)
+    if small.integrate_window_s is not None:  # already in heading space (a compass reference)
         return
     whole = full if isinstance(full, ScalarProblem) else small
     share = small.reference_share  # the whole stream's, set by calibrate for a subset
@@ -665,7 +666,7 @@ def _heading_space_if_noisy(small: StreamProblem, full: StreamProblem | None) ->
         share = small.reference_share = reference_noise_share(whole)
     if not np.isfinite(share) or share <= MAX_REFERENCE_NOISE_SHARE:
         return  # a clean reference, or a constant one (a still gyro: its noise, by Allan)
-    for q in {id(small): small, id(whole): whole}.values():
+    for q in [small] if whole is small else [small, whole]:
         to_heading_space(q, share)
 
 
