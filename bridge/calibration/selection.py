@@ -313,24 +313,37 @@ def _fit_mixture(
     return x, jac
 
 
-def at_values(problem: StreamProblem, fit: Fit, x: FloatArray) -> Fit:
-    """``fit`` moved to the parameters ``x`` without refitting: its residuals, and what follows
-    from them, recomputed; its Jacobian kept, for the standard errors (a parameter held at a
-    bound: to first order what a fit with that bound gives the others)."""
-    insts = fit.insts
+def _evaluated(
+    problem: StreamProblem, insts: Sequence[EffectInstance], x: FloatArray, em: slice | None
+) -> dict[str, Any]:
+    """The :class:`Fit` fields that follow from the parameters ``x``: residuals, the unrounded
+    ones with an output transform, and with a mixture effect (its parameters ``x[em]``) each
+    reading's spurious log density and ``(p, sigma)``."""
     r_fit = problem.residuals(insts, x, "fit")
     r_score = problem.residuals(insts, x, "score")
-    smooth = None
-    if fit.smooth is not None:
-        smooth = (problem.residuals(insts, x, "fit", for_fit=True),
-                  problem.residuals(insts, x, "score", for_fit=True))
-    log_g = fit.log_g
-    if fit.em_slice is not None:
+    log_g = mixture = None
+    if em is not None:
         mix = next(i for i in insts if i.effect.mixture)
-        em = fit.em_slice
-        log_g = (mix.effect.log_density(mix, x[em], problem.readings("fit"), r_fit),
-                 mix.effect.log_density(mix, x[em], problem.readings("score"), r_score))
-    return replace(fit, x=x, r_fit=r_fit, r_score=r_score, smooth=smooth, log_g=log_g)
+        log_g = (
+            mix.effect.log_density(mix, x[em], problem.readings("fit"), r_fit),
+            mix.effect.log_density(mix, x[em], problem.readings("score"), r_score),
+        )
+        mixture = (float(x[em][0]), float(x[em][1]))
+    smooth = None
+    if any(i.effect.output_transform for i in insts):
+        smooth = (
+            problem.residuals(insts, x, "fit", for_fit=True),
+            problem.residuals(insts, x, "score", for_fit=True),
+        )
+    return {"x": x, "r_fit": r_fit, "r_score": r_score, "smooth": smooth, "log_g": log_g,
+            "mixture": mixture, "em_slice": em}
+
+
+def at_values(problem: StreamProblem, fit: Fit, x: FloatArray) -> Fit:
+    """``fit`` moved to the parameters ``x`` without refitting: what follows from them
+    recomputed (:func:`_evaluated`); its Jacobian kept, for the standard errors (a parameter
+    held at a bound: to first order what a fit with that bound gives the others)."""
+    return replace(fit, **_evaluated(problem, fit.insts, x, fit.em_slice))
 
 
 def fit_model(problem: StreamProblem, insts: Sequence[EffectInstance], x0: FloatArray) -> Fit:
@@ -339,7 +352,7 @@ def fit_model(problem: StreamProblem, insts: Sequence[EffectInstance], x0: Float
     insts = list(insts)
     x = np.asarray(x0, dtype=float)
     at = next((k for k, i in enumerate(insts) if i.effect.mixture), None)
-    log_g = mixture = em = robust = None
+    robust = None
     if at is not None:
         x, jac = _fit_mixture(problem, insts, x, at)
     else:
@@ -347,35 +360,10 @@ def fit_model(problem: StreamProblem, insts: Sequence[EffectInstance], x0: Float
         x, jac = _least_squares(problem, insts, x, f_scale=robust)
         if not x.size:
             robust = None
-    r_fit = problem.residuals(insts, x, "fit")
-    r_score = problem.residuals(insts, x, "score")
-    if at is not None:
-        mix, em = insts[at], _param_slice(problem, insts, at)
-        log_g = (
-            mix.effect.log_density(mix, x[em], problem.readings("fit"), r_fit),
-            mix.effect.log_density(mix, x[em], problem.readings("score"), r_score),
-        )
-        mixture = (float(x[em][0]), float(x[em][1]))
-    shape = (problem.noise_shape("fit"), problem.noise_shape("score"))
-    smooth = None
-    if any(i.effect.output_transform for i in insts):
-        smooth = (
-            problem.residuals(insts, x, "fit", for_fit=True),
-            problem.residuals(insts, x, "score", for_fit=True),
-        )
-    return Fit(
-        insts,
-        x,
-        r_fit,
-        r_score,
-        jac,
-        smooth,
-        log_g,
-        mixture,
-        em,
-        shape,
-        robust,
-    )
+    em = None if at is None else _param_slice(problem, insts, at)
+    return Fit(insts=insts, jac=jac, robust_scale=robust,
+               shape=(problem.noise_shape("fit"), problem.noise_shape("score")),
+               **_evaluated(problem, insts, x, em))
 
 
 def parameter_se(problem: StreamProblem, fit: Fit) -> FloatArray:
