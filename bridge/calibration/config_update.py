@@ -30,7 +30,7 @@ import numpy as np
 import tomli_w
 from koala_bridge.calibration.pipeline import StreamResult
 from koala_bridge.calibration.problem import split_params
-from koala_bridge.calibration.sim_keys import _section_and_key, config_path, is_simulated
+from koala_bridge.calibration.sim_keys import config_path, is_simulated, section_and_key
 
 #: Config section -> the simulator's error-model name (sim.sections.ERROR_PARAMS).
 _MODEL_OF = {"sensors.gyro": "gyro", "sensors.compass": "compass", "sensors.ir": "ir"}
@@ -117,7 +117,7 @@ def updated_config(base: Mapping[str, Any], keys: Mapping[str, Any]) -> dict[str
     for dotted, value in keys.items():
         if not is_simulated(dotted):
             continue
-        section, _ = _section_and_key(dotted)
+        section, _ = section_and_key(dotted)
         node: Any = doc
         for k in section.split("."):
             node = node.get(k, {}) if isinstance(node, dict) else {}

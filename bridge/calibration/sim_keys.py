@@ -19,13 +19,14 @@ SIMULATED_KEYS: Mapping[str, frozenset[str]] = {
 }
 
 
-def _section_and_key(dotted: str) -> tuple[str, str]:
+def section_and_key(dotted: str) -> tuple[str, str]:
+    """``"sensors.gyro.bias_rad_s"`` -> ``("sensors.gyro", "bias_rad_s")``."""
     section, _, key = dotted.rpartition(".")
     return section, key
 
 
 def is_simulated(dotted: str) -> bool:
-    section, key = _section_and_key(dotted)
+    section, key = section_and_key(dotted)
     return key in SIMULATED_KEYS.get(section, frozenset())
 
 

@@ -138,4 +138,3 @@ class Covariate(Effect):
                 "reference": float(f"{inst.data['mean']:.6g}"),
             }
         }
-
