@@ -424,30 +424,38 @@ def test_an_effect_without_a_simulator_key_is_written_as_a_comment(tmp_path: Pat
     assert row.endswith("| written as a comment: the simulator has no key for it |")
 
 
+def _forced_scale(tmp_path: Path, inj: Injected, names: list[str]):  # noqa: ANN202
+    """A gyro result with the effects ``names`` (time_offset first, scale among them) fitted
+    together, then the scale set to a gain 20 % high and kept: ``(problem, res, x, insts)``."""
+    from dataclasses import replace
+
+    from koala_bridge.calibration.pipeline import candidates_for
+
+    bundle = load_bundle(make_bundle(tmp_path / "b", 5, inj))
+    (problem,) = (r.problem for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
+                  if r.problem.name == "gyro")
+    cands = {c.name: c for c in candidates_for(problem)}
+    insts = [cands[n] for n in names]
+    before = fit_model(problem, [], problem.nuisance_x0())
+    fitted = fit_model(problem, insts, problem.initial_vector(insts, before.x, []))
+    x = fitted.x.copy()
+    x[len(problem.nuisance_x0()) + cands["time_offset"].n_free] = 0.2   # the scale, kept
+    after = replace(fitted, x=x)
+    trial = judge(before, after, 1, 1, 0.0)
+    res = StreamResult(problem, Selection(problem, before, after, [(i, trial) for i in insts]),
+                       problem.metric_value([], before.x, "score"),
+                       problem.metric_value(after.insts, after.x, "score"))
+    return problem, res, x, insts
+
+
 def test_a_simulated_effect_that_helps_only_beside_a_comment_is_not_written(
     tmp_path: Path,
 ) -> None:
     # A gyro's scale fitted together with its time offset (which the simulator cannot hold)
     # can leave the simulated config worse than the declared one: written alone, at its
     # value, it must beat the declared model on held-out data, or it is not written.
-    from dataclasses import replace
-
-    from koala_bridge.calibration.pipeline import candidates_for
-
-    bundle = load_bundle(make_bundle(tmp_path / "b", 5, Injected(gyro_time_offset=0.05)))
-    (problem,) = (r.problem for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
-                  if r.problem.name == "gyro")
-    cands = {c.name: c for c in candidates_for(problem)}
-    tau, scale = cands["time_offset"], cands["scale"]
-    before = fit_model(problem, [], problem.nuisance_x0())
-    both = fit_model(problem, [tau, scale], problem.initial_vector([tau, scale], before.x, []))
-    x = both.x.copy()
-    x[len(problem.nuisance_x0()) + tau.n_free] = 0.2        # a gain 20 % high, kept
-    after = replace(both, x=x)
-    trial = judge(before, after, 1, 1, 0.0)
-    res = StreamResult(problem, Selection(problem, before, after, [(tau, trial), (scale, trial)]),
-                       problem.metric_value([], before.x, "score"),
-                       problem.metric_value(after.insts, after.x, "score"))
+    problem, res, x, (tau, scale) = _forced_scale(
+        tmp_path, Injected(gyro_time_offset=0.05), ["time_offset", "scale"])
     alone = problem.metric_value([scale], problem.initial_vector([scale], x, [tau, scale]),
                                  "score")
     assert alone > res.before                   # the scale alone, at its value, is worse
@@ -469,26 +477,10 @@ def test_the_simulated_effect_that_spoils_the_written_model_is_left_out_and_the_
     # The scale above beside a real bias: written together (without the time offset) they lose
     # to the declared model; left out in turn, the scale goes (its removal leaves the better
     # model) and the bias, which beats the declared model on its own, is written.
-    from dataclasses import replace
-
-    from koala_bridge.calibration.pipeline import candidates_for
-
-    inj = Injected(gyro_time_offset=0.05, gyro_bias=0.05)
-    bundle = load_bundle(make_bundle(tmp_path / "b", 5, inj))
-    (problem,) = (r.problem for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
-                  if r.problem.name == "gyro")
-    cands = {c.name: c for c in candidates_for(problem)}
-    tau, scale, bias = cands["time_offset"], cands["scale"], cands["bias"]
-    insts = [tau, scale, bias]
-    before = fit_model(problem, [], problem.nuisance_x0())
-    full = fit_model(problem, insts, problem.initial_vector(insts, before.x, []))
-    x = full.x.copy()
-    x[len(problem.nuisance_x0()) + tau.n_free] = 0.2        # a gain 20 % high, kept
-    after = replace(full, x=x)
-    trial = judge(before, after, 1, 1, 0.0)
-    res = StreamResult(problem, Selection(problem, before, after, [(i, trial) for i in insts]),
-                       problem.metric_value([], before.x, "score"),
-                       problem.metric_value(after.insts, after.x, "score"))
+    problem, res, x, insts = _forced_scale(
+        tmp_path, Injected(gyro_time_offset=0.05, gyro_bias=0.05),
+        ["time_offset", "scale", "bias"])
+    _, scale, bias = insts
 
     def alone(keep: list) -> float:
         return problem.metric_value(keep, problem.initial_vector(keep, x, insts), "score")
