@@ -186,6 +186,11 @@ class StreamProblem(ABC):
         than an AR(1) model does (None: prewhiten and count residuals)."""
         return None
 
+    def effective_count(self, part: Part, r: FloatArray) -> float:
+        """The number of independent residuals ``r`` (of ``part``) is worth for a standard
+        error: the AR(1) correction (:func:`effective_size`) by default."""
+        return effective_size(int(r.size), self.autocorrelation(r))
+
     def readings(self, part: Part) -> FloatArray:
         """The measured value of each reading of ``part``, one per residual (the density of a
         spurious reading depends on it; streams without one reading per residual have none)."""

@@ -49,7 +49,7 @@ from typing import Any
 
 import numpy as np
 from koala_bridge.calibration.effects.base import EffectInstance
-from koala_bridge.calibration.problem import FloatArray, StreamProblem, effective_size, split_params
+from koala_bridge.calibration.problem import FloatArray, StreamProblem, split_params
 from koala_bridge.calibration.robust import (
     gaussian_logpdf,
     inlier_responsibility,
@@ -374,10 +374,10 @@ def parameter_se(problem: StreamProblem, fit: Fit) -> FloatArray:
         return np.zeros(fit.x.size)
     n = fit.r_fit.size
     dof = max(n - fit.x.size, 1)
-    rho = problem.autocorrelation(fit.r_fit)
-    s2 = fit.rss_fit / dof * n / effective_size(n, rho)
+    n_eff = problem.effective_count("fit", fit.r_fit)
+    s2 = fit.rss_fit / dof * n / n_eff
     if fit.robust_scale is not None:
-        return _sandwich_se(problem, fit, fit.robust_scale, n / dof * n / effective_size(n, rho))
+        return _sandwich_se(problem, fit, fit.robust_scale, n / dof * n / n_eff)
     try:
         cov = np.linalg.pinv(fit.jac.T @ fit.jac) * s2
     except np.linalg.LinAlgError:

@@ -312,6 +312,8 @@ def build_gyro(
         turn_on_bias_sigma=model.gyro_turn_on_bias_sigma,
         noise_key="gyroscope_noise_density",
         known_rotation=_known_rotation(bundle.meta),
+        heading_ref=ref,
+        heading_interval_s=interval if dense else None,
     )
     problem.notes.append(f"reference: {source}")
     if not dense:

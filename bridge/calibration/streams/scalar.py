@@ -122,6 +122,14 @@ class ScalarProblem(StreamProblem):
     #: (re-anchored at each window start) instead of the rate residual itself; used when the
     #: reference heading is noisy (a compass), whose derivative is far noisier than its integral.
     integrate_window_s: float | None = None
+    #: the reference heading ``(t, rad)`` whose rate ``u`` is, and the interval the declared
+    #: readings average over (``u`` is then the heading's change over it): a heading error
+    #: (heading space, :meth:`heading_window_errors`) takes the reference's share as the
+    #: heading's own change over each window, not as its differenced rate integrated over the
+    #: readings' times. Errors of the heading (its noise, jitter of its stamps) then stay the
+    #: size of one sample's, where through the rate they do not cancel.
+    heading_ref: tuple[FloatArray, FloatArray] | None = None
+    heading_interval_s: float | None = None
     #: sigma of a declared per-run (turn-on) bias: > 0 makes the bias a nuisance parameter of
     #: the declared model, fitted in every model (the ``bias`` effect is then judged against
     #: this spread instead, see :func:`koala_bridge.calibration.pipeline.run_stream`)
@@ -152,6 +160,8 @@ class ScalarProblem(StreamProblem):
         base_add = np.broadcast_to(np.asarray(self.base_add, dtype=float), self.t.shape)
         self._base_add = {"fit": base_add[fit], "score": base_add[~fit], "all": base_add}
         self._robust_scale: tuple[float | None] | None = None
+        self._excess: dict[tuple[str, float], FloatArray] = {}
+        self._heading_cum: FloatArray | None = None
         self._shape: dict[str, FloatArray] = {}
         if self.noise_sigma is not None:
             sig = np.asarray(self.noise_sigma, dtype=float)
@@ -188,9 +198,10 @@ class ScalarProblem(StreamProblem):
             add=self._base_add[part].copy(),
         )
 
-    def _residual(
+    def _evaluated(
         self, insts: Sequence[EffectInstance], x: FloatArray, part: str, for_fit: bool
-    ) -> FloatArray:
+    ) -> tuple[ScalarState, FloatArray]:
+        """The model state of ``part`` with every effect applied, and its residual."""
         st = self.state(part)
         if self.turn_on_bias_sigma > 0:
             st.add = st.add + x[0]
@@ -201,35 +212,130 @@ class ScalarProblem(StreamProblem):
             r = wrap_angle(r)
         if st.glitch_value is not None:
             r = np.where(np.isclose(st.part.y, st.glitch_value, rtol=1e-9, atol=1e-12), 0.0, r)
-        return r
+        return st, r
+
+    def _residual(
+        self, insts: Sequence[EffectInstance], x: FloatArray, part: str, for_fit: bool
+    ) -> FloatArray:
+        return self._evaluated(insts, x, part, for_fit)[1]
 
     def residuals(
         self, insts: Sequence[EffectInstance], x: FloatArray, part: Part, for_fit: bool = False
     ) -> FloatArray:
-        r = self._residual(insts, x, part, for_fit)
         if self.integrate_window_s is not None:
-            return self._integrate(self._parts[part].t, r, self.integrate_window_s)
-        return r
+            t = self._parts[part].t
+            return self._integrate(t, self._increments(insts, x, part, for_fit),
+                                   self.integrate_window_s)
+        return self._residual(insts, x, part, for_fit)
+
+    def _increments(
+        self, insts: Sequence[EffectInstance], x: FloatArray, part: str, for_fit: bool = False
+    ) -> FloatArray:
+        """The heading error the residual rate adds between consecutive samples of ``part``
+        (rad, one fewer than the samples).
+
+        The readings' side is the trapezoid of ``y - add``; the reference's is ``gain`` times the
+        reference heading's change between the two samples' times (``- tau``), when the stream
+        has that heading (:attr:`heading_ref`): summed over a window it is the heading's own
+        change, whatever noise the heading or its stamps hold, where the trapezoid of its
+        differenced rate would keep a 2 ms jitter of a stamp as a rate error of ``w 2 ms / dt``
+        weighted by the readings' intervals, which does not cancel. Without the heading, the
+        trapezoid of the residual rate.
+        """
+        st, r = self._evaluated(insts, x, part, for_fit)
+        t = st.part.t
+        dt = np.diff(t)
+        inc = 0.5 * (r[1:] + r[:-1]) * dt
+        if self.heading_ref is None or t.size < 2:
+            return np.asarray(inc, dtype=float)
+        assert self.curve_points is None, "a heading reference is a gyro's: no response curve"
+        # y - gain u - add, with gain's share of it on the heading's change instead:
+        # + gain (trapezoid of u - change of the heading)
+        return np.asarray(inc + st.gain * self._reference_excess(part, st.tau), dtype=float)
+
+    def _reference_excess(self, part: str, tau: float) -> FloatArray:
+        """Per interval of ``part``: the trapezoid of the reference rate at ``t - tau`` minus
+        the reference heading's change over it (what integrating the differenced rate adds to
+        the heading's own change); cached for ``tau = 0``."""
+        key = (part, tau)
+        hit = self._excess.get(key)
+        if hit is not None:
+            return hit
+        p = self._parts[part]
+        u = p.u if tau == 0.0 or self.reference is None else self._u_at(p.t, tau)
+        out = 0.5 * (u[1:] + u[:-1]) * np.diff(p.t) - np.diff(self._heading_at(p.t - tau))
+        if tau == 0.0:
+            self._excess[key] = out
+        return out
+
+    def _heading_at(self, t: FloatArray) -> FloatArray:
+        """The reference heading at ``t`` (linear between its samples); with a declared sample
+        interval ``I``, its mean over the ``I`` before ``t``, whose rate the declared readings
+        are (``(h(t) - h(t - I)) / I``, :func:`koala_bridge.calibration.streams.build_gyro`)."""
+        assert self.heading_ref is not None
+        tr, hr = self.heading_ref
+        interval = self.heading_interval_s
+        if not interval:
+            return np.asarray(np.interp(t, tr, hr), dtype=float)
+        if self._heading_cum is None:
+            # the exact integral of the linear interpolant, held at its first value before
+            self._heading_cum = np.r_[0.0, np.cumsum(0.5 * (hr[1:] + hr[:-1]) * np.diff(tr))]
+        cum = self._heading_cum
+
+        def integral(s: FloatArray) -> FloatArray:
+            before = np.minimum(s - tr[0], 0.0) * hr[0]
+            after = np.maximum(s - tr[-1], 0.0) * hr[-1]
+            return np.asarray(np.interp(s, tr, cum) + before + after, dtype=float)
+
+        return (integral(t) - integral(t - interval)) / interval
 
     @staticmethod
-    def _integrate(t: FloatArray, r: FloatArray, window_s: float) -> FloatArray:
-        """Trapezoidal integral of ``r`` from the start of each ``window_s`` window."""
+    def _integrate(t: FloatArray, inc: FloatArray, window_s: float) -> FloatArray:
+        """The sum of the increments ``inc`` (one per interval of ``t``) from the start of each
+        ``window_s`` window: each window starts from zero."""
         if t.size < 2:
-            return np.zeros_like(r)
-        inc = np.r_[0.0, 0.5 * (r[1:] + r[:-1]) * np.diff(t)]
+            return np.zeros(t.shape)
+        inc = np.r_[0.0, inc]
         k = np.floor((t - t[0]) / window_s).astype(int)
         start = np.r_[True, k[1:] != k[:-1]]
         inc[start] = 0.0
         c = np.cumsum(inc)
-        return np.asarray(c - np.maximum.accumulate(np.where(start, c, -np.inf)), dtype=float)
+        # the cumulative sum at the latest window start (not its running maximum: a heading
+        # error that falls from one window to the next is re-anchored as well)
+        anchor = np.maximum.accumulate(np.where(start, np.arange(t.size), 0))
+        return np.asarray(c - c[anchor], dtype=float)
+
+    def independent_count(self, part: Part) -> int | None:
+        """In heading space, the windows of ``part`` (each starts from the reference): inside
+        one, the residual is the integral of the rate's noise, a random walk whose lag-1
+        autocorrelation (from differences, which the reference heading's own noise dominates)
+        counts every sample as independent. One unit per window is what a window holds of a
+        bias: the least-squares slope of a random walk ``W`` over a window ``T`` has variance
+        ``1.2 s^2 / T`` (``s^2`` its variance per second), the window's end alone ``s^2 / T``;
+        the residual's mean square over the window is ``s^2 T / 2``, so counting windows gives
+        a standard error ``sqrt(1.5 / 1.2)`` = 1.12 times the true one. None in rate space."""
+        if self.integrate_window_s is None:
+            return None
+        t = self._parts[part].t
+        if t.size < 2:
+            return 0
+        k = np.floor((t - t[0]) / self.integrate_window_s).astype(int)
+        return int(np.count_nonzero(np.bincount(k) >= 2))
+
+    def effective_count(self, part: Part, r: FloatArray) -> float:
+        units = self.independent_count(part)
+        if units is not None:
+            return float(max(units, 2))
+        return super().effective_count(part, r)
 
     def residual_series(
         self, insts: Sequence[EffectInstance], x: FloatArray
     ) -> tuple[FloatArray, FloatArray]:
-        r = self._residual(insts, x, "all", False)
         if self.integrate_window_s is not None:
-            r = self._integrate(self.t, r, self.integrate_window_s)
-        return self.t, r
+            return self.t, self._integrate(
+                self.t, self._increments(insts, x, "all"), self.integrate_window_s
+            )
+        return self.t, self._residual(insts, x, "all", False)
 
     # ----- metrics -----------------------------------------------------------------------------
     # ----- robust statistics -------------------------------------------------------------------
@@ -287,16 +393,15 @@ class ScalarProblem(StreamProblem):
         """The heading error the residual rate accumulates over each score-part window (rad).
 
         Each window of ``window_s`` seconds starts from zero error (re-anchored to the
-        reference); its value is the trapezoidal integral of the residual rate over the window.
+        reference); its value is the sum of :meth:`_increments` over the window.
         Windows covered less than 90 % are left out, unless no window is full.
         """
         p = self._parts["score"]
-        r = self._residual(insts, x, "score", False)
         if p.t.size < 2:
             return np.empty(0)
         k = np.floor((p.t - p.t[0]) / window_s).astype(int)
         dt = np.diff(p.t)
-        inc = 0.5 * (r[1:] + r[:-1]) * dt
+        inc = self._increments(insts, x, "score")
         same = k[1:] == k[:-1]
         sums = np.bincount(k[1:][same], weights=inc[same], minlength=int(k.max()) + 1)
         span = np.bincount(k[1:][same], weights=dt[same], minlength=int(k.max()) + 1)
