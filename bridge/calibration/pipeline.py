@@ -391,7 +391,7 @@ def _note_near_misses(problem: StreamProblem, sel: Selection) -> None:
             f"{t.lr:.3g} < {t.lr_threshold:.3g}); a longer recording, or more of the motion "
             "that shows it, would tell"
         )
-    units = problem.independent_count("score")
+    units = problem.independent_count("score", sel.after.r_score)
     n = int(sel.after.r_score.size)
     effective = units if units is not None else effective_size(n, sel.rho)
     if close and effective < 10:

@@ -181,15 +181,19 @@ class StreamProblem(ABC):
         """Lag-1 autocorrelation of a residual vector in this stream's sample order."""
         return lag1_autocorrelation(r)
 
-    def independent_count(self, part: Part) -> int | None:
-        """Number of independent units in a part's residual when the stream knows it better
-        than an AR(1) model does (None: prewhiten and count residuals)."""
+    def independent_count(self, part: Part, r: FloatArray | None = None) -> float | None:
+        """Number of independent units in a part's residual (``r``, the model's, when the count
+        depends on it) when the stream knows it better than an AR(1) model does (None:
+        prewhiten and count residuals)."""
         return None
 
-    def effective_count(self, part: Part, r: FloatArray) -> float:
-        """The number of independent residuals ``r`` (of ``part``) is worth for a standard
-        error: the AR(1) correction (:func:`effective_size`) by default."""
-        return effective_size(int(r.size), self.autocorrelation(r))
+    def se_variance(self, part: Part, r: FloatArray, rss: float, n_params: int) -> float:
+        """The variance per residual that scales ``(J^T J)^-1`` into the parameters' covariance,
+        for the residuals ``r`` of ``part`` (sum of squares ``rss``) of a fit of ``n_params``:
+        ``rss / (n - p)``, inflated by ``n / n_eff`` for correlated residuals (the AR(1)
+        correction, :func:`effective_size`)."""
+        n = int(r.size)
+        return rss / max(n - n_params, 1) * n / effective_size(n, self.autocorrelation(r))
 
     def readings(self, part: Part) -> FloatArray:
         """The measured value of each reading of ``part``, one per residual (the density of a

@@ -367,17 +367,18 @@ def fit_model(problem: StreamProblem, insts: Sequence[EffectInstance], x0: Float
 
 
 def parameter_se(problem: StreamProblem, fit: Fit) -> FloatArray:
-    """Standard errors of the free parameters, inflated by n / n_eff for correlated residuals."""
+    """Standard errors of the free parameters: ``(J^T J)^-1`` times the stream's variance per
+    residual (:meth:`StreamProblem.se_variance`: inflated for correlated residuals)."""
     if fit.em_slice is not None:
         return _mixture_se(problem, fit)
     if fit.jac is None or fit.x.size == 0:
         return np.zeros(fit.x.size)
     n = fit.r_fit.size
-    dof = max(n - fit.x.size, 1)
-    n_eff = problem.effective_count("fit", fit.r_fit)
-    s2 = fit.rss_fit / dof * n / n_eff
+    s2 = problem.se_variance("fit", fit.r_fit, fit.rss_fit, fit.x.size)
     if fit.robust_scale is not None:
-        return _sandwich_se(problem, fit, fit.robust_scale, n / dof * n / n_eff)
+        # the sandwich sums the squared residuals itself: only the inflation over rss / n
+        return _sandwich_se(problem, fit, fit.robust_scale,
+                            s2 * n / fit.rss_fit if fit.rss_fit > 0 else 1.0)
     try:
         cov = np.linalg.pinv(fit.jac.T @ fit.jac) * s2
     except np.linalg.LinAlgError:
@@ -445,7 +446,7 @@ def judge(
     k: int,
     n_candidates: int,
     rho: float,
-    counts: tuple[int | None, int | None] = (None, None),
+    counts: tuple[float | None, float | None] = (None, None),
 ) -> Trial:
     """Apply the stopping rule of the module docstring to one candidate."""
     name = new.insts[-1].name
@@ -462,9 +463,10 @@ def judge(
     ws_old, ws_new = prewhiten(rs_old, rho), prewhiten(rs_new, rho)
     nf, ns = max(wf_new.size, 1), max(ws_new.size, 1)
     if counts[0] is not None and counts[1] is not None:
-        # The stream knows its independent units (odometry windows): raw sums, those counts.
+        # The stream knows its independent units (odometry windows, heading-space windows):
+        # raw sums, those counts.
         wf_old, wf_new, ws_old, ws_new = rf_old, rf_new, rs_old, rs_new
-        nf, ns = max(counts[0], 1), max(counts[1], 1)
+        nf, ns = max(counts[0], 1.0), max(counts[1], 1.0)
     dbic = nf * np.log(max(_ss(wf_new), tiny) / max(_ss(wf_old), tiny)) + k * np.log(nf)
     lr = ns * np.log(max(_ss(ws_old), tiny) / max(_ss(ws_new), tiny))
     thr = chi2_ppf(1 - ALPHA / max(n_candidates, 1), max(k, 1))
@@ -534,15 +536,19 @@ def heldout_score(problem: StreamProblem, fit: Fit, likelihood: bool = False) ->
     return float(problem.metric_value(fit.insts, fit.x, "score"))
 
 
-def noise_autocorrelation(
+def noise_structure(
     problem: StreamProblem, start: Fit, candidates: Sequence[EffectInstance]
-) -> float:
-    """Lag-1 autocorrelation of the fit-part residual of the model with every candidate."""
-    if not candidates:
-        return problem.autocorrelation(start.r_fit)
-    insts = list(candidates)
-    full = fit_model(problem, insts, problem.initial_vector(insts, start.x, start.insts))
-    return problem.autocorrelation(full.r_fit)
+) -> tuple[float, tuple[float | None, float | None]]:
+    """Lag-1 autocorrelation of the fit-part residual of the model with every candidate, and
+    the independent units of its fit and held-out residuals where the stream counts them
+    (:meth:`StreamProblem.independent_count`)."""
+    full = start
+    if candidates:
+        insts = list(candidates)
+        full = fit_model(problem, insts, problem.initial_vector(insts, start.x, start.insts))
+    counts = (problem.independent_count("fit", full.r_fit),
+              problem.independent_count("score", full.r_score))
+    return problem.autocorrelation(full.r_fit), counts
 
 
 def select_effects(
@@ -555,8 +561,7 @@ def select_effects(
     current = fit_model(problem, [], problem.nuisance_x0())
     result = Selection(problem, current, current)
     remaining = list(candidates)
-    rho = noise_autocorrelation(problem, current, remaining)
-    counts = (problem.independent_count("fit"), problem.independent_count("score"))
+    rho, counts = noise_structure(problem, current, remaining)
     result.rho = rho
     explained: set[str] = set()  # candidates whose implausible fit the notes explain (once)
     while remaining and len(result.added) < max_effects:

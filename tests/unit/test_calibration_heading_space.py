@@ -17,7 +17,7 @@ import pytest
 from _bundles import gyro_bundle
 from koala_bridge.calibration.bundle import load_bundle
 from koala_bridge.calibration.model import declared_model
-from koala_bridge.calibration.pipeline import calibrate
+from koala_bridge.calibration.pipeline import StreamResult, calibrate
 from koala_bridge.calibration.streams import build_gyro
 from koala_bridge.calibration.streams.scalar import ScalarProblem
 from koala_bridge.calibration.synthetic import DECLARED
@@ -67,17 +67,35 @@ def test_a_perfect_gyro_against_jittered_stamps_has_no_heading_error(tmp_path: P
     assert np.max(np.abs(e)) < bound  # through the differenced rate: 0.14 rad
 
 
-def test_independent_units_in_heading_space_are_its_windows(tmp_path: Path) -> None:
+def test_independent_units_in_heading_space_follow_the_residual(tmp_path: Path) -> None:
     t, w, theta = _motion()
     bundle = load_bundle(gyro_bundle(tmp_path / "b", t, theta, w))
     problem = build_gyro(bundle, declared_model(DECLARED, bundle.meta))
     assert isinstance(problem, ScalarProblem)
     assert problem.independent_count("fit") is None  # rate space: AR(1) on the residuals
     problem.integrate_window_s = 10.0
-    # the fit part is the first 60 s, the held-out part the last 40 s
-    assert problem.independent_count("fit") == 6
-    assert problem.independent_count("score") == 4
-    assert problem.effective_count("score", np.zeros(10)) == 4.0
+    # the fit part is the first 60 s (6 windows), the held-out part the last 40 s (4); without
+    # a residual, a random walk's 1.25 units per window
+    assert problem.independent_count("fit") == pytest.approx(7.5)
+    assert problem.independent_count("score") == pytest.approx(5.0)
+    fit = problem.split.mask(problem.t, "fit")
+    tf = problem.t[fit]
+    k = np.floor((tf - tf[0]) / 10.0).astype(int)
+    anchor = np.maximum.accumulate(np.where(np.r_[True, k[1:] != k[:-1]], np.arange(tf.size), 0))
+    rng = np.random.default_rng(5)
+    # a random walk from each window's start: 1.25 units per window (it is its own variogram's
+    # q, the estimate a few per cent off)
+    walk = np.cumsum(rng.normal(0.0, 1.0, tf.size))
+    walk -= walk[anchor]
+    assert problem.independent_count("fit", walk) == pytest.approx(7.5, rel=0.1)
+    # white noise less its value at each window's start (the anchor shared by the window):
+    # 2.67 units per window for 1000 samples a window (8 / 3 in the limit)
+    white = rng.normal(0.0, 1.0, tf.size)
+    white -= white[anchor]
+    assert problem.independent_count("fit", white) == pytest.approx(6 * 2.66, rel=0.1)
+    # the standard errors' variance per residual: rss over those units less the parameters
+    units = problem.independent_count("fit", white)
+    assert problem.se_variance("fit", white, 12.0, 1) == pytest.approx(12.0 / (units - 1))
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -127,3 +145,36 @@ def test_a_declared_mean_rate_is_compared_with_the_heading_it_averages(tmp_path:
     undeclared = _mean_rate_gyro(tmp_path, None)
     e = undeclared.heading_window_errors([], undeclared.nuisance_x0(), 10.0)
     assert np.max(np.abs(e)) > 5e-3
+
+
+def _noisy_jittered(tmp_path: Path, seed: int, scale: float, bias: float) -> StreamResult:
+    """The turning robot's gyro with ``scale`` and ``bias`` against its heading with 0.01 rad
+    of white noise and 2 ms of stamp jitter: compared in heading space."""
+    t, w, theta = _motion()
+    rng = np.random.default_rng(seed)
+    stamps = t + _jitter(rng, t.size)
+    heading = theta + rng.normal(0.0, 0.01, t.size)
+    readings = (1.0 + scale) * w + bias + rng.normal(0.0, 0.002, t.size)
+    bundle = load_bundle(gyro_bundle(tmp_path / "b", stamps, heading, readings, gyro_t=t))
+    (res,) = (r for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
+              if r.problem.name == "gyro")
+    assert res.problem.metric == "heading_error_10s_window_rms"
+    return res
+
+
+def test_a_scale_is_found_in_heading_space(tmp_path: Path) -> None:
+    # the heading's change over a window is the scale's regressor; its noise (0.01 rad at both
+    # ends, jitter 1.1 rad/s x 4.5 ms at most) is a small share of the changes' mean square
+    res = _noisy_jittered(tmp_path, 0, 0.03, BIAS)
+    assert sorted(i.name for i in res.effects) == ["bias", "scale"]
+    found = dict(zip([i.name for i in res.effects], res._params_and_se(), strict=True))
+    (scale,), (scale_se,) = found["scale"]
+    assert scale_se is not None and abs(float(scale) - 0.03) < 4 * float(scale_se)
+    (bias,), (bias_se,) = found["bias"]
+    assert bias_se is not None and abs(float(bias) - BIAS) < 4 * float(bias_se)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_clean_gyro_gets_nothing_in_heading_space(tmp_path: Path, seed: int) -> None:
+    res = _noisy_jittered(tmp_path, seed, 0.0, 0.0)
+    assert res.effects == []

@@ -16,7 +16,7 @@ from koala_bridge.calibration.selection import Trial
 
 
 def _problem(units: int | None) -> SimpleNamespace:
-    return SimpleNamespace(notes=[], independent_count=lambda part: units)
+    return SimpleNamespace(notes=[], independent_count=lambda part, r=None: units)
 
 
 def _selection(*trials: Trial, rho: float = 0.0, n: int = 100) -> SimpleNamespace:

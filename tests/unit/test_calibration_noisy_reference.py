@@ -2,9 +2,10 @@
 MPU-6050 turned by hand against its accelerometer's roll angle: 81 % noise in rate space).
 
 Rate space said nothing there: a 0.057 rad/s bias went unnamed. Such a stream is compared in
-heading space (streams.to_heading_space), where white noise shrinks with integration. A scale
-through zero on readings that do not run against the reference is not called a sign
-convention.
+heading space (streams.to_heading_space), where white noise shrinks with integration; a time
+offset stays judged against the rate's noise (a shift smooths it), a scale against the
+heading's. A scale through zero on readings that do not run against the reference is not called
+a sign convention.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from koala_bridge.calibration.effects.base import EffectInstance
 from koala_bridge.calibration.model import declared_model
 from koala_bridge.calibration.pipeline import calibrate
 from koala_bridge.calibration.problem import Split
+from koala_bridge.calibration.streams import heading_noise_share, heading_noise_sigma
 from koala_bridge.calibration.synthetic import DECLARED
 
 BIAS = 0.05
@@ -53,6 +55,9 @@ def test_a_noisy_dense_reference_is_compared_in_heading_space(tmp_path: Path) ->
     assert any(n.startswith("compared in heading space") for n in res.problem.notes)
     # the time shift that would smooth the reference's noise is not tried
     assert any(n.startswith("time_offset not tried") for n in res.problem.notes)
+    # a gain is judged against the heading's noise share, small beside a 92 deg turn: tried
+    assert not any(n.startswith("scale not tried") for n in res.problem.notes)
+    assert "scale" in [t.name for t in res.selection.rounds[0]]
     # the noise no longer reaches a residual's Allan analysis
     assert res.noise is None
     assert [i.name for i in res.effects] == ["bias"]
@@ -68,6 +73,24 @@ def test_rate_space_on_the_same_data_misses_the_bias(
     res = _gyro(_bundle(tmp_path / "b", 0))
     assert res.problem.metric == "rms_rate_error"
     assert "bias" not in [i.name for i in res.effects]
+
+
+def test_heading_noise_sigma_and_share() -> None:
+    # The robust spread of 6th differences over sqrt(924): its standard error is a few per
+    # cent on 10 000 samples (MAD: 1.67 sigma / sqrt(n_eff), the differences correlated over 7
+    # samples: n_eff ~ 1400, 4.5 %); 20 % is 4 of them.
+    rng = np.random.default_rng(4)
+    t = np.arange(0.0, 100.0, 0.01)
+    smooth = 0.8 * np.sin(2 * np.pi * t / 17)
+    assert heading_noise_sigma(smooth + rng.normal(0, 0.01, t.size)) == pytest.approx(0.01,
+                                                                                      rel=0.2)
+    assert heading_noise_sigma(smooth) < 1e-6
+    # in heading space the same noise is small beside a turn's change per window: a fraction
+    # 2 sigma^2 / mean(change^2) of it
+    share = heading_noise_share(t, smooth + rng.normal(0, 0.01, t.size), 0.0, 99.0)
+    changes = np.diff(np.interp(np.arange(0.0, 99.0 + 1e-9, 10.0), t, smooth))
+    assert share == pytest.approx(2 * 0.01**2 / np.mean(changes**2), rel=0.5)
+    assert share < 0.01
 
 
 @pytest.mark.parametrize(("sign", "says"), [(1.0, "do not run against the reference"),

@@ -206,6 +206,12 @@ def reference_dominates(problem: Any, effect: str) -> bool:
         share = reference_noise_share(problem)
         if hasattr(problem, "reference_share"):
             problem.reference_share = share  # once per stream: scale, time_offset, k r^2 ask
+    heading = getattr(problem, "heading_share", None)
+    if effect == "scale" and heading is not None and problem.integrate_window_s is not None:
+        # a gyro compared in heading space with a dense reference (streams.to_heading_space):
+        # a gain fitted there is pulled towards 0 by the heading's noise share, not the rate's;
+        # a time shift still smooths the rate's noise, so it keeps the rate's share
+        share = heading
     if share <= MAX_REFERENCE_NOISE_SHARE:
         if share > NOTE_REFERENCE_NOISE_SHARE and effect == "scale":
             note_once(

@@ -478,7 +478,7 @@ class OdometryProblem(StreamProblem):
         e, _ = self._errors(insts, x, "score")
         return np.asarray(np.linalg.norm(e, axis=0), dtype=float)
 
-    def independent_count(self, part: Part) -> int | None:
+    def independent_count(self, part: Part, r: FloatArray | None = None) -> float | None:
         # Dead-reckoning errors integrate the noise twice (slip -> heading -> position), so
         # residuals inside a window are not independent whatever their lag-1 correlation says;
         # windows are (each starts from the reference), two coordinates each.
