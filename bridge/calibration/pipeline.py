@@ -184,7 +184,9 @@ class StreamResult:
         """Per added effect: why ``--write-config`` must not write it, or None. An effect is
         *uncertain* when its size, ``d = params - absent``, is within ``WRITE_Z`` standard
         errors of nothing: ``sum d^2 < WRITE_Z^2 sum SE^2`` (``|d| < WRITE_Z SE`` for one
-        parameter: the declared value lies inside the effect's 99 % interval). Fixed parameters
+        parameter: the declared value lies inside the effect's 99 % interval), or when the
+        effect says its estimate is biased beyond its standard error (:meth:`Effect.unwritable`:
+        a gain within a noisy reference's dilution). Fixed parameters
         (a glitch value, a quantisation step, a turn-on bias judged against its declared
         spread) have no standard error here. And the simulated effects are not written when,
         at their values, without the effects the written config cannot hold (uncertain ones,
@@ -228,7 +230,7 @@ class StreamResult:
                     "its 99 % interval)"
                 )
             else:
-                out.append(None)
+                out.append(inst.effect.unwritable(inst, np.asarray(p, dtype=float), self.problem))
         return out
 
     def effect_paths(self, inst: EffectInstance) -> list[str]:
@@ -668,6 +670,9 @@ def _heading_space_if_noisy(small: StreamProblem, full: StreamProblem | None) ->
         return  # a clean reference, or a constant one (a still gyro: its noise, by Allan)
     for q in [small] if whole is small else [small, whole]:
         to_heading_space(q, share)
+    # the heading's noise share in heading space, on consecutive samples: on a random subset
+    # the readings' trapezoid over its gaps is no integral of the motion
+    small.heading_share = whole.heading_share = whole.heading_noise_share()
 
 
 def refit_full(full: StreamProblem, small: StreamResult) -> StreamResult:

@@ -23,7 +23,6 @@ from koala_bridge.calibration.effects.base import EffectInstance
 from koala_bridge.calibration.model import declared_model
 from koala_bridge.calibration.pipeline import calibrate
 from koala_bridge.calibration.problem import Split
-from koala_bridge.calibration.streams import heading_noise_share, heading_noise_sigma
 from koala_bridge.calibration.synthetic import DECLARED
 
 BIAS = 0.05
@@ -75,22 +74,50 @@ def test_rate_space_on_the_same_data_misses_the_bias(
     assert "bias" not in [i.name for i in res.effects]
 
 
-def test_heading_noise_sigma_and_share() -> None:
-    # The robust spread of 6th differences over sqrt(924): its standard error is a few per
-    # cent on 10 000 samples (MAD: 1.67 sigma / sqrt(n_eff), the differences correlated over 7
-    # samples: n_eff ~ 1400, 4.5 %); 20 % is 4 of them.
-    rng = np.random.default_rng(4)
-    t = np.arange(0.0, 100.0, 0.01)
-    smooth = 0.8 * np.sin(2 * np.pi * t / 17)
-    assert heading_noise_sigma(smooth + rng.normal(0, 0.01, t.size)) == pytest.approx(0.01,
-                                                                                      rel=0.2)
-    assert heading_noise_sigma(smooth) < 1e-6
-    # in heading space the same noise is small beside a turn's change per window: a fraction
-    # 2 sigma^2 / mean(change^2) of it
-    share = heading_noise_share(t, smooth + rng.normal(0, 0.01, t.size), 0.0, 99.0)
-    changes = np.diff(np.interp(np.arange(0.0, 99.0 + 1e-9, 10.0), t, smooth))
-    assert share == pytest.approx(2 * 0.01**2 / np.mean(changes**2), rel=0.5)
-    assert share < 0.01
+def _still_filtered(out: Path, seed: int, tau: float, bias: float) -> Path:
+    """A still gyro (``bias``, 0.002 rad/s of noise) against a heading whose 0.02 rad of noise is
+    low-passed with time constant ``tau`` (AR(1)): an accelerometer's angle through a filter."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, 100.0 + 0.005, 0.01)
+    a = np.exp(-0.01 / tau)
+    z = rng.normal(0.0, 0.02 * np.sqrt(1 - a * a), t.size)
+    e = np.zeros(t.size)
+    for i in range(1, t.size):
+        e[i] = a * e[i - 1] + z[i]
+    return gyro_bundle(out, t, 0.3 + e, bias + rng.normal(0.0, 0.002, t.size))
+
+
+@pytest.mark.parametrize("tau", [0.05, 1.0])
+def test_filtered_heading_noise_is_no_motion_for_a_scale(tmp_path: Path, tau: float) -> None:
+    # Its sixth differences see none of a smoothed noise: measured so, its windows' changes
+    # looked like motion, and a still gyro got a scale of -1 (gain 0) on about half the seeds.
+    # The readings follow none of it: the share is ~1 and no scale is tried. The bias (0.1 rad
+    # a window against 0.02 of noise) is found where the noise is white at the windows' scale
+    # (tau 0.05 s); at tau = 1 s the 4 held-out windows hold fewer units, and it may not be.
+    for seed in range(3):
+        res = _gyro(_still_filtered(tmp_path / f"b{seed}", 9000 + seed, tau, 0.01))
+        assert res.problem.metric == "heading_error_10s_window_rms"
+        assert res.problem.heading_share is not None and res.problem.heading_share > 0.9
+        assert any(n.startswith("scale not tried") for n in res.problem.notes)
+        assert {i.name for i in res.effects} <= {"bias"}
+        if tau < 0.1:
+            assert [i.name for i in res.effects] == ["bias"]
+
+
+def test_the_heading_share_of_a_turning_gyro_is_its_white_noise(tmp_path: Path) -> None:
+    # the same 0.02 rad, white, beside a turn back and forth of +-0.9 rad: the share is the
+    # noise's variance over the path's, about 2 sigma^2 / mean square of the path
+    rng = np.random.default_rng(6)
+    t = np.arange(0.0, 100.0 + 0.005, 0.01)
+    w = 0.8 * np.sin(2 * np.pi * t / 7)
+    theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
+    res = _gyro(gyro_bundle(tmp_path / "b", t, theta + rng.normal(0.0, 0.02, t.size),
+                            w + rng.normal(0.0, 0.002, t.size)))
+    assert res.problem.metric == "heading_error_10s_window_rms"
+    path = theta - theta[0]  # sin path, mean square about 0.9^2 (1/2 + 1): window anchors vary
+    share = res.problem.heading_share
+    assert share is not None and share < 5 * 2 * 0.02**2 / np.mean((path - path.mean()) ** 2)
+    assert res.effects == []
 
 
 @pytest.mark.parametrize(("sign", "says"), [(1.0, "do not run against the reference"),

@@ -110,6 +110,13 @@ class Effect(ABC):
         notes (default: nothing beyond the rejection)."""
         return None
 
+    def unwritable(
+        self, inst: EffectInstance, params: NDArray[np.float64], problem: Any
+    ) -> str | None:
+        """Why fitted ``params``, certain as they may be, are not the sensor's and must not be
+        written (a bias of the estimate the standard error does not hold), or None (default)."""
+        return None
+
     def absent(self, inst: EffectInstance) -> NDArray[np.float64]:
         """The parameter values that mean "no such effect": the declared model. Default 0 (an
         increment, a coefficient); an effect whose parameter is the quantity itself (ticks per

@@ -86,6 +86,8 @@ def note_once(problem: Any, note: str) -> None:
 MAX_REFERENCE_NOISE_SHARE = 0.25
 #: the share above which the report says a fitted gain may be attenuated by it
 NOTE_REFERENCE_NOISE_SHARE = 0.01
+#: fixed-point steps of the gain the share is measured with (:func:`reference_noise_share`)
+SHARE_ITERATIONS = 20
 #: rows the share is measured on at most (a contiguous block of the fit part)
 MAX_SHARE_ROWS = 20_000
 #: the largest latency between readings and reference looked through (s; effects/time_offset.py)
@@ -112,6 +114,18 @@ def reference_noise_share(problem: Any) -> float:
         # a contiguous block from the middle of the fit part: consecutive rows, as sampled
         start = (rows.size - MAX_SHARE_ROWS) // 2
         rows = rows[start : start + MAX_SHARE_ROWS]
+    sparse = getattr(problem, "sparse_reference_t", None)
+    if sparse is not None and sparse.size > 2 and rows.size > 2:
+        # a reference sparse beside the readings (a 12.5 Hz log against a 100 Hz gyro): the
+        # readings between two of its samples share its interpolation, whose differences hide
+        # its noise (a clean gyro got a -14 % scale against 0.02 rad of heading noise). One row
+        # per reference interval, nearest its middle, where the rate is the interval's own.
+        tr = np.asarray(problem.t, dtype=float)[rows]
+        mid = 0.5 * (sparse[1:] + sparse[:-1])
+        mid = mid[(mid >= tr[0]) & (mid <= tr[-1])]
+        j = np.clip(np.searchsorted(tr, mid), 1, tr.size - 1)
+        j = j - (mid - tr[j - 1] < tr[j] - mid)
+        rows = rows[np.unique(j)]
     uf = np.asarray(u, dtype=float)[rows]
     curve = getattr(problem, "curve", None)
     pf = getattr(problem, "base_gain", 1.0) * (curve(uf) if curve is not None else uf)
@@ -131,33 +145,46 @@ def reference_noise_share(problem: Any) -> float:
     if var <= 0.0:
         return np.inf
     angle = bool(getattr(problem, "angle", False))
-    # the readings follow the reference times a gain (a scale error, a reflectivity): the
-    # shared fast variation is cov(dp, dy) / g; g from the levels, held within 2:1 (a gain a
-    # noisy reference pulls towards 0 must not make its noise look shared)
-    pc, yc = pf - pf.mean(), yf - yf.mean()
-    gain = 1.0
-    if not angle and np.dot(pc, pc) > 0:
-        gain = float(np.clip(np.dot(pc, yc) / np.dot(pc, pc), 0.5, 2.0))
-    if keys.size and np.any(keys != keys[0]):
-        # several series: first differences within each, at lag 0
-        order = np.argsort(keys, kind="stable")
-        same = np.diff(keys[order]) == 0
-        dp, dy = np.diff(pf[order])[same], np.diff(yf[order])[same]
-        noise = _unshared(dp, dy / gain, angle, 0)
-    else:
+    several = bool(keys.size and np.any(keys != keys[0]))
+    step = float(np.median(np.diff(t_ok))) if t_ok.size > 1 else 0.0
+    k_max = min(int(MAX_LAG_S / step), pf.size // 4) if step > 0 else 0
+
+    def unshared(gain: float) -> float:
+        if several:
+            # several series: first differences within each, at lag 0
+            order = np.argsort(keys, kind="stable")
+            same = np.diff(keys[order]) == 0
+            dp, dy = np.diff(pf[order])[same], np.diff(yf[order])[same]
+            return _unshared(dp, dy / gain, angle, 0)
         # one series: the readings may lag the reference (what time_offset fits), which
         # decorrelates fast motion at lag 0, by a fraction of a sample too; differences over
         # m = 1, 2, 4, ... samples, each at the lag (within MAX_LAG_S) it is shared best at,
         # and the scale that leaves the least unshared (white noise differences have 2 sigma^2
         # at every scale)
-        step = float(np.median(np.diff(t_ok))) if t_ok.size > 1 else 0.0
-        k_max = min(int(MAX_LAG_S / step), pf.size // 4) if step > 0 else 0
         noise = np.inf
         m = 1
         while m <= max(k_max, 1) and m < pf.size // 2:
             noise = min(noise, _unshared(pf[m:] - pf[:-m], (yf[m:] - yf[:-m]) / gain, angle,
                                          k_max))
             m *= 2
+        return noise
+
+    # the readings follow the reference times a gain (a scale error, a reflectivity): the
+    # shared fast variation is cov(dp, dy) / g. g from the levels is pulled towards 0 by the
+    # very noise measured (errors in the variables: by the share), which then looked shared:
+    # a gyro against a heading whose differenced rate was half noise read 0.13. So g is the
+    # levels' regression over the share's complement, to a fixed point, held within 2:1.
+    pc, yc = pf - pf.mean(), yf - yf.mean()
+    pp, py = float(np.dot(pc, pc)), float(np.dot(pc, yc))
+    gain = 1.0 if angle or pp <= 0 else float(np.clip(py / pp, 0.5, 2.0))
+    noise = unshared(gain)
+    for _ in range(0 if angle or pp <= 0 else SHARE_ITERATIONS):
+        share = 0.5 * noise / var if np.isfinite(noise) else 0.0
+        better = float(np.clip(py / (pp * max(1.0 - share, 0.1)), 0.5, 2.0))
+        if abs(better - gain) < 1e-3 * gain:
+            break
+        gain = better
+        noise = unshared(gain)
     return 0.5 * float(noise) / var if np.isfinite(noise) else 0.0
 
 

@@ -15,7 +15,6 @@ from __future__ import annotations
 import logging
 from collections.abc import Mapping, Sequence
 from difflib import get_close_matches
-from math import comb
 from typing import Any
 
 import numpy as np
@@ -38,6 +37,7 @@ from koala_bridge.calibration.streams.beacons import (
 from koala_bridge.calibration.streams.compass import CompassProblem
 from koala_bridge.calibration.streams.odometry import OdometryProblem
 from koala_bridge.calibration.streams.scalar import (
+    SPARSE_REFERENCE_RATIO,
     ScalarProblem,
     fit_shared_curve,
     heading_metric,
@@ -263,37 +263,6 @@ def _in_heading_space(problem: ScalarProblem) -> None:
     problem.integrate_window_s = HEADING_WINDOW_S
 
 
-#: The order of the differences whose spread measures a dense heading's own white noise: a
-#: smooth motion's share falls as ``(2 sin(pi f h))^k`` (0.2 at a quarter of the sampling rate),
-#: white noise's variance is ``C(2k, k) sigma^2`` (924 sigma^2 for k = 6).
-NOISE_DIFFERENCE_ORDER = 6
-
-
-def heading_noise_sigma(theta: FloatArray) -> float:
-    """A dense heading's own white noise (rad): the robust spread (1.4826 MAD) of its
-    :data:`NOISE_DIFFERENCE_ORDER`-th differences over ``sqrt(C(2k, k))``; nan when too short."""
-    k = NOISE_DIFFERENCE_ORDER
-    d = np.diff(theta, n=k)
-    if d.size < 8:
-        return float("nan")
-    mad = float(np.median(np.abs(d - np.median(d))))
-    return float(1.4826 * mad / np.sqrt(comb(2 * k, k)))
-
-
-def heading_noise_share(t: FloatArray, theta: FloatArray, t0: float, t1: float) -> float:
-    """The reference's noise share in heading space: ``2 sigma^2`` (white noise at both ends of
-    a window, :func:`heading_noise_sigma`) over the mean square of the heading's change per
-    :data:`HEADING_WINDOW_S` window over ``[t0, t1]``; what a gain fitted in heading space is
-    pulled towards 0 by (errors in the variables: the change is the regressor)."""
-    edges = np.arange(t0, t1 + 1e-9, HEADING_WINDOW_S)
-    sigma = heading_noise_sigma(theta[(t >= t0) & (t <= t1)])
-    if edges.size < 3 or not np.isfinite(sigma):
-        return 0.0
-    change = np.diff(np.interp(edges, t, theta))
-    var = float(np.mean(change**2))
-    return min(2 * sigma**2 / var, 1.0) if var > 0 else 1.0
-
-
 def to_heading_space(problem: ScalarProblem, share: float) -> None:
     """Compare a gyro with its dense reference in heading space, as with a compass: over
     :data:`HEADING_WINDOW_S` windows, the residual rate integrated
@@ -303,16 +272,12 @@ def to_heading_space(problem: ScalarProblem, share: float) -> None:
     with integration, so rates compared with it say nothing. An MPU-6050 turned by hand against
     its accelerometer's roll angle (81 % noise) kept a 0.057 rad/s bias unnamed in rate space;
     in heading space the bias is found as a hand fit finds it. A scale is then judged against
-    the heading's noise share (:func:`heading_noise_share`; ``effects.common.reference_dominates``):
-    the heading's change over a window is its regressor, whose error is the heading's noise at
-    the window's two ends (and a stamp's jitter there: ``ScalarProblem._increments``). A time
-    offset stays judged against the rate's share: a time shift smooths the reference's noise."""
+    the heading's noise share in heading space (``heading_share``, measured by
+    :meth:`ScalarProblem.heading_noise_share` on the whole stream: the pipeline sets it;
+    ``effects.common.reference_dominates``): the heading's path over a window is its regressor.
+    A time offset stays judged against the rate's share: a time shift smooths the reference's
+    noise."""
     _in_heading_space(problem)
-    if problem.heading_ref is not None and problem.t.size:
-        t_ref, theta = problem.heading_ref
-        problem.heading_share = heading_noise_share(
-            t_ref, theta, float(problem.t[0]), float(problem.t[-1])
-        )
     problem.notes.append(
         f"compared in heading space ({HEADING_WINDOW_S:g} s windows): the reference rate is "
         f"{100 * share:.3g} % its own noise once differenced (white noise grows with "
@@ -321,6 +286,14 @@ def to_heading_space(problem: ScalarProblem, share: float) -> None:
         "analysis and no noise density (--write-noise) come from it: the residual's noise "
         "would be the reference's"
     )
+
+
+def _sparse(t_ref: FloatArray, t: FloatArray) -> bool:
+    """Whether a reference sampled at ``t_ref`` is sparse beside readings at ``t``
+    (``scalar.SPARSE_REFERENCE_RATIO``)."""
+    if t_ref.size < 2 or t.size < 2:
+        return False
+    return bool(np.median(np.diff(t_ref)) >= SPARSE_REFERENCE_RATIO * np.median(np.diff(t)))
 
 
 def _moving_average(v: FloatArray, n: int) -> FloatArray:
@@ -455,6 +428,7 @@ def build_gyro(
         known_rotation=_known_rotation(bundle.meta),
         heading_ref=ref,
         heading_interval_s=interval if dense else None,
+        sparse_reference_t=ref[0] if dense and _sparse(ref[0], t) else None,
     )
     problem.notes.append(f"reference: {source}")
     if clock_note is not None:

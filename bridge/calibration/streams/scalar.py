@@ -27,6 +27,8 @@ from koala_bridge.calibration.problem import (
     SecondaryMetric,
     StreamProblem,
     apply_all,
+    effective_size,
+    lag1_autocorrelation,
     split_params,
 )
 from koala_bridge.calibration.robust import (
@@ -87,6 +89,10 @@ def heading_metric(window_s: float) -> str:
 #: "significantly", and is no influence at all.
 HEADING_EFFECTS = frozenset({"bias", "bias_drift"})
 
+
+#: a dense reference is sparse beside the readings when its median sample interval is at least
+#: this many of theirs (:attr:`ScalarProblem.sparse_reference_t`)
+SPARSE_REFERENCE_RATIO = 3.0
 
 #: independent units per heading-space window for a residual that is a random walk
 #: (:meth:`ScalarProblem.independent_count`): the least-squares slope of a random walk over a
@@ -157,9 +163,13 @@ class ScalarProblem(StreamProblem):
     #: size of one sample's, where through the rate they do not cancel.
     heading_ref: tuple[FloatArray, FloatArray] | None = None
     #: in heading space against a dense heading: that heading's noise share there
-    #: (:func:`koala_bridge.calibration.streams.heading_noise_share`), which a scale is judged
-    #: against (``effects.common.reference_dominates``); None: the rate's share
+    #: (:meth:`heading_noise_share`), which a scale is judged against
+    #: (``effects.common.reference_dominates``); None: the rate's share
     heading_share: float | None = None
+    #: the reference's sample times when it is sparse beside the readings (a 13 Hz robot log
+    #: against a 100 Hz gyro, :data:`SPARSE_REFERENCE_RATIO`): the readings between two of its
+    #: samples share its interpolation (:meth:`independent_count`)
+    sparse_reference_t: FloatArray | None = None
     heading_interval_s: float | None = None
     #: sigma of a declared per-run (turn-on) bias: > 0 makes the bias a nuisance parameter of
     #: the declared model, fitted in every model (the ``bias`` effect is then judged against
@@ -270,14 +280,16 @@ class ScalarProblem(StreamProblem):
         has that heading (:attr:`heading_ref`): summed over a window it is the heading's own
         change, whatever noise the heading or its stamps hold, where the trapezoid of its
         differenced rate would keep a 2 ms jitter of a stamp as a rate error of ``w 2 ms / dt``
-        weighted by the readings' intervals, which does not cancel. Without the heading, the
-        trapezoid of the residual rate.
+        weighted by the readings' intervals, which does not cancel. Without the heading, and on
+        a decimated subset, the trapezoid of the residual rate.
         """
         st, r = self._evaluated(insts, x, part, for_fit)
         t = st.part.t
         dt = np.diff(t)
         inc = 0.5 * (r[1:] + r[:-1]) * dt
-        if self.heading_ref is None or t.size < 2:
+        if self.heading_ref is None or self.full is not None or t.size < 2:
+            # a random subset of a long stream (``full`` set): the readings' trapezoid over its
+            # gaps is no integral of the motion, the residual's is (motion cancels pointwise)
             return np.asarray(inc, dtype=float)
         assert self.curve_points is None, "a heading reference is a gyro's: no response curve"
         # y - gain u - add, with gain's share of it on the heading's change instead:
@@ -309,14 +321,20 @@ class ScalarProblem(StreamProblem):
         if not interval:
             return np.asarray(np.interp(t, tr, hr), dtype=float)
         if self._heading_cum is None:
-            # the exact integral of the linear interpolant, held at its first value before
+            # the exact integral of the linear interpolant at its samples
             self._heading_cum = np.r_[0.0, np.cumsum(0.5 * (hr[1:] + hr[:-1]) * np.diff(tr))]
         cum = self._heading_cum
+        slope = np.diff(hr) / np.diff(tr)
 
         def integral(s: FloatArray) -> FloatArray:
+            # from the sample at or before s, the trapezoid under the line to s; held at the
+            # first (last) value before (after) the samples
+            k = np.clip(np.searchsorted(tr, s, side="right") - 1, 0, tr.size - 2)
+            ds = np.clip(s, tr[0], tr[-1]) - tr[k]
+            inside = cum[k] + hr[k] * ds + 0.5 * slope[k] * ds**2
             before = np.minimum(s - tr[0], 0.0) * hr[0]
             after = np.maximum(s - tr[-1], 0.0) * hr[-1]
-            return np.asarray(np.interp(s, tr, cum) + before + after, dtype=float)
+            return np.asarray(inside + before + after, dtype=float)
 
         return (integral(t) - integral(t - interval)) / interval
 
@@ -346,16 +364,22 @@ class ScalarProblem(StreamProblem):
         variance ``s2``, shared by the whole window at its anchor. Their lag-1 autocorrelation
         from differences, which ``n`` dominates, counted every sample as independent (a still
         gyro's bias had a standard error of 5e-6 rad/s for an error of 2e-4). Here ``q`` and
-        ``s2`` come from the residual's variogram inside the windows (``V_h = h q + 2 s2`` at
-        lags 1 and a quarter window), and a window of ``m`` samples counts
+        ``s2`` come from the residual's variogram inside the windows, the line
+        ``V_h = h q + 2 s2`` through its values at an eighth and a quarter of a window (noise
+        that a filter smooths, or the reference's interpolation, is white at that scale: the
+        differences' lag-1 would have called it a random walk), and a window of ``m`` samples
+        counts
         ``m / F``, ``F`` the variance of the least-squares slope over the ramp under that model
         over what independent residuals of the same mean square would give. A pure random walk
         gives 1.25 units per window (the slope's variance ``1.2 q / T`` against the window end's
         ``q / T``), a pure white heading noise 2.67 (its anchor is shared): it is at least 1.25
         per window whatever the mixture, and slow structure the model lacks counts as random
-        walk, so fewer. Without ``r``: 1.25 per window."""
+        walk, so fewer. Without ``r``: 1.25 per window.
+
+        In rate space against a sparse reference (:attr:`sparse_reference_t`), see
+        :meth:`_sparse_reference_count`; else None."""
         if self.integrate_window_s is None:
-            return None
+            return self._sparse_reference_count(part, r)
         t = self._parts[part].t
         if t.size < 2:
             return 0.0
@@ -364,19 +388,81 @@ class ScalarProblem(StreamProblem):
         sizes = sizes[sizes >= 2]
         if r is None or r.size != t.size:
             return RANDOM_WALK_UNITS * float(sizes.size)
-        h = max(2, int(np.median(sizes)) // 4)
+        # the variogram's line at the window's scale, lags an eighth and a quarter of a window:
+        # noise a filter smooths (an accelerometer's angle) levels off long before, and is
+        # white there; a random walk keeps growing. At short lags both grow.
+        h2 = max(2, int(np.median(sizes)) // 4)
+        h1 = max(1, h2 // 2)
 
         def variogram(lag: int) -> float:
             same = k[lag:] == k[:-lag]
             d = (r[lag:] - r[:-lag])[same]
             return float(np.mean(d**2)) if d.size else 0.0
 
-        v1, vh = variogram(1), variogram(h)
-        q = max((vh - v1) / (h - 1), 0.0)
-        s2 = max((v1 - q) / 2.0, 0.0)
+        v1, v2 = variogram(h1), variogram(h2)
+        q = max((v2 - v1) / (h2 - h1), 0.0)
+        s2 = max((v2 - h2 * q) / 2.0, 0.0)
         if q + s2 <= 0.0:
             return RANDOM_WALK_UNITS * float(sizes.size)
         return float(sum(size / _slope_variance_ratio(int(size) - 1, q, s2) for size in sizes))
+
+    def heading_noise_share(self) -> float:
+        """The reference heading's noise share in heading space, on the fit part: what a scale
+        fitted there is pulled towards 0 by (errors in the variables), in [0, 1]; 0 without a
+        heading or a window.
+
+        The regressor is the heading's path from each window's start, ``P``; the readings'
+        integral over the same windows, ``Q``, follows its motion times the gain and shares
+        none of its noise. A per-window ramp (a bias) is projected out of both, the gain ``g``
+        is that of ``Q`` on ``P`` the other way round (``Q.Q / P.Q``, clean of ``P``'s noise;
+        held within 2:1, as in rate space), and the share is ``1 - P.Q / (g P.P)``: the part of
+        the heading's path the readings do not follow. A heading's white noise alone (sixth
+        differences) missed noise that a filter smooths (a low-passed accelerometer angle): its
+        windows' changes looked like motion, and a still gyro got a scale of -1."""
+        if self.heading_ref is None or self.integrate_window_s is None:
+            return 0.0
+        p = self._parts["fit"]
+        t = p.t
+        if t.size < 4:
+            return 0.0
+        k = np.floor((t - t[0]) / self.integrate_window_s).astype(int)
+        anchor = np.maximum.accumulate(np.where(np.r_[True, k[1:] != k[:-1]],
+                                                np.arange(t.size), 0))
+        path = self._heading_at(t)
+        path = path - path[anchor]
+        readings = self._integrate(t, 0.5 * (p.y[1:] + p.y[:-1]) * np.diff(t),
+                                   self.integrate_window_s)
+        tau = t - t[anchor]
+        tt = float(np.dot(tau, tau))
+        if tt > 0:
+            path = path - tau * float(np.dot(path, tau)) / tt
+            readings = readings - tau * float(np.dot(readings, tau)) / tt
+        pp, pq, qq = (float(np.dot(a, b)) for a, b in
+                      ((path, path), (path, readings), (readings, readings)))
+        if pp <= 0.0:
+            return 1.0
+        gain = float(np.clip(qq / pq, 0.5, 2.0)) if pq > 0 else 2.0
+        return float(np.clip(1.0 - pq / (gain * pp), 0.0, 1.0))
+
+    def _sparse_reference_count(self, part: Part, r: FloatArray | None) -> float | None:
+        """Against a sparse reference, the larger of two AR(1) counts (``effective_size``):
+        over the readings, and over the residual's means per reference interval. Readings
+        between two reference samples share the reference's interpolation there: a 13 Hz robot
+        log against a 100 Hz gyro left residuals whose lag-1 autocorrelation (0.999) counted 8 s
+        of them as 3 units, and a scale of -0.115 had a standard error of 0.11 where a fit per
+        reference interval gives 0.022. A gyro's own white noise, when it is what the residual
+        holds, keeps the readings' count. None without a sparse reference or ``r``."""
+        if self.sparse_reference_t is None or r is None:
+            return None
+        t = self._parts[part].t
+        if r.size != t.size or r.size < 3:
+            return None
+        k = np.searchsorted(self.sparse_reference_t, t)
+        rows = np.bincount(k)
+        held = rows > 0
+        means = np.bincount(k, weights=r)[held] / rows[held]
+        return max(effective_size(int(r.size), lag1_autocorrelation(r)),
+                   effective_size(int(means.size), lag1_autocorrelation(means)))
 
     def se_variance(self, part: Part, r: FloatArray, rss: float, n_params: int) -> float:
         """In heading space ``rss / (n_eff - p)``, ``n_eff`` the units of

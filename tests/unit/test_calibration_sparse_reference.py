@@ -1,0 +1,110 @@
+"""A gyro against a reference sparse beside it (a 12.5 Hz robot log against a 100 Hz gyro), and
+a reference whose noise dilutes a fitted gain.
+
+Between two reference samples the readings share its interpolation: their residuals' lag-1
+autocorrelation (0.999) counted seconds of them as a few units, and a real -11.5 % scale (a
+new user's robot-arm IMU) was "uncertain" with a standard error five times its spread
+(ScalarProblem._sparse_reference_count). And a reference's own noise pulls a fitted gain
+towards 0 by up to its noise share (regression dilution): such a gain is not written
+(Scale.unwritable), and the share is measured without being diluted itself
+(effects.common.reference_noise_share).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from _bundles import gyro_bundle
+from koala_bridge.calibration.bundle import load_bundle
+from koala_bridge.calibration.effects.common import MAX_REFERENCE_NOISE_SHARE
+from koala_bridge.calibration.model import declared_model
+from koala_bridge.calibration.pipeline import StreamResult, calibrate
+from koala_bridge.calibration.synthetic import DECLARED
+
+DT = 0.01
+STRIDE = 8  # the reference at 12.5 Hz
+
+
+def _motion(duration: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    t = np.arange(0.0, duration + DT / 2, DT)
+    w = 0.8 * np.sin(2 * np.pi * t / 7) + 0.3 * np.sin(2 * np.pi * t / 2.3)
+    theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
+    return t, w, theta
+
+
+def _gyro(tmp_path: Path, seed: int, scale: float, heading_sigma: float,
+          gyro_sigma: float = 0.01, duration: float = 30.0) -> StreamResult:
+    """The gyro (``scale``, ``gyro_sigma`` rad/s of noise) against every ``STRIDE``-th heading
+    sample with ``heading_sigma`` of white noise."""
+    t, w, theta = _motion(duration)
+    rng = np.random.default_rng(seed)
+    k = slice(None, None, STRIDE)
+    heading = theta[k] + rng.normal(0.0, heading_sigma, t[k].size)
+    readings = (1.0 + scale) * w + rng.normal(0.0, gyro_sigma, t.size)
+    bundle = load_bundle(gyro_bundle(tmp_path / f"b{seed}", t[k], heading, readings, gyro_t=t))
+    (res,) = (r for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
+              if r.problem.name == "gyro")
+    return res
+
+
+def test_a_scale_against_a_sparse_reference_has_an_honest_standard_error(
+    tmp_path: Path,
+) -> None:
+    # The reference's interpolation, not the gyro's noise, is the residual: over seeds, the
+    # fitted scale's spread against its standard error (counted by the readings' AR(1), the
+    # standard error was 66 times the spread)
+    values, errors = [], []
+    for seed in range(6):
+        res = _gyro(tmp_path, seed, -0.1, 0.002, gyro_sigma=0.001)
+        assert res.problem.sparse_reference_t is not None
+        assert [i.name for i in res.effects] == ["scale"]
+        assert res.not_written() == [None]
+        ((p, se),) = res._params_and_se()
+        assert se is not None
+        values.append(float(p[0]))
+        errors.append(float(se[0]))
+    spread, se_mean = float(np.std(values)), float(np.mean(errors))
+    assert abs(np.mean(values) + 0.1) < 4 * se_mean
+    # the counted units are a lower bound: the standard error may be larger than the spread
+    # (6 times here), not smaller, and not by the readings' count's factor
+    assert spread < 2 * se_mean
+    assert se_mean < 20 * spread
+
+
+def test_a_gain_within_the_reference_noise_is_not_written(tmp_path: Path) -> None:
+    # 0.02 rad of noise on a 12.5 Hz heading: its differenced rate is about a quarter noise.
+    # A clean gyro's gain is diluted to ~0.86 at several standard errors; it is not the gyro's.
+    for seed in range(2):
+        res = _gyro(tmp_path, seed, 0.0, 0.02)
+        share = res.problem.reference_share
+        assert share is not None and 0.1 < share <= MAX_REFERENCE_NOISE_SHARE
+        if not res.effects:
+            continue
+        assert [i.name for i in res.effects] == ["scale"]
+        ((p, _),) = res._params_and_se()
+        assert -share < float(p[0]) < 0
+        (why,) = res.not_written()
+        assert why is not None and "what the reference's own noise" in why
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_noisy_dense_heading_is_measured_as_noisy(tmp_path: Path, seed: int) -> None:
+    # 0.01 rad of white noise at 100 Hz beside fast motion: the differenced rate is about half
+    # noise. Measured with a gain from the levels, which that noise dilutes, it read 0.13, the
+    # gyro stayed in rate space and got a -33 % scale and a half-sample time offset.
+    t = np.arange(0.0, 100.0 + DT / 2, DT)
+    w = 0.8 * np.sin(2 * np.pi * t / 7) + 0.6 * np.sin(2 * np.pi * t * 1.5)
+    theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
+    rng = np.random.default_rng(seed)
+    bundle = load_bundle(gyro_bundle(tmp_path / "b", t, theta + rng.normal(0.0, 0.01, t.size),
+                                     w + rng.normal(0.0, 0.002, t.size)))
+    (res,) = (r for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
+              if r.problem.name == "gyro")
+    share = res.problem.reference_share
+    # the differenced rate's noise at the samples, (e_(i+1) - e_(i-1)) / (2 dt): 0.71 rad/s,
+    # variance 0.5, beside the motion's 0.5: a share of a half
+    assert share is not None and 0.35 < share < 0.65
+    assert res.problem.metric == "heading_error_10s_window_rms"
+    assert res.effects == []
