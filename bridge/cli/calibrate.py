@@ -19,8 +19,8 @@ that helps least is left out, in turn, until they do); an effect the simulator h
 key for (a time offset, a covariate, a range bias of a sonar) is written as a comment, and "the
 written model" is the held-out error of what is written. Every stream, and every candidate not
 tried or not kept, has a note saying why (a column that is another channel of the measured
-quantity, a scale through zero: a sign convention, a time offset at the edge of its +-0.5 s
-search: clocks apart).
+quantity, a scale through zero: a sign convention, a time offset at the edge of its search,
++-0.5 s or 5 % of the fit part, whichever is shorter: clocks apart).
 """
 # The docstring above is this subcommand's --help (cli/main.py reads it): plain text, no reST.
 

@@ -146,3 +146,14 @@ def test_a_held_out_part_without_motion_is_said(tmp_path: Path) -> None:
     turning = _gyro(gyro_bundle(tmp_path / "c", t, theta, w + BIAS))
     assert not any(n.startswith("the held-out part holds little")
                    for n in turning.problem.notes)
+
+
+def test_a_fit_part_without_motion_is_said(tmp_path: Path) -> None:
+    # the mirror: still for the first 60 %, a turn in the last 40 %
+    t = np.arange(0.0, 100.0 + 0.005, 0.01)
+    w = np.where((t > 70) & (t < 79), 1.6 / 9 * (1 - np.cos(2 * np.pi * (t - 70) / 9)), 0.0)
+    theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
+    res = _gyro(gyro_bundle(tmp_path / "b", t, theta, w + BIAS))
+    (note,) = (n for n in res.problem.notes if n.startswith("the fit part holds little motion"))
+    assert "record turns in the first 60 %" in note
+    assert not any(n.startswith("the held-out part holds little") for n in res.problem.notes)

@@ -101,3 +101,15 @@ def _irregular_bundle(out: Path, t_ref: np.ndarray, t: np.ndarray, w: np.ndarray
     # samples is right to 1e-5 rad)
     return gyro_bundle(out, t_ref, np.interp(t_ref, t, theta),
                        w + rng.normal(0.0, 0.002, t.size), gyro_t=t)
+
+
+def test_a_heading_that_flips_by_pi_is_said(tmp_path: Path) -> None:
+    # the heading of a sensor tilted past 90 deg, derived from an orientation, flips by pi
+    # where the gyro does not turn; a motion without flips gets no such note
+    t, w, theta = _motion()
+    flipped = theta + np.pi * ((t > 30) & (t < 31))
+    res = _gyro(gyro_bundle(tmp_path / "b", t, flipped, w))
+    (note,) = (n for n in res.problem.notes if n.startswith("the reference heading jumps"))
+    assert "2 time(s)" in note and "t = 30" in note
+    clean = _gyro(gyro_bundle(tmp_path / "c", t, theta, w))
+    assert not any(n.startswith("the reference heading jumps") for n in clean.problem.notes)

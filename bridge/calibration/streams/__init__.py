@@ -235,22 +235,61 @@ STILL_HELDOUT_SHARE = 0.1
 
 
 def _note_still_heldout(problem: ScalarProblem, t: FloatArray, theta: FloatArray) -> None:
-    """Say so when the held-out part holds little of the motion: a gain or a time offset is
-    scored there only through what it does to the bias (a new user's gyro turned once, by hand,
-    in the first 60 % of the recording). The span is the 2nd-98th percentile range of the
-    reference heading over each part, so its own noise does not count as motion."""
-    split = problem.split
+    """Say so when one part of the split holds little of the motion the other holds: a gain or
+    a time offset is then fitted (the fit part) or scored (the held-out part) there only
+    through what it does to the bias (a new user's gyro turned once, by hand, in the first 60 %
+    of the recording; another's level segments turned only in the last 40 %). The span is the
+    2nd-98th percentile range of the reference heading at the stream's rows of each part (so
+    that its own noise does not count as motion, nor the tilted stretches a level stream
+    leaves out)."""
+    heading = np.interp(problem.t, t, theta)
+    fit_rows = problem.split.mask(problem.t, "fit")
 
-    def span(a: float, b: float) -> float:
-        th = theta[(t >= a) & (t <= b)]
+    def span(rows: np.ndarray) -> float:
+        th = heading[rows]
         return float(np.subtract(*np.percentile(th, [98, 2]))) if th.size > 1 else 0.0
 
-    fit, held = span(split.t0, split.t1), span(split.t1, split.t2)
+    fit, held = span(fit_rows), span(~fit_rows)
     if fit > 0 and held < STILL_HELDOUT_SHARE * fit:
         problem.notes.append(
             f"the held-out part holds little motion (its heading spans {held:.3g} rad, the fit "
             f"part's {fit:.3g}): a gain or a time offset is scored there only through what it "
             "does to the bias; record turns in the last 40 % of the time too"
+        )
+    elif held > 0 and fit < STILL_HELDOUT_SHARE * held:
+        problem.notes.append(
+            f"the fit part holds little motion (its heading spans {fit:.3g} rad, the held-out "
+            f"part's {held:.3g}): a gain or a time offset is fitted there only through what it "
+            "does to the bias; record turns in the first 60 % of the time too"
+        )
+
+
+#: a step of the reference heading between two of its samples that differs from the readings'
+#: integral over it by more than this (rad) is a jump of the reference
+HEADING_JUMP_RAD = 0.5 * np.pi
+
+
+def _note_heading_jumps(problem: ScalarProblem, t: FloatArray, theta: FloatArray) -> None:
+    """Say so when the reference heading jumps where the gyro does not turn: between two of its
+    samples at most a second apart it changes by more than :data:`HEADING_JUMP_RAD` from what
+    the readings integrate to. The heading of a sensor tilted past 90 deg is not defined, and
+    one derived from an orientation flips by pi there (a new user's robot arm: four flips in
+    31 s, reported as "better by 18 %" in rad/s of 4)."""
+    inside = (t >= problem.t[0]) & (t <= problem.t[-1])
+    if inside.sum() < 2:
+        return
+    tr, th = t[inside], theta[inside]
+    turned = np.interp(tr, problem.t, cumulative_trapezoid(problem.y, problem.t, initial=0.0))
+    # samples at most a second apart: across a gap a gyro's bias alone may add up to that
+    off = (np.abs(np.diff(th) - np.diff(turned)) > HEADING_JUMP_RAD) & (np.diff(tr) <= 1.0)
+    if off.any():
+        first = float(tr[np.flatnonzero(off)[0]])
+        problem.notes.append(
+            f"the reference heading jumps {int(off.sum())} time(s) where the gyro does not turn "
+            f"(by more than {HEADING_JUMP_RAD:.3g} rad between two of its samples, first at "
+            f"t = {first:.6g} s): a heading derived from an orientation tilted past 90 deg "
+            "flips by pi there, and a heading is not defined; give the heading of a level "
+            "segment, or of the sensor's own axis (docs/bundle-format.md)"
         )
 
 
@@ -445,6 +484,7 @@ def build_gyro(
         problem.notes.append(f"declared sample: mean rate over the {interval:g} s before it")
     if dense:
         _note_still_heldout(problem, *ref)
+        _note_heading_jumps(problem, *ref)
     if model.gyro_turn_on_bias_sigma > 0:
         problem.notes.append(
             "declared turn-on bias N(bias_rad_s, "
