@@ -185,8 +185,8 @@ class StreamResult:
         *uncertain* when its size, ``d = params - absent``, is within ``WRITE_Z`` standard
         errors of nothing: ``sum d^2 < WRITE_Z^2 sum SE^2`` (``|d| < WRITE_Z SE`` for one
         parameter: the declared value lies inside the effect's 99 % interval), or when the
-        effect says its estimate is biased beyond its standard error (:meth:`Effect.unwritable`:
-        a gain within a noisy reference's dilution). Fixed parameters
+        effect bounds a bias of its estimate beyond ``WRITE_Z`` standard errors
+        (:meth:`Effect.estimate_bias`: a gain diluted by a noisy reference). Fixed parameters
         (a glitch value, a quantisation step, a turn-on bias judged against its declared
         spread) have no standard error here. And the simulated effects are not written when,
         at their values, without the effects the written config cannot hold (uncertain ones,
@@ -230,7 +230,15 @@ class StreamResult:
                     "its 99 % interval)"
                 )
             else:
-                out.append(inst.effect.unwritable(inst, np.asarray(p, dtype=float), self.problem))
+                biased = inst.effect.estimate_bias(inst, np.asarray(p, dtype=float),
+                                                   self.problem)
+                if biased is not None and biased[0] > WRITE_Z * err:
+                    out.append(
+                        f"biased beyond its uncertainty: by up to {biased[0]:.3g}, more than "
+                        f"{WRITE_Z:.3g} SE = {WRITE_Z * err:.3g}: {biased[1]}"
+                    )
+                else:
+                    out.append(None)
         return out
 
     def effect_paths(self, inst: EffectInstance) -> list[str]:

@@ -178,3 +178,23 @@ def test_a_scale_is_found_in_heading_space(tmp_path: Path) -> None:
 def test_a_clean_gyro_gets_nothing_in_heading_space(tmp_path: Path, seed: int) -> None:
     res = _noisy_jittered(tmp_path, seed, 0.0, 0.0)
     assert res.effects == []
+
+
+def test_a_long_stream_selected_on_a_subset_keeps_its_bias(tmp_path: Path) -> None:
+    # 250 s at 100 Hz: selected on a random subset of 20 000 rows. There the readings' side
+    # between two rows is their integral on the whole stream: the trapezoid over the subset's
+    # gaps (of the readings, or of the residual against the heading's differenced rate, 0.03
+    # rad of noise: 4 rad/s) is no integral, and a 0.01 rad/s bias went unnamed
+    t = np.arange(0.0, 250.0 + DT / 2, DT)
+    w = 0.8 * np.sin(2 * np.pi * t / 7) + 0.3 * np.sin(2 * np.pi * t / 2.3)
+    theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
+    rng = np.random.default_rng(100)
+    bundle = load_bundle(gyro_bundle(tmp_path / "b", t, theta + rng.normal(0.0, 0.03, t.size),
+                                     w + BIAS + rng.normal(0.0, 0.002, t.size)))
+    (res,) = (r for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
+              if r.problem.name == "gyro")
+    assert res.problem.t.size > 20_000  # the whole stream's result, selected on the subset
+    assert res.problem.metric == "heading_error_10s_window_rms"
+    assert [i.name for i in res.effects] == ["bias"]
+    ((p, se),) = res._params_and_se()
+    assert se is not None and abs(float(p[0]) - BIAS) < 4 * float(se[0])

@@ -110,11 +110,12 @@ class Effect(ABC):
         notes (default: nothing beyond the rejection)."""
         return None
 
-    def unwritable(
+    def estimate_bias(
         self, inst: EffectInstance, params: NDArray[np.float64], problem: Any
-    ) -> str | None:
-        """Why fitted ``params``, certain as they may be, are not the sensor's and must not be
-        written (a bias of the estimate the standard error does not hold), or None (default)."""
+    ) -> tuple[float, str] | None:
+        """A bound on the bias of the fitted ``params`` that their standard errors do not hold,
+        with what causes it, or None (default): ``--write-config`` does not write an effect
+        whose bound is more than ``WRITE_Z`` of its standard errors."""
         return None
 
     def absent(self, inst: EffectInstance) -> NDArray[np.float64]:

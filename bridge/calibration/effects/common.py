@@ -174,14 +174,22 @@ def reference_noise_share(problem: Any) -> float:
     # very noise measured (errors in the variables: by the share), which then looked shared:
     # a gyro against a heading whose differenced rate was half noise read 0.13. So g is the
     # levels' regression over the share's complement, to a fixed point, held within 2:1.
+    # Readings that run against the reference (a sign convention: a gain of -1) share its
+    # motion as much as readings that follow it: the gain keeps its sign, its size within 2:1
+    # (held at +0.5 for those, their shared motion read as noise and hid the sign's note).
     pc, yc = pf - pf.mean(), yf - yf.mean()
     pp, py = float(np.dot(pc, pc)), float(np.dot(pc, yc))
-    gain = 1.0 if angle or pp <= 0 else float(np.clip(py / pp, 0.5, 2.0))
+    sign = -1.0 if py < 0 else 1.0
+
+    def held(g: float) -> float:
+        return sign * float(np.clip(abs(g), 0.5, 2.0))
+
+    gain = 1.0 if angle or pp <= 0 else held(py / pp)
     noise = unshared(gain)
     for _ in range(0 if angle or pp <= 0 else SHARE_ITERATIONS):
         share = 0.5 * noise / var if np.isfinite(noise) else 0.0
-        better = float(np.clip(py / (pp * max(1.0 - share, 0.1)), 0.5, 2.0))
-        if abs(better - gain) < 1e-3 * gain:
+        better = held(py / (pp * max(1.0 - share, 0.1)))
+        if abs(better - gain) < 1e-3 * abs(gain):
             break
         gain = better
         noise = unshared(gain)

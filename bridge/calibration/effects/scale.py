@@ -17,9 +17,9 @@ as the reference's fast variation the readings do not share
 (:func:`.common.reference_noise_share`), is at most ``MAX_REFERENCE_NOISE_SHARE``
 (:func:`.common.reference_dominates`); else a note says why, and above 1 % the report notes
 that a fitted gain may be attenuated by it. A gain that is not positive (``1 + s <= 0``) is no
-scale error of a working sensor: implausible. A gain below 1 by no more than the reference's
-noise share (in the space the stream is compared in) is what that noise makes of a right gain:
-the standard error does not hold that bias, so such a scale is not written (:meth:`unwritable`).
+scale error of a working sensor: implausible. The noise share (in the space the stream is
+compared in) bounds the dilution, ``share (1 + s)``; where that is more than ``WRITE_Z`` standard
+errors, the value is biased beyond its uncertainty and not written (:meth:`estimate_bias`).
 """
 
 from __future__ import annotations
@@ -71,10 +71,13 @@ class Scale(Effect):
             "up; no effect can stand in for that"
         )
 
-    def unwritable(self, inst: EffectInstance, params: Any, problem: Any) -> str | None:
-        # regression dilution pulls a fitted gain towards 0 by up to the reference's noise
-        # share (the heading's in heading space): a lower gain within it is not the sensor's
-        # (a clean gyro against a 12.5 Hz heading with 0.02 rad of noise got -14 % at 6 SE)
+    def estimate_bias(
+        self, inst: EffectInstance, params: Any, problem: Any
+    ) -> tuple[float, str] | None:
+        # Regression dilution pulls a fitted gain towards 0 by up to the reference's noise
+        # share (the heading's in heading space): by up to share * (1 + s) (a clean gyro
+        # against a 12.5 Hz heading with 0.02 rad of noise: -14 % at 6 SE; a real -12 % read as
+        # -17 % at 0.75 % SE). Below a share of 1 % it is not counted.
         s = float(params[0])
         if getattr(problem, "integrate_window_s", None) is not None:
             share = getattr(problem, "heading_share", None)
@@ -84,13 +87,10 @@ class Scale(Effect):
                 share = reference_noise_share(problem)
         if share is None or not np.isfinite(share) or share <= NOTE_REFERENCE_NOISE_SHARE:
             return None
-        if s >= 0.0 or -s > share:
-            return None
-        return (
-            f"a gain of {1 + s:.4g} is within what the reference's own noise ({100 * share:.2g} "
-            "% of its variance) makes of a right gain (it pulls a fitted gain towards 0 by up "
-            "to that share), which its standard error does not hold: measure it against a "
-            "reference with less noise, or with more motion"
+        return share * abs(1.0 + s), (
+            f"the reference's own noise ({100 * share:.2g} % of its variance) may pull a fitted "
+            "gain towards 0 (regression dilution); measure it against a reference with less "
+            "noise, or with more motion"
         )
 
     def apply(self, inst: EffectInstance, state: Any, params: Any) -> None:

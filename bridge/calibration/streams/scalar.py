@@ -203,6 +203,7 @@ class ScalarProblem(StreamProblem):
         self._robust_scale: tuple[float | None] | None = None
         self._excess: dict[tuple[str, float], FloatArray] = {}
         self._heading_cum: FloatArray | None = None
+        self._full_cum: FloatArray | None = None
         self._shape: dict[str, FloatArray] = {}
         if self.noise_sigma is not None:
             sig = np.asarray(self.noise_sigma, dtype=float)
@@ -280,21 +281,35 @@ class ScalarProblem(StreamProblem):
         has that heading (:attr:`heading_ref`): summed over a window it is the heading's own
         change, whatever noise the heading or its stamps hold, where the trapezoid of its
         differenced rate would keep a 2 ms jitter of a stamp as a rate error of ``w 2 ms / dt``
-        weighted by the readings' intervals, which does not cancel. Without the heading, and on
-        a decimated subset, the trapezoid of the residual rate.
+        weighted by the readings' intervals, which does not cancel. On a decimated subset of a
+        long stream (:attr:`full` set) the readings' side between two of its rows is their
+        integral on the whole stream: the trapezoid over the subset's random gaps is no integral
+        of the motion, which then would not cancel against the heading's change. Without the
+        heading, the trapezoid of the residual rate.
         """
         st, r = self._evaluated(insts, x, part, for_fit)
         t = st.part.t
         dt = np.diff(t)
         inc = 0.5 * (r[1:] + r[:-1]) * dt
-        if self.heading_ref is None or self.full is not None or t.size < 2:
-            # a random subset of a long stream (``full`` set): the readings' trapezoid over its
-            # gaps is no integral of the motion, the residual's is (motion cancels pointwise)
+        if self.heading_ref is None or t.size < 2:
             return np.asarray(inc, dtype=float)
         assert self.curve_points is None, "a heading reference is a gyro's: no response curve"
         # y - gain u - add, with gain's share of it on the heading's change instead:
         # + gain (trapezoid of u - change of the heading)
-        return np.asarray(inc + st.gain * self._reference_excess(part, st.tau), dtype=float)
+        inc = inc + st.gain * self._reference_excess(part, st.tau)
+        if self.full is not None:
+            y = st.part.y
+            inc = inc - 0.5 * (y[1:] + y[:-1]) * dt + np.diff(self._whole_integral(t))
+        return np.asarray(inc, dtype=float)
+
+    def _whole_integral(self, t: FloatArray) -> FloatArray:
+        """The whole stream's readings (:attr:`full`) integrated (trapezoid) from its start to
+        ``t``, linear between its samples (a subset's rows are among them)."""
+        assert self.full is not None
+        if self._full_cum is None:
+            ft, fy = self.full.t, self.full.y
+            self._full_cum = np.r_[0.0, np.cumsum(0.5 * (fy[1:] + fy[:-1]) * np.diff(ft))]
+        return np.asarray(np.interp(t, self.full.t, self._full_cum), dtype=float)
 
     def _reference_excess(self, part: str, tau: float) -> FloatArray:
         """Per interval of ``part``: the trapezoid of the reference rate at ``t - tau`` minus
