@@ -148,3 +148,18 @@ def test_a_clean_gyro_against_a_sparse_reference_has_no_scale(tmp_path: Path,
             assert [i.name for i in res.effects] == ["scale"]
             ((p, se),) = res._params_and_se()
             assert se is not None and abs(float(p[0]) - scale) < 4 * float(se[0])
+
+
+def test_readings_in_bursts_that_cannot_be_averaged_are_said(tmp_path: Path) -> None:
+    # five readings within 0.4 ms, then a 49.6 ms gap: every gap is half a 12.5 Hz reference
+    # interval or more, no interval is covered, and the readings stay as they are, with a note
+    t, w, theta = _motion(60.0)
+    bursts = np.r_[[b + 1e-4 * np.arange(5) for b in np.arange(0.0, 60.0, 0.05)]].ravel()
+    rate = np.interp(bursts, t, w)
+    k = slice(None, None, STRIDE)
+    bundle = load_bundle(gyro_bundle(tmp_path / "b", t[k], theta[k], rate, gyro_t=bursts))
+    (res,) = (r for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
+              if r.problem.name == "gyro")
+    assert any(n.startswith("not compared as means over the reference's intervals")
+               for n in res.problem.notes)
+    assert not any(n.startswith("compared as means") for n in res.problem.notes)

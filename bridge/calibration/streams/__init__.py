@@ -508,6 +508,13 @@ def build_gyro(
         sparse_reference_t=ref[0] if sparse else None,
     )
     problem.notes.append(f"reference: {source}")
+    if sparse and interval is None and moving and not averaged:
+        problem.notes.append(
+            "not compared as means over the reference's intervals, as a sparse reference asks: "
+            "too few of its intervals are covered by readings without a gap of half an "
+            "interval (readings that arrive in bursts?); an instantaneous reading is larger "
+            "than the reference's differenced rate by the motion's sinc, and a scale may show it"
+        )
     if averaged:
         problem.notes.append(
             f"compared as means over the reference's intervals (every "
