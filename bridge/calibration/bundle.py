@@ -113,6 +113,10 @@ class Bundle:
     #: ``*.csv`` files of the directory that are no file of the format (not read; the report
     #: names them, so data under another name does not vanish silently)
     unknown_files: tuple[str, ...] = ()
+    #: the whole bundle this one is a decimated subset of (``pipeline.decimate_bundle``), for
+    #: what must be taken from consecutive samples (a gyro's means over its reference's
+    #: intervals); None: this is the whole bundle
+    whole: Bundle | None = field(default=None, compare=False, repr=False)
 
     def get(self, name: str) -> Table | None:
         return self.tables.get(name)

@@ -635,7 +635,7 @@ def decimate_bundle(bundle: Bundle, max_rows: int, references: bool = False) -> 
             keep[[0, -1]] = True  # keep the span, so the split is the same
             table = table.select(keep)
         tables[name] = table
-    return Bundle(bundle.path, tables, bundle.meta, bundle.unknown_files)
+    return Bundle(bundle.path, tables, bundle.meta, bundle.unknown_files, whole=bundle)
 
 
 def _problems(

@@ -163,3 +163,23 @@ def test_readings_in_bursts_that_cannot_be_averaged_are_said(tmp_path: Path) -> 
     assert any(n.startswith("not compared as means over the reference's intervals")
                for n in res.problem.notes)
     assert not any(n.startswith("compared as means") for n in res.problem.notes)
+
+
+def test_a_long_stream_decides_on_its_whole_rows(tmp_path: Path) -> None:
+    # 600 s at 100 Hz against a 25 Hz reference: selected on a random subset of 20 000 rows,
+    # whose median interval is not a third of the reference's. Decided there, the subset
+    # compared instantaneous readings and named a scale for a clean gyro (fast motion: the
+    # reference's interval means are smaller); the whole stream's rows decide, and give the
+    # subset its means
+    t = np.arange(0.0, 600.0 + DT / 2, DT)
+    w = 0.8 * np.sin(2 * np.pi * t / 7) + 0.6 * np.sin(2 * np.pi * t * 1.5)
+    theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
+    k = slice(None, None, 4)
+    rng = np.random.default_rng(11)
+    bundle = load_bundle(gyro_bundle(tmp_path / "b", t[k], theta[k],
+                                     w + rng.normal(0.0, 0.005, t.size), gyro_t=t))
+    (res,) = (r for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
+              if r.problem.name == "gyro")
+    assert res.problem.t.size > 20_000
+    assert any(n.startswith("compared as means") for n in res.problem.notes)
+    assert res.effects == []

@@ -458,7 +458,16 @@ def build_gyro(
     else:
         rate_ref = _rate_of(ref[0], ref[1], t)
     readings = table["yaw_rate"]
-    sparse = dense and _sparse(ref[0], t)
+    # a decimated subset decides, and takes the means, on the whole stream's consecutive rows
+    # (its random rows are not sparse beside a 25 Hz reference where the stream's are)
+    whole = bundle.whole.get("gyro") if bundle.whole is not None else None
+    if whole is not None:
+        tw, yw = whole["t"], whole["yaw_rate"]
+        w_ok = np.isfinite(yw) & (tw >= ref[0][0]) & (tw <= ref[0][-1])
+        t_whole, y_whole = tw[w_ok], yw[w_ok]
+    else:
+        t_whole, y_whole = t, readings
+    sparse = dense and _sparse(ref[0], t_whole)
     # a reference that does not turn (a still gyro against a constant heading every 30 s): an
     # instantaneous reading is its interval's mean there, and the readings keep their noise
     # for the Allan analysis
@@ -466,7 +475,9 @@ def build_gyro(
     moving = bool(during.size > 1 and np.ptp(during) > 0)
     averaged = False
     if sparse and interval is None and moving:
-        means = _interval_means(t, readings, ref[0])
+        means = _interval_means(t_whole, y_whole, ref[0])
+        if whole is not None:  # at the subset's rows, which are among the whole stream's
+            means = np.interp(t, t_whole, means)
         keep = np.isfinite(means)
         if keep.sum() >= MIN_ROWS:
             averaged = True

@@ -157,7 +157,9 @@ def build_gyro_level(bundle: Bundle, model: DeclaredModel) -> ScalarProblem | No
         return None
     tables = dict(bundle.tables)
     tables["gyro"] = gyro.select(mask)
-    problem = build_gyro(replace(bundle, tables=tables), model)
+    # level rows only: the whole stream's rows (of a decimated subset) would bring the tilted
+    # stretches back into the means over the reference's intervals
+    problem = build_gyro(replace(bundle, tables=tables, whole=None), model)
     if problem is None:
         return None
     fit = problem.split.mask(problem.t, "fit")
