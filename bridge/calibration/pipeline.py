@@ -18,6 +18,7 @@ from koala_bridge.calibration.effects.base import EffectInstance
 from koala_bridge.calibration.effects.common import (
     MAX_REFERENCE_NOISE_SHARE,
     reference_noise_share,
+    stream_share,
 )
 from koala_bridge.calibration.errors import EffectRegistryError
 from koala_bridge.calibration.metrics import HeldOutStatistics, g4, heldout_statistics
@@ -671,9 +672,7 @@ def _heading_space_if_noisy(small: StreamProblem, full: StreamProblem | None) ->
     if small.integrate_window_s is not None:  # already in heading space (a compass reference)
         return
     whole = full if isinstance(full, ScalarProblem) else small
-    share = small.reference_share  # the whole stream's, set by calibrate for a subset
-    if share is None:
-        share = small.reference_share = reference_noise_share(whole)
+    share = stream_share(small)  # the whole stream's: calibrate sets it for a subset
     if not np.isfinite(share) or share <= MAX_REFERENCE_NOISE_SHARE:
         return  # a clean reference, or a constant one (a still gyro: its noise, by Allan)
     for q in [small] if whole is small else [small, whole]:

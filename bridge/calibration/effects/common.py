@@ -230,23 +230,36 @@ def _unshared(dp: np.ndarray, dy: np.ndarray, angle: bool, k_max: int) -> float:
     return max(float(np.mean(dp * dp)) - shared, 0.0)
 
 
-def reference_dominates(problem: Any, effect: str) -> bool:
-    """Whether a scalar stream's reference varies enough beyond its own noise to determine an
-    effect fitted through it (a gain, a range-squared term, a time offset: a reference that is
-    constant on the fit part determines none of them; :func:`reference_noise_share` at most
-    :data:`MAX_REFERENCE_NOISE_SHARE`); when not, a note on the stream says why the effect was
-    not tried."""
+def stream_share(problem: Any) -> float:
+    """:func:`reference_noise_share` of the stream, measured once (kept as its
+    ``reference_share``, which the pipeline sets from the whole stream for a decimated subset):
+    scale, time_offset, k r^2 and the write check ask."""
     share = getattr(problem, "reference_share", None)
     if share is None:
         share = reference_noise_share(problem)
         if hasattr(problem, "reference_share"):
-            problem.reference_share = share  # once per stream: scale, time_offset, k r^2 ask
+            problem.reference_share = share
+    return float(share)
+
+
+def gain_share(problem: Any) -> float:
+    """The noise share a gain fitted on the stream is pulled towards 0 by: for a gyro compared
+    in heading space with a dense reference (``streams.to_heading_space``) the heading's
+    (``heading_share``), as the heading's path is then the regressor; else the rate's
+    (:func:`stream_share`). A time shift still smooths the rate's noise: it keeps the rate's."""
     heading = getattr(problem, "heading_share", None)
-    if effect == "scale" and heading is not None and problem.integrate_window_s is not None:
-        # a gyro compared in heading space with a dense reference (streams.to_heading_space):
-        # a gain fitted there is pulled towards 0 by the heading's noise share, not the rate's;
-        # a time shift still smooths the rate's noise, so it keeps the rate's share
-        share = heading
+    if heading is not None and getattr(problem, "integrate_window_s", None) is not None:
+        return float(heading)
+    return stream_share(problem)
+
+
+def reference_dominates(problem: Any, effect: str) -> bool:
+    """Whether a scalar stream's reference varies enough beyond its own noise to determine an
+    effect fitted through it (a gain, a range-squared term, a time offset: a reference that is
+    constant on the fit part determines none of them; :func:`reference_noise_share` at most
+    :data:`MAX_REFERENCE_NOISE_SHARE`, for a gain :func:`gain_share`); when not, a note on the
+    stream says why the effect was not tried."""
+    share = gain_share(problem) if effect == "scale" else stream_share(problem)
     if share <= MAX_REFERENCE_NOISE_SHARE:
         if share > NOTE_REFERENCE_NOISE_SHARE and effect == "scale":
             note_once(

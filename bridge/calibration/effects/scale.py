@@ -31,8 +31,8 @@ from koala_bridge.calibration.effects import register_effect
 from koala_bridge.calibration.effects.base import Effect, EffectInstance
 from koala_bridge.calibration.effects.common import (
     NOTE_REFERENCE_NOISE_SHARE,
+    gain_share,
     reference_dominates,
-    reference_noise_share,
     scalar_config,
 )
 
@@ -78,16 +78,13 @@ class Scale(Effect):
         # share (the heading's in heading space): by up to share * (1 + s) (a clean gyro
         # against a 12.5 Hz heading with 0.02 rad of noise: -14 % at 6 SE; a real -12 % read as
         # -17 % at 0.75 % SE). Below a share of 1 % it is not counted.
-        s = float(params[0])
-        if getattr(problem, "integrate_window_s", None) is not None:
-            share = getattr(problem, "heading_share", None)
-        else:
-            share = getattr(problem, "reference_share", None)
-            if share is None:
-                share = reference_noise_share(problem)
-        if share is None or not np.isfinite(share) or share <= NOTE_REFERENCE_NOISE_SHARE:
+        in_heading = getattr(problem, "integrate_window_s", None) is not None
+        if in_heading and getattr(problem, "heading_share", None) is None:
+            return None  # a compass heading's stream: no share measured in heading space
+        share = gain_share(problem)
+        if not np.isfinite(share) or share <= NOTE_REFERENCE_NOISE_SHARE:
             return None
-        return share * abs(1.0 + s), (
+        return share * abs(1.0 + float(params[0])), (
             f"the reference's own noise ({100 * share:.2g} % of its variance) may pull a fitted "
             "gain towards 0 (regression dilution); measure it against a reference with less "
             "noise, or with more motion"
