@@ -29,6 +29,7 @@ from koala_bridge.calibration.problem import (
     Split,
 )
 from koala_bridge.calibration.problem import skip_stream as _skip
+from koala_bridge.calibration.robust import mad_sigma
 from koala_bridge.calibration.streams.beacons import (
     beacon_rows,
     beacon_streams,
@@ -123,7 +124,8 @@ def heading_reference(bundle: Bundle) -> tuple[FloatArray, FloatArray] | None:
 #: (:func:`regular_clock`) when its differenced rate's noise there falls below this share of the
 #: stamped one's
 REGULAR_CLOCK_GAIN = 0.5
-#: stamps whose intervals spread (1.4826 MAD) less than this share of their median are regular
+#: stamps whose intervals spread (:func:`mad_sigma`) less than this share of their median are
+#: regular
 REGULAR_STAMP_SPREAD = 1e-3
 
 
@@ -148,7 +150,7 @@ def regular_clock(t: FloatArray) -> FloatArray | None:
     period = float(np.median(d))
     if not period > 0:
         return None
-    if 1.4826 * float(np.median(np.abs(d - period))) < REGULAR_STAMP_SPREAD * period:
+    if mad_sigma(d) < REGULAR_STAMP_SPREAD * period:
         return None
     rel = t - t[0]
     # first over 1024 median intervals, within 1 % of the median in steps of a quarter of the
@@ -179,13 +181,12 @@ def regular_clock(t: FloatArray) -> FloatArray | None:
 
 
 def _rate_noise(t: FloatArray, theta: FloatArray) -> float:
-    """The robust spread (1.4826 MAD) of the second differences of a heading's differenced rate
-    ``d theta / d t``: its white part (a smooth motion's second differences are small at a
-    dense reference's rate)."""
+    """The robust spread (:func:`mad_sigma`) of the second differences of a heading's
+    differenced rate ``d theta / d t``: its white part (a smooth motion's second differences
+    are small at a dense reference's rate)."""
     dt = np.diff(t)
     ok = dt > 0
-    d2 = np.diff(np.diff(theta)[ok] / dt[ok], n=2)
-    return float(1.4826 * np.median(np.abs(d2 - np.median(d2)))) if d2.size else 0.0
+    return mad_sigma(np.diff(np.diff(theta)[ok] / dt[ok], n=2))
 
 
 def on_regular_clock(
@@ -341,8 +342,7 @@ def _interval_means(t: FloatArray, y: FloatArray, t_ref: FloatArray) -> FloatArr
     lo, hi = np.searchsorted(t, t_ref[:-1]), np.searchsorted(t, t_ref[1:])
     covered = (lo >= 1) & (hi <= t.size - 1) & (t_ref[1:] > t_ref[:-1])
     covered[covered] &= big[hi[covered]] == big[lo[covered] - 1]
-    cum = np.r_[0.0, np.cumsum(0.5 * (y[1:] + y[:-1]) * gaps)]
-    at = np.interp(t_ref, t, cum)
+    at = np.interp(t_ref, t, cumulative_trapezoid(y, t, initial=0.0))
     width = np.diff(t_ref)
     means = np.where(covered, np.diff(at) / np.where(width > 0, width, 1.0), np.nan)
     mid = 0.5 * (t_ref[1:] + t_ref[:-1])

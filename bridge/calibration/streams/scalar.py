@@ -38,6 +38,7 @@ from koala_bridge.calibration.robust import (
     weighted_rms,
 )
 from koala_bridge.core.geometry import wrap_angle
+from scipy.integrate import cumulative_trapezoid
 
 log = logging.getLogger(__name__)
 
@@ -307,8 +308,7 @@ class ScalarProblem(StreamProblem):
         ``t``, linear between its samples (a subset's rows are among them)."""
         assert self.full is not None
         if self._full_cum is None:
-            ft, fy = self.full.t, self.full.y
-            self._full_cum = np.r_[0.0, np.cumsum(0.5 * (fy[1:] + fy[:-1]) * np.diff(ft))]
+            self._full_cum = cumulative_trapezoid(self.full.y, self.full.t, initial=0.0)
         return np.asarray(np.interp(t, self.full.t, self._full_cum), dtype=float)
 
     def _reference_excess(self, part: str, tau: float) -> FloatArray:
@@ -337,7 +337,7 @@ class ScalarProblem(StreamProblem):
             return np.asarray(np.interp(t, tr, hr), dtype=float)
         if self._heading_cum is None:
             # the exact integral of the linear interpolant at its samples
-            self._heading_cum = np.r_[0.0, np.cumsum(0.5 * (hr[1:] + hr[:-1]) * np.diff(tr))]
+            self._heading_cum = cumulative_trapezoid(hr, tr, initial=0.0)
         cum = self._heading_cum
         slope = np.diff(hr) / np.diff(tr)
 
