@@ -202,7 +202,7 @@ class ScalarProblem(StreamProblem):
         base_add = np.broadcast_to(np.asarray(self.base_add, dtype=float), self.t.shape)
         self._base_add = {"fit": base_add[fit], "score": base_add[~fit], "all": base_add}
         self._robust_scale: tuple[float | None] | None = None
-        self._excess: dict[tuple[str, float], FloatArray] = {}
+        self._excess: dict[str, FloatArray] = {}  # _reference_excess at tau = 0, per part
         self._heading_cum: FloatArray | None = None
         self._full_cum: FloatArray | None = None
         self._shape: dict[str, FloatArray] = {}
@@ -315,15 +315,13 @@ class ScalarProblem(StreamProblem):
         """Per interval of ``part``: the trapezoid of the reference rate at ``t - tau`` minus
         the reference heading's change over it (what integrating the differenced rate adds to
         the heading's own change); cached for ``tau = 0``."""
-        key = (part, tau)
-        hit = self._excess.get(key)
-        if hit is not None:
-            return hit
+        if tau == 0.0 and part in self._excess:
+            return self._excess[part]
         p = self._parts[part]
         u = p.u if tau == 0.0 or self.reference is None else self._u_at(p.t, tau)
         out = 0.5 * (u[1:] + u[:-1]) * np.diff(p.t) - np.diff(self._heading_at(p.t - tau))
         if tau == 0.0:
-            self._excess[key] = out
+            self._excess[part] = out
         return out
 
     def _heading_at(self, t: FloatArray) -> FloatArray:
@@ -354,19 +352,22 @@ class ScalarProblem(StreamProblem):
         return (integral(t) - integral(t - interval)) / interval
 
     @staticmethod
+    def _windows(t: FloatArray, window_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """Per row of ``t``: its ``window_s`` window's number (from ``t[0]``), and the row its
+        window starts at (the latest start, not the running maximum of anything: a heading error
+        that falls from one window to the next is re-anchored as well)."""
+        k = np.floor((t - t[0]) / window_s).astype(int)
+        start = np.r_[True, k[1:] != k[:-1]]
+        return k, np.maximum.accumulate(np.where(start, np.arange(t.size), 0))
+
+    @staticmethod
     def _integrate(t: FloatArray, inc: FloatArray, window_s: float) -> FloatArray:
         """The sum of the increments ``inc`` (one per interval of ``t``) from the start of each
         ``window_s`` window: each window starts from zero."""
         if t.size < 2:
             return np.zeros(t.shape)
-        inc = np.r_[0.0, inc]
-        k = np.floor((t - t[0]) / window_s).astype(int)
-        start = np.r_[True, k[1:] != k[:-1]]
-        inc[start] = 0.0
-        c = np.cumsum(inc)
-        # the cumulative sum at the latest window start (not its running maximum: a heading
-        # error that falls from one window to the next is re-anchored as well)
-        anchor = np.maximum.accumulate(np.where(start, np.arange(t.size), 0))
+        _, anchor = ScalarProblem._windows(t, window_s)
+        c = np.r_[0.0, np.cumsum(inc)]
         return np.asarray(c - c[anchor], dtype=float)
 
     def independent_count(self, part: Part, r: FloatArray | None = None) -> float | None:
@@ -398,7 +399,7 @@ class ScalarProblem(StreamProblem):
         t = self._parts[part].t
         if t.size < 2:
             return 0.0
-        k = np.floor((t - t[0]) / self.integrate_window_s).astype(int)
+        k, _ = self._windows(t, self.integrate_window_s)
         sizes = np.bincount(k)
         sizes = sizes[sizes >= 2]
         if r is None or r.size != t.size:
@@ -440,9 +441,7 @@ class ScalarProblem(StreamProblem):
         t = p.t
         if t.size < 4:
             return 0.0
-        k = np.floor((t - t[0]) / self.integrate_window_s).astype(int)
-        anchor = np.maximum.accumulate(np.where(np.r_[True, k[1:] != k[:-1]],
-                                                np.arange(t.size), 0))
+        _, anchor = self._windows(t, self.integrate_window_s)
         path = self._heading_at(t)
         path = path - path[anchor]
         readings = self._integrate(t, 0.5 * (p.y[1:] + p.y[:-1]) * np.diff(t),
@@ -561,7 +560,7 @@ class ScalarProblem(StreamProblem):
         p = self._parts["score"]
         if p.t.size < 2:
             return np.empty(0)
-        k = np.floor((p.t - p.t[0]) / window_s).astype(int)
+        k, _ = self._windows(p.t, window_s)
         dt = np.diff(p.t)
         inc = self._increments(insts, x, "score")
         same = k[1:] == k[:-1]
