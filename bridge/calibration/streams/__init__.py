@@ -38,7 +38,6 @@ from koala_bridge.calibration.streams.beacons import (
 from koala_bridge.calibration.streams.compass import CompassProblem
 from koala_bridge.calibration.streams.odometry import OdometryProblem
 from koala_bridge.calibration.streams.scalar import (
-    SPARSE_REFERENCE_RATIO,
     ScalarProblem,
     fit_shared_curve,
     heading_metric,
@@ -137,12 +136,11 @@ def regular_clock(t: FloatArray) -> FloatArray | None:
     The period ``b`` is the one whose phases ``2 pi t / b`` agree best (the Rayleigh test's
     resultant length, searched coarse to fine: over the first 1024 median intervals within 1 %
     of the median, then over spans four times longer, each within the last one's resolution
-    ``b^2 / span``). Dropped
-    samples leave the phases alone, and a jitter of 0.2 of the period still leaves a resultant
-    of 0.45, where counting intervals between stamps goes wrong as soon as two neighbours
-    jitter apart by half a period. The offset ``a`` is the mean phase, each stamp's sample
-    number ``n = round((t - a) / b)``, and the clock ``a + b n`` is refitted by least squares
-    (a drift of the reference's clock against the gyro's is kept).
+    ``b^2 / span``). Dropped samples leave the phases alone, and a jitter of 0.2 of the period
+    still leaves a resultant of 0.45, where counting intervals between stamps goes wrong as
+    soon as two neighbours jitter apart by half a period. The offset ``a`` is the mean phase,
+    each stamp's sample number ``n = round((t - a) / b)``, and the clock ``a + b n`` is refitted
+    by least squares (a drift of the reference's clock against the gyro's is kept).
     """
     if t.size < 16:
         return None
@@ -350,12 +348,42 @@ def _interval_means(t: FloatArray, y: FloatArray, t_ref: FloatArray) -> FloatArr
     return np.asarray(np.interp(t, mid[ok], means[ok]), dtype=float)
 
 
-def _sparse(t_ref: FloatArray, t: FloatArray) -> bool:
-    """Whether a reference sampled at ``t_ref`` is sparse beside readings at ``t``
-    (``scalar.SPARSE_REFERENCE_RATIO``)."""
-    if t_ref.size < 2 or t.size < 2:
-        return False
-    return bool(np.median(np.diff(t_ref)) >= SPARSE_REFERENCE_RATIO * np.median(np.diff(t)))
+#: a dense reference is sparse beside the readings when its median sample interval is at least
+#: this many of theirs (:attr:`ScalarProblem.sparse_reference_t`)
+SPARSE_REFERENCE_RATIO = 3.0
+
+
+def _sparse_means(
+    bundle: Bundle,
+    ref: tuple[FloatArray, FloatArray],
+    t: FloatArray,
+    readings: FloatArray,
+    average: bool,
+) -> tuple[bool, FloatArray | None]:
+    """Whether the dense reference ``ref`` is sparse beside the gyro's readings
+    (:data:`SPARSE_REFERENCE_RATIO`), and, when it is, ``average`` asks for it and it turns,
+    the readings' means over its intervals at ``t`` (:func:`_interval_means`; NaN where not
+    covered), else None. A decimated subset decides, and takes the means, on the whole stream's
+    consecutive rows (``bundle.whole``: its random rows are not sparse beside a 25 Hz reference
+    where the stream's are). A reference that does not turn (a still gyro against a constant
+    heading every 30 s) makes an instantaneous reading its interval's mean, and the readings
+    keep their noise for the Allan analysis."""
+    whole = bundle.whole.get("gyro") if bundle.whole is not None else None
+    t_all, y_all = t, readings
+    if whole is not None:
+        tw, yw = whole["t"], whole["yaw_rate"]
+        ok = np.isfinite(yw) & (tw >= ref[0][0]) & (tw <= ref[0][-1])
+        t_all, y_all = tw[ok], yw[ok]
+    if ref[0].size < 2 or t_all.size < 2:
+        return False, None
+    if np.median(np.diff(ref[0])) < SPARSE_REFERENCE_RATIO * np.median(np.diff(t_all)):
+        return False, None
+    during = ref[1][(ref[0] >= t[0]) & (ref[0] <= t[-1])]
+    if not average or during.size < 2 or np.ptp(during) <= 0:
+        return True, None
+    means = _interval_means(t_all, y_all, ref[0])
+    # at the subset's rows, which are among the whole stream's
+    return True, means if whole is None else np.interp(t, t_all, means)
 
 
 def _moving_average(v: FloatArray, n: int) -> FloatArray:
@@ -458,26 +486,10 @@ def build_gyro(
     else:
         rate_ref = _rate_of(ref[0], ref[1], t)
     readings = table["yaw_rate"]
-    # a decimated subset decides, and takes the means, on the whole stream's consecutive rows
-    # (its random rows are not sparse beside a 25 Hz reference where the stream's are)
-    whole = bundle.whole.get("gyro") if bundle.whole is not None else None
-    if whole is not None:
-        tw, yw = whole["t"], whole["yaw_rate"]
-        w_ok = np.isfinite(yw) & (tw >= ref[0][0]) & (tw <= ref[0][-1])
-        t_whole, y_whole = tw[w_ok], yw[w_ok]
-    else:
-        t_whole, y_whole = t, readings
-    sparse = dense and _sparse(ref[0], t_whole)
-    # a reference that does not turn (a still gyro against a constant heading every 30 s): an
-    # instantaneous reading is its interval's mean there, and the readings keep their noise
-    # for the Allan analysis
-    during = ref[1][(ref[0] >= t[0]) & (ref[0] <= t[-1])]
-    moving = bool(during.size > 1 and np.ptp(during) > 0)
+    sparse, means = _sparse_means(bundle, ref, t, readings, interval is None) if dense else (
+        False, None)
     averaged = False
-    if sparse and interval is None and moving:
-        means = _interval_means(t_whole, y_whole, ref[0])
-        if whole is not None:  # at the subset's rows, which are among the whole stream's
-            means = np.interp(t, t_whole, means)
+    if means is not None:
         keep = np.isfinite(means)
         if keep.sum() >= MIN_ROWS:
             averaged = True
@@ -519,7 +531,7 @@ def build_gyro(
         sparse_reference_t=ref[0] if sparse else None,
     )
     problem.notes.append(f"reference: {source}")
-    if sparse and interval is None and moving and not averaged:
+    if means is not None and not averaged:
         problem.notes.append(
             "not compared as means over the reference's intervals, as a sparse reference asks: "
             "too few of its intervals are covered by readings without a gap of half an "

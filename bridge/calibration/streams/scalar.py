@@ -91,10 +91,6 @@ def heading_metric(window_s: float) -> str:
 HEADING_EFFECTS = frozenset({"bias", "bias_drift"})
 
 
-#: a dense reference is sparse beside the readings when its median sample interval is at least
-#: this many of theirs (:attr:`ScalarProblem.sparse_reference_t`)
-SPARSE_REFERENCE_RATIO = 3.0
-
 #: independent units per heading-space window for a residual that is a random walk
 #: (:meth:`ScalarProblem.independent_count`): the least-squares slope of a random walk over a
 #: window has 1.2 times the variance of its end over the window, and the mean square is half
@@ -168,7 +164,7 @@ class ScalarProblem(StreamProblem):
     #: (``effects.common.reference_dominates``); None: the rate's share
     heading_share: float | None = None
     #: the reference's sample times when it is sparse beside the readings (a 13 Hz robot log
-    #: against a 100 Hz gyro, :data:`SPARSE_REFERENCE_RATIO`): the readings between two of its
+    #: against a 100 Hz gyro, ``streams.SPARSE_REFERENCE_RATIO``): the readings between two of its
     #: samples share its interpolation (:meth:`independent_count`)
     sparse_reference_t: FloatArray | None = None
     heading_interval_s: float | None = None
@@ -384,13 +380,12 @@ class ScalarProblem(StreamProblem):
         ``V_h = h q + 2 s2`` through its values at an eighth and a quarter of a window (noise
         that a filter smooths, or the reference's interpolation, is white at that scale: the
         differences' lag-1 would have called it a random walk), and a window of ``m`` samples
-        counts
-        ``m / F``, ``F`` the variance of the least-squares slope over the ramp under that model
-        over what independent residuals of the same mean square would give. A pure random walk
-        gives 1.25 units per window (the slope's variance ``1.2 q / T`` against the window end's
-        ``q / T``), a pure white heading noise 2.67 (its anchor is shared): it is at least 1.25
-        per window whatever the mixture, and slow structure the model lacks counts as random
-        walk, so fewer. Without ``r``: 1.25 per window.
+        counts ``m / F``, ``F`` the variance of the least-squares slope over the ramp under that
+        model over what independent residuals of the same mean square would give. A pure random
+        walk gives 1.25 units per window (the slope's variance ``1.2 q / T`` against the window
+        end's ``q / T``), a pure white heading noise 2.67 (its anchor is shared): it is at least
+        1.25 per window whatever the mixture, and slow structure the model lacks counts as
+        random walk, so fewer. Without ``r``: 1.25 per window.
 
         In rate space against a sparse reference (:attr:`sparse_reference_t`), see
         :meth:`_sparse_reference_count`; else None."""
