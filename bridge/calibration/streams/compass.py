@@ -84,6 +84,7 @@ class CompassProblem(StreamProblem):
         # start values: computed once (every fit evaluates them; a 1-hour recording's masks
         # took most of its calibration time)
         self._m_parts: dict[str, FloatArray] = {}
+        self._mT_parts: dict[str, FloatArray] = {}  # the same, (3, N) contiguous
         self._psi_parts: dict[str, FloatArray] = {}
         self._nuisance0: FloatArray | None = None
 
@@ -97,6 +98,14 @@ class CompassProblem(StreamProblem):
             self._m_parts[part] = m
         return m
 
+    def _mT(self, part: str) -> FloatArray:
+        """:meth:`_m` as (3, N), contiguous: ``C @ m.T`` is three times faster than ``m @ C.T``
+        (numpy's matmul with a short inner axis), and every fit evaluates it."""
+        mT = self._mT_parts.get(part)
+        if mT is None:
+            mT = self._mT_parts[part] = np.ascontiguousarray(self._m(part).T)
+        return mT
+
     @property
     def dims(self) -> int:
         return 3 if self.mode == "magnitude_3d" else 2
@@ -107,7 +116,7 @@ class CompassProblem(StreamProblem):
     def corrected(self, insts: Sequence[EffectInstance], x: FloatArray, part: str) -> FloatArray:
         st = self.state()
         apply_all(st, self, insts, x)
-        return (self._m(part) - st.h) @ st.C.T
+        return (st.C @ (self._mT(part) - st.h[:, None])).T
 
     def _theta_field(self, mask: np.ndarray) -> FloatArray:
         """Reference heading minus the declared field direction (0 without one)."""

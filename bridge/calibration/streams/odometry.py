@@ -292,7 +292,7 @@ class _Windows:
     t: FloatArray = field(default_factory=lambda: np.empty(0))  # reference times scored
     t_starts: FloatArray = field(default_factory=lambda: np.empty(0))  # the anchors' times
     q: FloatArray = field(default_factory=lambda: np.empty((2, 0)))  # reference travel (2, N)
-    phi: FloatArray | None = None  # the reference heading at each sample's anchor
+    phi: FloatArray | None = None  # the reference heading at each window's anchor (n,)
 
 
 @dataclass
@@ -386,33 +386,47 @@ class OdometryProblem(StreamProblem):
             t=self.t_ref[idx],
             t_starts=self.t_ref[starts],
             q=np.ascontiguousarray((self.p_ref[idx] - self.p_ref[anchor]).T),
-            phi=None if self.theta_ref is None else self.theta_ref[anchor],
+            phi=None if self.theta_ref is None else self.theta_ref[starts],
         )
 
     def state(self) -> OdometryState:
         return OdometryState(self.tpm, self.wheel_base, self.ratio)
 
     def dead_reckon(self, st: OdometryState) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Cumulative pose (x, y, theta) at the odometry times, from (0, 0, 0)."""
+        """Cumulative pose (x, y, theta) at the odometry times, from (0, 0, 0).
+
+        Every fit evaluates it on the whole stream (a 1-hour one's 360 000 steps), so it works
+        in place: the same arithmetic as ``ds = (s_l + s_r) / 2``, ``dth = (s_r - s_l) / b``,
+        ``mid = th + dth / 2``, ``x = cumsum(ds cos mid)``, bit for bit."""
         if self.d_left is not None and self.d_right is not None:
             k_l = 2 * st.ratio / (1 + st.ratio) / st.tpm
             k_r = 2 / (1 + st.ratio) / st.tpm
             s_l, s_r = self.d_left * k_l, self.d_right * k_r
-            ds = 0.5 * (s_l + s_r)
-            dth = (s_r - s_l) / st.wheel_base
+            ds = s_l + s_r
+            ds *= 0.5
+            dth = np.subtract(s_r, s_l, out=s_r)
+            dth /= st.wheel_base
         else:
             assert self.ds is not None and self.dtheta is not None
             ds = self.ds * st.distance_scale
             dth = self.dtheta * st.yaw_scale
         if self._counted is not None:
             # Counts over a stall are not motion (set aside, module docstring).
-            ds, dth = ds * self._counted, dth * self._counted
+            ds *= self._counted
+            dth *= self._counted
         if st.heading_drift:
-            dth = dth - st.heading_drift * np.diff(self.t_odo)
-        th = np.r_[0.0, np.cumsum(dth)]
-        mid = th[:-1] + 0.5 * dth
-        x = np.r_[0.0, np.cumsum(ds * np.cos(mid))]
-        y = np.r_[0.0, np.cumsum(ds * np.sin(mid))]
+            dth -= st.heading_drift * np.diff(self.t_odo)
+        th, x, y = (np.empty(dth.size + 1) for _ in range(3))
+        th[0] = x[0] = y[0] = 0.0
+        np.cumsum(dth, out=th[1:])
+        mid = dth * 0.5
+        mid += th[:-1]
+        step = np.cos(mid)
+        step *= ds
+        np.cumsum(step, out=x[1:])
+        np.sin(mid, out=step)
+        step *= ds
+        np.cumsum(step, out=y[1:])
         return x, y, th
 
     def _errors(
@@ -440,27 +454,30 @@ class OdometryProblem(StreamProblem):
         # Dead-reckoned pose at the scored samples and at the windows' anchors only (the other
         # part's samples are not needed: interpolating every reference sample cost twice this).
         tq, tq_a = (w.t, w.t_starts) if st.tau == 0 else (w.t + st.tau, w.t_starts + st.tau)
-        xa = np.interp(tq_a, self.t_odo, X)[w.label]
-        ya = np.interp(tq_a, self.t_odo, Y)[w.label]
-        dx, dy = np.interp(tq, self.t_odo, X) - xa, np.interp(tq, self.t_odo, Y) - ya
-        th_w = np.interp(tq_a, self.t_odo, TH)  # per window
-        c, s = np.cos(th_w)[w.label], np.sin(th_w)[w.label]
-        bx, by = c * dx + s * dy, c * dy - s * dx  # travel in the anchor's body frame
+        dx = np.interp(tq, self.t_odo, X)
+        dx -= np.interp(tq_a, self.t_odo, X)[w.label]
+        dy = np.interp(tq, self.t_odo, Y)
+        dy -= np.interp(tq_a, self.t_odo, Y)[w.label]
+        # Each window's dead-reckoned travel (dx, dy), in the odometry's frame, is turned onto
+        # the reference's by one angle a per window: the anchor's reference heading phi minus
+        # its dead-reckoned one (travel in the anchor's body frame, then in the reference's).
         if w.phi is not None:
-            phi = w.phi
+            a = w.phi - np.interp(tq_a, self.t_odo, TH)
         elif self.start_pose is not None:
             # Heading is not re-anchored: dead-reckoned from the declared start heading.
             t_s, th_s, _ = self.start_pose
-            phi = th_s + th_w[w.label] - float(np.interp(t_s + st.tau, self.t_odo, TH))
+            a = np.full(w.n, th_s - float(np.interp(t_s + st.tau, self.t_odo, TH)))
         else:
+            # No reference heading: the angle that best turns the travel onto the
+            # reference's, per window (least squares: atan2 of the summed cross and dot).
             qx, qy = w.q
-            cross = np.bincount(w.label, bx * qy - by * qx, w.n)
-            dot = np.bincount(w.label, bx * qx + by * qy, w.n)
-            phi = np.arctan2(cross, dot)[w.label]
-        cp, sp = np.cos(phi), np.sin(phi)
+            cross = np.bincount(w.label, dx * qy - dy * qx, w.n)
+            dot = np.bincount(w.label, dx * qx + dy * qy, w.n)
+            a = np.arctan2(cross, dot)
+        ca, sa = np.cos(a)[w.label], np.sin(a)[w.label]
         e = np.empty((2, tq.size))
-        np.subtract(w.q[0], cp * bx - sp * by, out=e[0])
-        np.subtract(w.q[1], sp * bx + cp * by, out=e[1])
+        np.subtract(w.q[0], ca * dx - sa * dy, out=e[0])
+        np.subtract(w.q[1], sa * dx + ca * dy, out=e[1])
         return e, w  # (2, N): the reference's travel minus the dead-reckoned one
 
     def residuals(
