@@ -19,7 +19,8 @@ Keys read (units in the key name where not SI)::
     [sensors.camera]   ideal, p_recog, dist, d_mid_m, far_doubling_m, bearing_sigma_deg
     [world]            earth_field, magnetic_sources (a heading reference with position)
 
-``meta.json`` ``robot``: the ``[robot]`` keys and ``start_pose``; ``sensor.gyro``:
+``meta.json`` ``robot``: the ``[robot]`` keys (``tick_size_m``, metres per tick, for
+``ticks_per_metre``) and ``start_pose``; ``sensor.gyro``:
 ``bias_rad_s``, ``scale_factor_error``.
 """
 
@@ -194,12 +195,17 @@ META_KEYS: Mapping[tuple[str, ...], str] = {
 
 
 def meta_declared(meta: Mapping[str, Any]) -> dict[str, float]:
-    """The config keys ``meta.json`` declares (:data:`META_KEYS`), with its values."""
+    """The config keys ``meta.json`` declares (:data:`META_KEYS`), with its values; a
+    ``robot.tick_size_m`` (metres per tick) declares ``robot.ticks_per_metre`` as its inverse
+    where ``robot.ticks_per_metre`` itself is not given."""
     out = {}
     for path, dotted in META_KEYS.items():
         value = _section(meta, *path[:-1]).get(path[-1])
         if isinstance(value, int | float) and not isinstance(value, bool):
             out[dotted] = float(value)
+    size = _section(meta, "robot").get("tick_size_m")
+    if "robot.ticks_per_metre" not in out and isinstance(size, int | float) and size > 0:
+        out["robot.ticks_per_metre"] = 1.0 / float(size)
     return out
 
 
@@ -222,6 +228,8 @@ def without_declared(meta: Mapping[str, Any], dotted: set[str] | frozenset[str])
         node = _section(out, *path[:-1])
         if key in dotted and isinstance(node, dict):
             node.pop(path[-1], None)
+            if key == "robot.ticks_per_metre":
+                node.pop("tick_size_m", None)  # its other form (meta_declared)
     return out
 
 
@@ -253,6 +261,13 @@ def declared_model(config: Mapping[str, Any], meta: Mapping[str, Any]) -> Declar
         return None
 
     tpm = pick("ticks_per_metre")
+    if isinstance(meta_robot.get("tick_size_m"), int | float) and (
+        sources.get("ticks_per_metre") != "meta.json robot"
+    ):
+        # the bundle format's other way to declare it: metres per tick (meta.json wins over
+        # the config; its own ticks_per_metre over its tick_size_m)
+        tpm = 1.0 / float(meta_robot["tick_size_m"])
+        sources["ticks_per_metre"] = "meta.json robot tick_size_m"
     base = pick("wheel_base_m")
     ratio = pick("wheel_diameter_ratio")
     start = None

@@ -696,7 +696,9 @@ def refit_full(full: StreamProblem, small: StreamResult) -> StreamResult:
         full.initial_vector(insts, sel.after.x, insts) if len(sel.after.x) else full.nuisance_x0(),
     ))
     added = list(sel.added)
-    result = Selection(full, before, after, added, sel.rounds, sel.rho)
+    result = Selection(full, before, after, added, sel.rounds, sel.rho, (
+        full.independent_count("fit", after.r_fit), full.independent_count("score", after.r_score)
+    ))
     drop_implausible(full, result)
     after = result.after
     b = full.metric_value(before.insts, before.x, "score")

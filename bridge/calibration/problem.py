@@ -187,6 +187,14 @@ class StreamProblem(ABC):
         prewhiten and count residuals)."""
         return None
 
+    def clusters(self, part: Part) -> NDArray[np.intp] | None:
+        """The cluster of each residual of ``part`` where residuals share their errors in
+        groups (a dead reckoning's window: every position in it carries the heading error of
+        its start), for the parameters' cluster-robust standard errors
+        (:func:`koala_bridge.calibration.selection.parameter_se`); None (the default): the
+        residuals are counted by :meth:`se_variance`."""
+        return None
+
     def se_variance(self, part: Part, r: FloatArray, rss: float, n_params: int) -> float:
         """The variance per residual that scales ``(J^T J)^-1`` into the parameters' covariance,
         for the residuals ``r`` of ``part`` (sum of squares ``rss``) of a fit of ``n_params``:

@@ -216,6 +216,8 @@ def metric_lines(stage: Stage, res: StreamResult) -> list[str]:
         name, before, after, ch = metric_text(m, _before(stage, res, m))
         tail = (f"; the written model (uncertain, comment-only and unhelpful effects left out): "
                 f"{g4(abs(written))}"
+                + (" (none of the effects is written: the declared model's)"
+                   if written == res.before and res.effects else "")
                 if i == 0 and written is not None else "")
         out.append(
             f"{res.problem.name} {name}: {before} -> {after} {m.unit}, {ch} [{effects or '-'}]"
@@ -319,7 +321,17 @@ def _stream_markdown(res: StreamResult, stage: Stage, plot: str | None, heading:
     lines = ["", f"## {heading}", ""]
     lines += [f"- {n}" for n in p.notes]
     lines.append(f"- {json.dumps(p.describe())}")
-    lines.append(f"- noise lag-1 autocorrelation used for effective sizes: {res.selection.rho:.3g}")
+    fit_units, score_units = res.selection.units
+    if fit_units is not None and score_units is not None:
+        lines.append(
+            f"- effective sizes from the stream's independent units: {fit_units:.4g} (fit), "
+            f"{score_units:.4g} (held-out), not the residual's lag-1 autocorrelation "
+            f"({res.selection.rho:.3g})"
+        )
+    else:
+        lines.append(
+            f"- noise lag-1 autocorrelation used for effective sizes: {res.selection.rho:.3g}"
+        )
     carried = _carried(stage, res)
     if carried:
         lines += ["", "Carried from earlier stages (in this stage's declared model):", ""]

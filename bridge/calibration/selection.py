@@ -58,6 +58,7 @@ from koala_bridge.calibration.robust import (
     weighted_rms,
 )
 from koala_bridge.core.distributions import chi2_ppf, t_ppf
+from numpy.typing import NDArray
 from scipy import optimize
 
 log = logging.getLogger(__name__)
@@ -212,6 +213,9 @@ class Selection:
     added: list[tuple[EffectInstance, Trial]] = field(default_factory=list)
     rounds: list[list[Trial]] = field(default_factory=list)
     rho: float = 0.0
+    #: the independent units of the fit and held-out parts where the stream counts them
+    #: (:meth:`StreamProblem.independent_count`; then they, not ``rho``, give effective sizes)
+    units: tuple[float | None, float | None] = (None, None)
 
     def params_of(self, fit: Fit) -> list[FloatArray]:
         return split_params(self.problem, fit.insts, fit.x)
@@ -374,6 +378,10 @@ def parameter_se(problem: StreamProblem, fit: Fit) -> FloatArray:
     if fit.jac is None or fit.x.size == 0:
         return np.zeros(fit.x.size)
     n = fit.r_fit.size
+    labels = problem.clusters("fit")
+    if (fit.robust_scale is None and labels is not None and labels.size == n
+            and fit.jac.shape[0] == n):
+        return _cluster_se(fit, labels)
     s2 = problem.se_variance("fit", fit.r_fit, fit.rss_fit, fit.x.size)
     if fit.robust_scale is not None:
         # the sandwich sums the squared residuals itself: only the inflation over rss / n
@@ -383,6 +391,31 @@ def parameter_se(problem: StreamProblem, fit: Fit) -> FloatArray:
         cov = np.linalg.pinv(fit.jac.T @ fit.jac) * s2
     except np.linalg.LinAlgError:
         return np.full(fit.x.size, np.nan)
+    return np.sqrt(np.clip(np.diag(cov), 0, None))
+
+
+def _cluster_se(fit: Fit, labels: NDArray[np.intp]) -> FloatArray:
+    """Cluster-robust standard errors (Liang & Zeger 1986; the CR1 small-sample factor
+    ``G/(G-1) (n-1)/(n-p)``): ``H^-1 M H^-1`` with ``H = J^T J`` and ``M`` the sum over the
+    ``G`` clusters of their score ``J_g^T r_g`` times its transpose. Residuals within a cluster
+    may be correlated in any way (a dead reckoning's window, whose errors grow from its start),
+    clusters independent. No lag-1 autocorrelation stands in for the count: on a mower's
+    odometry it read 0.999 for a smooth error (a time offset's SE 0.065 s) and 0.04 with
+    0.4 % of glitches in the reference (0.002 s), where the spread over segments gave 0.03."""
+    assert fit.jac is not None
+    jac = np.asarray(fit.jac, dtype=float)
+    n, p = jac.shape
+    _, g = np.unique(labels, return_inverse=True)
+    groups = int(g.max()) + 1 if g.size else 0
+    if groups < 2 or n <= p:
+        return np.full(fit.x.size, np.nan)
+    scores = np.column_stack([np.bincount(g, jac[:, k] * fit.r_fit, groups) for k in range(p)])
+    try:
+        h_inv = np.linalg.pinv(jac.T @ jac)
+    except np.linalg.LinAlgError:
+        return np.full(fit.x.size, np.nan)
+    factor = groups / (groups - 1) * (n - 1) / (n - p)
+    cov = h_inv @ (scores.T @ scores) @ h_inv * factor
     return np.sqrt(np.clip(np.diag(cov), 0, None))
 
 
@@ -562,7 +595,7 @@ def select_effects(
     result = Selection(problem, current, current)
     remaining = list(candidates)
     rho, counts = noise_structure(problem, current, remaining)
-    result.rho = rho
+    result.rho, result.units = rho, counts
     explained: set[str] = set()  # candidates whose implausible fit the notes explain (once)
     while remaining and len(result.added) < max_effects:
         trials: list[Trial] = []

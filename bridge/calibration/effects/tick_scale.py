@@ -24,6 +24,11 @@ class TickScale(Effect):
             return [EffectInstance(self.name, self, ("ticks_per_metre",), (problem.tpm,))]
         return [EffectInstance(self.name, self, ("distance_scale",), (1.0,))]
 
+    def plausible(self, inst: EffectInstance, params: Any) -> bool:
+        """Ticks per metre above 0 (a distance scale may be negative: odometry that counts
+        backwards in speed or pose form)."""
+        return inst.param_names[0] != "ticks_per_metre" or bool(float(params[0]) > 0)
+
     def apply(self, inst: EffectInstance, state: Any, params: Any) -> None:
         if inst.param_names[0] == "ticks_per_metre":
             state.tpm = float(params[0])

@@ -18,9 +18,10 @@ least, is implausible: at its edge the best latency may lie beyond it (the strea
 reference stamped on clocks 0.8 s apart gave 0.499 s, and a gain of 0.07 came with it), and
 beyond it least squares walked from the grid's best to a shift by a large part of the motion's
 period, which stands in for something else (readings of the opposite sign matched half a period
-later). Odometry's ``tau`` is not searched (it starts at 0, its windows re-anchored to the
-reference) and has no such bound: an odometry log stamped on another clock is a latency of any
-size.
+later). Odometry's ``tau`` starts at 0, or where its clock is seconds off the reference's at
+the coarse offset of :meth:`.OdometryProblem.coarse_clock_offset` (searched over
++-min(10 s, 10 % of the fit part)), and has no bound beyond that: an odometry log stamped on
+another clock is a latency of any size.
 
 A scalar stream's ``tau`` is determined by the reference's signal, not its noise: with a
 reference that is mostly noise (a still gyro against a differentiated optical heading) a
@@ -88,8 +89,8 @@ class TimeOffset(Effect):
             problem.reference is None or not reference_dominates(problem, self.name)
         ):
             return []
-        if problem.kind != "scalar":
-            return [EffectInstance(self.name, self, ("tau_s",), (0.0,))]
+        if problem.kind != "scalar":  # odometry: from the clocks' coarse offset, or 0
+            return [EffectInstance(self.name, self, ("tau_s",), (problem.clock_offset,))]
         step, span = search_window(problem)
         return [EffectInstance(self.name, self, ("tau_s",), (coarse_lag(problem, step, span),),
                                data={"span_s": span, "inside_s": span - step})]

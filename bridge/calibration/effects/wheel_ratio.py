@@ -25,6 +25,11 @@ class WheelRatio(Effect):
             return []
         return [EffectInstance(self.name, self, ("ratio_left_right",), (problem.ratio,))]
 
+    def plausible(self, inst: EffectInstance, params: Any) -> bool:
+        """A diameter ratio above 0 (at -1 one wheel counts backwards: a sign in the data,
+        :func:`koala_bridge.calibration.streams.odometry.backward_wheel`)."""
+        return bool(float(params[0]) > 0)
+
     def apply(self, inst: EffectInstance, state: Any, params: Any) -> None:
         state.ratio = float(params[0])
 

@@ -36,7 +36,11 @@ from koala_bridge.calibration.streams.beacons import (
     build_beacons,
 )
 from koala_bridge.calibration.streams.compass import CompassProblem
-from koala_bridge.calibration.streams.odometry import OdometryProblem
+from koala_bridge.calibration.streams.odometry import (
+    OdometryProblem,
+    backward_wheel,
+    reference_jumps,
+)
 from koala_bridge.calibration.streams.scalar import (
     ScalarProblem,
     fit_shared_curve,
@@ -832,12 +836,27 @@ def build_odometry(
                 )
                 if v is None
             ]
+            robot = bundle.meta.get("robot")
+            diameter = robot.get("wheel_diameter_m") if isinstance(robot, dict) else None
             _skip(
                 skipped,
                 "odometry",
-                f"encoder ticks, but the declared model has no {' and no '.join(lacking)}",
+                f"encoder ticks, but the declared model has no {' and no '.join(lacking)}"
+                + (
+                    f" (meta.json's wheel_diameter_m {diameter:g} alone does not give the "
+                    "distance per tick)"
+                    if "ticks_per_metre" in lacking and isinstance(diameter, int | float)
+                    else ""
+                ),
                 f"declare {' and '.join(lacking)} in meta.json's robot section, or in [robot] "
-                f"of --config; see {FORMAT_DOC}",
+                f"of --config"
+                + (
+                    " (ticks_per_metre = ticks per wheel turn / (pi x wheel diameter), or "
+                    "tick_size_m, metres per tick)"
+                    if "ticks_per_metre" in lacking
+                    else ""
+                )
+                + f"; see {FORMAT_DOC}",
             )
             return None
         form = "ticks"
@@ -884,6 +903,23 @@ def build_odometry(
             f"robot drives; see {FORMAT_DOC}",
         )
         return None
+    if form == "ticks":
+        rho, tpm = model.wheel_diameter_ratio, kw["tpm"]
+        backward = backward_wheel(
+            t, odo["left_ticks"], odo["right_ticks"],
+            (2 * rho / (1 + rho) / tpm, 2 / (1 + rho) / tpm),
+            truth["t"], np.column_stack([truth["x"], truth["y"]]),
+        )
+        if backward is not None:
+            _skip(
+                skipped,
+                "odometry",
+                backward[0],
+                f"negate {backward[1]} in odometry.csv: the bundle format counts forward as "
+                f"up on both wheels (a log whose encoder counts the other way, or a motor "
+                f"mounted mirrored); see {FORMAT_DOC}",
+            )
+            return None
     ref = heading_reference(bundle)
     theta = np.interp(truth["t"], ref[0], ref[1]) if ref is not None else None
     t_ref = truth["t"]
@@ -908,6 +944,9 @@ def build_odometry(
         else None,
         **kw,
     )
+    jumps = reference_jumps(t_ref[inside], problem.p_ref[inside])
+    if jumps:
+        problem.notes.append(jumps)
     problem.notes.append(
         f"windows of {problem.window_s:g} s re-anchored to the reference"
         + (

@@ -86,6 +86,15 @@ STALL_MAX_LAG_S = 0.5
 #: Finest step of the speed profiles it is found on (s): finer ones hold the drive's per-step
 #: jitter and the ticks' rounding rather than the motion.
 STALL_LAG_STEP_S = 0.05
+#: The clocks' coarse offset (:meth:`OdometryProblem.coarse_clock_offset`): searched in steps
+#: of CLOCK_STEP_S over +-min(MAX_CLOCK_OFFSET_S, CLOCK_SPAN_SHARE of the fit part), on at most
+#: CLOCK_ROWS reference samples; taken when the windows' RMS there is below CLOCK_GAIN of the
+#: best within +-STALL_MAX_LAG_S.
+MAX_CLOCK_OFFSET_S = 10.0
+CLOCK_SPAN_SHARE = 0.1
+CLOCK_STEP_S = 0.25
+CLOCK_ROWS = 4000
+CLOCK_GAIN = 0.5
 #: Stalled: the reference moved less than this fraction of the recording's typical ratio
 #: times the odometry's motion.
 STALL_FRACTION = 0.5
@@ -162,8 +171,10 @@ def speed_lag(
     t_ref: FloatArray,
     p_ref: FloatArray,
     theta_ref: FloatArray | None = None,
+    around: float = 0.0,
 ) -> float:
-    """How late the reference shows the odometry's motion (s, within +-:data:`STALL_MAX_LAG_S`):
+    """How late the reference shows the odometry's motion (s, within +-:data:`STALL_MAX_LAG_S`
+    of ``around``, the clocks' coarse offset :meth:`OdometryProblem.coarse_clock_offset`):
     the shift of the reference's speed profile -- and turn-rate profile, with a reference
     heading -- that correlates best with the odometry's (the profiles' correlation coefficients,
     each weighted by its own unshifted one), on a grid of half the finer sample interval (at least
@@ -174,9 +185,10 @@ def speed_lag(
         0.5 * min(float(np.median(np.diff(t_odo))), float(np.median(np.diff(t_ref)))),
     )
     k = int(STALL_MAX_LAG_S / step)
+    centre = int(round(around / step))
     grid = np.arange(t0, t1, step)
-    if grid.size < 4 * k + 10:
-        return 0.0
+    if grid.size < 4 * (k + abs(centre)) + 10:
+        return around
     odo = [np.hypot(*(np.diff(np.interp(grid, t_odo, c)) for c in pose_odo[:2]))]
     ref = [np.hypot(*(np.diff(np.interp(grid, t_ref, p_ref[:, j])) for j in (0, 1)))]
     if theta_ref is not None:
@@ -199,13 +211,98 @@ def speed_lag(
         for v_o, v_r in zip(odo, ref, strict=True)
     ]
     if not any(weight):
-        return 0.0
-    best, best_r = 0, -np.inf
-    for j in range(-k, k + 1):
+        return around
+    best, best_r = centre, -np.inf
+    for j in range(centre - k, centre + k + 1):
         r = sum(w * corr(v_o, v_r, j) for w, v_o, v_r in zip(weight, odo, ref, strict=True) if w)
         if r > best_r:
             best, best_r = j, r
     return best * step
+
+
+#: A wheel counts backwards when the declared odometry covers less than this share of the
+#: reference's travel and the same counts with one wheel negated cover within this factor of it.
+BACKWARD_SHARE = 0.5
+
+
+def backward_wheel(
+    t_odo: FloatArray,
+    left: FloatArray,
+    right: FloatArray,
+    k: tuple[float, float],
+    t_ref: FloatArray,
+    p_ref: FloatArray,
+) -> tuple[str, str] | None:
+    """What is wrong when one wheel's counts fall as the robot drives forward, or None.
+
+    The bundle format counts forward as up on both wheels. A log whose left (or right) encoder
+    counts the other way dead-reckons driving forward as turning on the spot: the declared
+    odometry's travel, in chords over :data:`STALL_INTERVAL_S` intervals (as :func:`find_stalls`
+    measures it), falls far short of the reference's, while the same counts with one wheel
+    negated travel about as far. ``left``/``right`` are the cumulative counts at ``t_odo``,
+    ``k`` the declared metres per tick of each wheel. A wrong tick size scales both travels
+    alike, so it is told apart: the negated counts must come within 1 / :data:`BACKWARD_SHARE`
+    of the reference while the declared ones cover less than :data:`BACKWARD_SHARE` of it.
+    Returns what was found and the column to negate (the one whose counts fell overall).
+    """
+    t0, t1 = max(t_odo[0], t_ref[0]), min(t_odo[-1], t_ref[-1])
+    n = int((t1 - t0) // STALL_INTERVAL_S)
+    if n < 3:
+        return None
+    edges = t0 + STALL_INTERVAL_S * np.arange(n + 1)
+    s_l = k[0] * np.diff(np.interp(edges, t_odo, left))
+    s_r = k[1] * np.diff(np.interp(edges, t_odo, right))
+    ref = float(np.sum(np.hypot(*(np.diff(np.interp(edges, t_ref, p_ref[:, j])) for j in (0, 1)))))
+    # along a chord of an interval the travel is |s_l + s_r| / 2 to first order in the turn
+    declared = float(np.sum(np.abs(s_l + s_r))) / 2
+    negated = float(np.sum(np.abs(s_r - s_l))) / 2
+    if ref < n * STALL_MIN_TRAVEL_M or declared >= BACKWARD_SHARE * ref:
+        return None
+    if not BACKWARD_SHARE * ref <= negated <= ref / BACKWARD_SHARE:
+        return None
+    net = {"left_ticks": float(left[-1] - left[0]), "right_ticks": float(right[-1] - right[0])}
+    falls = [c for c, v in net.items() if v < 0]
+    which = falls[0] if len(falls) == 1 else "left_ticks or right_ticks"
+    return (
+        f"a wheel counts backwards: under the declared geometry the ticks travel "
+        f"{declared:.3g} m where the reference moved {ref:.3g} m, and {negated:.3g} m with one "
+        f"wheel's counts negated (left_ticks {net['left_ticks']:+.0f}, right_ticks "
+        f"{net['right_ticks']:+.0f} over the recording)"
+    ), which
+
+
+#: A reference step is a jump when its speed is above JUMP_FACTOR times the recording's
+#: JUMP_QUANTILE of step speeds (the robot's top speed, which a few glitches leave alone).
+JUMP_FACTOR = 5.0
+JUMP_QUANTILE = 0.98
+
+
+def reference_jumps(t: FloatArray, p: FloatArray) -> str | None:
+    """A note when the reference positions ``p`` (N, 2) at ``t`` jump: steps faster than
+    :data:`JUMP_FACTOR` times the :data:`JUMP_QUANTILE` quantile of all steps' speeds (a
+    tracker that loses its markers for a sample, a mocap frame swap). Nothing is taken out: a
+    jump counts in its window's error (and may be set aside as a stall), so the note says
+    where, and how to remove them."""
+    dt = np.diff(t)
+    ok = dt > 0
+    if ok.sum() < 10:
+        return None
+    speed = np.hypot(*np.diff(p, axis=0)[ok].T) / dt[ok]
+    top = float(np.quantile(speed, JUMP_QUANTILE))
+    if top <= 0:
+        return None
+    fast = np.flatnonzero(speed > JUMP_FACTOR * top)
+    if fast.size == 0:
+        return None
+    at = t[1:][ok][fast]
+    return (
+        f"the reference jumps: {fast.size} of {speed.size} truth_pose steps move faster than "
+        f"{JUMP_FACTOR:g}x the robot's {100 * JUMP_QUANTILE:g}th-percentile speed "
+        f"{top:.3g} m/s (up to {float(speed[fast].max()):.3g} m/s; first at t = "
+        f"{', '.join(f'{v:.6g}' for v in at[:3])}{', ...' if at.size > 3 else ''} s): "
+        "a tracker's glitches? They count in their windows' errors; remove those rows from "
+        "truth_pose.csv to leave them out"
+    )
 
 
 def _runs(flag: NDArray[np.bool_]) -> list[tuple[int, int]]:
@@ -221,13 +318,15 @@ def find_stalls(
     t_ref: FloatArray,
     p_ref: FloatArray,
     theta_ref: FloatArray | None,
+    around: float = 0.0,
 ) -> SetAside:
     """Spans where the declared odometry moves and the reference does not (module docstring).
 
     ``pose_odo``: the dead-reckoned ``(x, y, theta)`` at ``t_odo`` under the declared model;
     ``p_ref`` (N, 2) and ``theta_ref`` (N,, unwrapped, or None) at ``t_ref``. The odometry's
     travel on an interval is its chord (the distance between its end points, in the robot's own
-    frame: no heading needed), as is the reference's, taken :func:`speed_lag` later.
+    frame: no heading needed), as is the reference's, taken :func:`speed_lag` later (searched
+    around ``around`` s, the clocks' coarse offset as a lag of the reference).
     """
     t0, t1 = max(t_odo[0], t_ref[0]), min(t_odo[-1], t_ref[-1])
     h = max(
@@ -236,7 +335,7 @@ def find_stalls(
     n = int((t1 - t0) // h)
     if n < 3:
         return SetAside()
-    lag = speed_lag(t0, t1, t_odo, pose_odo, t_ref, p_ref, theta_ref)
+    lag = speed_lag(t0, t1, t_odo, pose_odo, t_ref, p_ref, theta_ref, around)
     # Intervals where both series are, the reference shifted.
     t0, t1 = max(t0, t_ref[0] - lag), min(t1, t_ref[-1] - lag)
     n = int((t1 - t0) // h)
@@ -316,8 +415,12 @@ class OdometryProblem(StreamProblem):
         self._last = LastResult()
         self._track = LastResult()  # the dead reckoning, shared by the parts (one per model)
         self._counted: NDArray[np.bool_] | None = None  # odometry steps dead-reckoned
+        declared = self.dead_reckon(self.state())
+        self.clock_offset, clock_note = self.coarse_clock_offset(declared)
+        if clock_note:
+            self.notes.append(clock_note)
         self.set_aside = find_stalls(
-            self.t_odo, self.dead_reckon(self.state()), self.t_ref, self.p_ref, self.theta_ref
+            self.t_odo, declared, self.t_ref, self.p_ref, self.theta_ref, -self.clock_offset
         )
         if self.set_aside.spans:
             mid = 0.5 * (self.t_odo[1:] + self.t_odo[:-1])
@@ -333,15 +436,91 @@ class OdometryProblem(StreamProblem):
         if self.set_aside.spans:
             self._note_set_aside(inside)
 
+    def coarse_clock_offset(
+        self, pose: tuple[FloatArray, FloatArray, FloatArray]
+    ) -> tuple[float, str | None]:
+        """The odometry's clock against the reference's, when they are seconds apart (a log
+        aligned by hand): ``(tau, note)``, ``tau`` as :mod:`.time_offset`'s (the pose stamped
+        ``t + tau`` is the reference's at ``t``), else ``(0, None)``.
+
+        The declared dead reckoning ``pose`` is scored in the metric's windows on the fit part
+        (at most :data:`CLOCK_ROWS` of its reference samples, those with the whole search inside
+        the odometry's span) at shifts ``tau`` in steps of :data:`CLOCK_STEP_S` over
+        +-min(:data:`MAX_CLOCK_OFFSET_S`, :data:`CLOCK_SPAN_SHARE` of the fit part). Least
+        squares from 0 reaches a local minimum within a fraction of a second, and the stall
+        detector aligns within +-:data:`STALL_MAX_LAG_S`: a clock 2 s off read as 21 % of a
+        recording stalled, and no time offset. The shift is taken only beyond that reach and
+        where its RMS is below :data:`CLOCK_GAIN` of the best within it: motion that repeats
+        (a weave, circles) scores about alike one period on, and then nothing is taken. It is
+        where the stall detector searches and where ``time_offset`` starts; it changes no
+        declared value (the held-out test judges ``time_offset`` as any effect)."""
+        X, Y, TH = pose
+        fit = self.split.mask(self.t_ref, "fit")
+        t_fit = self.t_ref[fit]
+        if t_fit.size < 10 or not np.all(np.isfinite(X)):
+            return 0.0, None
+        reach = min(MAX_CLOCK_OFFSET_S, CLOCK_SPAN_SHARE * float(t_fit[-1] - t_fit[0]))
+        k = int(reach / CLOCK_STEP_S)
+        if k * CLOCK_STEP_S <= STALL_MAX_LAG_S:
+            return 0.0, None
+        reach = k * CLOCK_STEP_S
+        idx = np.flatnonzero(
+            fit & (self.t_ref >= self.t_odo[0] + reach) & (self.t_ref <= self.t_odo[-1] - reach)
+        )
+        idx = idx[:: max(1, idx.size // CLOCK_ROWS)]
+        if idx.size < 10:
+            return 0.0, None
+        t = self.t_ref[idx]
+        label = np.unique(np.floor((t - t[0]) / self.window_s), return_inverse=True)[1]
+        first = np.r_[0, np.flatnonzero(np.diff(label)) + 1]
+        q = self.p_ref[idx] - self.p_ref[idx[first]][label]
+        taus = CLOCK_STEP_S * np.arange(-k, k + 1)
+        rms = np.empty(taus.size)
+        for i, tau in enumerate(taus):
+            x, y = np.interp(t + tau, self.t_odo, X), np.interp(t + tau, self.t_odo, Y)
+            dx, dy = x - x[first][label], y - y[first][label]
+            if self.theta_ref is not None:
+                a = self.theta_ref[idx[first]] - np.interp(t[first] + tau, self.t_odo, TH)
+            else:  # the best turn per window, as the metric's Procrustes
+                cross = np.bincount(label, dx * q[:, 1] - dy * q[:, 0])
+                a = np.arctan2(cross, np.bincount(label, dx * q[:, 0] + dy * q[:, 1]))
+            ca, sa = np.cos(a)[label], np.sin(a)[label]
+            ex, ey = q[:, 0] - (ca * dx - sa * dy), q[:, 1] - (sa * dx + ca * dy)
+            rms[i] = np.sqrt(np.mean(ex**2 + ey**2))
+        near = np.abs(taus) <= STALL_MAX_LAG_S
+        best = int(np.argmin(rms))
+        if near[best] or not rms[best] < CLOCK_GAIN * rms[near].min():
+            return 0.0, None
+        tau = float(taus[best])
+        return tau, (
+            f"the odometry's clock is about {tau:+.2f} s off the reference's (the declared "
+            f"model's windows on the fit part: {rms[best]:.3g} m RMS there, "
+            f"{rms[near].min():.3g} m at best within +-{STALL_MAX_LAG_S:g} s); wheel stalls "
+            "are looked for, and time_offset fitted, from there. Stamp both on one clock, or "
+            "shift one, to compare them as recorded"
+        )
+
     def _note_set_aside(self, inside: NDArray[np.bool_]) -> None:
         s = self.set_aside
         span = float(np.ptp(self.t_ref[inside])) if inside.any() else 0.0
+        share = f"{s.seconds:.1f} s of {span:.1f} s ({100 * s.seconds / max(span, 1e-9):.0f} %)"
+        if s.reference_m < STALL_FRACTION * s.odometry_m:
+            why = (
+                f"set aside {len(s.spans)} span(s) where the wheels stalled or slipped, {share}: "
+                f"the odometry (declared model) gave {s.odometry_m:.2f} m while the reference "
+                f"moved {s.reference_m:.2f} m (e.g. wheels pushing into a wall, or a commanded "
+                "speed the robot did not reach)"
+            )
+        else:  # the travel agreed over the spans: the turns did not (or a part of them)
+            why = (
+                f"set aside {len(s.spans)} span(s) where the reference did not follow the "
+                f"odometry's motion, {share}: over them the odometry (declared model) gave "
+                f"{s.odometry_m:.2f} m and the reference {s.reference_m:.2f} m, so it is the "
+                "turn, or a part of the spans, that disagreed (a wheel slipping, or the "
+                "reference's heading or position jumping)"
+            )
         self.notes.append(
-            f"set aside {len(s.spans)} span(s) where the wheels stalled or slipped, "
-            f"{s.seconds:.1f} s of {span:.1f} s ({100 * s.seconds / max(span, 1e-9):.0f} %): "
-            f"the odometry (declared model) gave {s.odometry_m:.2f} m while the reference "
-            f"moved {s.reference_m:.2f} m (e.g. wheels pushing into a wall, or a commanded "
-            "speed the robot did not reach); windows restart after each span"
+            why + "; windows restart after each span"
             + (
                 f", and {self._short_s:.1f} s between spans too short for half a window "
                 "were dropped"
@@ -399,6 +578,12 @@ class OdometryProblem(StreamProblem):
         in place: the same arithmetic as ``ds = (s_l + s_r) / 2``, ``dth = (s_r - s_l) / b``,
         ``mid = th + dth / 2``, ``x = cumsum(ds cos mid)``, bit for bit."""
         if self.d_left is not None and self.d_right is not None:
+            if not (st.tpm > 0 and st.ratio > 0 and st.wheel_base != 0):
+                # No wheel geometry (a fit stepping through a singular one, e.g. the diameter
+                # ratio towards -1 where a wheel counts backwards): no dead reckoning, and
+                # least squares takes the step back.
+                nan = np.full(self.d_left.size + 1, np.nan)
+                return nan, nan.copy(), nan.copy()
             k_l = 2 * st.ratio / (1 + st.ratio) / st.tpm
             k_r = 2 / (1 + st.ratio) / st.tpm
             s_l, s_r = self.d_left * k_l, self.d_right * k_r
@@ -500,6 +685,11 @@ class OdometryProblem(StreamProblem):
         # residuals inside a window are not independent whatever their lag-1 correlation says;
         # windows are (each starts from the reference), two coordinates each.
         return 2 * self._windows[part].n
+
+    def clusters(self, part: Part) -> NDArray[np.intp] | None:
+        # a window's x errors, then its y errors (residuals()): one cluster, its heading's
+        label = self._windows[part].label
+        return np.r_[label, label]
 
     def residual_series(
         self, insts: Sequence[EffectInstance], x: FloatArray
