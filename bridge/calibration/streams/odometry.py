@@ -93,7 +93,7 @@ STALL_LAG_STEP_S = 0.05
 MAX_CLOCK_OFFSET_S = 10.0
 CLOCK_SPAN_SHARE = 0.1
 CLOCK_STEP_S = 0.25
-CLOCK_ROWS = 4000
+CLOCK_ROWS = 2000
 CLOCK_GAIN = 0.5
 #: Stalled: the reference moved less than this fraction of the recording's typical ratio
 #: times the odometry's motion.
