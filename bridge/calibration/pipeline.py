@@ -402,6 +402,25 @@ def _note_near_misses(problem: StreamProblem, sel: Selection) -> None:
             f"{t.lr:.3g} < {t.lr_threshold:.3g}); a longer recording, or more of the motion "
             "that shows it, would tell"
         )
+    # significant held out, and large, but the fit part's BIC on its prewhitened residual (at a
+    # lag-1 autocorrelation near 1, its changes) got worse: the two parts disagree
+    against_fit = [
+        t for t in sel.rounds[-1]
+        if not t.passed and not t.implausible
+        and np.isfinite(t.relative_gain) and t.relative_gain >= NEAR_MISS_GAIN
+        and np.isfinite(t.lr) and t.lr > t.lr_threshold and t.delta_bic >= 0
+    ]
+    for t in sorted(against_fit, key=lambda t: -t.relative_gain)[:3]:
+        problem.notes.append(
+            f"{t.name} not added though it improves the held-out part by "
+            f"{100 * t.relative_gain:.0f} % (likelihood ratio {t.lr:.3g} > "
+            f"{t.lr_threshold:.3g}): on the fit part it makes the residual's sample-to-sample "
+            f"changes worse (BIC {t.delta_bic:+.3g} on the prewhitened residual, lag-1 "
+            f"autocorrelation {sel.rho:.3g}). The parts disagree: the fit part holds motion "
+            "the effect does not describe (a reference that lags or leads in turns, a "
+            "disturbance that changes with the motion), or the held-out part too little of "
+            "the motion that would test it"
+        )
     units = problem.independent_count("score", sel.after.r_score)
     n = int(sel.after.r_score.size)
     effective = units if units is not None else effective_size(n, sel.rho)

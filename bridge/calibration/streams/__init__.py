@@ -390,6 +390,25 @@ def _sparse_means(
     return True, means if whole is None else np.interp(t, t_all, means)
 
 
+def _sample_means(
+    t: FloatArray, values: FloatArray, t_ref: FloatArray
+) -> tuple[NDArray[np.intp], FloatArray, NDArray[np.intp]]:
+    """Readings ``values`` (N, k) at ``t`` averaged over each reference sample's share of time
+    (from the midpoint with the sample before to the one with the sample after): the indices
+    of the reference samples that got readings, the means (M, k) and how many each averaged.
+    A compass against a sparse heading reference is compared at the reference's samples: an
+    affine model (hard and soft iron, a declared disturbance) of the mean is the mean of the
+    model, and the readings' noise averages down instead of being counted once per reading
+    against one interpolated heading."""
+    mid = 0.5 * (t_ref[1:] + t_ref[:-1])
+    k = np.searchsorted(mid, t, side="right")  # the reference sample each reading belongs to
+    counts = np.bincount(k, minlength=t_ref.size)
+    means = np.column_stack([np.bincount(k, values[:, j], t_ref.size) for j in
+                             range(values.shape[1])])
+    got = np.flatnonzero(counts)
+    return got, means[got] / counts[got, None], counts[got]
+
+
 def _moving_average(v: FloatArray, n: int) -> FloatArray:
     if n <= 1:
         return v
@@ -635,7 +654,8 @@ def build_compass(
     ref = heading_reference(bundle)
     theta = None
     direction = None
-    level_note = None
+    level_note = sparse_note = None
+    disturbance: FloatArray | None = None
     if ref is not None:
         inside = (t >= ref[0][0]) & (t <= ref[0][-1])
         if inside.sum() < MIN_ROWS:
@@ -669,7 +689,26 @@ def build_compass(
                 "magnetometer's x and y do not give the heading"
             )
             t, m = t[keep], m[keep]
+        disturbance = _declared_motor_field(bundle, model, t, uT)
         theta = np.interp(t, ref[0], ref[1])
+        span = (ref[0] >= t[0]) & (ref[0] <= t[-1])
+        if (
+            span.sum() >= MIN_ROWS
+            and np.median(np.diff(ref[0])) >= SPARSE_REFERENCE_RATIO * np.median(np.diff(t))
+        ):
+            t_ref, theta_ref = ref[0][span], ref[1][span]
+            cols = m if disturbance is None else np.column_stack([m, disturbance])
+            got, means, counts = _sample_means(t, cols, t_ref)
+            sparse_note = (
+                f"the reference heading is sparse beside the compass (every "
+                f"{np.median(np.diff(t_ref)):.3g} s against {np.median(np.diff(t)):.3g} s): "
+                f"compared at its {got.size} samples, each with the mean of its share of the "
+                f"{t.size} readings (median {int(np.median(counts))}); between its samples the "
+                "interpolated heading would be shared by every reading"
+            )
+            t, theta = t_ref[got], theta_ref[got]
+            m = means[:, :3]
+            disturbance = None if disturbance is None else means[:, 3:]
         mode = "heading"
         direction = _declared_field_direction(bundle, model, t)
     else:
@@ -696,13 +735,16 @@ def build_compass(
         C_declared=np.linalg.inv(np.asarray(model.compass_soft_iron, dtype=float)),
         uT_per_unit=uT,
         data_unit=unit,
-        disturbance=_declared_motor_field(bundle, model, t, uT),
+        disturbance=disturbance if mode == "heading"
+        else _declared_motor_field(bundle, model, t, uT),
         field_direction=direction,
         gyro_heading=_declared_gyro_heading(bundle, model, t) if mode == "magnitude_2d" else None,
     )
     problem.notes.append(f"mode: {mode}; field unit {unit}")
     if level_note is not None:
         problem.notes.append(level_note)
+    if sparse_note is not None:
+        problem.notes.append(sparse_note)
     if problem.gyro_heading is not None:
         problem.notes.append(
             "second metric: heading against the gyro integrated under its declared model "

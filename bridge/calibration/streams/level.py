@@ -41,6 +41,7 @@ from koala_bridge.calibration.model import DeclaredModel
 from koala_bridge.calibration.robust import white_noise_sigma
 from koala_bridge.calibration.streams.scalar import ScalarProblem
 from numpy.typing import NDArray
+from scipy.ndimage import uniform_filter1d
 
 ACC_COLUMNS = ("acc_x", "acc_y", "acc_z")
 RATE_COLUMNS = ("rate_x", "rate_y")
@@ -54,6 +55,9 @@ ROTATION_SIGMAS = 4.0
 MIN_ROTATION_RAD_S = 0.005
 #: shortest level stretch used (s)
 MIN_LEVEL_S = 1.0
+#: the accelerometer is read for attitude as its mean over this span (s): the attitude a
+#: level stretch needs lasts MIN_LEVEL_S, vibration is faster
+ATTITUDE_SMOOTH_S = 0.25
 #: fewest level samples in each of the fit and score parts
 MIN_LEVEL_SAMPLES = 50
 #: a gyro level on more than this fraction of its samples needs no level stream
@@ -103,10 +107,19 @@ def level_mask(gyro: Table) -> tuple[NDArray[np.bool_], str] | None:
 
 
 def _gravity(gyro: Table) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """The accelerometer's ``(n, 3)`` readings, and where they are gravity alone: ``|a|``
-    finite and within :data:`GRAVITY_TOLERANCE` of its median (a body that accelerates is not
-    measured for attitude)."""
+    """The accelerometer's ``(n, 3)`` readings, each the mean over :data:`ATTITUDE_SMOOTH_S`
+    about it, and where they are gravity alone: ``|a|`` finite and within
+    :data:`GRAVITY_TOLERANCE` of its median (a body that accelerates is not measured for
+    attitude). The mean keeps the attitude and drops vibration: a car's raw 100 Hz
+    accelerometer scattered by 3 deg about its direction, so that not one 1 s stretch was
+    level, and its compass stream was left out as tilting."""
     acc = np.column_stack([gyro[c] for c in ACC_COLUMNS])
+    finite = np.all(np.isfinite(acc), axis=1)
+    t = gyro["t"][finite]
+    if t.size > 1:
+        n = int(round(ATTITUDE_SMOOTH_S / max(float(np.median(np.diff(t))), 1e-9)))
+        if n > 1:
+            acc[finite] = uniform_filter1d(acc[finite], size=n, axis=0, mode="nearest")
     norm = np.linalg.norm(acc, axis=1)
     ok = np.isfinite(norm)
     g = float(np.median(norm[ok])) if ok.any() else 0.0
