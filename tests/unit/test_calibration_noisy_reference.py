@@ -157,3 +157,21 @@ def test_a_fit_part_without_motion_is_said(tmp_path: Path) -> None:
     (note,) = (n for n in res.problem.notes if n.startswith("the fit part holds little motion"))
     assert "record turns in the first 60 %" in note
     assert not any(n.startswith("the held-out part holds little") for n in res.problem.notes)
+
+
+def test_a_sign_flipped_gyro_in_heading_space_is_named_a_sign(tmp_path: Path) -> None:
+    """The turning gyro above with its sign flipped: unsigned, its heading share read 1 ("the
+    readings do not follow it"), scale was not tried, and the report blamed the reference's
+    noise (a car's gyro, flipped by a new user, turning 3.2 rad on the fit part). Signed, the
+    share is the unflipped one's; the scale is tried, fitted through zero, and named a sign."""
+    rng = np.random.default_rng(6)
+    t = np.arange(0.0, 100.0 + 0.005, 0.01)
+    w = 0.8 * np.sin(2 * np.pi * t / 7)
+    theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
+    res = _gyro(gyro_bundle(tmp_path / "b", t, theta + rng.normal(0.0, 0.02, t.size),
+                            -w + rng.normal(0.0, 0.002, t.size)))
+    assert res.problem.metric == "heading_error_10s_window_rms"
+    assert res.problem.heading_share is not None and res.problem.heading_share < 0.1
+    assert not any(n.startswith("scale not tried") for n in res.problem.notes)
+    assert any("the readings run against the reference" in n for n in res.problem.notes)
+    assert res.effects == []

@@ -426,10 +426,12 @@ class ScalarProblem(StreamProblem):
         integral over the same windows, ``Q``, follows its motion times the gain and shares
         none of its noise. A per-window ramp (a bias) is projected out of both, the gain ``g``
         is that of ``Q`` on ``P`` the other way round (``Q.Q / P.Q``, clean of ``P``'s noise;
-        held within 2:1, as in rate space), and the share is ``1 - P.Q / (g P.P)``: the part of
-        the heading's path the readings do not follow. A heading's white noise alone (sixth
-        differences) missed noise that a filter smooths (a low-passed accelerometer angle): its
-        windows' changes looked like motion, and a still gyro got a scale of -1."""
+        held within 2:1 and signed, as in rate space), and the share is ``1 - P.Q / (g P.P)``:
+        the part of the heading's path the readings do not follow. A sign-flipped gyro's share
+        read 1 unsigned ("the readings do not follow it"), and its sign note was never reached.
+        A heading's white noise alone (sixth differences) missed noise that a filter smooths (a
+        low-passed accelerometer angle): its windows' changes looked like motion, and a still
+        gyro got a scale of -1."""
         if self.heading_ref is None or self.integrate_window_s is None:
             return 0.0
         p = self._parts["fit"]
@@ -448,9 +450,11 @@ class ScalarProblem(StreamProblem):
             readings = readings - tau * float(np.dot(readings, tau)) / tt
         pp, pq, qq = (float(np.dot(a, b)) for a, b in
                       ((path, path), (path, readings), (readings, readings)))
-        if pp <= 0.0:
+        if pp <= 0.0 or pq == 0.0:
             return 1.0
-        gain = float(np.clip(qq / pq, 0.5, 2.0)) if pq > 0 else 2.0
+        # signed, as in rate space: readings that run against the heading (a sign convention)
+        # follow its path as well as any, and a scale tried then names the sign
+        gain = float(np.sign(pq) * np.clip(qq / abs(pq), 0.5, 2.0))
         return float(np.clip(1.0 - pq / (gain * pp), 0.0, 1.0))
 
     def _sparse_reference_count(self, part: Part, r: FloatArray | None) -> float | None:
