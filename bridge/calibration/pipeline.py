@@ -374,7 +374,49 @@ def run_stream(
     _note_known_rotation(problem, secondary)
     _note_secondary_worse(problem, sel, before, after, secondary)
     _note_near_misses(problem, sel)
+    _note_gross_gain(problem, sel)
     return StreamResult(problem, sel, before, after, secondary, selection_notes=selection_notes)
+
+
+#: a fitted gain beyond this factor either way is a unit or a time base, not a sensor's error
+GROSS_GAIN = 2.0
+#: the factors a gain that large usually is, and what each says
+GROSS_FACTORS = (
+    (180 / np.pi, "degrees where radians are meant (deg/s for rad/s)"),
+    (np.pi / 180, "radians where degrees are meant"),
+    (1000.0, "a thousandfold unit (mm for m, mrad for rad) or a time base in ms"),
+    (1e-3, "a thousandfold unit (m for mm) or a time base in ks"),
+    (100.0, "cm where m are meant"),
+    (0.01, "m where cm are meant"),
+    (10.0, "a tenfold unit, or a time base of tenths of a second read as seconds"),
+    (0.1, "a tenfold unit, or a time base ten times too fine"),
+)
+
+
+def _note_gross_gain(problem: StreamProblem, sel: Selection) -> None:
+    """A scale the fit part shows (its BIC falls) whose gain is beyond :data:`GROSS_GAIN` either
+    way is said with the unit or time base it most likely is, whether or not it passed: a
+    car's gyro read with its log's 0.1 s steps as seconds integrated to 9.7 times the reference's
+    turns, its held-out part too still to confirm a scale, and the report said nothing."""
+    for rnd in sel.rounds:
+        for t in rnd:
+            if t.name != "scale" or t.fit is None or not t.delta_bic < 0:
+                continue
+            at = [i.name for i in t.fit.insts].index("scale")
+            gain = 1.0 + float(split_params(problem, t.fit.insts, t.fit.x)[at][0])
+            if not (gain > GROSS_GAIN or 0 < gain < 1 / GROSS_GAIN):
+                continue
+            factor, says = min(GROSS_FACTORS, key=lambda f: abs(np.log(gain / f[0])))
+            likely = (f": {factor:.4g} is {says}" if abs(np.log(gain / factor)) < np.log(1.15)
+                      else "")
+            problem.notes.append(
+                f"the readings are {gain:.3g} times the reference on the fit part (scale fitted "
+                f"{gain - 1:+.4g}, {'passed' if t.passed else 'not passed'}){likely}. A gain "
+                f"beyond {GROSS_GAIN:g}:1 is a unit, a time base or a conversion, not a "
+                "sensor's error: fix it in the bundle (docs/bundle-format.md: SI units, t in "
+                "seconds)"
+            )
+            return
 
 
 #: a candidate of the last round that failed only for want of evidence, with at least this
@@ -726,6 +768,7 @@ def refit_full(full: StreamProblem, small: StreamResult) -> StreamResult:
     _note_known_rotation(full, secondary)
     _note_secondary_worse(full, result, b, a, secondary)
     _note_near_misses(full, result)
+    _note_gross_gain(full, result)
     return StreamResult(full, result, b, a, secondary, selection_notes=small.selection_notes)
 
 

@@ -266,12 +266,20 @@ class LastResult:
 
 
 def lag1_autocorrelation(r: FloatArray) -> float:
-    """Lag-1 autocorrelation of the noise in ``r``, from its first differences, in [0, 0.999].
+    """Lag-1 autocorrelation of the noise in ``r``, in [0, 0.999]: the smaller of two
+    estimates, each too large in a case the other is not.
 
-    For an AR(1) series with coefficient rho the differences have lag-1 autocorrelation
-    -(1 - rho) / 2, so rho = 1 + 2 rho_diff. Unlike the plain estimate it is not fooled by slow
-    deterministic structure (an unexplained effect spanning many samples), which is not chance;
-    a random walk (integrated noise, as in dead reckoning) still gives rho near 1.
+    - From the first differences: for an AR(1) series with coefficient rho they have lag-1
+      autocorrelation -(1 - rho) / 2, so rho = 1 + 2 rho_diff. Unlike the plain estimate it is
+      not fooled by slow deterministic structure (an unexplained effect spanning many samples),
+      which is not chance; a random walk (integrated noise, as in dead reckoning) still gives
+      rho near 1.
+    - The plain lag-1 autocorrelation. Noise that is no AR(1) fools the first: a rate
+      differenced from a noisy heading, centred on the readings, is white noise's moving
+      difference, whose own differences are about uncorrelated, so it read 0.999 where the
+      residual's lag-1 autocorrelation is 0.26. Prewhitened at 0.999, a residual is its
+      changes, and a smooth error no longer counts: a gyro reading 1.5 times the motion was
+      given a time offset and no scale.
     """
     r = np.asarray(r, dtype=float).ravel()
     if r.size < 4:
@@ -280,7 +288,10 @@ def lag1_autocorrelation(r: FloatArray) -> float:
     d = d - d.mean()
     den = float(np.dot(d, d))
     rho_d = float(np.dot(d[1:], d[:-1]) / den) if den > 0 else -0.5
-    return min(max(1.0 + 2.0 * rho_d, 0.0), 0.999)
+    c = r - r.mean()
+    den = float(np.dot(c, c))
+    plain = float(np.dot(c[1:], c[:-1]) / den) if den > 0 else 0.0
+    return min(max(min(1.0 + 2.0 * rho_d, plain), 0.0), 0.999)
 
 
 def effective_size(n: int, rho: float) -> float:

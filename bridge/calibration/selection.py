@@ -24,9 +24,11 @@ Per stream, starting from the declared model (nuisance parameters fitted):
    not count as independent evidence: dead-reckoning errors are close to a random walk
    (``rho`` near 1, the test runs on increments), sensor noise is white (``rho`` near 0).
    ``rho`` is the noise autocorrelation of the fit-part residual of the *full* model (every
-   candidate at once), like the full-model variance of Mallows' Cp, estimated from first
-   differences (:func:`koala_bridge.calibration.problem.lag1_autocorrelation`) so slow structure
-   that no candidate explains is not mistaken for correlated noise;
+   candidate at once), like the full-model variance of Mallows' Cp, the smaller of the
+   estimate from first differences (so slow structure that no candidate explains is not
+   mistaken for correlated noise) and the plain one (so noise that is no AR(1), a rate
+   differenced from a noisy heading, is not mistaken for a random walk;
+   :func:`koala_bridge.calibration.problem.lag1_autocorrelation`);
 3. the passing candidate with the largest held-out statistic ``L`` is added; repeat until none
    passes (or ``max_effects``).
 

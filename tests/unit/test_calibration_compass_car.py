@@ -134,3 +134,23 @@ def test_an_effect_the_fit_part_refuses_but_the_held_out_part_wants_is_said(
     _note_near_misses(res.problem, Selection(res.problem, sel.before, sel.after, [], [[weak]],
                                              0.962))
     assert "prewhitened" not in res.problem.notes[-1]
+
+
+def test_a_field_in_another_unit_than_read_is_said(tmp_path: Path) -> None:
+    """The car's magnetometer logged nT (about 46 000) with no unit the tool knew: it was read
+    as uT, and the hard iron reported in "uT", with no word."""
+    d = _bundle(tmp_path, vibration=0.02, truth_every=1, hard_iron=(0.0, 0.0), tilted=False)
+    res, _ = _compass(d)
+    assert res is not None and not any("median magnitude" in n for n in res.problem.notes)
+    a = np.loadtxt(d / "compass.csv", delimiter=",", skiprows=1)
+    a[:, 1:] *= 1000.0  # the same field in nT
+    np.savetxt(d / "compass.csv", a, delimiter=",", fmt="%.3f", header="t,mx,my,mz",
+               comments="")
+    (d / "meta.json").write_text("{}")
+    res, _ = _compass(d)
+    assert res is not None
+    (note,) = [n for n in res.problem.notes if "median magnitude" in n]
+    assert note.startswith("the field's median magnitude reads 4.47e+04 uT (no unit declared")
+    (d / "meta.json").write_text(json.dumps({"units": {"compass.mx": "nT"}}))
+    res, _ = _compass(d)
+    assert res is not None and not any("median magnitude" in n for n in res.problem.notes)

@@ -628,6 +628,11 @@ def _range_unit(meta: Mapping[str, Any], kind: str) -> str:
     return str(value)
 
 
+#: the Earth's field at its surface (uT, total): a compass's readings far outside it (by 3x) are
+#: likely in another unit than the one they are read in
+EARTH_FIELD_UT = (25.0, 65.0)
+
+
 def _compass_unit(meta: Mapping[str, Any]) -> tuple[str, float]:
     u = _unit(meta, "compass.mx").lower()
     if "milligauss" in u or u.startswith("mg"):
@@ -741,6 +746,18 @@ def build_compass(
         gyro_heading=_declared_gyro_heading(bundle, model, t) if mode == "magnitude_2d" else None,
     )
     problem.notes.append(f"mode: {mode}; field unit {unit}")
+    field = float(np.median(np.linalg.norm(m, axis=1))) * uT
+    if not EARTH_FIELD_UT[0] / 3 <= field <= 3 * EARTH_FIELD_UT[1]:
+        declared = _unit(bundle.meta, "compass.mx")
+        problem.notes.append(
+            f"the field's median magnitude reads {field:.3g} uT "
+            + (f"(compass.mx declared as {declared!r}, read as {unit})" if declared
+               else "(no unit declared: read as uT)")
+            + f", where the Earth's is {EARTH_FIELD_UT[0]:g}-{EARTH_FIELD_UT[1]:g} uT: if the "
+            "readings are in another unit (nT, gauss, mG, raw counts), declare it in meta.json "
+            '(units: {"compass.mx": "nT"}); a heading does not depend on it, the hard iron\'s '
+            "size in uT and the written config do"
+        )
     if level_note is not None:
         problem.notes.append(level_note)
     if sparse_note is not None:

@@ -1,0 +1,48 @@
+"""A gain far from 1 is a unit or a time base (a new user's car log: its 0.1 s steps read as
+seconds made the gyro 9.7 times the reference, its held-out part too still to confirm a scale,
+and the report said nothing). A scale the fit part shows beyond 2:1 is said, with the factor it
+most likely is (``pipeline._note_gross_gain``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from _bundles import gyro_bundle
+from koala_bridge.calibration.bundle import load_bundle
+from koala_bridge.calibration.model import declared_model
+from koala_bridge.calibration.pipeline import StreamResult, calibrate
+from koala_bridge.calibration.synthetic import DECLARED
+
+
+def _gyro(tmp_path: Path, factor: float) -> StreamResult:
+    """60 s at 100 Hz turning back and forth; the gyro's rate times ``factor``."""
+    rng = np.random.default_rng(3)
+    t = np.arange(0.0, 60.0 + 0.005, 0.01)
+    w = 0.6 * np.sin(2 * np.pi * t / 9)
+    theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
+    d = gyro_bundle(tmp_path / "b", t, theta + rng.normal(0.0, 0.001, t.size),
+                    factor * (w + rng.normal(0.0, 0.002, t.size)))
+    bundle = load_bundle(d)
+    (res,) = (r for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
+              if r.problem.name == "gyro")
+    return res
+
+
+@pytest.mark.parametrize(("factor", "says"), [
+    (180 / np.pi, "57.3 is degrees where radians are meant"),
+    (10.0, "10 is a tenfold unit, or a time base"),
+    (3.3, "A gain beyond 2:1 is a unit"),
+])
+def test_a_gross_gain_is_said(tmp_path: Path, factor: float, says: str) -> None:
+    res = _gyro(tmp_path, factor)
+    (note,) = [n for n in res.problem.notes if "times the reference on the fit part" in n]
+    assert says in note
+    if factor == 3.3:
+        assert ": 3.3" not in note  # no named factor near it
+
+
+def test_a_gain_near_one_says_nothing(tmp_path: Path) -> None:
+    res = _gyro(tmp_path, 1.03)
+    assert not any("times the reference on the fit part" in n for n in res.problem.notes)
