@@ -20,6 +20,7 @@ from koala_bridge.calibration.effects.common import (
     reference_noise_share,
     stream_share,
 )
+from koala_bridge.calibration.effects.time_offset import clock_offset
 from koala_bridge.calibration.errors import EffectRegistryError
 from koala_bridge.calibration.metrics import HeldOutStatistics, g4, heldout_statistics
 from koala_bridge.calibration.model import DeclaredModel
@@ -346,6 +347,7 @@ def run_stream(
     problem: StreamProblem, options: Options, progress: Progress | None = None
 ) -> StreamResult:
     noted = len(problem.notes)  # what proposing and selecting note (an effect not tried, why)
+    _note_clock_offset(problem)
     cands = candidates_for(problem, options.effects)
     done = 0
 
@@ -391,6 +393,25 @@ GROSS_FACTORS = (
     (10.0, "a tenfold unit, or a time base of tenths of a second read as seconds"),
     (0.1, "a tenfold unit, or a time base ten times too fine"),
 )
+
+
+def _note_clock_offset(problem: StreamProblem) -> None:
+    """Say so when a scalar stream and its reference look stamped on clocks seconds apart
+    (:func:`koala_bridge.calibration.effects.time_offset.clock_offset`), whether or not a
+    time offset can be tried."""
+    if not isinstance(problem, ScalarProblem) or problem.reference is None:
+        return
+    found = clock_offset(problem)
+    if found is None:
+        return
+    tau, r, r_near = found
+    problem.notes.append(
+        f"the readings match the reference best {tau:+.3g} s later (correlation {r:.2f}, "
+        f"against {r_near:.2f} at most, by magnitude, within the latency window): the two "
+        "look stamped on clocks that far apart, and time_offset, where it is tried, is "
+        "searched there. Stamp "
+        "both on one clock, or shift one (docs/bundle-format.md: one clock for all files)"
+    )
 
 
 def _note_gross_gain(problem: StreamProblem, sel: Selection) -> None:

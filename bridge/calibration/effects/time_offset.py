@@ -56,28 +56,87 @@ def search_window(problem: Any) -> tuple[float, float]:
     return (step, span) if step > 0 and span >= step else (0.0, 0.0)
 
 
-def coarse_lag(problem: Any, step: float, span: float) -> float:
-    """The ``tau`` of the grid ``(step, span)`` (:func:`search_window`) whose shifted reference
-    correlates best with the readings on the fit part; 0 without a grid, or when nothing
-    correlates."""
-    if not span:
-        return 0.0
-    t_ref, u_ref = problem.reference
-    fit = problem.split.mask(problem.t, "fit")
-    t, y = problem.t[fit], problem.y[fit]
-    ok = np.isfinite(y)
-    t, y = t[ok], y[ok]
-    taus = np.arange(-span, span + step / 2, step)
+def _correlations(t: Any, y: Any, reference: Any, taus: Any) -> Any:
+    """The correlation of readings ``y`` at ``t`` with the reference shifted by each ``tau``."""
+    t_ref, u_ref = reference
     yc = y - y.mean()
-    best, best_r = 0.0, -np.inf
-    for tau in taus:
+    out = np.full(len(taus), -np.inf)
+    for i, tau in enumerate(taus):
         u = np.interp(t - tau, t_ref, u_ref)
         uc = u - u.mean()
         den = float(np.sqrt(np.dot(uc, uc) * np.dot(yc, yc)))
-        r = float(np.dot(uc, yc)) / den if den > 0 else -np.inf
-        if r > best_r:
-            best, best_r = float(tau), r
-    return best
+        if den > 0:
+            out[i] = float(np.dot(uc, yc)) / den
+    return out
+
+
+def _fit_readings(problem: Any) -> tuple[Any, Any]:
+    fit = problem.split.mask(problem.t, "fit")
+    t, y = problem.t[fit], problem.y[fit]
+    ok = np.isfinite(y)
+    return t[ok], y[ok]
+
+
+def coarse_lag(problem: Any, step: float, span: float, around: float = 0.0) -> float:
+    """The ``tau`` of the grid ``(step, span)`` (:func:`search_window`), centred on ``around``
+    (the clocks' offset, :func:`clock_offset`), whose shifted reference correlates best with
+    the readings on the fit part; ``around`` without a grid, or when nothing correlates."""
+    if not span:
+        return around
+    t, y = _fit_readings(problem)
+    taus = around + np.arange(-span, span + step / 2, step)
+    r = _correlations(t, y, problem.reference, taus)
+    return float(taus[int(np.argmax(r))]) if np.isfinite(r).any() else around
+
+
+#: Clocks seconds apart (:func:`clock_offset`): searched over +-min(MAX_CLOCK_OFFSET_S,
+#: CLOCK_SPAN_SHARE of the fit part) in at most 2 CLOCK_STEPS + 1 steps, on at most CLOCK_ROWS
+#: readings; taken where the readings' variance the shifted reference leaves unexplained is
+#: below CLOCK_VARIANCE_RATIO of the least within the latency window.
+MAX_CLOCK_OFFSET_S = 10.0
+CLOCK_SPAN_SHARE = 0.1
+CLOCK_STEPS = 100
+CLOCK_ROWS = 4000
+CLOCK_VARIANCE_RATIO = 0.5
+
+
+def clock_offset(problem: Any) -> tuple[float, float, float] | None:
+    """``(tau, r, r_near)`` when a scalar stream and its reference are stamped on clocks
+    seconds apart, else None: the shift ``tau`` beyond the latency window of
+    :func:`search_window` at which the readings correlate best (``r``) with the reference, on
+    the fit part, where the variance it leaves unexplained, ``1 - r^2``, is below
+    :data:`CLOCK_VARIANCE_RATIO` of the least within the window (``r_near``, the largest
+    correlation there by magnitude). A car's gyro with
+    its clock 3 s off: 0.855 at +3.19 s against 0.572 within +-0.5 s (its error doubled, and
+    nothing said it). Motion that repeats correlates about alike one period on, and is not
+    taken; a reference mostly noise cannot explain enough to be."""
+    step, span = search_window(problem)
+    if not span or problem.reference is None:
+        return None
+    t, y = _fit_readings(problem)
+    t_ref = problem.reference[0]
+    reach = min(MAX_CLOCK_OFFSET_S, CLOCK_SPAN_SHARE * float(t[-1] - t[0]))
+    coarse = max(step, reach / CLOCK_STEPS)
+    k = int(reach / coarse)
+    if k * coarse <= 2 * span:
+        return None
+    keep = (t >= t_ref[0] + k * coarse) & (t <= t_ref[-1] - k * coarse)
+    t, y = t[keep], y[keep]
+    t, y = t[:: max(1, t.size // CLOCK_ROWS)], y[:: max(1, y.size // CLOCK_ROWS)]
+    if t.size < 10:
+        return None
+    taus = coarse * np.arange(-k, k + 1)
+    r = _correlations(t, y, problem.reference, taus)
+    near = np.abs(taus) <= span
+    best = int(np.argmax(r))
+    if near[best] or not np.isfinite(r[best]) or not near.any():
+        return None
+    # by magnitude: readings of the opposite sign follow a motion that repeats half a period
+    # later (a sign-flipped gyro on a rig turning back and forth read as a clock 3.5 s off)
+    r_near = float(np.max(np.abs(r[near])))
+    if not 1 - r[best] ** 2 < CLOCK_VARIANCE_RATIO * (1 - r_near**2):
+        return None
+    return float(taus[best]), float(r[best]), r_near
 
 
 @register_effect("time_offset")
@@ -92,17 +151,25 @@ class TimeOffset(Effect):
         if problem.kind != "scalar":  # odometry: from the clocks' coarse offset, or 0
             return [EffectInstance(self.name, self, ("tau_s",), (problem.clock_offset,))]
         step, span = search_window(problem)
-        return [EffectInstance(self.name, self, ("tau_s",), (coarse_lag(problem, step, span),),
-                               data={"span_s": span, "inside_s": span - step})]
+        clocks = clock_offset(problem)
+        around = 0.0 if clocks is None else clocks[0]
+        return [EffectInstance(self.name, self, ("tau_s",),
+                               (coarse_lag(problem, step, span, around),),
+                               data={"span_s": span, "inside_s": span - step,
+                                     "around_s": around})]
 
     def plausible(self, inst: EffectInstance, params: Any) -> bool:
         inside = inst.data.get("inside_s")
-        return inside is None or bool(abs(float(params[0])) <= inside)
+        around = inst.data.get("around_s", 0.0)
+        return inside is None or bool(abs(float(params[0]) - around) <= inside)
 
     def implausible_reason(self, inst: EffectInstance, params: Any, problem: Any) -> str | None:
         return (
             f"time_offset fitted as {float(params[0]):+.4g} s and rejected: at or beyond the "
-            f"edge of the +-{inst.data['span_s']:.3g} s a latency is searched in. Either the "
+            f"edge of the +-{inst.data['span_s']:.3g} s a latency is searched in"
+            + (f" (about {inst.data['around_s']:+.3g} s, the clocks' offset)"
+               if inst.data.get("around_s") else "")
+            + ". Either the "
             "stream and the reference are stamped on clocks further apart (stamp both on one "
             "clock, or shift one; docs/bundle-format.md), or the shift stands in for something "
             "else (readings of the opposite sign match the reference half a period later)"

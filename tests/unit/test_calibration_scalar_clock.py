@@ -1,0 +1,64 @@
+"""A gyro and its reference stamped on clocks seconds apart (a new user's car log shifted by
+3 s: the heading error doubled, and nothing said why). Beyond the latency window (+-0.5 s) the
+readings are correlated with the reference shifted over +-min(10 s, 10 % of the fit part): a
+shift that leaves less than half the unexplained variance of the best within the window is
+said, and ``time_offset`` is searched there (``effects.time_offset.clock_offset``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from _bundles import gyro_bundle
+from koala_bridge.calibration.bundle import load_bundle
+from koala_bridge.calibration.model import declared_model
+from koala_bridge.calibration.pipeline import StreamResult, calibrate
+from koala_bridge.calibration.synthetic import DECLARED
+
+NOTE = "the readings match the reference best"
+
+
+def _gyro(tmp_path: Path, late_s: float, periodic: bool = False) -> StreamResult:
+    """100 s at 50 Hz of turns that do not repeat (three incommensurate periods), or a single
+    sine of 4 s period (``periodic``); the gyro stamped ``late_s`` late."""
+    rng = np.random.default_rng(8)
+    t = np.arange(0.0, 100.0, 0.02)
+    if periodic:
+        w = 0.5 * np.sin(2 * np.pi * t / 4)
+    else:
+        w = 0.4 * np.sin(2 * np.pi * t / 7.3) + 0.3 * np.sin(2 * np.pi * t / 3.1 + 1) \
+            + 0.2 * np.sin(2 * np.pi * t / 17.9 + 2)
+    theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
+    d = gyro_bundle(tmp_path / "b", t, theta + rng.normal(0.0, 0.001, t.size),
+                    w + rng.normal(0.0, 0.005, t.size), gyro_t=t + late_s)
+    bundle = load_bundle(d)
+    (res,) = (r for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
+              if r.problem.name == "gyro")
+    return res
+
+
+@pytest.mark.parametrize("late_s", [3.0, -2.2])
+def test_clocks_seconds_apart_are_said_and_the_offset_found(tmp_path: Path,
+                                                            late_s: float) -> None:
+    res = _gyro(tmp_path, late_s)
+    (note,) = [n for n in res.problem.notes if n.startswith(NOTE)]
+    # the coarse grid: 6 s (10 % of the fit part) in 100 steps
+    assert abs(float(note.split("best ")[1].split(" s")[0]) - late_s) <= 0.06, note
+    assert [i.name for i in res.effects] == ["time_offset"]
+    ((params, se),) = res.effect_params()
+    # within half a sample (the readings' convention, each a mean over the interval before
+    # or an instant, is not the data's to tell) and 4 standard errors
+    assert abs(params["tau_s"] - late_s) <= 0.01 + 4 * se["tau_s"], (params, se)
+    assert res.after < res.before / 5
+
+
+def test_clocks_together_say_nothing(tmp_path: Path) -> None:
+    res = _gyro(tmp_path, 0.0)
+    assert not any(n.startswith(NOTE) for n in res.problem.notes)
+
+
+def test_motion_that_repeats_is_not_a_clock(tmp_path: Path) -> None:
+    """One period on (4 s) a sine matches itself about as well: nothing is taken."""
+    res = _gyro(tmp_path, 0.0, periodic=True)
+    assert not any(n.startswith(NOTE) for n in res.problem.notes)
