@@ -19,9 +19,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from koala_bridge.calibration.bundle import load_bundle
-from koala_bridge.calibration.model import declared_model
-from koala_bridge.calibration.pipeline import StreamResult, _note_near_misses, calibrate
+from _bundles import calibrate_stream
+from koala_bridge.calibration.pipeline import StreamResult, _note_near_misses
 from koala_bridge.calibration.problem import SkippedStream
 from koala_bridge.calibration.selection import Selection, Trial
 from koala_bridge.calibration.streams import _sample_means
@@ -70,11 +69,7 @@ def _bundle(tmp_path: Path, vibration: float, truth_every: int, hard_iron: tuple
 
 
 def _compass(d: Path) -> tuple[StreamResult | None, list[SkippedStream]]:
-    bundle = load_bundle(d)
-    skipped: list[SkippedStream] = []
-    results = calibrate(bundle, declared_model({}, bundle.meta), skipped=skipped)
-    found = [r for r in results if r.problem.name == "compass"]
-    return (found[0] if found else None), skipped
+    return calibrate_stream(d, "compass")
 
 
 def test_vibration_is_not_tilt(tmp_path: Path) -> None:

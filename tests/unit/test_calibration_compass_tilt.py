@@ -18,9 +18,7 @@ import json
 from pathlib import Path
 
 import numpy as np
-from koala_bridge.calibration.bundle import load_bundle
-from koala_bridge.calibration.model import declared_model
-from koala_bridge.calibration.pipeline import calibrate
+from _bundles import calibrate_stream
 from koala_bridge.calibration.problem import SkippedStream
 
 RATE_HZ = 20.0
@@ -66,11 +64,7 @@ def _bundle(tmp_path: Path, tilted_every: int | None, mount_deg: float = 0.0) ->
 
 
 def _compass(d: Path) -> tuple[object, list[SkippedStream]]:
-    bundle = load_bundle(d)
-    skipped: list[SkippedStream] = []
-    results = calibrate(bundle, declared_model({}, bundle.meta), skipped=skipped)
-    found = [r for r in results if r.problem.name == "compass"]
-    return (found[0] if found else None), skipped
+    return calibrate_stream(d, "compass")
 
 
 def test_a_tilted_compass_is_held_to_its_level_readings(tmp_path: Path) -> None:
