@@ -415,20 +415,24 @@ def _note_clock_offset(problem: StreamProblem) -> None:
 
 
 def _note_gross_gain(problem: StreamProblem, sel: Selection) -> None:
-    """A scale the fit part shows (its BIC falls) whose gain is beyond :data:`GROSS_GAIN` either
-    way is said with the unit or time base it most likely is, whether or not it passed: a
-    car's gyro read with its log's 0.1 s steps as seconds integrated to 9.7 times the reference's
-    turns, its held-out part too still to confirm a scale, and the report said nothing."""
+    """A scale the fit part shows (its RMS halves) whose gain is beyond :data:`GROSS_GAIN`
+    either way (by magnitude) is said with the unit or time base it most likely is, whether or
+    not it passed: a car's gyro read with its log's 0.1 s steps as seconds integrated to 9.7
+    times the reference's turns, its held-out part too still to confirm a scale, and the report
+    said nothing."""
     for rnd in sel.rounds:
         for t in rnd:
-            if t.name != "scale" or t.fit is None or not t.delta_bic < 0:
+            # the fit part shows it: its RMS at least halves (its BIC on a prewhitened residual
+            # need not fall: at a lag-1 autocorrelation near 1 a smooth error does not show)
+            if t.name != "scale" or t.fit is None or not t.fit.rss_fit <= sel.before.rss_fit / 4:
                 continue
             at = [i.name for i in t.fit.insts].index("scale")
             gain = 1.0 + float(split_params(problem, t.fit.insts, t.fit.x)[at][0])
-            if not (gain > GROSS_GAIN or 0 < gain < 1 / GROSS_GAIN):
+            size = abs(gain)  # a sign is said apart (Scale.implausible_reason), a unit here
+            if not (size > GROSS_GAIN or 0 < size < 1 / GROSS_GAIN):
                 continue
-            factor, says = min(GROSS_FACTORS, key=lambda f: abs(np.log(gain / f[0])))
-            likely = (f": {factor:.4g} is {says}" if abs(np.log(gain / factor)) < np.log(1.15)
+            factor, says = min(GROSS_FACTORS, key=lambda f: abs(np.log(size / f[0])))
+            likely = (f": {factor:.4g} is {says}" if abs(np.log(size / factor)) < np.log(1.15)
                       else "")
             problem.notes.append(
                 f"the readings are {gain:.3g} times the reference on the fit part (scale fitted "

@@ -46,3 +46,11 @@ def test_a_gross_gain_is_said(tmp_path: Path, factor: float, says: str) -> None:
 def test_a_gain_near_one_says_nothing(tmp_path: Path) -> None:
     res = _gyro(tmp_path, 1.03)
     assert not any("times the reference on the fit part" in n for n in res.problem.notes)
+
+
+def test_a_gross_gain_of_the_opposite_sign_is_said_too(tmp_path: Path) -> None:
+    """deg/s of the opposite sign: the sign note, and the unit beside it."""
+    res = _gyro(tmp_path, -180 / np.pi)
+    (note,) = [n for n in res.problem.notes if "times the reference on the fit part" in n]
+    assert note.startswith("the readings are -5") and "57.3 is degrees where radians" in note
+    assert any("the readings run against the reference" in n for n in res.problem.notes)

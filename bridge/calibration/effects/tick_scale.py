@@ -14,6 +14,9 @@ import numpy as np
 from koala_bridge.calibration.effects import register_effect
 from koala_bridge.calibration.effects.base import Effect, EffectInstance
 
+#: a fitted tick size (or distance scale) beyond this factor of the declared one is implausible
+MAX_TICK_FACTOR = 10.0
+
 
 @register_effect("tick_scale")
 class TickScale(Effect):
@@ -25,9 +28,26 @@ class TickScale(Effect):
         return [EffectInstance(self.name, self, ("distance_scale",), (1.0,))]
 
     def plausible(self, inst: EffectInstance, params: Any) -> bool:
-        """Ticks per metre above 0 (a distance scale may be negative: odometry that counts
-        backwards in speed or pose form)."""
-        return inst.param_names[0] != "ticks_per_metre" or bool(float(params[0]) > 0)
+        """Within :data:`MAX_TICK_FACTOR` of the declared value either way (a distance scale may
+        be negative: odometry that counts backwards in speed or pose form). A tick size that far
+        off is a unit, or motion the position metric cannot see: a robot spinning on the spot
+        with its tracker on the axle fitted 9.5e6 ticks/m against the declared 1e4, which makes
+        the dead reckoning stand still (standard error 5e-14)."""
+        value, declared = float(params[0]), float(inst.x0[0])
+        if inst.param_names[0] != "ticks_per_metre":
+            return bool(abs(value) <= MAX_TICK_FACTOR)
+        return bool(declared / MAX_TICK_FACTOR <= value <= declared * MAX_TICK_FACTOR)
+
+    def implausible_reason(self, inst: EffectInstance, params: Any, problem: Any) -> str | None:
+        value = float(params[0])
+        if not np.isfinite(value):
+            return None
+        return (
+            f"tick_scale fitted as {value:.4g} (declared {float(inst.x0[0]):.4g}) and rejected: "
+            f"beyond {MAX_TICK_FACTOR:g}x the declared either way, it is a unit (ticks per "
+            "wheel turn for ticks per metre, mm for m) or motion the windows' positions cannot "
+            "see (a robot turning on the spot, where no tick size moves it)"
+        )
 
     def apply(self, inst: EffectInstance, state: Any, params: Any) -> None:
         if inst.param_names[0] == "ticks_per_metre":

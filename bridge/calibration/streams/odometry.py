@@ -232,6 +232,8 @@ def backward_wheel(
     k: tuple[float, float],
     t_ref: FloatArray,
     p_ref: FloatArray,
+    wheel_base: float | None = None,
+    theta_ref: FloatArray | None = None,
 ) -> tuple[str, str] | None:
     """What is wrong when one wheel's counts fall as the robot drives forward, or None.
 
@@ -243,7 +245,12 @@ def backward_wheel(
     ``k`` the declared metres per tick of each wheel. A wrong tick size scales both travels
     alike, so it is told apart: the negated counts must come within 1 / :data:`BACKWARD_SHARE`
     of the reference while the declared ones cover less than :data:`BACKWARD_SHARE` of it.
-    Returns what was found and the column to negate (the one whose counts fell overall).
+    With a reference heading (``theta_ref`` at ``t_ref``, and the ``wheel_base``) the turns
+    must say the same: the negated counts' turning within a factor 2 of the reference's, and
+    closer to it by that factor than the declared counts'. A robot spinning on the spot with its
+    tracker's marker ahead of the axle moves the marker in circles, which the travel alone
+    took for a wheel counting backwards. Returns what was found and the column to negate (the
+    one whose counts fell overall).
     """
     t0, t1 = max(t_odo[0], t_ref[0]), min(t_odo[-1], t_ref[-1])
     n = int((t1 - t0) // STALL_INTERVAL_S)
@@ -260,6 +267,16 @@ def backward_wheel(
         return None
     if not BACKWARD_SHARE * ref <= negated <= ref / BACKWARD_SHARE:
         return None
+    if theta_ref is not None and wheel_base:
+        turn_ref = float(np.sum(np.abs(np.diff(np.interp(edges, t_ref, theta_ref)))))
+        turn_decl = float(np.sum(np.abs(s_r - s_l))) / abs(wheel_base)
+        turn_neg = float(np.sum(np.abs(s_r + s_l))) / abs(wheel_base)
+        if turn_ref <= 0 or turn_neg <= 0:
+            return None
+        off_neg = abs(np.log(turn_neg / turn_ref))
+        off_decl = abs(np.log(max(turn_decl, 1e-300) / turn_ref))
+        if off_neg > np.log(2) or off_neg > off_decl - np.log(2):
+            return None
     net = {"left_ticks": float(left[-1] - left[0]), "right_ticks": float(right[-1] - right[0])}
     falls = [c for c, v in net.items() if v < 0]
     which = falls[0] if len(falls) == 1 else "left_ticks or right_ticks"
