@@ -54,3 +54,17 @@ def test_a_gross_gain_of_the_opposite_sign_is_said_too(tmp_path: Path) -> None:
     (note,) = [n for n in res.problem.notes if "times the reference on the fit part" in n]
     assert note.startswith("the readings are -5") and "57.3 is degrees where radians" in note
     assert any("the readings run against the reference" in n for n in res.problem.notes)
+
+
+def test_a_gain_is_found_where_the_residual_is_no_ar1(tmp_path: Path) -> None:
+    """The rate differenced from the noisy heading is white noise's moving difference: its
+    first differences are about uncorrelated, and the AR(1) reading of them (``1 + 2 rho_d``)
+    was 0.999 where the residual's lag-1 autocorrelation is 0.26. Prewhitened at 0.999, a gain
+    of 1.5 did not show, and a time offset was named instead. The plain estimate, far lower,
+    is taken (``problem.lag1_autocorrelation``)."""
+    res = _gyro(tmp_path, 1.5)
+    assert res.selection.rho < 0.5
+    assert "scale" in [i.name for i in res.effects]
+    found = dict(zip((i.name for i in res.effects), res.effect_params(), strict=True))
+    # the reference's noise dilutes the gain by its share, ~1.5 % here (Scale.estimate_bias)
+    assert found["scale"][0]["scale_error"] == pytest.approx(0.5, abs=0.03)
