@@ -18,9 +18,17 @@ def config_name(name: str) -> str:
 def scalar_config(
     inst: EffectInstance, params: Sequence[float], problem: Any, combine: str = "add"
 ) -> dict[str, Any]:
-    """The native key with the total value, or ``calibration.<name>`` with named parameters."""
+    """The native key with the total value, or ``calibration.<name>`` with named parameters.
+
+    A native key ``"*key"`` is a declared value (or list) the effect multiplies by
+    ``1 + p``: an IR sensor's gain is its response curve's counts, scaled."""
     native = problem.native_keys.get(inst.name)
-    if native is not None and len(params) == 1:
+    if native is not None and native.startswith("*") and len(params) == 1:
+        declared_list = problem.declared_values.get(native)
+        if declared_list is not None:
+            factor = 1 + float(params[0])
+            return {native[1:]: [_round(float(v) * factor) for v in declared_list]}
+    elif native is not None and len(params) == 1:
         declared = problem.declared_values.get(inst.name, 0.0)
         if combine == "add":
             total = declared + float(params[0])

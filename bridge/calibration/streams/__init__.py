@@ -390,6 +390,42 @@ def _sparse_means(
     return True, means if whole is None else np.interp(t, t_all, means)
 
 
+#: the share of held-out readings beyond an IR response curve's ranges that is said
+BEYOND_CURVE_SHARE = 0.1
+
+
+def _note_beyond_curve(problem: ScalarProblem, ranges: FloatArray, fitted: bool) -> str | None:
+    """A note when :data:`BEYOND_CURVE_SHARE` or more of the held-out readings' true ranges lie
+    outside the response curve's (where it is held at its end values). An IR sensor logged
+    while the robot drove away from a wall put 0.10-0.50 m in the fit part and 0.50-0.88 m in
+    the held-out one: the curve fitted on the first was held flat over the second, every
+    candidate failed, and the report said "unchanged"."""
+    score = ~problem.split.mask(problem.t, "fit")
+    u = problem.u[score]
+    u = u[np.isfinite(u)]
+    if u.size == 0 or ranges.size < 2:
+        return None
+    lo, hi = float(np.min(ranges)), float(np.max(ranges))
+    outside = float(np.mean((u < lo) | (u > hi)))
+    if outside < BEYOND_CURVE_SHARE:
+        return None
+    why = (
+        "fitted on the fit part's readings: the two parts cover other ranges (a sweep "
+        "towards or away from a wall, split in time). Record both parts over the same ranges "
+        "(sweep out and back), or declare the curve ([sensors.ir] response_range_m and "
+        "response_counts)"
+        if fitted else
+        "declared: the readings reach beyond it (the sensor's rated range?). Leave them out, "
+        "or declare the curve over their ranges"
+    )
+    return (
+        f"{100 * outside:.0f} % of the held-out readings' true ranges "
+        f"({float(np.min(u)):.3g}-{float(np.max(u)):.3g} m) lie beyond the response curve's "
+        f"{lo:.3g}-{hi:.3g} m, where it is held at its end value and the held-out error "
+        f"measures that, not the sensor. The curve is {why}"
+    )
+
+
 def _sample_means(
     t: FloatArray, values: FloatArray, t_ref: FloatArray
 ) -> tuple[NDArray[np.intp], FloatArray, NDArray[np.intp]]:
@@ -1163,12 +1199,15 @@ def build_ranges(
             native_keys={
                 "offset_per:sensor": "+per_sensor_offset_counts",
                 "bias": "+per_sensor_offset_counts",
+                # a gain of a declared curve: its counts, scaled (the simulator's response)
+                **({"scale": "*response_counts"} if model.ir_curve is not None else {}),
             }
             if counts
             else {},
             noise_key="count_noise_sigma" if counts else None,
             declared_values={
                 "+per_sensor_offset_counts": model.ir_per_sensor_offset,
+                "*response_counts": None if model.ir_curve is None else model.ir_curve[1],
                 "n_sensors": max(
                     model.ir_sensor_count or 0,
                     len(model.ir_per_sensor_offset),
@@ -1183,6 +1222,9 @@ def build_ranges(
                 "response curve declared only as a shape: shared curve fitted "
                 "on the fit part first (binned means)"
             )
+        outside = None if curve is None else _note_beyond_curve(problem, curve[0], fitted)
+        if outside:
+            problem.notes.append(outside)
         if dropped:
             problem.notes.append(f"{dropped} readings with true_range <= 0 or non-finite dropped")
         if beyond:
