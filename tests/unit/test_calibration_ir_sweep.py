@@ -32,7 +32,7 @@ def _sweep(tmp_path: Path, far_m: float) -> Path:
     r = 0.12 + (far_m - 0.12) * t / t[-1]
     y = GAIN * np.interp(r, XS, YS) + rng.normal(0.0, SIGMA, t.size)
     d = tmp_path / "ir"
-    d.mkdir()
+    d.mkdir(parents=True)
     rows = "\n".join(f"{k:.2f},0,ir,{yk:.3f},{rk:.4f}" for k, yk, rk in zip(t, y, r, strict=True))
     (d / "range.csv").write_text("t,sensor,kind,measured,true_range\n" + rows + "\n")
     (d / "meta.json").write_text(json.dumps({"units": {"range.measured": "counts"}}))
@@ -58,3 +58,20 @@ def test_a_gain_of_a_declared_curve_is_written_as_its_counts(tmp_path: Path) -> 
     counts = keys["sensors.ir.response_counts"]
     np.testing.assert_allclose(counts, np.asarray(YS) * (1 + params["scale_error"]), rtol=1e-5)
     assert res.not_written() == [None]
+
+
+@pytest.mark.parametrize(("units", "says"), [
+    ({"range.measured": "counts", "range.true_range": "cm"},
+     "true_range is declared in 'cm' (meta.json units) and read as metres"),
+    ({"range.measured": "V", "range.true_range": "m"},
+     "measured is declared in 'v' (meta.json units) and read as counts"),
+])
+def test_a_unit_other_than_the_one_read_is_said(tmp_path: Path, units: dict[str, str],
+                                                says: str) -> None:
+    d = _sweep(tmp_path, 0.75)
+    (d / "meta.json").write_text(json.dumps({"units": units}))
+    res, _ = calibrate_stream(d, "range:ir", CONFIG)
+    assert res is not None
+    assert any(n.startswith(says) for n in res.problem.notes), res.problem.notes
+    res, _ = calibrate_stream(_sweep(tmp_path / "plain", 0.75), "range:ir", CONFIG)
+    assert res is not None and not any("(meta.json units)" in n for n in res.problem.notes)

@@ -669,6 +669,41 @@ def _range_unit(meta: Mapping[str, Any], kind: str) -> str:
     return str(value)
 
 
+#: length units a user may declare for a range column, with their size in metres
+LENGTH_UNITS = {"mm": 1e-3, "millimetre": 1e-3, "millimetres": 1e-3, "millimeter": 1e-3,
+                "millimeters": 1e-3, "cm": 1e-2, "centimetre": 1e-2, "centimetres": 1e-2,
+                "centimeter": 1e-2, "centimeters": 1e-2, "in": 0.0254, "inch": 0.0254,
+                "inches": 0.0254, "ft": 0.3048, "feet": 0.3048, "km": 1e3}
+#: voltage units an IR sensor's output may be declared in
+VOLTAGE_UNITS = ("v", "volt", "volts", "mv", "millivolt", "millivolts")
+
+
+def _range_unit_notes(meta: Mapping[str, Any], kind: str, counts: bool) -> list[str]:
+    """Notes for ``range.csv`` columns whose declared unit (``meta.json`` ``units``) is not the
+    one they are read in: ``true_range`` (and a metric ``measured``) are read as metres, an IR
+    sensor's ``measured`` as counts. A user's bundle declared ``"range.true_range": "cm"``, and
+    the notes blamed the recording ("the reference does not vary"); another declared its IR
+    readings in volts, and a scale of 0.0054 was reported as found."""
+    out = []
+    truth = _unit(meta, "range.true_range").strip().lower()
+    measured = _range_unit(meta, kind).strip().lower()
+    for column, unit, metric in (("true_range", truth, True), ("measured", measured, not counts)):
+        first = unit.split()[0].strip("(),;:") if unit else ""
+        if metric and first in LENGTH_UNITS:
+            out.append(
+                f"{column} is declared in {unit!r} (meta.json units) and read as metres, the "
+                f"bundle format's unit: convert it (x {LENGTH_UNITS[first]:g}); see {FORMAT_DOC}"
+            )
+        elif column == "measured" and counts and first in VOLTAGE_UNITS:
+            out.append(
+                f"measured is declared in {unit!r} (meta.json units) and read as counts, as an "
+                "IR sensor's output is: convert it to the ADC's counts (a 10-bit ADC at 5 V: "
+                f"x 1023 / 5), or the response curve and every offset are in volts; see "
+                f"{FORMAT_DOC}"
+            )
+    return out
+
+
 #: the Earth's field at its surface (uT, total): a compass's readings far outside it (by 3x) are
 #: likely in another unit than the one they are read in
 EARTH_FIELD_UT = (25.0, 65.0)
@@ -1225,6 +1260,7 @@ def build_ranges(
         outside = None if curve is None else _note_beyond_curve(problem, curve[0], fitted)
         if outside:
             problem.notes.append(outside)
+        problem.notes.extend(_range_unit_notes(bundle.meta, str(kind), counts))
         if dropped:
             problem.notes.append(f"{dropped} readings with true_range <= 0 or non-finite dropped")
         if beyond:
