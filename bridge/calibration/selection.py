@@ -424,11 +424,14 @@ def _cluster_se(fit: Fit, labels: NDArray[np.intp]) -> FloatArray:
     if groups <= p + 1 or n <= p:
         return np.full(fit.x.size, np.nan)
     h = jac.T @ jac
-    moves = np.empty((groups, p))
-    for k in range(groups):
-        rows = g == k
-        jg = jac[rows]
-        moves[k] = np.linalg.pinv(h - jg.T @ jg) @ (jg.T @ fit.r_fit[rows])
+    # each cluster's share of H and its score, by bincount (a 1-hour odometry stream has 720
+    # windows over 430 000 residuals: a mask per window cost 0.15 s)
+    h_g = np.empty((groups, p, p))
+    for a in range(p):
+        for b in range(a, p):
+            h_g[:, a, b] = h_g[:, b, a] = np.bincount(g, jac[:, a] * jac[:, b], groups)
+    score = np.column_stack([np.bincount(g, jac[:, a] * fit.r_fit, groups) for a in range(p)])
+    moves = np.einsum("gab,gb->ga", np.linalg.pinv(h[None] - h_g), score)
     moves -= moves.mean(axis=0)
     cov = (groups - 1) / groups * (moves.T @ moves)
     return np.sqrt(np.clip(np.diag(cov), 0, None))

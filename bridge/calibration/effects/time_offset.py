@@ -95,7 +95,7 @@ def coarse_lag(problem: Any, step: float, span: float, around: float = 0.0) -> f
 #: below CLOCK_VARIANCE_RATIO of the least within the latency window.
 MAX_CLOCK_OFFSET_S = 10.0
 CLOCK_SPAN_SHARE = 0.1
-CLOCK_STEPS = 100
+CLOCK_STEPS = 50
 CLOCK_ROWS = 2000
 CLOCK_VARIANCE_RATIO = 0.5
 
