@@ -16,6 +16,9 @@ from koala_bridge.calibration.effects.base import Effect, EffectInstance
 
 #: a fitted tick size (or distance scale) beyond this factor of the declared one is implausible
 MAX_TICK_FACTOR = 10.0
+#: the reference's travel from its windows' starts must exceed this many of its own position
+#: noise for a distance scale to be tried (OdometryProblem.reference_travel)
+MIN_TRAVEL_JITTER = 10.0
 
 
 @register_effect("tick_scale")
@@ -23,6 +26,15 @@ class TickScale(Effect):
     kinds = frozenset({"odometry"})
 
     def _propose(self, problem: Any) -> list[EffectInstance]:
+        travel, jitter = problem.reference_travel()
+        if not travel > MIN_TRAVEL_JITTER * jitter:
+            problem.notes.append(
+                f"tick_scale not tried: the reference travels {travel:.3g} m RMS from its "
+                f"windows' starts on the fit part, not beyond {MIN_TRAVEL_JITTER:g}x its own "
+                f"position noise ({jitter:.3g} m): a distance scale does not show where the "
+                "robot does not travel (turning on the spot); record it driving"
+            )
+            return []
         if problem.form == "ticks":
             return [EffectInstance(self.name, self, ("ticks_per_metre",), (problem.tpm,))]
         return [EffectInstance(self.name, self, ("distance_scale",), (1.0,))]
