@@ -1273,7 +1273,9 @@ def build_ranges(
                 f"{closer} readings at true ranges closer than {near_limit:g} m set aside: "
                 "the declared response curve is single-valued only from there (its first "
                 "point, or its peak where the output folds back: a count there is read at two "
-                "ranges); declare the curve from 0 m, falling, to have them used"
+                "ranges). A ranger whose output peaks near its minimum range (a Sharp's) "
+                "cannot tell those readings from farther ones; where the sensor's output does "
+                "fall from 0 m, declare the curve from there to have them used"
             )
         out.append(problem)
     return out
