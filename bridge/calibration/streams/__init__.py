@@ -39,6 +39,7 @@ from koala_bridge.calibration.streams.compass import CompassProblem
 from koala_bridge.calibration.streams.odometry import (
     OdometryProblem,
     backward_wheel,
+    metres_per_tick,
     reference_jumps,
 )
 from koala_bridge.calibration.streams.scalar import (
@@ -930,8 +931,7 @@ def _declared_motor_field(
     to = odo["t"]
     dt = np.diff(to)
     ok = dt > 0
-    rho = model.wheel_diameter_ratio
-    k = np.array([2 * rho / (1 + rho), 2 / (1 + rho)]) / model.ticks_per_metre
+    k = np.array(metres_per_tick(model.ticks_per_metre, model.wheel_diameter_ratio))
     v = np.column_stack([np.diff(odo["left_ticks"]), np.diff(odo["right_ticks"])])[ok]
     v = v / dt[ok, None] * k
     tv = to[1:][ok]
@@ -1039,14 +1039,14 @@ def build_odometry(
             f"robot drives; see {FORMAT_DOC}",
         )
         return None
+    ref = heading_reference(bundle)
+    theta = np.interp(truth["t"], ref[0], ref[1]) if ref is not None else None
+    t_ref = truth["t"]
+    p_ref = np.column_stack([truth["x"], truth["y"]])
     if form == "ticks":
-        rho, tpm = model.wheel_diameter_ratio, kw["tpm"]
-        heading = heading_reference(bundle)
         backward = backward_wheel(
             t, odo["left_ticks"], odo["right_ticks"],
-            (2 * rho / (1 + rho) / tpm, 2 / (1 + rho) / tpm),
-            truth["t"], np.column_stack([truth["x"], truth["y"]]),
-            kw["wheel_base"], None if heading is None else np.interp(truth["t"], *heading),
+            metres_per_tick(kw["tpm"], kw["ratio"]), t_ref, p_ref, kw["wheel_base"], theta,
         )
         if backward is not None:
             _skip(
@@ -1058,9 +1058,6 @@ def build_odometry(
                 f"mounted mirrored); see {FORMAT_DOC}",
             )
             return None
-    ref = heading_reference(bundle)
-    theta = np.interp(truth["t"], ref[0], ref[1]) if ref is not None else None
-    t_ref = truth["t"]
     inside = (t_ref >= t[0]) & (t_ref <= t[-1])
     split = Split.of(t_ref[inside])
     window = min(window_s, (split.t2 - split.t1) / 2)
@@ -1073,7 +1070,7 @@ def build_odometry(
         split,
         t_odo=t,
         t_ref=t_ref,
-        p_ref=np.column_stack([truth["x"], truth["y"]]),
+        p_ref=p_ref,
         theta_ref=theta,
         window_s=float(f"{window:.3g}"),
         form=form,

@@ -51,6 +51,11 @@ from typing import Any
 
 import numpy as np
 from koala_bridge.calibration.effects.base import EffectInstance
+from koala_bridge.calibration.effects.time_offset import (
+    CLOCK_ROWS,
+    CLOCK_SPAN_SHARE,
+    MAX_CLOCK_OFFSET_S,
+)
 from koala_bridge.calibration.problem import (
     FloatArray,
     LastResult,
@@ -59,6 +64,12 @@ from koala_bridge.calibration.problem import (
     apply_all,
 )
 from numpy.typing import NDArray
+
+
+def metres_per_tick(tpm: float, ratio: float) -> tuple[float, float]:
+    """``(k_l, k_r)``: metres per tick of the left and right wheel for ``tpm`` ticks per metre
+    (their mean) and the diameter ratio ``ratio`` = D_l / D_r (module docstring)."""
+    return 2 * ratio / (1 + ratio) / tpm, 2 / (1 + ratio) / tpm
 
 
 @dataclass
@@ -87,13 +98,11 @@ STALL_MAX_LAG_S = 0.5
 #: jitter and the ticks' rounding rather than the motion.
 STALL_LAG_STEP_S = 0.05
 #: The clocks' coarse offset (:meth:`OdometryProblem.coarse_clock_offset`): searched in steps
-#: of CLOCK_STEP_S over +-min(MAX_CLOCK_OFFSET_S, CLOCK_SPAN_SHARE of the fit part), on at most
-#: CLOCK_ROWS reference samples; taken when the windows' RMS there is below CLOCK_GAIN of the
-#: best within +-STALL_MAX_LAG_S.
-MAX_CLOCK_OFFSET_S = 10.0
-CLOCK_SPAN_SHARE = 0.1
+#: of CLOCK_STEP_S over the reach a scalar stream's clocks are searched in
+#: (``effects.time_offset``: +-min(MAX_CLOCK_OFFSET_S, CLOCK_SPAN_SHARE of the fit part), on at
+#: most CLOCK_ROWS samples); taken when the windows' RMS there is below CLOCK_GAIN of the best
+#: within +-STALL_MAX_LAG_S.
 CLOCK_STEP_S = 0.25
-CLOCK_ROWS = 2000
 CLOCK_GAIN = 0.5
 #: Stalled: the reference moved less than this fraction of the recording's typical ratio
 #: times the odometry's motion.
@@ -432,6 +441,7 @@ class OdometryProblem(StreamProblem):
         self._last = LastResult()
         self._track = LastResult()  # the dead reckoning, shared by the parts (one per model)
         self._counted: NDArray[np.bool_] | None = None  # odometry steps dead-reckoned
+        self.set_aside = SetAside()
         declared = self.dead_reckon(self.state())
         self.clock_offset, clock_note = self.coarse_clock_offset(declared)
         if clock_note:
@@ -471,10 +481,9 @@ class OdometryProblem(StreamProblem):
         (a weave, circles) scores about alike one period on, and then nothing is taken. It is
         where the stall detector searches and where ``time_offset`` starts; it changes no
         declared value (the held-out test judges ``time_offset`` as any effect)."""
-        X, Y, TH = pose
         fit = self.split.mask(self.t_ref, "fit")
         t_fit = self.t_ref[fit]
-        if t_fit.size < 10 or not np.all(np.isfinite(X)):
+        if t_fit.size < 10 or not np.all(np.isfinite(pose[0])):
             return 0.0, None
         reach = min(MAX_CLOCK_OFFSET_S, CLOCK_SPAN_SHARE * float(t_fit[-1] - t_fit[0]))
         k = int(reach / CLOCK_STEP_S)
@@ -487,23 +496,12 @@ class OdometryProblem(StreamProblem):
         idx = idx[:: max(1, idx.size // CLOCK_ROWS)]
         if idx.size < 10:
             return 0.0, None
-        t = self.t_ref[idx]
-        label = np.unique(np.floor((t - t[0]) / self.window_s), return_inverse=True)[1]
-        first = np.r_[0, np.flatnonzero(np.diff(label)) + 1]
-        q = self.p_ref[idx] - self.p_ref[idx[first]][label]
+        rows = np.zeros(self.t_ref.size, dtype=bool)
+        rows[idx] = True
+        w = self._make_windows(rows, "fit")  # nothing is set aside yet
         taus = CLOCK_STEP_S * np.arange(-k, k + 1)
-        rms = np.empty(taus.size)
-        for i, tau in enumerate(taus):
-            x, y = np.interp(t + tau, self.t_odo, X), np.interp(t + tau, self.t_odo, Y)
-            dx, dy = x - x[first][label], y - y[first][label]
-            if self.theta_ref is not None:
-                a = self.theta_ref[idx[first]] - np.interp(t[first] + tau, self.t_odo, TH)
-            else:  # the best turn per window, as the metric's Procrustes
-                cross = np.bincount(label, dx * q[:, 1] - dy * q[:, 0])
-                a = np.arctan2(cross, np.bincount(label, dx * q[:, 0] + dy * q[:, 1]))
-            ca, sa = np.cos(a)[label], np.sin(a)[label]
-            ex, ey = q[:, 0] - (ca * dx - sa * dy), q[:, 1] - (sa * dx + ca * dy)
-            rms[i] = np.sqrt(np.mean(ex**2 + ey**2))
+        rms = np.array([np.sqrt(np.mean(np.sum(self._window_errors(w, pose, tau) ** 2, axis=0)))
+                        for tau in taus])
         near = np.abs(taus) <= STALL_MAX_LAG_S
         best = int(np.argmin(rms))
         if near[best] or not rms[best] < CLOCK_GAIN * rms[near].min():
@@ -601,8 +599,7 @@ class OdometryProblem(StreamProblem):
                 # least squares takes the step back.
                 nan = np.full(self.d_left.size + 1, np.nan)
                 return nan, nan.copy(), nan.copy()
-            k_l = 2 * st.ratio / (1 + st.ratio) / st.tpm
-            k_r = 2 / (1 + st.ratio) / st.tpm
+            k_l, k_r = metres_per_tick(st.tpm, st.ratio)
             s_l, s_r = self.d_left * k_l, self.d_right * k_r
             ds = s_l + s_r
             ds *= 0.5
@@ -653,9 +650,17 @@ class OdometryProblem(StreamProblem):
             apply_all(st, self, insts, x)
             track = self._track.put(insts, x, "track", (st, *self.dead_reckon(st)))
         st, X, Y, TH = track
+        return self._window_errors(w, (X, Y, TH), st.tau), w
+
+    def _window_errors(
+        self, w: _Windows, pose: tuple[FloatArray, FloatArray, FloatArray], tau: float
+    ) -> FloatArray:
+        """(2, N): the reference's travel from each window's start minus the dead-reckoned
+        ``pose``'s (at the odometry times), stamped ``t + tau``, turned onto it."""
+        X, Y, TH = pose
         # Dead-reckoned pose at the scored samples and at the windows' anchors only (the other
         # part's samples are not needed: interpolating every reference sample cost twice this).
-        tq, tq_a = (w.t, w.t_starts) if st.tau == 0 else (w.t + st.tau, w.t_starts + st.tau)
+        tq, tq_a = (w.t, w.t_starts) if tau == 0 else (w.t + tau, w.t_starts + tau)
         dx = np.interp(tq, self.t_odo, X)
         dx -= np.interp(tq_a, self.t_odo, X)[w.label]
         dy = np.interp(tq, self.t_odo, Y)
@@ -668,7 +673,7 @@ class OdometryProblem(StreamProblem):
         elif self.start_pose is not None:
             # Heading is not re-anchored: dead-reckoned from the declared start heading.
             t_s, th_s, _ = self.start_pose
-            a = np.full(w.n, th_s - float(np.interp(t_s + st.tau, self.t_odo, TH)))
+            a = np.full(w.n, th_s - float(np.interp(t_s + tau, self.t_odo, TH)))
         else:
             # No reference heading: the angle that best turns the travel onto the
             # reference's, per window (least squares: atan2 of the summed cross and dot).
@@ -680,7 +685,7 @@ class OdometryProblem(StreamProblem):
         e = np.empty((2, tq.size))
         np.subtract(w.q[0], ca * dx - sa * dy, out=e[0])
         np.subtract(w.q[1], sa * dx + ca * dy, out=e[1])
-        return e, w  # (2, N): the reference's travel minus the dead-reckoned one
+        return e
 
     def residuals(
         self, insts: Sequence[EffectInstance], x: FloatArray, part: Part, for_fit: bool = False
