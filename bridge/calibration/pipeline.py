@@ -20,7 +20,6 @@ from koala_bridge.calibration.effects.common import (
     reference_noise_share,
     stream_share,
 )
-from koala_bridge.calibration.effects.time_offset import clock_offset
 from koala_bridge.calibration.errors import EffectRegistryError
 from koala_bridge.calibration.metrics import HeldOutStatistics, g4, heldout_statistics
 from koala_bridge.calibration.model import DeclaredModel
@@ -397,11 +396,10 @@ GROSS_FACTORS = (
 
 def _note_clock_offset(problem: StreamProblem) -> None:
     """Say so when a scalar stream and its reference look stamped on clocks seconds apart
-    (:func:`koala_bridge.calibration.effects.time_offset.clock_offset`), whether or not a
-    time offset can be tried."""
+    (:attr:`ScalarProblem.clocks_apart`), whether or not a time offset can be tried."""
     if not isinstance(problem, ScalarProblem) or problem.reference is None:
         return
-    found = clock_offset(problem)
+    found = problem.clocks_apart
     if found is None:
         return
     tau, r, r_near = found
@@ -409,8 +407,8 @@ def _note_clock_offset(problem: StreamProblem) -> None:
         f"the readings match the reference best {tau:+.3g} s later (correlation {r:.2f}, "
         f"against {r_near:.2f} at most, by magnitude, within the latency window): the two "
         "look stamped on clocks that far apart, and time_offset, where it is tried, is "
-        "searched there. Stamp "
-        "both on one clock, or shift one (docs/bundle-format.md: one clock for all files)"
+        "searched there. Stamp both on one clock, or shift one (docs/bundle-format.md: one "
+        "clock for all files)"
     )
 
 

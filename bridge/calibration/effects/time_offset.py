@@ -121,8 +121,8 @@ def clock_offset(problem: Any) -> tuple[float, float, float] | None:
     if k * coarse <= 2 * span:
         return None
     keep = (t >= t_ref[0] + k * coarse) & (t <= t_ref[-1] - k * coarse)
-    t, y = t[keep], y[keep]
-    t, y = t[:: max(1, t.size // CLOCK_ROWS)], y[:: max(1, y.size // CLOCK_ROWS)]
+    stride = max(1, int(keep.sum()) // CLOCK_ROWS)
+    t, y = t[keep][::stride], y[keep][::stride]
     if t.size < 10:
         return None
     taus = coarse * np.arange(-k, k + 1)
@@ -151,7 +151,7 @@ class TimeOffset(Effect):
         if problem.kind != "scalar":  # odometry: from the clocks' coarse offset, or 0
             return [EffectInstance(self.name, self, ("tau_s",), (problem.clock_offset,))]
         step, span = search_window(problem)
-        clocks = clock_offset(problem)
+        clocks = problem.clocks_apart
         around = 0.0 if clocks is None else clocks[0]
         return [EffectInstance(self.name, self, ("tau_s",),
                                (coarse_lag(problem, step, span, around),),

@@ -17,10 +17,12 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
 from koala_bridge.calibration.effects.base import EffectInstance
+from koala_bridge.calibration.effects.time_offset import clock_offset
 from koala_bridge.calibration.problem import (
     FloatArray,
     Part,
@@ -346,6 +348,13 @@ class ScalarProblem(StreamProblem):
             return np.asarray(inside + before + after, dtype=float)
 
         return (integral(t) - integral(t - interval)) / interval
+
+    @cached_property
+    def clocks_apart(self) -> tuple[float, float, float] | None:
+        """Whether the stream and its reference look stamped on clocks seconds apart
+        (:func:`koala_bridge.calibration.effects.time_offset.clock_offset`), searched once: the
+        pipeline's note and ``time_offset``'s start both ask."""
+        return clock_offset(self)
 
     @staticmethod
     def _windows(t: FloatArray, window_s: float) -> tuple[np.ndarray, np.ndarray]:
