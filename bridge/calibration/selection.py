@@ -381,25 +381,20 @@ def parameter_se(problem: StreamProblem, fit: Fit) -> FloatArray:
         return np.zeros(fit.x.size)
     n = fit.r_fit.size
     s2 = problem.se_variance("fit", fit.r_fit, fit.rss_fit, fit.x.size)
-    labels = problem.clusters("fit")
-    if (fit.robust_scale is None and labels is not None and labels.size == n
-            and fit.jac.shape[0] == n):
-        # the larger of the clusters' jackknife and the AR(1) count: each is too small where
-        # the other is not (a few windows of unequal weight; a few glitches in the reference)
-        try:
-            ar1 = np.sqrt(np.clip(np.diag(np.linalg.pinv(fit.jac.T @ fit.jac) * s2), 0, None))
-        except np.linalg.LinAlgError:
-            ar1 = np.full(fit.x.size, np.nan)
-        return np.asarray(np.fmax(_cluster_se(fit, labels), ar1), dtype=float)
     if fit.robust_scale is not None:
         # the sandwich sums the squared residuals itself: only the inflation over rss / n
         return _sandwich_se(problem, fit, fit.robust_scale,
                             s2 * n / fit.rss_fit if fit.rss_fit > 0 else 1.0)
     try:
-        cov = np.linalg.pinv(fit.jac.T @ fit.jac) * s2
+        se = np.sqrt(np.clip(np.diag(np.linalg.pinv(fit.jac.T @ fit.jac) * s2), 0, None))
     except np.linalg.LinAlgError:
-        return np.full(fit.x.size, np.nan)
-    return np.sqrt(np.clip(np.diag(cov), 0, None))
+        se = np.full(fit.x.size, np.nan)
+    labels = problem.clusters("fit")
+    if labels is not None and labels.size == n and fit.jac.shape[0] == n:
+        # the larger of the clusters' jackknife and the AR(1) count: each is too small where
+        # the other is not (a few windows of unequal weight; a few glitches in the reference)
+        return np.asarray(np.fmax(_cluster_se(fit, labels), se), dtype=float)
+    return np.asarray(se, dtype=float)
 
 
 def _cluster_se(fit: Fit, labels: NDArray[np.intp]) -> FloatArray:
