@@ -250,24 +250,18 @@ def declared_model(config: Mapping[str, Any], meta: Mapping[str, Any]) -> Declar
         return stated_key(config, ".".join(path))
 
     meta_robot = meta.get("robot", {}) if isinstance(meta.get("robot"), Mapping) else {}
+    from_meta = meta_declared(meta)  # ticks_per_metre from tick_size_m too
 
     def pick(key: str) -> float | None:
-        if isinstance(meta_robot.get(key), int | float):
+        if f"robot.{key}" in from_meta:
             sources[key] = "meta.json robot"
-            return float(meta_robot[key])
+            return from_meta[f"robot.{key}"]
         if typed is not None and stated("robot", key):
             sources[key] = "config [robot]"
             return float(getattr(typed.robot, key))
         return None
 
     tpm = pick("ticks_per_metre")
-    if isinstance(meta_robot.get("tick_size_m"), int | float) and (
-        sources.get("ticks_per_metre") != "meta.json robot"
-    ):
-        # the bundle format's other way to declare it: metres per tick (meta.json wins over
-        # the config; its own ticks_per_metre over its tick_size_m)
-        tpm = 1.0 / float(meta_robot["tick_size_m"])
-        sources["ticks_per_metre"] = "meta.json robot tick_size_m"
     base = pick("wheel_base_m")
     ratio = pick("wheel_diameter_ratio")
     start = None
