@@ -9,10 +9,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _bundles import gyro_bundle
-from koala_bridge.calibration.bundle import load_bundle
-from koala_bridge.calibration.model import declared_model
-from koala_bridge.calibration.pipeline import StreamResult, calibrate
+from _bundles import calibrate_stream, gyro_bundle
+from koala_bridge.calibration.pipeline import StreamResult
 from koala_bridge.calibration.synthetic import DECLARED
 
 
@@ -24,9 +22,8 @@ def _gyro(tmp_path: Path, factor: float) -> StreamResult:
     theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
     d = gyro_bundle(tmp_path / "b", t, theta + rng.normal(0.0, 0.001, t.size),
                     factor * (w + rng.normal(0.0, 0.002, t.size)))
-    bundle = load_bundle(d)
-    (res,) = (r for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
-              if r.problem.name == "gyro")
+    res, _ = calibrate_stream(d, "gyro", DECLARED)
+    assert res is not None
     return res
 
 

@@ -13,9 +13,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _bundles import calibrate_stream
 from koala_bridge.calibration.bundle import load_bundle
 from koala_bridge.calibration.model import declared_model, meta_declared, without_declared
-from koala_bridge.calibration.pipeline import StreamResult, calibrate
+from koala_bridge.calibration.pipeline import StreamResult
 from koala_bridge.calibration.problem import SkippedStream
 from koala_bridge.calibration.selection import _cluster_se
 from koala_bridge.calibration.streams import build_odometry
@@ -42,12 +43,7 @@ def _rewrite_odometry(d: Path, shift_s: float = 0.0, left_sign: float = 1.0) -> 
 def _odometry(
     d: Path, config: dict | None = None
 ) -> tuple[StreamResult | None, list[SkippedStream]]:
-    bundle = load_bundle(d)
-    skipped: list[SkippedStream] = []
-    results = calibrate(bundle, declared_model(DECLARED if config is None else config,
-                                               bundle.meta), skipped=skipped)
-    odo = [r for r in results if r.problem.name == "odometry"]
-    return (odo[0] if odo else None), skipped
+    return calibrate_stream(d, "odometry", DECLARED if config is None else config)
 
 
 def test_a_wheel_counting_backwards_is_named_with_the_column_to_negate(tmp_path: Path) -> None:

@@ -10,10 +10,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _bundles import gyro_bundle
-from koala_bridge.calibration.bundle import load_bundle
-from koala_bridge.calibration.model import declared_model
-from koala_bridge.calibration.pipeline import StreamResult, calibrate
+from _bundles import calibrate_stream, gyro_bundle
+from koala_bridge.calibration.pipeline import StreamResult
 from koala_bridge.calibration.synthetic import DECLARED
 
 NOTE = "the readings match the reference best"
@@ -32,9 +30,8 @@ def _gyro(tmp_path: Path, late_s: float, periodic: bool = False) -> StreamResult
     theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
     d = gyro_bundle(tmp_path / "b", t, theta + rng.normal(0.0, 0.001, t.size),
                     w + rng.normal(0.0, 0.005, t.size), gyro_t=t + late_s)
-    bundle = load_bundle(d)
-    (res,) = (r for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
-              if r.problem.name == "gyro")
+    res, _ = calibrate_stream(d, "gyro", DECLARED)
+    assert res is not None
     return res
 
 
