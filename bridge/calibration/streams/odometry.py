@@ -408,10 +408,8 @@ def find_stalls(
 @dataclass
 class _Windows:
     ref_idx: NDArray[np.intp]  # reference samples scored
-    anchor: NDArray[np.intp]  # index (into the reference) of each sample's window anchor
     label: NDArray[np.intp]  # window label per sample (0..n_windows-1)
     n: int
-    starts: NDArray[np.intp]  # index (into the reference) of each window's anchor (n,)
     # What the model does not change, gathered once per part (each is a gather of every scored
     # sample; on a 1-hour stream they cost more than the dead reckoning):
     t: FloatArray = field(default_factory=lambda: np.empty(0))  # reference times scored
@@ -564,7 +562,7 @@ class OdometryProblem(StreamProblem):
             piece = np.zeros(idx.size, dtype=np.intp)
         if idx.size == 0:
             e = np.empty(0, dtype=np.intp)
-            return _Windows(e, e, e, 0, e)
+            return _Windows(e, e, 0)
         t = self.t_ref[idx]
         first_of_piece = np.r_[0, np.flatnonzero(np.diff(piece)) + 1]
         t_start = t[first_of_piece][np.cumsum(np.r_[0, np.diff(piece) != 0])]
@@ -573,13 +571,12 @@ class OdometryProblem(StreamProblem):
         # np.unique(..., axis=0) gave, without its sort)
         label = np.cumsum(np.r_[True, (np.diff(piece) != 0) | (np.diff(label) != 0)]) - 1
         first = np.r_[0, np.flatnonzero(np.diff(label)) + 1]
-        starts = idx[first]
-        anchor = starts[label]
+        starts = idx[first]  # each window's anchor
         return _Windows(
-            idx, anchor, label, int(label.max()) + 1, starts,
+            idx, label, int(label.max()) + 1,
             t=self.t_ref[idx],
             t_starts=self.t_ref[starts],
-            q=np.ascontiguousarray((self.p_ref[idx] - self.p_ref[anchor]).T),
+            q=np.ascontiguousarray((self.p_ref[idx] - self.p_ref[starts[label]]).T),
             phi=None if self.theta_ref is None else self.theta_ref[starts],
         )
 
