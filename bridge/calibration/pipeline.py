@@ -449,18 +449,20 @@ NEAR_MISS_GAIN = 0.1
 
 def _note_near_misses(problem: StreamProblem, sel: Selection) -> None:
     """Say why the loop stopped where a reader would expect more: the last round's candidates
-    that improved the held-out part by :data:`NEAR_MISS_GAIN` or more yet did not pass the
-    likelihood-ratio test (too few independent units to call it more than chance), and residuals
-    so correlated that the effective sample is a handful."""
+    that improved the held-out part by :data:`NEAR_MISS_GAIN` or more yet did not pass: not
+    the likelihood-ratio test (too few independent units to call it more than chance), or only
+    the fit part's BIC (the two parts disagree); and residuals so correlated that the effective
+    sample is a handful."""
     if not sel.rounds or any(t.passed for t in sel.rounds[-1]):
         return  # the loop stopped at max_effects: the last round's gains are pre-winner
-    close = [
-        t for t in sel.rounds[-1]
-        if not t.passed and not t.implausible
-        and np.isfinite(t.relative_gain) and t.relative_gain >= NEAR_MISS_GAIN
-        and np.isfinite(t.lr) and 0 < t.lr <= t.lr_threshold
-    ]
-    for t in sorted(close, key=lambda t: -t.relative_gain)[:3]:
+    large = sorted(
+        (t for t in sel.rounds[-1]
+         if not t.passed and not t.implausible and np.isfinite(t.lr)
+         and np.isfinite(t.relative_gain) and t.relative_gain >= NEAR_MISS_GAIN),
+        key=lambda t: -t.relative_gain,
+    )
+    close = [t for t in large if 0 < t.lr <= t.lr_threshold]
+    for t in close[:3]:
         problem.notes.append(
             f"{t.name} not added though it improves the held-out part by "
             f"{100 * t.relative_gain:.0f} %: not significant (held-out likelihood ratio "
@@ -469,13 +471,8 @@ def _note_near_misses(problem: StreamProblem, sel: Selection) -> None:
         )
     # significant held out, and large, but the fit part's BIC on its prewhitened residual (at a
     # lag-1 autocorrelation near 1, its changes) got worse: the two parts disagree
-    against_fit = [
-        t for t in sel.rounds[-1]
-        if not t.passed and not t.implausible
-        and np.isfinite(t.relative_gain) and t.relative_gain >= NEAR_MISS_GAIN
-        and np.isfinite(t.lr) and t.lr > t.lr_threshold and t.delta_bic >= 0
-    ]
-    for t in sorted(against_fit, key=lambda t: -t.relative_gain)[:3]:
+    against_fit = [t for t in large if t.lr > t.lr_threshold and t.delta_bic >= 0]
+    for t in against_fit[:3]:
         problem.notes.append(
             f"{t.name} not added though it improves the held-out part by "
             f"{100 * t.relative_gain:.0f} % (likelihood ratio {t.lr:.3g} > "
