@@ -66,3 +66,19 @@ def test_a_row_of_another_width_is_named_by_its_line(tmp_path: Path) -> None:
     path.write_text("t,a\n0,1\n1,2,3\n", encoding="utf-8")
     with pytest.raises(BundleError, match="line 3: 3 cell"):
         read_csv_table(path)
+
+
+@pytest.mark.parametrize(("data", "where"), [
+    (b"t,a\n0,1\n1,\xe92\n", "line 3: not UTF-8"),  # invalid in the body, no NUL byte
+    (b"t,\xe9\n0,1\n", "line 1: not UTF-8"),  # in the header
+    (b"t,a\n0,1\n1,2\x00\n", "line 3: a NUL byte"),
+])
+def test_bytes_the_fast_path_does_not_decode_are_named_by_line(
+    data: bytes, where: str, tmp_path: Path
+) -> None:
+    """The fast path reads the file's bytes without decoding them (numpy decodes): what is not
+    UTF-8 text, or holds a NUL, still reaches the general reader and is named by its line."""
+    path = tmp_path / "gyro.csv"
+    path.write_bytes(data)
+    with pytest.raises(BundleError, match=where):
+        read_csv_table(path)
