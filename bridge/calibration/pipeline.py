@@ -395,17 +395,24 @@ GROSS_FACTORS = (
 
 
 def _note_clock_offset(problem: StreamProblem) -> None:
-    """Say so when a scalar stream and its reference look stamped on clocks seconds apart
-    (:attr:`ScalarProblem.clocks_apart`), whether or not a time offset can be tried."""
-    if not isinstance(problem, ScalarProblem) or problem.reference is None:
+    """Say so when a scalar stream or a compass and its reference look stamped on clocks
+    seconds apart (:attr:`ScalarProblem.clocks_apart`, :attr:`CompassProblem.clocks_apart`),
+    whether or not a time offset can be tried."""
+    if isinstance(problem, ScalarProblem):
+        if problem.reference is None:
+            return
+        score = "correlation"
+    elif isinstance(problem, CompassProblem):
+        score = "agreement of the declared heading R"
+    else:
         return
     found = problem.clocks_apart
     if found is None:
         return
     tau, r, r_near = found
     problem.notes.append(
-        f"the readings match the reference best {tau:+.3g} s later (correlation {r:.2f}, "
-        f"against {r_near:.2f} at most, by magnitude, within the latency window): the two "
+        f"the readings match the reference best {tau:+.3g} s later ({score} {r:.2f}, "
+        f"against {r_near:.2f} at most, by magnitude, near no shift): the two "
         "look stamped on clocks that far apart, and time_offset, where it is tried, is "
         "searched there. Stamp both on one clock, or shift one (docs/bundle-format.md: one "
         "clock for all files)"

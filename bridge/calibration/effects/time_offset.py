@@ -48,7 +48,11 @@ def search_window(problem: Any) -> tuple[float, float]:
     sample interval, over +-min(:data:`MAX_TIME_OFFSET_S`, 5 % of the fit part); (0, 0) when
     the fit part is too short for one."""
     fit = problem.split.mask(problem.t, "fit")
-    t = problem.t[fit][np.isfinite(problem.y[fit])]
+    return latency_window(problem.t[fit][np.isfinite(problem.y[fit])])
+
+
+def latency_window(t: Any) -> tuple[float, float]:
+    """:func:`search_window` of the fit part's reading times ``t``."""
     if t.size < 10:
         return 0.0, 0.0
     step = float(np.median(np.diff(t))) / 2
@@ -110,24 +114,48 @@ def clock_offset(problem: Any) -> tuple[float, float, float] | None:
     its clock 3 s off: 0.86 at +3.1 s against 0.57 within +-0.5 s (its error doubled, and
     nothing said it). Motion that repeats correlates about alike one period on, and is not
     taken; a reference mostly noise cannot explain enough to be."""
-    step, span = search_window(problem)
-    if not span or problem.reference is None:
+    if problem.reference is None:
         return None
     t, y = _fit_readings(problem)
-    t_ref = problem.reference[0]
+    grid = clock_grid(t, problem.reference[0])
+    if grid is None:
+        return None
+    taus, rows, span = grid
+    r = _correlations(t[rows], y[rows], problem.reference, taus)
+    return clock_pick(taus, r, span)
+
+
+def clock_grid(t: Any, t_ref: Any) -> tuple[Any, Any, float] | None:
+    """``(taus, rows, span)``: the shifts a clock offset is searched at (beyond the latency
+    window ``span`` of :func:`latency_window`, out to +-min(:data:`MAX_CLOCK_OFFSET_S`,
+    :data:`CLOCK_SPAN_SHARE` of the fit part)), and the fit part's readings (times ``t``) it is
+    scored on: at most :data:`CLOCK_ROWS`, where the reference covers every shift. None where
+    the fit part is too short to reach beyond the latency window."""
+    step, span = latency_window(t)
+    if not span:
+        return None
     reach = min(MAX_CLOCK_OFFSET_S, CLOCK_SPAN_SHARE * float(t[-1] - t[0]))
     coarse = max(step, reach / CLOCK_STEPS)
     k = int(reach / coarse)
     if k * coarse <= 2 * span:
         return None
-    keep = (t >= t_ref[0] + k * coarse) & (t <= t_ref[-1] - k * coarse)
-    stride = max(1, int(keep.sum()) // CLOCK_ROWS)
-    t, y = t[keep][::stride], y[keep][::stride]
-    if t.size < 10:
+    keep = np.flatnonzero((t >= t_ref[0] + k * coarse) & (t <= t_ref[-1] - k * coarse))
+    rows = keep[:: max(1, keep.size // CLOCK_ROWS)]
+    if rows.size < 10:
         return None
-    taus = coarse * np.arange(-k, k + 1)
-    r = _correlations(t, y, problem.reference, taus)
-    near = np.abs(taus) <= span
+    return coarse * np.arange(-k, k + 1), rows, span
+
+
+def clock_pick(taus: Any, r: Any, span: float) -> tuple[float, float, float] | None:
+    """``(tau, r, r_near)`` from the scores ``r`` (a correlation, 1 a perfect match) of the
+    shifts ``taus``: the best shift, when it lies beyond the inner half of the latency window
+    ``span`` and the variance it leaves unexplained, ``1 - r^2``, is below
+    :data:`CLOCK_VARIANCE_RATIO` of the least within that half (``r_near``, the largest score
+    there by magnitude); else None. The inner half: an offset near the window's edge is found
+    here too (the latency search is then centred on it), where a fit inside the window would
+    stop at its edge and be rejected there (a compass 0.5 s off, at the edge of a 0.5 s
+    window)."""
+    near = np.abs(taus) <= span / 2
     best = int(np.argmax(r))
     if near[best] or not np.isfinite(r[best]) or not near.any():
         return None
@@ -141,9 +169,11 @@ def clock_offset(problem: Any) -> tuple[float, float, float] | None:
 
 @register_effect("time_offset")
 class TimeOffset(Effect):
-    kinds = frozenset({"scalar", "odometry"})
+    kinds = frozenset({"scalar", "odometry", "compass"})
 
     def _propose(self, problem: Any) -> list[EffectInstance]:
+        if problem.kind == "compass":
+            return _propose_compass(self, problem)
         if problem.kind == "scalar" and (
             problem.reference is None or not reference_dominates(problem, self.name)
         ):
@@ -180,3 +210,20 @@ class TimeOffset(Effect):
 
     def config(self, inst: EffectInstance, params: Any, problem: Any) -> dict[str, Any]:
         return {"calibration.time_offset_s": float(f"{params[0]:.6g}")}
+
+
+def _propose_compass(effect: Effect, problem: Any) -> list[EffectInstance]:
+    """A compass against a reference heading: ``tau`` starts at the shift of the latency
+    window (about the clocks' offset, :attr:`.CompassProblem.clocks_apart`) where the declared
+    model's heading follows the reference best (:meth:`.CompassProblem.heading_match`)."""
+    if problem.mode != "heading" or problem.ref_t is None:
+        return []
+    step, span = problem.latency_window()
+    if not span:
+        return []
+    clocks = problem.clocks_apart
+    around = 0.0 if clocks is None else clocks[0]
+    taus = around + np.arange(-span, span + step / 2, step)
+    tau0 = float(taus[int(np.argmax(problem.heading_match(taus)))])
+    return [EffectInstance(effect.name, effect, ("tau_s",), (tau0,),
+                           data={"span_s": span, "inside_s": span - step, "around_s": around})]

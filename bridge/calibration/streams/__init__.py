@@ -822,6 +822,8 @@ def build_compass(
         else _declared_motor_field(bundle, model, t, uT),
         field_direction=direction,
         gyro_heading=_declared_gyro_heading(bundle, model, t) if mode == "magnitude_2d" else None,
+        ref_t=None if ref is None else ref[0],
+        ref_heading=None if ref is None else ref[1],
     )
     problem.notes.append(f"mode: {mode}; field unit {unit}")
     field = float(np.median(np.linalg.norm(m, axis=1))) * uT

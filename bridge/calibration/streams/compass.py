@@ -33,6 +33,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -46,6 +47,7 @@ from koala_bridge.calibration.problem import (
     apply_all,
 )
 from koala_bridge.core.geometry import wrap_angle
+from numpy.typing import NDArray
 
 
 @dataclass
@@ -55,6 +57,8 @@ class CompassState:
     h: FloatArray
     C: FloatArray
     dims: int
+    #: the readings' lag behind the reference heading (s; ``time_offset``)
+    tau: float = 0.0
 
 
 @dataclass
@@ -75,6 +79,10 @@ class CompassProblem(StreamProblem):
     #: heading (rad, unwrapped) integrated from the bundle's gyro under its declared model, at
     #: each compass sample; ``magnitude_2d`` mode's second metric is held against it
     gyro_heading: FloatArray | None = None
+    #: the reference heading (rad, unwrapped) at its own stamps ``ref_t``, heading mode: what
+    #: ``time_offset`` reads at the readings' times shifted by ``tau``
+    ref_t: FloatArray | None = None
+    ref_heading: FloatArray | None = None
 
     def __post_init__(self) -> None:
         self._last = LastResult()
@@ -85,7 +93,7 @@ class CompassProblem(StreamProblem):
         # took most of its calibration time)
         self._m_parts: dict[str, FloatArray] = {}
         self._mT_parts: dict[str, FloatArray] = {}  # the same, (3, N) contiguous
-        self._psi_parts: dict[str, FloatArray] = {}
+        self._psi_parts: dict[tuple[str, float], FloatArray] = {}
         self._nuisance0: FloatArray | None = None
 
     def _m(self, part: str) -> FloatArray:
@@ -114,24 +122,91 @@ class CompassProblem(StreamProblem):
         return CompassState(self.h_declared.copy(), self.C_declared.copy(), self.dims)
 
     def corrected(self, insts: Sequence[EffectInstance], x: FloatArray, part: str) -> FloatArray:
+        return self._corrected(self._applied(insts, x), part)
+
+    def _applied(self, insts: Sequence[EffectInstance], x: FloatArray) -> CompassState:
         st = self.state()
         apply_all(st, self, insts, x)
+        return st
+
+    def _corrected(self, st: CompassState, part: str) -> FloatArray:
         return (st.C @ (self._mT(part) - st.h[:, None])).T
 
-    def _theta_field(self, mask: np.ndarray) -> FloatArray:
-        """Reference heading minus the declared field direction (0 without one)."""
+    def _theta_field(self, mask: np.ndarray, tau: float = 0.0) -> FloatArray:
+        """Reference heading minus the declared field direction (0 without one), at the
+        readings' times less ``tau``."""
         assert self.theta_ref is not None
+        if tau == 0.0:
+            theta = self.theta_ref[mask]
+        else:
+            assert self.ref_t is not None and self.ref_heading is not None
+            theta = np.interp(self.t[mask] - tau, self.ref_t, self.ref_heading)
         if self.field_direction is None:
-            return self.theta_ref[mask]
-        return self.theta_ref[mask] - self.field_direction[mask]
+            return theta
+        return theta - self.field_direction[mask]
 
-    def _psi(self, part: str) -> FloatArray:
+    def _psi(self, part: str, tau: float = 0.0) -> FloatArray:
         """:meth:`_theta_field` of a part, wrapped once: an hour's unwrapped reference heading
-        runs to hundreds of radians, and every residual's wrap then cost five times as much."""
-        psi = self._psi_parts.get(part)
+        runs to hundreds of radians, and every residual's wrap then cost five times as much.
+        Kept for ``tau = 0`` and for the last other ``tau`` asked."""
+        key = (part, tau)
+        psi = self._psi_parts.get(key)
         if psi is None:
-            psi = self._psi_parts[part] = wrap_angle(self._theta_field(self._masks[part]))
+            psi = wrap_angle(self._theta_field(self._masks[part], tau))
+            if tau != 0.0:
+                for k in [k for k in self._psi_parts if k[1] != 0.0]:
+                    del self._psi_parts[k]
+            self._psi_parts[key] = psi
         return psi
+
+    def _declared_heading(self, part: str) -> FloatArray:
+        """The heading of the readings under the declared model (no nuisance)."""
+        m = self._m(part) - self.h_declared
+        return self.heading(m @ self.C_declared.T)
+
+    def heading_match(self, taus: FloatArray, rows: NDArray[np.intp] | None = None) -> FloatArray:
+        """For each shift ``tau``: how well the declared model's heading on the fit part (its
+        ``rows`` only, or all) follows the reference heading ``tau`` earlier, as the mean
+        resultant length ``R = |mean exp(i (heading - theta_ref(t - tau)))|`` (1: a constant
+        difference, the north the fit takes up; 0: none), the circular counterpart of the
+        correlation a scalar stream's clocks are searched by. A hard or soft iron the
+        declared model lacks lowers ``R`` at every shift alike, not where it is largest."""
+        assert self.ref_t is not None and self.ref_heading is not None
+        fit = self._masks["fit"]
+        h, t = self._declared_heading("fit"), self.t[fit]
+        field = None if self.field_direction is None else self.field_direction[fit]
+        if rows is not None:
+            h, t = h[rows], t[rows]
+            field = None if field is None else field[rows]
+        out = np.empty(len(taus))
+        for i, tau in enumerate(taus):
+            d = h - np.interp(t - tau, self.ref_t, self.ref_heading)
+            if field is not None:
+                d += field
+            out[i] = np.hypot(np.mean(np.cos(d)), np.mean(np.sin(d)))
+        return out
+
+    def latency_window(self) -> tuple[float, float]:
+        """``(step, span)`` of the grid a latency is searched on
+        (:func:`koala_bridge.calibration.effects.time_offset.latency_window`)."""
+        from koala_bridge.calibration.effects.time_offset import latency_window
+
+        return latency_window(self.t[self._masks["fit"]])
+
+    @cached_property
+    def clocks_apart(self) -> tuple[float, float, float] | None:
+        """``(tau, R, R_near)`` when the readings and the reference heading look stamped on
+        clocks seconds apart (:func:`.time_offset.clock_grid`, :func:`.time_offset.clock_pick`
+        with :meth:`heading_match` as the score), else None; heading mode only."""
+        from koala_bridge.calibration.effects.time_offset import clock_grid, clock_pick
+
+        if self.mode != "heading" or self.ref_t is None:
+            return None
+        grid = clock_grid(self.t[self._masks["fit"]], self.ref_t)
+        if grid is None:
+            return None
+        taus, rows, span = grid
+        return clock_pick(taus, self.heading_match(taus, rows), span)
 
     def nuisance_x0(self) -> FloatArray:
         if self._nuisance0 is None:
@@ -187,9 +262,10 @@ class CompassProblem(StreamProblem):
     def _compute_residual(
         self, insts: Sequence[EffectInstance], x: FloatArray, part: str
     ) -> FloatArray:
-        mc = self.corrected(insts, x, part)
+        st = self._applied(insts, x)
+        mc = self._corrected(st, part)
         if self.mode == "heading":
-            return wrap_angle(x[0] + self.heading(mc) - self._psi(part))
+            return wrap_angle(x[0] + self.heading(mc) - self._psi(part, st.tau))
         return np.linalg.norm(mc[:, : self.dims], axis=1) / x[0] - 1.0
 
     def residuals(
