@@ -20,6 +20,7 @@ from koala_bridge.calibration.effects.common import (
     reference_noise_share,
     stream_share,
 )
+from koala_bridge.calibration.effects.scale import GROSS_GAIN, gross_gain
 from koala_bridge.calibration.errors import EffectRegistryError
 from koala_bridge.calibration.metrics import HeldOutStatistics, g4, heldout_statistics
 from koala_bridge.calibration.model import DeclaredModel
@@ -216,6 +217,10 @@ class StreamResult:
     def _uncertain(self) -> list[str | None]:
         out: list[str | None] = []
         for inst, (p, se) in zip(self.effects, self._params_and_se(), strict=True):
+            unit = inst.effect.not_a_sensor_error(inst, np.asarray(p, dtype=float), self.problem)
+            if unit is not None:
+                out.append(unit)
+                continue
             if se is None:
                 out.append(None)
                 continue
@@ -379,21 +384,6 @@ def run_stream(
     return StreamResult(problem, sel, before, after, secondary, selection_notes=selection_notes)
 
 
-#: a fitted gain beyond this factor either way is a unit or a time base, not a sensor's error
-GROSS_GAIN = 2.0
-#: the factors a gain that large usually is, and what each says
-GROSS_FACTORS = (
-    (180 / np.pi, "degrees where radians are meant (deg/s for rad/s)"),
-    (np.pi / 180, "radians where degrees are meant"),
-    (1000.0, "a thousandfold unit (mm for m, mrad for rad) or a time base in ms"),
-    (1e-3, "a thousandfold unit (m for mm) or a time base in ks"),
-    (100.0, "cm where m are meant"),
-    (0.01, "m where cm are meant"),
-    (10.0, "a tenfold unit, or a time base of tenths of a second read as seconds"),
-    (0.1, "a tenfold unit, or a time base ten times too fine"),
-)
-
-
 def _note_clock_offset(problem: StreamProblem) -> None:
     """Say so when a scalar stream or a compass and its reference look stamped on clocks
     seconds apart (:attr:`ScalarProblem.clocks_apart`, :attr:`CompassProblem.clocks_apart`),
@@ -433,12 +423,9 @@ def _note_gross_gain(problem: StreamProblem, sel: Selection) -> None:
                 continue
             at = [i.name for i in t.fit.insts].index("scale")
             gain = 1.0 + float(split_params(problem, t.fit.insts, t.fit.x)[at][0])
-            size = abs(gain)  # a sign is said apart (Scale.implausible_reason), a unit here
-            if not (size > GROSS_GAIN or 0 < size < 1 / GROSS_GAIN):
+            likely = gross_gain(gain)
+            if likely is None:
                 continue
-            factor, says = min(GROSS_FACTORS, key=lambda f: abs(np.log(size / f[0])))
-            likely = (f": {factor:.4g} is {says}" if abs(np.log(size / factor)) < np.log(1.15)
-                      else "")
             problem.notes.append(
                 f"the readings are {gain:.3g} times the reference on the fit part (scale fitted "
                 f"{gain - 1:+.4g}, {'passed' if t.passed else 'not passed'}){likely}. A gain "

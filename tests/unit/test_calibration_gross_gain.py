@@ -65,3 +65,37 @@ def test_a_gain_is_found_where_the_residual_is_no_ar1(tmp_path: Path) -> None:
     found = dict(zip((i.name for i in res.effects), res.effect_params(), strict=True))
     # the reference's noise dilutes the gain by its share, ~1.5 % here (Scale.estimate_bias)
     assert found["scale"][0]["scale_error"] == pytest.approx(0.5, abs=0.03)
+
+
+@pytest.mark.parametrize("factor", [180 / np.pi, 10.0, 3.3])
+def test_a_gross_gain_is_never_written(tmp_path: Path, factor: float) -> None:
+    """Two new users' gyros logged in deg/s: the note said "fix it in the bundle" and the same
+    report marked ``scale_factor_error = 52.97`` as written. A gain beyond 2:1 describes the
+    bundle, not the sensor: it stays in *after* and is not written, with the reason."""
+    res = _gyro(tmp_path, factor)
+    why = dict(zip([i.name for i in res.effects], res.not_written(), strict=True))
+    assert why["scale"] is not None and "A gain beyond 2:1 is a unit" in why["scale"], why
+    assert res.after_written() is not None  # the written model leaves the gain out
+
+
+def test_a_gain_within_2_to_1_is_no_unit(tmp_path: Path) -> None:
+    res = _gyro(tmp_path, 1.2)
+    why = dict(zip([i.name for i in res.effects], res.not_written(), strict=True))
+    assert "scale" in why and "A gain beyond" not in str(why["scale"]), why
+
+
+def test_a_gyro_in_degrees_is_no_jump_of_the_reference(tmp_path: Path) -> None:
+    """The heading-jump note compares the reference's steps with the readings' integral: a gyro
+    read in deg/s turned 57 times the reference's smooth path (2 rad more in one 0.1 s step),
+    and the note said the reference "jumps 300 time(s) where the gyro does not turn". The
+    reference must itself step that far."""
+    rng = np.random.default_rng(4)
+    t = np.arange(0.0, 60.0 + 0.05, 0.1)
+    w = 0.6 * np.sin(2 * np.pi * t / 9)
+    theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
+    d = gyro_bundle(tmp_path / "b", t, theta + rng.normal(0.0, 0.001, t.size),
+                    np.degrees(w + rng.normal(0.0, 0.002, t.size)))
+    res, _ = calibrate_stream(d, "gyro", DECLARED)
+    assert res is not None
+    assert any("57.3 is degrees" in n for n in res.problem.notes)
+    assert not any("reference heading jumps" in n for n in res.problem.notes)

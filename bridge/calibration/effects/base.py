@@ -118,6 +118,14 @@ class Effect(ABC):
         whose bound is more than ``WRITE_Z`` of its standard errors."""
         return None
 
+    def not_a_sensor_error(
+        self, inst: EffectInstance, params: NDArray[np.float64], problem: Any
+    ) -> str | None:
+        """Why fitted ``params``, however certain, describe the bundle rather than the sensor
+        (a unit, a time base), so that ``--write-config`` must not write them into a sensor's
+        model; None (default) when they may describe the sensor."""
+        return None
+
     def absent(self, inst: EffectInstance) -> NDArray[np.float64]:
         """The parameter values that mean "no such effect": the declared model. Default 0 (an
         increment, a coefficient); an effect whose parameter is the quantity itself (ticks per

@@ -36,6 +36,31 @@ from koala_bridge.calibration.effects.common import (
     scalar_config,
 )
 
+#: a gain beyond this factor either way is a unit or a time base, not a sensor's error
+GROSS_GAIN = 2.0
+#: the factors a gain that large usually is, and what each says
+GROSS_FACTORS = (
+    (180 / np.pi, "degrees where radians are meant (deg/s for rad/s)"),
+    (np.pi / 180, "radians where degrees are meant"),
+    (1000.0, "a thousandfold unit (mm for m, mrad for rad) or a time base in ms"),
+    (1e-3, "a thousandfold unit (m for mm) or a time base in ks"),
+    (100.0, "cm where m are meant"),
+    (0.01, "m where cm are meant"),
+    (10.0, "a tenfold unit, or a time base of tenths of a second read as seconds"),
+    (0.1, "a tenfold unit, or a time base ten times too fine"),
+)
+
+
+def gross_gain(gain: float) -> str | None:
+    """What a gain beyond :data:`GROSS_GAIN` either way (by magnitude) most likely is: ``": 57.3
+    is degrees where radians are meant ..."`` within 15 % of one of :data:`GROSS_FACTORS`, ``""``
+    beyond that; None for a gain a sensor may have."""
+    size = abs(gain)  # a sign is said apart (Scale.implausible_reason), a unit here
+    if not (size > GROSS_GAIN or 0 < size < 1 / GROSS_GAIN):
+        return None
+    factor, says = min(GROSS_FACTORS, key=lambda f: abs(np.log(size / f[0])))
+    return f": {factor:.4g} is {says}" if abs(np.log(size / factor)) < np.log(1.15) else ""
+
 
 @register_effect("scale")
 class Scale(Effect):
@@ -88,6 +113,19 @@ class Scale(Effect):
             f"the reference's own noise ({100 * share:.2g} % of its variance) may pull a fitted "
             "gain towards 0 (regression dilution); measure it against a reference with less "
             "noise, or with more motion"
+        )
+
+    def not_a_sensor_error(
+        self, inst: EffectInstance, params: Any, problem: Any
+    ) -> str | None:
+        gain = 1.0 + float(params[0])
+        likely = gross_gain(gain)
+        if likely is None:
+            return None
+        return (
+            f"a gain of {gain:.4g}{likely}. A gain beyond {GROSS_GAIN:g}:1 is a unit, a time "
+            "base or a conversion, not a sensor's error: fix it in the bundle "
+            "(docs/bundle-format.md: SI units, t in seconds)"
         )
 
     def apply(self, inst: EffectInstance, state: Any, params: Any) -> None:

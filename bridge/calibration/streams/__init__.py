@@ -284,8 +284,12 @@ def _note_heading_jumps(problem: ScalarProblem, t: FloatArray, theta: FloatArray
         return
     tr, th = t[inside], theta[inside]
     turned = np.interp(tr, problem.t, cumulative_trapezoid(problem.y, problem.t, initial=0.0))
-    # samples at most a second apart: across a gap a gyro's bias alone may add up to that
-    off = (np.abs(np.diff(th) - np.diff(turned)) > HEADING_JUMP_RAD) & (np.diff(tr) <= 1.0)
+    # samples at most a second apart: across a gap a gyro's bias alone may add up to that;
+    # and the reference itself steps that far (a gyro read in deg/s turns 57 times the
+    # reference's smooth path: that is the readings' unit, not a jump of the reference)
+    step = np.diff(th)
+    off = ((np.abs(step - np.diff(turned)) > HEADING_JUMP_RAD)
+           & (np.abs(step) > HEADING_JUMP_RAD) & (np.diff(tr) <= 1.0))
     if off.any():
         first = float(tr[np.flatnonzero(off)[0]])
         problem.notes.append(
