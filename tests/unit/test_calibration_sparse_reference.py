@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from _bundles import gyro_bundle
+from koala_bridge.calibration import pipeline
 from koala_bridge.calibration.bundle import load_bundle
 from koala_bridge.calibration.effects.common import MAX_REFERENCE_NOISE_SHARE
 from koala_bridge.calibration.model import declared_model
@@ -73,10 +74,14 @@ def test_a_scale_against_a_sparse_reference_has_an_honest_standard_error(
     assert se_mean < 20 * spread
 
 
-def test_a_gain_within_the_reference_noise_is_not_written(tmp_path: Path) -> None:
+def test_a_gain_within_the_reference_noise_is_not_written(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     # 0.02 rad of noise on a 12.5 Hz heading: its differenced rate is about a quarter noise.
-    # A clean gyro's gain is diluted to ~0.86 at several standard errors: the diluted gain is
-    # what predicts the readings from that reference (named), not the gyro's (not written)
+    # Compared rate with rate (as it was below a quarter), a clean gyro's gain is diluted to
+    # ~0.86 at several standard errors: the diluted gain is what predicts the readings from
+    # that reference (named), not the gyro's (not written)
+    monkeypatch.setattr(pipeline, "HEADING_SPACE_SHARE", 1.0)
     for seed in range(2):
         res = _gyro(tmp_path, seed, 0.0, 0.02)
         share = res.problem.reference_share
@@ -182,3 +187,31 @@ def test_a_long_stream_decides_on_its_whole_rows(tmp_path: Path) -> None:
     assert res.problem.t.size > 20_000
     assert any(n.startswith("compared as means") for n in res.problem.notes)
     assert res.effects == []
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_a_reference_noisy_beyond_one_percent_is_compared_in_heading_space(
+    tmp_path: Path, seed: int
+) -> None:
+    """The same clean gyro: above a 1 % share, rate with rate would dilute a gain by more than a
+    gyro's scale error (pipeline.HEADING_SPACE_SHARE); in heading space the noise integrates
+    away, and nothing is named."""
+    res = _gyro(tmp_path, seed, 0.0, 0.02)
+    share = res.problem.reference_share
+    assert share is not None and 0.1 < share <= MAX_REFERENCE_NOISE_SHARE
+    assert res.problem.metric == "heading_error_10s_window_rms"
+    assert res.effects == []
+
+
+@pytest.mark.parametrize(("seed", "heading_sigma"), [(0, 0.005), (1, 0.01)])
+def test_a_gain_against_a_noisy_reference_is_found_undiluted(
+    tmp_path: Path, seed: int, heading_sigma: float
+) -> None:
+    """A +3 % gyro against the heading with 5 or 10 mrad of noise (shares of 2 and 8 %): in
+    heading space the gain is the gyro's. Rate with rate it read +1.9 % beside a spurious 4 ms
+    time offset (not written: diluted), or a 14 ms time offset and no scale at all."""
+    res = _gyro(tmp_path, seed, 0.03, heading_sigma, duration=300.0)
+    assert res.problem.metric == "heading_error_10s_window_rms"
+    assert [i.name for i in res.effects] == ["scale"]
+    ((p, se),) = res._params_and_se()
+    assert se is not None and abs(float(p[0]) - 0.03) < 4 * float(se[0]), (p, se)

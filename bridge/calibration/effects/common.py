@@ -102,7 +102,7 @@ MAX_SHARE_ROWS = 20_000
 MAX_LAG_S = 0.5
 
 
-def reference_noise_share(problem: Any) -> float:
+def reference_noise_share(problem: Any, u: Any = None) -> float:
     """Share of the fit part's reference variance that is noise of the reference's own (0
     without a reference), in the declared prediction's units (``base_gain * curve(u)``).
 
@@ -112,9 +112,12 @@ def reference_noise_share(problem: Any) -> float:
     readings. Fast variation that is motion (a drive's per-step jitter) is in the readings too,
     ``cov(dp, dy) ~ var(dp_motion)`` for a gain near 1; noise of the reference is not. So the
     reference's white noise is ``sigma^2 ~ (var(dp) - cov(dp, dy)) / 2`` (differences of white
-    noise have twice its variance), and the share is that over ``var(p)``.
+    noise have twice its variance), and the share is that over ``var(p)``. ``u``: the reference
+    at the stream's rows in place of the stream's own (read at a latency:
+    ``pipeline._aligned_share``).
     """
-    u, y = getattr(problem, "u", None), getattr(problem, "y", None)
+    u = getattr(problem, "u", None) if u is None else u
+    y = getattr(problem, "y", None)
     if u is None or y is None or not hasattr(problem, "t"):
         return 0.0
     rows = np.flatnonzero(problem.split.mask(problem.t, "fit"))

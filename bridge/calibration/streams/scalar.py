@@ -440,7 +440,8 @@ class ScalarProblem(StreamProblem):
         read 1 unsigned ("the readings do not follow it"), and its sign note was never reached.
         A heading's white noise alone (sixth differences) missed noise that a filter smooths (a
         low-passed accelerometer angle): its windows' changes looked like motion, and a still
-        gyro got a scale of -1."""
+        gyro got a scale of -1. The heading is read at the clocks' offset when the stream's
+        clock is seconds off the reference's (:attr:`clocks_apart`)."""
         if self.heading_ref is None or self.integrate_window_s is None:
             return 0.0
         p = self._parts["fit"]
@@ -448,7 +449,8 @@ class ScalarProblem(StreamProblem):
         if t.size < 4:
             return 0.0
         _, anchor = self._windows(t, self.integrate_window_s)
-        path = self._heading_at(t)
+        # read where the readings' clock puts it (a gyro 3 s off read as 24 % noise)
+        path = self._heading_at(t - (0.0 if self.clocks_apart is None else self.clocks_apart[0]))
         path = path - path[anchor]
         readings = self._integrate(t, 0.5 * (p.y[1:] + p.y[:-1]) * np.diff(t),
                                    self.integrate_window_s)
