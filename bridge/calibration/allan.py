@@ -32,7 +32,7 @@ form (W. J. Riley, "Handbook of Frequency Stability Analysis", 2008).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -44,6 +44,10 @@ FloatArray = NDArray[np.float64]
 FLICKER_FACTOR = float(np.sqrt(2 * np.log(2) / np.pi))
 #: Smallest number of independent clusters a point of the curve needs (sigma within ~24 %)
 MIN_CLUSTERS = 10
+#: A point of the curve this many of its standard deviations from the fitted lines is off them
+#: (the sd is the independent clusters' count's, larger than the overlapping estimate's: the
+#: bar is conservative; more than one point must be off)
+MISFIT_Z = 3.0
 #: Where the lines are read (IEEE 952 Annex C): N at 1 s, K at 3 s
 TAU_N_S = 1.0
 TAU_K_S = 3.0
@@ -94,6 +98,24 @@ class AllanFit:
     bias_instability_tau: float
     #: the fitted flat term (sqrt of its Allan variance / 0.664): 0 when no flicker floor shows
     bias_instability_fitted: float
+    #: each point's distance from the fitted curve in its standard deviations (Annex C.1's
+    #: ``sqrt(2 / (M - 1))`` of its Allan variance): beyond :data:`MISFIT_Z` at more than one
+    #: point, the three lines do not describe the curve (:attr:`misfit`)
+    misfit_z: FloatArray = field(default_factory=lambda: np.empty(0))
+
+    @property
+    def floor_reached(self) -> bool:
+        """Whether the curve turns up after its minimum (the minimum is not the longest
+        tau): otherwise B, read at the minimum, is only an upper bound on the flicker floor."""
+        return bool(self.bias_instability_tau < self.tau[-1])
+
+    @property
+    def misfit(self) -> bool:
+        """Whether more than one point lies beyond :data:`MISFIT_Z` of its standard deviations
+        from the fitted curve: a shape the three terms do not make (a correlated process, a
+        vibration's bump), so the fitted terms are no description of it (each still reads as
+        its line at its tau)."""
+        return bool(np.sum(np.abs(self.misfit_z) > MISFIT_Z) > 1)
 
     def model_adev(self, tau: FloatArray) -> FloatArray:
         """The fitted curve at ``tau``."""
@@ -132,6 +154,7 @@ def fit_noise_terms(
         bias_instability=float(adev[i] / FLICKER_FACTOR),
         bias_instability_tau=float(tau[i]),
         bias_instability_fitted=float(np.sqrt(c[1]) / FLICKER_FACTOR),
+        misfit_z=(avar - model) / (model * delta),
     )
 
 

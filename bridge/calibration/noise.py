@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from koala_bridge.calibration.allan import TAU_K_S, TAU_N_S, AllanFit, allan_noise
+from koala_bridge.calibration.allan import MISFIT_Z, TAU_K_S, TAU_N_S, AllanFit, allan_noise
 from koala_bridge.calibration.problem import StreamProblem
 from koala_bridge.calibration.selection import Fit
 from koala_bridge.calibration.streams.scalar import ScalarProblem
@@ -62,7 +62,26 @@ def identify_noise(problem: StreamProblem, fit: Fit) -> StreamNoise | None:
     t, r = t[ok], r[ok]
     if t.size < 30:
         return None
+    assert isinstance(problem, ScalarProblem)
+    y = problem.y[np.isfinite(problem.y)]
+    if y.size > 1 and float(np.std(r)) > float(np.std(y)):
+        # a sign-flipped gyro's residual is twice its motion: K and B of that are no noise
+        problem.notes.append(
+            f"no Allan analysis: the residual varies more than the readings themselves (sd "
+            f"{float(np.std(r)):.3g} against {float(np.std(y)):.3g} {problem.unit}): the model "
+            "misses something large (a sign, a unit, a clock), and the curve would describe "
+            "that, not the sensor's noise"
+        )
+        return None
     notes = []
+    u = getattr(problem, "u", None)
+    if u is not None and float(np.nanstd(u)) > 0:
+        notes.append(
+            "the reference varies (motion, or its own noise): the residual holds the "
+            "reference's differentiated noise and any effect the model lacks besides the "
+            "sensor's, so the terms are upper bounds on the sensor's; a still recording "
+            "against a constant reference gives the sensor's own"
+        )
     gaps = np.flatnonzero(np.diff(t) > BREAK_FACTOR * np.median(np.diff(t)))
     if gaps.size:  # a series with breaks (level segments only): its longest unbroken stretch
         bounds = np.r_[0, gaps + 1, t.size]
@@ -110,8 +129,10 @@ def noise_json(noise: StreamNoise) -> dict[str, Any]:
             "value": _num(f.bias_instability),
             "unit": u,
             "tau_s": _num(f.bias_instability_tau),
+            "floor_reached": f.floor_reached,
             "fitted_flat_term": _num(f.bias_instability_fitted),
         },
+        "lines_fit_the_curve": not f.misfit,
         "rate_random_walk": {
             "value": _num(f.rate_random_walk),
             "se": _num(f.rate_random_walk_se),
@@ -145,12 +166,24 @@ def noise_markdown(noise: StreamNoise, plot: str | None) -> list[str]:
         "|---|---|---|---|",
         f"| angle random walk N | {pm(f.angle_random_walk, f.angle_random_walk_se)} | "
         f"{u}/√Hz | slope −1/2 at τ = {TAU_N_S:g} s |",
-        f"| bias instability B | {f.bias_instability:.4g} | {u} | minimum / 0.664 at τ = "
-        f"{f.bias_instability_tau:.3g} s (fitted flat term {f.bias_instability_fitted:.3g}) |",
+        f"| bias instability B | {f.bias_instability:.4g}"
+        + ("" if f.floor_reached else " (an upper bound)")
+        + f" | {u} | minimum / 0.664 at τ = {f.bias_instability_tau:.3g} s"
+        + ("" if f.floor_reached else ", the longest: no floor reached")
+        + f" (fitted flat term {f.bias_instability_fitted:.3g}) |",
         f"| rate random walk K | {pm(f.rate_random_walk, f.rate_random_walk_se)} | {u}·√Hz | "
         f"slope +1/2 at τ = {TAU_K_S:g} s |",
     ]
     lines += [f"- {n}" for n in noise.notes]
+    if f.misfit:
+        off = int(np.sum(np.abs(f.misfit_z) > MISFIT_Z))
+        lines.append(
+            f"- the three lines do not describe this curve: {off} of {f.tau.size} points lie "
+            f"beyond {MISFIT_Z:g} standard deviations of the fitted curve (largest "
+            f"{float(np.max(np.abs(f.misfit_z))):.3g}), a shape no sum of white noise, flicker "
+            "and random walk makes (a correlated process, a vibration's bump); N and K are "
+            "the lines' readings at their τ, and the fitted flat term is no floor"
+        )
     if plot is not None:
         lines += ["", f"![{noise.stream} Allan deviation]({plot})"]
     return lines

@@ -25,7 +25,7 @@ from koala_bridge.calibration.allan import (
 )
 from koala_bridge.calibration.bundle import load_bundle
 from koala_bridge.calibration.model import declared_model
-from koala_bridge.calibration.noise import StreamNoise, plot_allan
+from koala_bridge.calibration.noise import StreamNoise, noise_json, noise_markdown, plot_allan
 from koala_bridge.calibration.pipeline import calibrate
 from koala_bridge.calibration.report import write_report
 from koala_bridge.calibration.stages import Stage
@@ -164,3 +164,66 @@ def test_a_residual_without_noise_has_no_noise_terms() -> None:
     fit = allan_noise(np.full(3000, 0.5), 0.05)
     assert fit is None or max(fit.angle_random_walk, fit.rate_random_walk,
                               fit.bias_instability) < 1e-10
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_curve_the_three_lines_make_fits_them(seed: int) -> None:
+    """White noise and a rate random walk: every point within the bar of the fitted lines, and
+    the curve turns up after its minimum (a floor)."""
+    fit = allan_noise(_gyro_noise(seed, 600.0, 0.01, 1e-3), 0.01)
+    assert fit is not None and not fit.misfit and fit.floor_reached
+
+
+def test_white_noise_alone_reaches_no_floor() -> None:
+    """The curve falls to its longest tau: B read there is only an upper bound (a new user's
+    still gyro: "minimum / 0.664 at 82 s", as if a floor had been reached)."""
+    fit = allan_noise(np.random.default_rng(4).normal(0.0, 0.01, 60_000), 0.01)
+    assert fit is not None and not fit.floor_reached
+
+
+def test_a_correlated_process_is_said_to_be_off_the_lines() -> None:
+    """White noise plus a Gauss-Markov process (5 s): the Allan curve has a bump no sum of the
+    three lines makes; the fitted flat term sat 2-6 times above the measured points and nothing
+    said so (a new user's vibrating base)."""
+    rng = np.random.default_rng(1)
+    n, dt = 100_000, 0.01
+    a = np.exp(-dt / 5.0)
+    z = rng.normal(0.0, 0.003 * np.sqrt(1 - a * a), n)
+    gm = np.zeros(n)
+    for i in range(1, n):
+        gm[i] = a * gm[i - 1] + z[i]
+    fit = allan_noise(rng.normal(0.0, 0.01, n) + gm, dt)
+    assert fit is not None and fit.misfit
+    noise = StreamNoise("gyro", "rad/s", dt, n, fit)
+    text = "\n".join(noise_markdown(noise, None))
+    assert "the three lines do not describe this curve" in text
+    assert noise_json(noise)["lines_fit_the_curve"] is False
+
+
+def _turning_gyro(tmp_path: Path, sign: float):  # noqa: ANN202 - a StreamResult
+    from _bundles import calibrate_stream, gyro_bundle
+    from koala_bridge.calibration.synthetic import DECLARED
+
+    rng = np.random.default_rng(2)
+    t = np.arange(0.0, 120.0, 0.01)
+    w = 0.6 * np.sin(2 * np.pi * t / 9) + 0.3 * np.sin(2 * np.pi * t / 3.7)
+    theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
+    d = gyro_bundle(tmp_path / "b", t, theta, sign * w + rng.normal(0.0, 0.005, t.size))
+    res, _ = calibrate_stream(d, "gyro", DECLARED)
+    assert res is not None
+    return res
+
+
+def test_a_turning_gyro_s_terms_are_said_to_be_upper_bounds(tmp_path: Path) -> None:
+    res = _turning_gyro(tmp_path, 1.0)
+    assert res.noise is not None
+    assert any("upper bounds on the sensor's" in n for n in res.noise.notes)
+
+
+def test_a_residual_larger_than_the_readings_gets_no_allan_analysis(tmp_path: Path) -> None:
+    """A sign-flipped gyro (the sign note said so): its residual is twice the motion, and its
+    "rate random walk 1.06" and "bias instability 0.096 rad/s" were reported as noise."""
+    res = _turning_gyro(tmp_path, -1.0)
+    assert res.noise is None
+    notes = res.problem.notes
+    assert any(n.startswith("no Allan analysis: the residual varies more") for n in notes)
