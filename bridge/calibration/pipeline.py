@@ -22,6 +22,7 @@ from koala_bridge.calibration.effects.common import (
     stream_share,
 )
 from koala_bridge.calibration.effects.scale import GROSS_GAIN, gross_gain
+from koala_bridge.calibration.effects.time_offset import clock_rival
 from koala_bridge.calibration.errors import EffectRegistryError
 from koala_bridge.calibration.metrics import HeldOutStatistics, g4, heldout_statistics
 from koala_bridge.calibration.model import DeclaredModel
@@ -408,6 +409,15 @@ def _note_clock_offset(problem: StreamProblem) -> None:
         "searched there. Stamp both on one clock, or shift one (docs/bundle-format.md: one "
         "clock for all files)"
     )
+    rival = clock_rival(problem, tau) if isinstance(problem, ScalarProblem) else None
+    if rival is not None:
+        problem.notes.append(
+            f"the clocks' offset is ambiguous: the readings match the reference about as well "
+            f"{rival[0]:+.4g} s later ({score} {rival[1]:.3f}, against {rival[2]:.3f} at "
+            f"{tau:+.3g} s, each refined to half a sample): motion that repeats matches itself "
+            "a period on, and the fit part cannot tell which shift is the clocks'. Stamp both "
+            "on one clock, or record motion that does not repeat"
+        )
 
 
 def _note_gross_gain(problem: StreamProblem, sel: Selection) -> None:
