@@ -29,6 +29,10 @@ from koala_bridge.calibration.streams.scalar import ScalarProblem
 GAP_FACTOR = 3.0
 #: An interval longer than this many median intervals breaks the series (not a logger's jitter)
 BREAK_FACTOR = 10.0
+#: A residual whose sd exceeds the readings' by this factor comes from a model that misses
+#: something large: no Allan analysis (a sign-flipped gyro's is about 2; a still gyro's residual
+#: is its readings less a constant, equal to rounding, which a bare comparison flipped on 1.5 %)
+RESIDUAL_OVER_READINGS = 1.25
 
 
 @dataclass(frozen=True)
@@ -64,7 +68,7 @@ def identify_noise(problem: StreamProblem, fit: Fit) -> StreamNoise | None:
         return None
     assert isinstance(problem, ScalarProblem)
     y = problem.y[np.isfinite(problem.y)]
-    if y.size > 1 and float(np.std(r)) > float(np.std(y)):
+    if y.size > 1 and float(np.std(r)) > RESIDUAL_OVER_READINGS * float(np.std(y)):
         # a sign-flipped gyro's residual is twice its motion: K and B of that are no noise
         problem.notes.append(
             f"no Allan analysis: the residual varies more than the readings themselves (sd "

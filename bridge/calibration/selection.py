@@ -61,7 +61,7 @@ from koala_bridge.calibration.robust import (
 )
 from koala_bridge.core.distributions import chi2_ppf, t_ppf
 from numpy.typing import NDArray
-from scipy import optimize
+from scipy import optimize, stats
 
 log = logging.getLogger(__name__)
 
@@ -487,34 +487,31 @@ def _ss(v: FloatArray) -> float:
 
 
 #: Non-stationary noise (:func:`variance_blocks`): contiguous blocks of at least
-#: VARIANCE_BLOCK_ROWS residuals, at most VARIANCE_BLOCKS of them; their variances differ when
-#: Bartlett's statistic exceeds its chi-square quantile at VARIANCE_ALPHA
+#: VARIANCE_BLOCK_ROWS residuals, at most VARIANCE_BLOCKS of them; their spreads differ when the
+#: Brown-Forsythe test rejects one at VARIANCE_ALPHA
 VARIANCE_BLOCKS = 20
 VARIANCE_BLOCK_ROWS = 50
 VARIANCE_ALPHA = 1e-3
 
 
 def variance_blocks(r: FloatArray) -> NDArray[np.intp] | None:
-    """The starts of contiguous blocks of ``r`` whose variances differ beyond chance, or None
-    when one variance holds (Bartlett's test, M. S. Bartlett 1937; ``VARIANCE_ALPHA``). A gyro
+    """The starts of contiguous blocks of ``r`` whose spreads differ beyond chance, or None when
+    one spread holds (the Brown-Forsythe test, ``scipy.stats.levene`` about the blocks'
+    medians, at ``VARIANCE_ALPHA``: robust to heavy tails, where Bartlett's test, which assumes
+    normal residuals, rejected one variance on 213 of 300 t5 series and all t3 ones). A gyro
     that vibrates while its motors run has a residual several times noisier there than at rest,
     and a likelihood that counts every residual alike lets the noisy stretch drown what the
     quiet one shows (a still gyro's bias, 94 times chance on a quiet held-out part, failed the
     fit part's BIC beside 250 s of vibration)."""
     n = r.size
     b = min(VARIANCE_BLOCKS, n // VARIANCE_BLOCK_ROWS)
-    if b < 2:
+    if b < 2 or not np.all(np.isfinite(r)):
         return None
     starts = (np.arange(b) * n) // b
-    sizes = np.diff(np.r_[starts, n]).astype(float)
-    ss = np.add.reduceat(r * r, starts)
-    if np.any(ss <= 0):
+    if np.any(np.add.reduceat(r * r, starts) <= 0):
         return None
-    v = ss / sizes
-    pooled = float(ss.sum() / n)
-    stat = n * np.log(pooled) - float(np.dot(sizes, np.log(v)))
-    stat /= 1 + (float(np.sum(1 / sizes)) - 1 / n) / (3 * (b - 1))
-    return starts if stat > chi2_ppf(1 - VARIANCE_ALPHA, b - 1) else None
+    p = stats.levene(*np.split(r, starts[1:]), center="median").pvalue
+    return starts if np.isfinite(p) and p < VARIANCE_ALPHA else None
 
 
 def _log_ratio(old: FloatArray, new: FloatArray) -> float:
@@ -526,8 +523,10 @@ def _log_ratio(old: FloatArray, new: FloatArray) -> float:
     if starts is None:
         return max(old.size, 1) * float(np.log(max(_ss(old), tiny) / max(_ss(new), tiny)))
     sizes = np.diff(np.r_[starts, old.size])
-    so = np.maximum(np.add.reduceat(old * old, starts), tiny)
-    sn = np.maximum(np.add.reduceat(new * new, starts), tiny)
+    so = np.add.reduceat(old * old, starts)
+    sn = np.add.reduceat(new * new, starts)
+    if np.any(sn <= 0):  # a block the new model fits exactly (quantised readings): one variance
+        return max(old.size, 1) * float(np.log(max(_ss(old), tiny) / max(_ss(new), tiny)))
     return float(np.dot(sizes, np.log(so / sn)))
 
 

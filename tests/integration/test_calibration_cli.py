@@ -137,7 +137,7 @@ def test_staged_inputs_carry_effects_into_the_next_model(tmp_path: Path) -> None
     report = json.loads((out / "report.json").read_text())
     assert report["inputs"] == inputs
     entries = {(e["stage"], e["stream"], e["metric"]): e for e in report["streams"]}
-    turns_gyro = entries[(2, "gyro", "heading_error_10s_window_rms")]
+    turns_gyro = entries[(2, "gyro", "heading_error_10s_running_rms")]
     assert turns_gyro["input"] == str(DATA / "mpu6050_turns")
     (bias,) = (e for e in turns_gyro["effects"] if e["name"] == "bias")
     assert bias["evidence"]["carried_from"] == str(DATA / "mpu6050_gyro_static")

@@ -99,3 +99,20 @@ def test_a_gyro_in_degrees_is_no_jump_of_the_reference(tmp_path: Path) -> None:
     assert res is not None
     assert any("57.3 is degrees" in n for n in res.problem.notes)
     assert not any("reference heading jumps" in n for n in res.problem.notes)
+
+
+def test_effects_fitted_beside_a_gross_gain_are_not_written(tmp_path: Path) -> None:
+    """A gyro in deg/s with a 0.01 rad/s bias: the scale was withheld, the bias beside it (0.576,
+    in deg/s) written as bias_rad_s. Everything the stream found is in the readings' unit."""
+    rng = np.random.default_rng(3)
+    t = np.arange(0.0, 60.0 + 0.005, 0.01)
+    w = 0.6 * np.sin(2 * np.pi * t / 9)
+    theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
+    d = gyro_bundle(tmp_path / "b", t, theta + rng.normal(0.0, 0.001, t.size),
+                    np.degrees(w + 0.01 + rng.normal(0.0, 0.002, t.size)))
+    res, _ = calibrate_stream(d, "gyro", DECLARED)
+    assert res is not None
+    why = dict(zip([i.name for i in res.effects], res.not_written(), strict=True))
+    assert "scale" in why and "bias" in why, why
+    assert all(w is not None for w in why.values()), why
+    assert "fitted beside scale" in str(why["bias"])

@@ -111,7 +111,7 @@ def test_a_bias_against_a_noisy_jittered_heading(tmp_path: Path, seed: int) -> N
                                      w + BIAS + rng.normal(0.0, 0.002, t.size), gyro_t=t))
     (res,) = (r for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
               if r.problem.name == "gyro")
-    assert res.problem.metric == "heading_error_10s_window_rms"
+    assert res.problem.metric == "heading_error_10s_running_rms"
     assert [i.name for i in res.effects] == ["bias"]
     ((p, se),) = res._params_and_se()
     assert se is not None and abs(float(p[0]) - BIAS) < 4 * float(se[0])
@@ -158,7 +158,7 @@ def _noisy_jittered(tmp_path: Path, seed: int, scale: float, bias: float) -> Str
     bundle = load_bundle(gyro_bundle(tmp_path / "b", stamps, heading, readings, gyro_t=t))
     (res,) = (r for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
               if r.problem.name == "gyro")
-    assert res.problem.metric == "heading_error_10s_window_rms"
+    assert res.problem.metric == "heading_error_10s_running_rms"
     return res
 
 
@@ -194,7 +194,7 @@ def test_a_long_stream_selected_on_a_subset_keeps_its_bias(tmp_path: Path) -> No
     (res,) = (r for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
               if r.problem.name == "gyro")
     assert res.problem.t.size > 20_000  # the whole stream's result, selected on the subset
-    assert res.problem.metric == "heading_error_10s_window_rms"
+    assert res.problem.metric == "heading_error_10s_running_rms"
     assert [i.name for i in res.effects] == ["bias"]
     ((p, se),) = res._params_and_se()
     assert se is not None and abs(float(p[0]) - BIAS) < 4 * float(se[0])

@@ -50,7 +50,7 @@ def _gyro(path: Path):  # noqa: ANN202 - a StreamResult
 
 def test_a_noisy_dense_reference_is_compared_in_heading_space(tmp_path: Path) -> None:
     res = _gyro(_bundle(tmp_path / "b", 0))
-    assert res.problem.metric == "heading_error_10s_window_rms"
+    assert res.problem.metric == "heading_error_10s_running_rms"
     assert any(n.startswith("compared in heading space") for n in res.problem.notes)
     # the time shift that would smooth the reference's noise is not tried
     assert any(n.startswith("time_offset not tried") for n in res.problem.notes)
@@ -97,7 +97,7 @@ def test_filtered_heading_noise_is_no_motion_for_a_scale(tmp_path: Path, tau: fl
     # (tau 0.05 s); at tau = 1 s the 4 held-out windows hold fewer units, and it may not be.
     for seed in range(3):
         res = _gyro(_still_filtered(tmp_path / f"b{seed}", 9000 + seed, tau, 0.01))
-        assert res.problem.metric == "heading_error_10s_window_rms"
+        assert res.problem.metric == "heading_error_10s_running_rms"
         assert res.problem.heading_share is not None and res.problem.heading_share > 0.9
         assert any(n.startswith("scale not tried") for n in res.problem.notes)
         assert {i.name for i in res.effects} <= {"bias"}
@@ -114,7 +114,7 @@ def test_the_heading_share_of_a_turning_gyro_is_its_white_noise(tmp_path: Path) 
     theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
     res = _gyro(gyro_bundle(tmp_path / "b", t, theta + rng.normal(0.0, 0.02, t.size),
                             w + rng.normal(0.0, 0.002, t.size)))
-    assert res.problem.metric == "heading_error_10s_window_rms"
+    assert res.problem.metric == "heading_error_10s_running_rms"
     path = theta - theta[0]  # sin path, mean square about 0.9^2 (1/2 + 1): window anchors vary
     share = res.problem.heading_share
     assert share is not None and share < 5 * 2 * 0.02**2 / np.mean((path - path.mean()) ** 2)
@@ -171,7 +171,7 @@ def test_a_sign_flipped_gyro_in_heading_space_is_named_a_sign(tmp_path: Path) ->
     theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
     res = _gyro(gyro_bundle(tmp_path / "b", t, theta + rng.normal(0.0, 0.02, t.size),
                             -w + rng.normal(0.0, 0.002, t.size)))
-    assert res.problem.metric == "heading_error_10s_window_rms"
+    assert res.problem.metric == "heading_error_10s_running_rms"
     assert res.problem.heading_share is not None and res.problem.heading_share < 0.1
     assert not any(n.startswith("scale not tried") for n in res.problem.notes)
     assert any("the readings run against the reference" in n for n in res.problem.notes)

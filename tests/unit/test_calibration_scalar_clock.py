@@ -79,7 +79,7 @@ def test_the_heading_noise_share_is_read_at_the_clocks_offset(tmp_path: Path) ->
                delimiter=",", header="t,yaw_rate", comments="", fmt="%.10g")
     res, _ = calibrate_stream(d, "gyro", DECLARED)
     assert res is not None
-    assert res.problem.metric == "heading_error_10s_window_rms"
+    assert res.problem.metric == "heading_error_10s_running_rms"
     assert res.problem.heading_share is not None and res.problem.heading_share < 0.01
     names = [i.name for i in res.effects]
     assert "scale" in names and "time_offset" in names

@@ -45,7 +45,7 @@ from koala_bridge.calibration.streams.odometry import (
 from koala_bridge.calibration.streams.scalar import (
     ScalarProblem,
     fit_shared_curve,
-    heading_metric,
+    running_heading_metric,
 )
 from koala_bridge.core.geometry import wrap_angle
 from numpy.typing import NDArray
@@ -304,7 +304,7 @@ def _note_heading_jumps(problem: ScalarProblem, t: FloatArray, theta: FloatArray
 def _in_heading_space(problem: ScalarProblem) -> None:
     """A gyro scored by its heading over :data:`HEADING_WINDOW_S` windows, the residual rate
     integrated (:attr:`ScalarProblem.integrate_window_s`), instead of by its rate."""
-    problem.metric = heading_metric(HEADING_WINDOW_S)
+    problem.metric = running_heading_metric(HEADING_WINDOW_S)
     problem.unit = "rad"
     problem.heading_window_s = None
     problem.integrate_window_s = HEADING_WINDOW_S
@@ -741,6 +741,7 @@ def build_compass(
     theta = None
     direction = None
     level_note = sparse_note = None
+    reading_dt: float | None = None
     disturbance: FloatArray | None = None
     if ref is not None:
         inside = (t >= ref[0][0]) & (t <= ref[0][-1])
@@ -793,6 +794,7 @@ def build_compass(
                 "all: none farther than half its interval from a sample); between its samples "
                 "the interpolated heading would be shared by every reading"
             )
+            reading_dt = float(np.median(np.diff(t)))
             t, theta = t_ref[got], theta_ref[got]
             m = means[:, :3]
             disturbance = None if disturbance is None else means[:, 3:]
@@ -828,6 +830,7 @@ def build_compass(
         gyro_heading=_declared_gyro_heading(bundle, model, t) if mode == "magnitude_2d" else None,
         ref_t=None if ref is None else ref[0],
         ref_heading=None if ref is None else ref[1],
+        reading_dt=reading_dt,
     )
     problem.notes.append(f"mode: {mode}; field unit {unit}")
     field = float(np.median(np.linalg.norm(m, axis=1))) * uT

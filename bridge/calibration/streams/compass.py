@@ -83,6 +83,9 @@ class CompassProblem(StreamProblem):
     #: ``time_offset`` reads at the readings' times shifted by ``tau``
     ref_t: FloatArray | None = None
     ref_heading: FloatArray | None = None
+    #: the readings' median interval (s), where the stream's samples are not the readings
+    #: (a sparse reference's samples, each with its share of readings)
+    reading_dt: float | None = None
 
     def __post_init__(self) -> None:
         self._last = LastResult()
@@ -153,8 +156,8 @@ class CompassProblem(StreamProblem):
         psi = self._psi_parts.get(key)
         if psi is None:
             psi = wrap_angle(self._theta_field(self._masks[part], tau))
-            if tau != 0.0:
-                for k in [k for k in self._psi_parts if k[1] != 0.0]:
+            if tau != 0.0:  # the parts at this tau and at 0 are kept, other taus dropped
+                for k in [k for k in self._psi_parts if k[1] not in (0.0, tau)]:
                     del self._psi_parts[k]
             self._psi_parts[key] = psi
         return psi
@@ -166,11 +169,15 @@ class CompassProblem(StreamProblem):
 
     def heading_match(self, taus: FloatArray, rows: NDArray[np.intp] | None = None) -> FloatArray:
         """For each shift ``tau``: how well the declared model's heading on the fit part (its
-        ``rows`` only, or all) follows the reference heading ``tau`` earlier, as the mean
-        resultant length ``R = |mean exp(i (heading - theta_ref(t - tau)))|`` (1: a constant
-        difference, the north the fit takes up; 0: none), the circular counterpart of the
-        correlation a scalar stream's clocks are searched by. A hard or soft iron the
-        declared model lacks lowers ``R`` at every shift alike, not where it is largest."""
+        ``rows`` only, or all) follows the reference heading ``tau`` earlier, as
+        ``r = sqrt(1 - v / max v)``: ``v`` the variance of their difference (about its circular
+        mean) that a constant (north) and a first and second harmonic of the shifted heading
+        leave (what a hard and a soft iron the declared model lacks make of it: with the mean
+        resultant length alone, an undeclared hard iron lowered the match at every shift, the
+        clocks' offset no longer stood out, and a compass 0.7 s off went unfound). ``1 - r^2``
+        is ``v`` up to one factor, as a correlation's unexplained share (the clock search's
+        test is a ratio of them). All 1 where no shift changes ``v`` beyond its noise (a robot
+        that does not turn, or turns steadily: a shift is then a change of north)."""
         assert self.ref_t is not None and self.ref_heading is not None
         fit = self._masks["fit"]
         h, t = self._declared_heading("fit"), self.t[fit]
@@ -178,20 +185,34 @@ class CompassProblem(StreamProblem):
         if rows is not None:
             h, t = h[rows], t[rows]
             field = None if field is None else field[rows]
-        out = np.empty(len(taus))
+        v = np.empty(len(taus))
         for i, tau in enumerate(taus):
-            d = h - np.interp(t - tau, self.ref_t, self.ref_heading)
+            theta = np.interp(t - tau, self.ref_t, self.ref_heading)
             if field is not None:
-                d += field
-            out[i] = np.hypot(np.mean(np.cos(d)), np.mean(np.sin(d)))
-        return out
+                theta = theta - field
+            d = h - theta
+            d = wrap_angle(d - np.arctan2(np.mean(np.sin(d)), np.mean(np.cos(d))))
+            X = np.column_stack([np.ones_like(theta), np.cos(theta), np.sin(theta),
+                                 np.cos(2 * theta), np.sin(2 * theta)])
+            coef = np.linalg.lstsq(X, d, rcond=None)[0]
+            v[i] = float(np.mean((d - X @ coef) ** 2))
+        top = float(np.max(v))
+        if not top > 0 or np.ptp(v) <= 3 * np.sqrt(2 / max(h.size, 1)) * float(np.min(v)):
+            return np.ones(len(taus))
+        return np.asarray(np.sqrt(np.clip(1 - v / top, 0.0, 1.0)), dtype=float)
 
     def latency_window(self) -> tuple[float, float]:
         """``(step, span)`` of the grid a latency is searched on
-        (:func:`koala_bridge.calibration.effects.time_offset.latency_window`)."""
+        (:func:`koala_bridge.calibration.effects.time_offset.latency_window`), the step half
+        the readings' own interval: against a sparse reference the stream's samples are the
+        reference's (a 1 s reference made the step 0.5 s, and every fitted offset lay "beyond"
+        a window of 0.5 - 0.5 s)."""
         from koala_bridge.calibration.effects.time_offset import latency_window
 
-        return latency_window(self.t[self._masks["fit"]])
+        step, span = latency_window(self.t[self._masks["fit"]])
+        if self.reading_dt is not None and span:
+            step = 0.5 * self.reading_dt
+        return (step, span) if span >= step > 0 else (0.0, 0.0)
 
     @cached_property
     def clocks_apart(self) -> tuple[float, float, float] | None:
