@@ -510,7 +510,8 @@ def variance_blocks(r: FloatArray) -> NDArray[np.intp] | None:
     starts = (np.arange(b) * n) // b
     if np.any(np.add.reduceat(r * r, starts) <= 0):
         return None
-    p = stats.levene(*np.split(r, starts[1:]), center="median").pvalue
+    with np.errstate(divide="ignore", invalid="ignore"):  # blocks without spread: NaN
+        p = stats.levene(*np.split(r, starts[1:]), center="median").pvalue
     return starts if np.isfinite(p) and p < VARIANCE_ALPHA else None
 
 
