@@ -515,12 +515,27 @@ def variance_blocks(r: FloatArray) -> NDArray[np.intp] | None:
     return starts if np.isfinite(p) and p < VARIANCE_ALPHA else None
 
 
-def _log_ratio(old: FloatArray, new: FloatArray) -> float:
+def round_blocks(
+    current: Fit, rho: float, counts: tuple[float | None, float | None]
+) -> tuple[NDArray[np.intp] | None, NDArray[np.intp] | None]:
+    """The blocks of one variance (:func:`variance_blocks`) of the current model's fit and
+    held-out residuals, as :func:`judge` compares them (prewhitened, unless the stream counts
+    its independent units): one test per round, not per candidate."""
+    rf, rs = current.r_fit, current.r_score
+    if current.smooth is not None:
+        rf, rs = current.smooth
+    if counts[0] is None or counts[1] is None:
+        rf, rs = prewhiten(rf, rho), prewhiten(rs, rho)
+    return variance_blocks(rf), variance_blocks(rs)
+
+
+def _log_ratio(
+    old: FloatArray, new: FloatArray, starts: NDArray[np.intp] | None = None
+) -> float:
     """``n ln(RSS_old / RSS_new)``, the log-likelihood ratio of Gaussian residuals of one
-    variance; where ``old``'s variance differs between blocks (:func:`variance_blocks`), the sum
-    over the blocks of theirs, each with its own variance."""
+    variance; where ``old``'s variance differs between blocks (``starts``, of
+    :func:`variance_blocks`), the sum over the blocks of theirs, each with its own variance."""
     tiny = 1e-300
-    starts = variance_blocks(old)
     if starts is None:
         return max(old.size, 1) * float(np.log(max(_ss(old), tiny) / max(_ss(new), tiny)))
     sizes = np.diff(np.r_[starts, old.size])
@@ -538,12 +553,13 @@ def judge(
     n_candidates: int,
     rho: float,
     counts: tuple[float | None, float | None] = (None, None),
-    blocks: bool = False,
+    blocks: tuple[NDArray[np.intp] | None, NDArray[np.intp] | None] | None = None,
 ) -> Trial:
-    """Apply the stopping rule of the module docstring to one candidate; ``blocks``: a stream
-    whose noise may change over time (a rate stream: a gyro vibrating while its motors run)
-    has each part's residual likelihood taken per block of one variance where the blocks'
-    variances differ (:func:`_log_ratio`)."""
+    """Apply the stopping rule of the module docstring to one candidate; ``blocks``: for a
+    stream whose noise may change over time (a rate stream: a gyro vibrating while its motors
+    run), the fit and held-out parts' blocks of one variance (:func:`round_blocks`, None for a
+    part of one variance), whose residual likelihoods are then summed per block
+    (:func:`_log_ratio`)."""
     name = new.insts[-1].name
     if old.r_score.size == 0 or new.r_fit.size == 0:
         return Trial(name, k, np.nan, np.nan, np.nan, np.nan, False, new)
@@ -562,10 +578,11 @@ def judge(
         # raw sums, those counts.
         wf_old, wf_new, ws_old, ws_new = rf_old, rf_new, rs_old, rs_new
         nf, ns = max(counts[0], 1.0), max(counts[1], 1.0)
-    if blocks:
+    if blocks is not None:
         # each residual's evidence at the count's rate: n ln(RSS ratio) is count * mean ln
-        dbic = -_log_ratio(wf_old, wf_new) * nf / max(wf_old.size, 1) + k * np.log(nf)
-        lr = _log_ratio(ws_old, ws_new) * ns / max(ws_old.size, 1)
+        dbic = -_log_ratio(wf_old, wf_new, blocks[0]) * nf / max(wf_old.size, 1) \
+            + k * np.log(nf)
+        lr = _log_ratio(ws_old, ws_new, blocks[1]) * ns / max(ws_old.size, 1)
     else:
         dbic = nf * np.log(max(_ss(wf_new), tiny) / max(_ss(wf_old), tiny)) + k * np.log(nf)
         lr = ns * np.log(max(_ss(ws_old), tiny) / max(_ss(ws_new), tiny))
@@ -668,6 +685,7 @@ def select_effects(
     explained: set[str] = set()  # candidates whose implausible fit the notes explain (once)
     while remaining and len(result.added) < max_effects:
         trials: list[Trial] = []
+        blocks = round_blocks(current, rho, counts) if by_blocks else None
         for cand in remaining:
             # One mixture at most: another spurious-reading model is tried *in place of* the
             # one in the model (outlier:uniform chosen first may give way to outlier:short once
@@ -677,7 +695,7 @@ def select_effects(
             x0 = problem.initial_vector(insts, current.x, current.insts)
             new = fit_model(problem, insts, x0)
             trial = judge(current, new, cand.effect.n_tested(cand), len(remaining), rho, counts,
-                          blocks=by_blocks)
+                          blocks=blocks)
             _practical_by_further(problem, current, trial, len(remaining))
             *earlier, params = split_params(problem, new.insts, new.x)
             if not cand.effect.plausible(cand, params):

@@ -270,9 +270,11 @@ def _propose_compass(effect: Effect, problem: Any) -> list[EffectInstance]:
     t_fit = problem.t[problem.split.mask(problem.t, "fit")]
     reach = min(MAX_CLOCK_OFFSET_S, CLOCK_SPAN_SHARE * float(t_fit[-1] - t_fit[0]))
     best, score = around, -np.inf
+    n_fit = int(t_fit.size)
+    rows = np.arange(0, n_fit, max(1, n_fit // (2 * CLOCK_ROWS)))  # a start: 4000 rows do
     while True:
         taus = around + np.arange(-span, span + step / 2, step)
-        match = problem.heading_match(taus)
+        match = problem.heading_match(taus, rows)
         if np.all(match == 1.0):
             return []  # no shift changes the match: a robot that does not turn, or steadily
         i = int(np.argmax(match))

@@ -185,17 +185,20 @@ class CompassProblem(StreamProblem):
         if rows is not None:
             h, t = h[rows], t[rows]
             field = None if field is None else field[rows]
-        v = np.empty(len(taus))
-        for i, tau in enumerate(taus):
-            theta = np.interp(t - tau, self.ref_t, self.ref_heading)
-            if field is not None:
-                theta = theta - field
-            d = h - theta
-            d = wrap_angle(d - np.arctan2(np.mean(np.sin(d)), np.mean(np.cos(d))))
-            X = np.column_stack([np.ones_like(theta), np.cos(theta), np.sin(theta),
-                                 np.cos(2 * theta), np.sin(2 * theta)])
-            coef = np.linalg.lstsq(X, d, rcond=None)[0]
-            v[i] = float(np.mean((d - X @ coef) ** 2))
+        # every shift at once: (shifts, readings)
+        taus = np.asarray(taus, dtype=float)
+        theta = np.interp((t[None, :] - taus[:, None]).ravel(), self.ref_t, self.ref_heading)
+        theta = theta.reshape(taus.size, t.size)
+        if field is not None:
+            theta -= field[None, :]
+        d = h[None, :] - theta
+        d = wrap_angle(d - np.arctan2(np.mean(np.sin(d), axis=1),
+                                      np.mean(np.cos(d), axis=1))[:, None])
+        c, s = np.cos(theta), np.sin(theta)
+        # 1, cos a, sin a, cos 2a = 2 cos^2 a - 1, sin 2a = 2 sin a cos a
+        X = np.stack([np.ones_like(c), c, s, 2 * c * c - 1, 2 * s * c], axis=1)
+        v = np.array([float(np.mean((d[k] - _solve(X[k], d[k]) @ X[k]) ** 2))
+                      for k in range(taus.size)]) if h.size < 10 else _batch_residual(X, d)
         top = float(np.max(v))
         if not top > 0 or np.ptp(v) <= 3 * np.sqrt(2 / max(h.size, 1)) * float(np.min(v)):
             return np.ones(len(taus))
@@ -353,3 +356,25 @@ class CompassProblem(StreamProblem):
 
     def describe(self) -> dict[str, Any]:
         return {"samples": int(self.t.size), "mode": self.mode, "data_unit": self.data_unit}
+
+
+def _solve(X: FloatArray, d: FloatArray) -> FloatArray:
+    """Least squares of ``d`` on the rows of ``X`` by the normal equations (five harmonics of a
+    heading that turns are well conditioned), by SVD where they are singular (no turn)."""
+    try:
+        return np.asarray(np.linalg.solve(X @ X.T, X @ d), dtype=float)
+    except np.linalg.LinAlgError:
+        return np.asarray(np.linalg.lstsq(X.T, d, rcond=None)[0], dtype=float)
+
+
+def _batch_residual(X: FloatArray, d: FloatArray) -> FloatArray:
+    """Per shift ``k``: the mean square of ``d[k]`` less its least squares on the rows of
+    ``X[k]`` (normal equations, batched; :func:`_solve` for a singular one)."""
+    A = np.einsum("kin,kjn->kij", X, X)
+    b = np.einsum("kin,kn->ki", X, d)
+    try:
+        coef = np.linalg.solve(A, b[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        coef = np.stack([_solve(X[k], d[k]) for k in range(X.shape[0])])
+    r = d - np.einsum("ki,kin->kn", coef, X)
+    return np.asarray(np.mean(r * r, axis=1), dtype=float)
