@@ -135,3 +135,23 @@ def test_a_sparse_reference_s_clock_seconds_off_is_found(tmp_path: Path) -> None
     ((params, se),) = res.effect_params()
     # the readings' mean over a share of the 1 s interval: to a tenth of it
     assert abs(params["tau_s"] - 2.0) <= 0.1 + 4 * se["tau_s"], (params, se)
+
+
+def test_a_coarse_clock_offset_off_by_a_second_still_lets_the_fit_find_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A real car's compass shifted 2 s: its slow turns against a 5 Hz course over ground gave
+    a broad peak, the clocks' search on its few rows read +3.93 s, and least squares, walking
+    from there towards the truth, was rejected at +2.83 s as "beyond the +-0.5 s window" about
+    it. About clocks seconds apart the fit may go as far as they were searched. Here the
+    search is made to read 1.4 s too far."""
+    from koala_bridge.calibration.streams.compass import CompassProblem
+
+    monkeypatch.setattr(CompassProblem, "clocks_apart", property(lambda self: (3.4, 0.99, 0.9)))
+    # and the latency grid about it peaks there too (the real log's few, noisy rows)
+    monkeypatch.setattr(CompassProblem, "heading_match",
+                        lambda self, taus, rows=None: 1.0 - 0.01 * np.abs(np.asarray(taus) - 3.4))
+    res = _turning_compass(tmp_path, 2.0)
+    assert [i.name for i in res.effects] == ["time_offset"]
+    ((params, se),) = res.effect_params()
+    assert abs(params["tau_s"] - 2.0) <= 4 * se["tau_s"], (params, se)

@@ -285,5 +285,10 @@ def _propose_compass(effect: Effect, problem: Any) -> list[EffectInstance]:
         if not edge or abs(best) + span > max(reach, span):
             break
         around = best
+    # Clocks seconds apart are found on at most CLOCK_ROWS readings in coarse steps, and a car's
+    # slow turns make a broad peak (a real compass shifted 2 s read +3.93 s there; least
+    # squares then walked to 2.83 s, "beyond the window" about 3.93 s, and was rejected):
+    # about them the fit may go as far as they were searched.
+    inside = span - step if clocks is None else max(span - step, reach)
     return [EffectInstance(effect.name, effect, ("tau_s",), (best,),
-                           data={"span_s": span, "inside_s": span - step, "around_s": around})]
+                           data={"span_s": span, "inside_s": inside, "around_s": around})]
