@@ -59,9 +59,9 @@ from koala_bridge.calibration.robust import (
     mixture_loglik,
     weighted_rms,
 )
-from koala_bridge.core.distributions import chi2_ppf, t_ppf
+from koala_bridge.core.distributions import chi2_ppf, f_sf, t_ppf
 from numpy.typing import NDArray
-from scipy import optimize, stats
+from scipy import optimize
 
 log = logging.getLogger(__name__)
 
@@ -496,8 +496,8 @@ VARIANCE_ALPHA = 1e-3
 
 def variance_blocks(r: FloatArray) -> NDArray[np.intp] | None:
     """The starts of contiguous blocks of ``r`` whose spreads differ beyond chance, or None when
-    one spread holds (the Brown-Forsythe test, ``scipy.stats.levene`` about the blocks'
-    medians, at ``VARIANCE_ALPHA``: robust to heavy tails, where Bartlett's test, which assumes
+    one spread holds (:func:`brown_forsythe` about the blocks' medians, at
+    ``VARIANCE_ALPHA``: robust to heavy tails, where Bartlett's test, which assumes
     normal residuals, rejected one variance on 213 of 300 t5 series and all t3 ones). A gyro
     that vibrates while its motors run has a residual several times noisier there than at rest,
     and a likelihood that counts every residual alike lets the noisy stretch drown what the
@@ -510,9 +510,26 @@ def variance_blocks(r: FloatArray) -> NDArray[np.intp] | None:
     starts = (np.arange(b) * n) // b
     if np.any(np.add.reduceat(r * r, starts) <= 0):
         return None
-    with np.errstate(divide="ignore", invalid="ignore"):  # blocks without spread: NaN
-        p = stats.levene(*np.split(r, starts[1:]), center="median").pvalue
+    p = brown_forsythe(np.split(r, starts[1:]))
     return starts if np.isfinite(p) and p < VARIANCE_ALPHA else None
+
+
+def brown_forsythe(groups: Sequence[FloatArray]) -> float:
+    """The Brown-Forsythe test's p-value (M. B. Brown & A. B. Forsythe 1974): the one-way
+    analysis of variance of ``|x - median|`` within each group, ``scipy.stats.levene`` with
+    ``center="median"`` (to 1e-12, ``tests/unit/test_calibration_vibration.py``) without
+    importing ``scipy.stats`` (``core.distributions``); NaN where no group has any spread."""
+    k = len(groups)
+    z = [np.abs(g - np.median(g)) for g in groups]
+    n = np.array([g.size for g in z], dtype=float)
+    total = float(n.sum())
+    means = np.array([float(np.mean(g)) for g in z])
+    grand = float(np.dot(n, means) / total)
+    within = float(sum(float(np.sum((g - m) ** 2)) for g, m in zip(z, means, strict=True)))
+    if not within > 0 or k < 2:
+        return float("nan")
+    f = (total - k) / (k - 1) * float(np.dot(n, (means - grand) ** 2)) / within
+    return f_sf(f, k - 1, total - k)
 
 
 def round_blocks(

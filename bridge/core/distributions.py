@@ -40,3 +40,8 @@ def binom_sf(k: float, n: int, p: float) -> float:
     if k >= n:
         return 0.0
     return float(special.bdtrc(k, n, p))
+
+
+def f_sf(x: float, dfn: float, dfd: float) -> float:
+    """Upper tail ``P(F > x)`` of the F distribution (``stats.f.sf``)."""
+    return float(special.fdtrc(dfn, dfd, x))

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from _bundles import calibrate_stream, gyro_bundle
-from koala_bridge.calibration.selection import _log_ratio, variance_blocks
+from koala_bridge.calibration.selection import _log_ratio, brown_forsythe, variance_blocks
 from koala_bridge.calibration.synthetic import DECLARED
 
 BIAS = 2e-4
@@ -87,3 +87,13 @@ def test_heavy_tails_of_one_spread_are_one_block(df: int) -> None:
     hits = sum(variance_blocks(np.random.default_rng(s).standard_t(df, 5000)) is not None
                for s in range(100))
     assert hits <= 2  # binomial(100, 1e-3): P(more than 2) < 2e-4
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_brown_forsythe_is_scipy_s_levene_about_the_median(seed: int) -> None:
+    from scipy import stats
+
+    rng = np.random.default_rng(seed)
+    groups = [rng.standard_t(4, 60) * (1 + (i % 3)) for i in range(7)]
+    assert brown_forsythe(groups) == pytest.approx(
+        stats.levene(*groups, center="median").pvalue, rel=1e-12, abs=1e-300)

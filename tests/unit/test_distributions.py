@@ -45,3 +45,8 @@ def test_importing_the_product_does_not_import_scipy_stats() -> None:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True)
     assert out.stdout.strip() == "False"
+
+
+@pytest.mark.parametrize(("x", "dfn", "dfd"), [(0.5, 3, 10), (2.0, 19, 19980), (40.0, 1, 5)])
+def test_f_sf(x: float, dfn: int, dfd: int) -> None:
+    assert d.f_sf(x, dfn, dfd) == pytest.approx(stats.f.sf(x, dfn, dfd), rel=1e-12)
