@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from koala_bridge.calibration.allan import MISFIT_Z, TAU_K_S, TAU_N_S, AllanFit, allan_noise
 from koala_bridge.calibration.problem import StreamProblem
-from koala_bridge.calibration.selection import Fit
+from koala_bridge.calibration.selection import VARIANCE_ALPHA, Fit, variance_blocks
 from koala_bridge.calibration.streams.scalar import ScalarProblem
 
 #: Stamps whose largest interval exceeds this many mean intervals are noted as irregular
@@ -78,6 +78,17 @@ def identify_noise(problem: StreamProblem, fit: Fit) -> StreamNoise | None:
         )
         return None
     notes = []
+    starts = variance_blocks(r - float(np.mean(r)))
+    if starts is not None:
+        sizes = np.diff(np.r_[starts, r.size])
+        sd = np.sqrt(np.add.reduceat((r - float(np.mean(r))) ** 2, starts) / sizes)
+        notes.append(
+            f"the residual's noise changes over time (its spread differs between {sizes.size} "
+            f"blocks beyond chance, Brown-Forsythe at {VARIANCE_ALPHA:g}: sd {float(sd.min()):.3g} "
+            f"to {float(sd.max()):.3g} {problem.unit}): the terms below, and --write-noise's "
+            "density, average the quiet and the noisy stretches; the sensor's own noise is "
+            "nearer the quiet one (a gyro shaking while its motors run)"
+        )
     u = getattr(problem, "u", None)
     if u is not None and float(np.nanstd(u)) > 0:
         notes.append(

@@ -417,9 +417,10 @@ def _note_clock_offset(problem: StreamProblem) -> None:
         return  # a latency the window holds (its inner half only centres the search)
     problem.notes.append(
         f"the readings match the reference best {tau:+.3g} s later ({score} {r:.2f}, "
-        f"against {r_near:.2f} at most, by magnitude, near no shift): the two "
-        "look stamped on clocks that far apart, and time_offset, where it is tried, is "
-        "searched there. Stamp both on one clock, or shift one (docs/bundle-format.md: one "
+        f"against {r_near:.2f} at most, by magnitude, near no shift): the readings' stamps "
+        f"look about {tau:+.3g} s late against the reference's (a coarse search; time_offset, "
+        "where it is tried, is fitted about it and says how far exactly). Stamp both on one "
+        "clock, or subtract that offset from the readings' t (docs/bundle-format.md: one "
         "clock for all files)"
     )
     rival = clock_rival(problem, tau) if isinstance(problem, ScalarProblem) else None

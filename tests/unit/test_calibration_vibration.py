@@ -97,3 +97,15 @@ def test_brown_forsythe_is_scipy_s_levene_about_the_median(seed: int) -> None:
     groups = [rng.standard_t(4, 60) * (1 + (i % 3)) for i in range(7)]
     assert brown_forsythe(groups) == pytest.approx(
         stats.levene(*groups, center="median").pvalue, rel=1e-12, abs=1e-300)
+
+
+@pytest.mark.parametrize(("shaking_s", "said"), [(250.0, True), (0.0, False)])
+def test_noise_that_changes_over_time_is_said_in_the_allan_section(
+    tmp_path: Path, shaking_s: float, said: bool
+) -> None:
+    """A new user's still gyro, 5 times noisier for its first 250 s: its Allan N (5.3e-4) and
+    --write-noise's density averaged the two stretches, 2.65 times the quiet one's, unsaid."""
+    res, _ = calibrate_stream(_still(tmp_path, 0, shaking_s), "gyro", DECLARED)
+    assert res is not None and res.noise is not None
+    notes = [n for n in res.noise.notes if n.startswith("the residual's noise changes over time")]
+    assert bool(notes) == said
