@@ -116,3 +116,21 @@ def test_effects_fitted_beside_a_gross_gain_are_not_written(tmp_path: Path) -> N
     assert "scale" in why and "bias" in why, why
     assert all(w is not None for w in why.values()), why
     assert "fitted beside scale" in str(why["bias"])
+
+
+def test_the_note_quotes_the_table_s_gain(tmp_path: Path) -> None:
+    """A new user saw 55.2 in the note and 55.8 in the table for one gain (the note read a
+    round's fit on the selection's subset): where the final model holds the scale, the note
+    quotes its gain."""
+    rng = np.random.default_rng(3)
+    t = np.arange(0.0, 300.0, 0.01)  # 30 000 rows: selected on a subset
+    w = 0.6 * np.sin(2 * np.pi * t / 9)
+    theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
+    d = gyro_bundle(tmp_path / "b", t, theta + rng.normal(0.0, 0.001, t.size),
+                    np.degrees(w + rng.normal(0.0, 0.002, t.size)))
+    res, _ = calibrate_stream(d, "gyro", DECLARED)
+    assert res is not None
+    (note,) = [n for n in res.problem.notes if "times the reference on the fit part" in n]
+    quoted = float(note.split("scale fitted ")[1].split(",")[0])
+    (scale,) = [p for p, _ in res.effect_params() if "scale_error" in p]
+    assert quoted == pytest.approx(scale["scale_error"], rel=1e-3), (note, scale)
