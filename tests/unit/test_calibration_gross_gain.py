@@ -14,14 +14,16 @@ from koala_bridge.calibration.pipeline import StreamResult
 from koala_bridge.calibration.synthetic import DECLARED
 
 
-def _gyro(tmp_path: Path, factor: float) -> StreamResult:
-    """60 s at 100 Hz turning back and forth; the gyro's rate times ``factor``."""
-    rng = np.random.default_rng(3)
-    t = np.arange(0.0, 60.0 + 0.005, 0.01)
+def _gyro(tmp_path: Path, factor: float, seconds: float = 60.0, dt: float = 0.01,
+          bias: float = 0.0, seed: int = 3) -> StreamResult:
+    """``seconds`` every ``dt`` (60 s at 100 Hz) turning back and forth; the gyro's rate (with
+    ``bias``) times ``factor``."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, seconds + dt / 2, dt)
     w = 0.6 * np.sin(2 * np.pi * t / 9)
     theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
     d = gyro_bundle(tmp_path / "b", t, theta + rng.normal(0.0, 0.001, t.size),
-                    factor * (w + rng.normal(0.0, 0.002, t.size)))
+                    factor * (w + bias + rng.normal(0.0, 0.002, t.size)))
     res, _ = calibrate_stream(d, "gyro", DECLARED)
     assert res is not None
     return res
@@ -89,14 +91,7 @@ def test_a_gyro_in_degrees_is_no_jump_of_the_reference(tmp_path: Path) -> None:
     read in deg/s turned 57 times the reference's smooth path (2 rad more in one 0.1 s step),
     and the note said the reference "jumps 300 time(s) where the gyro does not turn". The
     reference must itself step that far."""
-    rng = np.random.default_rng(4)
-    t = np.arange(0.0, 60.0 + 0.05, 0.1)
-    w = 0.6 * np.sin(2 * np.pi * t / 9)
-    theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
-    d = gyro_bundle(tmp_path / "b", t, theta + rng.normal(0.0, 0.001, t.size),
-                    np.degrees(w + rng.normal(0.0, 0.002, t.size)))
-    res, _ = calibrate_stream(d, "gyro", DECLARED)
-    assert res is not None
+    res = _gyro(tmp_path, 180 / np.pi, dt=0.1, seed=4)
     assert any("57.3 is degrees" in n for n in res.problem.notes)
     assert not any("reference heading jumps" in n for n in res.problem.notes)
 
@@ -104,14 +99,7 @@ def test_a_gyro_in_degrees_is_no_jump_of_the_reference(tmp_path: Path) -> None:
 def test_effects_fitted_beside_a_gross_gain_are_not_written(tmp_path: Path) -> None:
     """A gyro in deg/s with a 0.01 rad/s bias: the scale was withheld, the bias beside it (0.576,
     in deg/s) written as bias_rad_s. Everything the stream found is in the readings' unit."""
-    rng = np.random.default_rng(3)
-    t = np.arange(0.0, 60.0 + 0.005, 0.01)
-    w = 0.6 * np.sin(2 * np.pi * t / 9)
-    theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
-    d = gyro_bundle(tmp_path / "b", t, theta + rng.normal(0.0, 0.001, t.size),
-                    np.degrees(w + 0.01 + rng.normal(0.0, 0.002, t.size)))
-    res, _ = calibrate_stream(d, "gyro", DECLARED)
-    assert res is not None
+    res = _gyro(tmp_path, 180 / np.pi, bias=0.01)
     why = dict(zip([i.name for i in res.effects], res.not_written(), strict=True))
     assert "scale" in why and "bias" in why, why
     assert all(w is not None for w in why.values()), why
@@ -122,14 +110,7 @@ def test_the_note_quotes_the_table_s_gain(tmp_path: Path) -> None:
     """A new user saw 55.2 in the note and 55.8 in the table for one gain (the note read a
     round's fit on the selection's subset): where the final model holds the scale, the note
     quotes its gain."""
-    rng = np.random.default_rng(3)
-    t = np.arange(0.0, 300.0, 0.01)  # 30 000 rows: selected on a subset
-    w = 0.6 * np.sin(2 * np.pi * t / 9)
-    theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
-    d = gyro_bundle(tmp_path / "b", t, theta + rng.normal(0.0, 0.001, t.size),
-                    np.degrees(w + rng.normal(0.0, 0.002, t.size)))
-    res, _ = calibrate_stream(d, "gyro", DECLARED)
-    assert res is not None
+    res = _gyro(tmp_path, 180 / np.pi, seconds=300.0)  # 30 000 rows: selected on a subset
     (note,) = [n for n in res.problem.notes if "times the reference on the fit part" in n]
     quoted = float(note.split("scale fitted ")[1].split(",")[0])
     (scale,) = [p for p, _ in res.effect_params() if "scale_error" in p]
