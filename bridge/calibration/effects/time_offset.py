@@ -114,6 +114,14 @@ def clock_offset(problem: Any) -> tuple[float, float, float] | None:
     its clock 3 s off: 0.86 at +3.1 s against 0.57 within +-0.5 s (its error doubled, and
     nothing said it). Motion that repeats correlates about alike one period on, and is not
     taken; a reference mostly noise cannot explain enough to be."""
+    scores = _clock_scores(problem)
+    return None if scores is None else clock_pick(scores[2], scores[5], scores[4])
+
+
+def _clock_scores(problem: Any) -> tuple[Any, Any, Any, Any, float, Any] | None:
+    """``(t, y, taus, rows, span, r)``: the fit part's readings, the clock search's grid
+    (:func:`clock_grid`) and the readings' correlation with the reference at each of its
+    shifts; None without a reference or a grid."""
     if problem.reference is None:
         return None
     t, y = _fit_readings(problem)
@@ -121,8 +129,7 @@ def clock_offset(problem: Any) -> tuple[float, float, float] | None:
     if grid is None:
         return None
     taus, rows, span = grid
-    r = _correlations(t[rows], y[rows], problem.reference, taus)
-    return clock_pick(taus, r, span)
+    return t, y, taus, rows, span, _correlations(t[rows], y[rows], problem.reference, taus)
 
 
 def clock_rival(problem: Any, tau: float) -> tuple[float, float, float] | None:
@@ -133,14 +140,12 @@ def clock_rival(problem: Any, tau: float) -> tuple[float, float, float] | None:
     matches itself a period on: a stepper sweeping an IMU back and forth every 7.8 s, its log
     3 s off, matched at +3.01 s (0.981) and at -4.79 s (0.984) on the fit part, and the coarse
     grid's 0.2 s steps, missing the sharp peaks, read 0.92 and 0.98. Else None."""
-    t, y = _fit_readings(problem)
-    grid = clock_grid(t, problem.reference[0])
-    if grid is None:
+    scores = _clock_scores(problem)
+    if scores is None:
         return None
-    taus, rows, span = grid
+    t, y, taus, rows, span, r = scores
     step, _ = latency_window(t)
     coarse = float(taus[1] - taus[0])
-    r = _correlations(t[rows], y[rows], problem.reference, taus)
     # local maxima of the coarse grid beyond the latency window and away from tau
     inner = r[1:-1]
     peak = np.flatnonzero((inner >= r[:-2]) & (inner >= r[2:])) + 1
@@ -161,6 +166,12 @@ def clock_rival(problem: Any, tau: float) -> tuple[float, float, float] | None:
     return tau_2, r_2, r_1
 
 
+def clock_reach(t: Any) -> float:
+    """How far a clock offset is searched either way: min(:data:`MAX_CLOCK_OFFSET_S`,
+    :data:`CLOCK_SPAN_SHARE` of the fit part, its reading times ``t``)."""
+    return min(MAX_CLOCK_OFFSET_S, CLOCK_SPAN_SHARE * float(t[-1] - t[0]))
+
+
 def clock_grid(t: Any, t_ref: Any) -> tuple[Any, Any, float] | None:
     """``(taus, rows, span)``: the shifts a clock offset is searched at (beyond the latency
     window ``span`` of :func:`latency_window`, out to +-min(:data:`MAX_CLOCK_OFFSET_S`,
@@ -170,7 +181,7 @@ def clock_grid(t: Any, t_ref: Any) -> tuple[Any, Any, float] | None:
     step, span = latency_window(t)
     if not span:
         return None
-    reach = min(MAX_CLOCK_OFFSET_S, CLOCK_SPAN_SHARE * float(t[-1] - t[0]))
+    reach = clock_reach(t)
     coarse = max(step, reach / CLOCK_STEPS)
     k = int(reach / coarse)
     if k * coarse <= 2 * span:
@@ -268,7 +279,7 @@ def _propose_compass(effect: Effect, problem: Any) -> list[EffectInstance]:
         return []
     around = 0.0 if clocks is None else clocks[0]
     t_fit = problem.t[problem.split.mask(problem.t, "fit")]
-    reach = min(MAX_CLOCK_OFFSET_S, CLOCK_SPAN_SHARE * float(t_fit[-1] - t_fit[0]))
+    reach = clock_reach(t_fit)
     best, score = around, -np.inf
     n_fit = int(t_fit.size)
     rows = np.arange(0, n_fit, max(1, n_fit // (2 * CLOCK_ROWS)))  # a start: 4000 rows do
