@@ -68,20 +68,22 @@ def identify_noise(problem: StreamProblem, fit: Fit) -> StreamNoise | None:
         return None
     assert isinstance(problem, ScalarProblem)
     y = problem.y[np.isfinite(problem.y)]
-    if y.size > 1 and float(np.std(r)) > RESIDUAL_OVER_READINGS * float(np.std(y)):
+    rc = r - float(np.mean(r))
+    sd_r, sd_y = float(np.sqrt(np.mean(rc * rc))), float(np.std(y))
+    if y.size > 1 and sd_r > RESIDUAL_OVER_READINGS * sd_y:
         # a sign-flipped gyro's residual is twice its motion: K and B of that are no noise
         problem.notes.append(
             f"no Allan analysis: the residual varies more than the readings themselves (sd "
-            f"{float(np.std(r)):.3g} against {float(np.std(y)):.3g} {problem.unit}): the model "
+            f"{sd_r:.3g} against {sd_y:.3g} {problem.unit}): the model "
             "misses something large (a sign, a unit, a clock), and the curve would describe "
             "that, not the sensor's noise"
         )
         return None
     notes = []
-    starts = variance_blocks(r - float(np.mean(r)))
+    starts = variance_blocks(rc)
     if starts is not None:
         sizes = np.diff(np.r_[starts, r.size])
-        sd = np.sqrt(np.add.reduceat((r - float(np.mean(r))) ** 2, starts) / sizes)
+        sd = np.sqrt(np.add.reduceat(rc * rc, starts) / sizes)
         notes.append(
             f"the residual's noise changes over time (its spread differs between {sizes.size} "
             f"blocks beyond chance, Brown-Forsythe at {VARIANCE_ALPHA:g}: sd {float(sd.min()):.3g} "

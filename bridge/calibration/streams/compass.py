@@ -197,8 +197,7 @@ class CompassProblem(StreamProblem):
         c, s = np.cos(theta), np.sin(theta)
         # 1, cos a, sin a, cos 2a = 2 cos^2 a - 1, sin 2a = 2 sin a cos a
         X = np.stack([np.ones_like(c), c, s, 2 * c * c - 1, 2 * s * c], axis=1)
-        v = np.array([float(np.mean((d[k] - _solve(X[k], d[k]) @ X[k]) ** 2))
-                      for k in range(taus.size)]) if h.size < 10 else _batch_residual(X, d)
+        v = _batch_residual(X, d)
         top = float(np.max(v))
         if not top > 0 or np.ptp(v) <= 3 * np.sqrt(2 / max(h.size, 1)) * float(np.min(v)):
             return np.ones(len(taus))
