@@ -36,6 +36,12 @@ REQUIRED_COLUMNS: Mapping[str, tuple[str, ...]] = {
     "landmark_map": ("id", "x", "y"),
 }
 
+#: The fault log a recording of koala-bridge exports beside its readings (``faults.csv``,
+#: docs/faults.md): no measurement, but which readings were faulted on purpose
+#: (:mod:`koala_bridge.calibration.fault_log`); its columns.
+FAULT_LOG = "faults"
+FAULT_LOG_COLUMNS = ("t", "name", "kind", "target", "detail")
+
 #: Optional columns of the format that hold numbers when present: a text cell in one is an
 #: error naming its line (kept as text, the column looked absent: "no theta column").
 OPTIONAL_NUMERIC: Mapping[str, tuple[str, ...]] = {
@@ -121,6 +127,11 @@ class Bundle:
     #: what must be taken from consecutive samples (a gyro's means over its reference's
     #: intervals); None: this is the whole bundle
     whole: Bundle | None = field(default=None, compare=False, repr=False)
+    #: the recording's fault log (:data:`FAULT_LOG`), None when the bundle has none
+    faults: Table | None = None
+    #: spans ``(start, end)`` (s) where the odometry is set aside because of an injected fault
+    #: (a kidnap, a wheel slip, stuck encoders: :mod:`koala_bridge.calibration.fault_log`)
+    odometry_faulted: tuple[tuple[float, float], ...] = ()
 
     def get(self, name: str) -> Table | None:
         return self.tables.get(name)
@@ -295,8 +306,25 @@ def load_bundle(directory: Path) -> Bundle:
         _check_rows(csv_path, table)
         tables[name] = table
     meta = read_meta(directory / "meta.json")
+    faults = None
+    if (directory / f"{FAULT_LOG}.csv").exists():
+        faults = read_csv_table(directory / f"{FAULT_LOG}.csv")
+        missing = [c for c in ("t", "kind", "target") if c not in faults]
+        if missing:
+            raise BundleError(
+                f"{directory / f'{FAULT_LOG}.csv'} lacks required column(s) "
+                f"{', '.join(missing)}: a fault log has the columns "
+                f"{','.join(FAULT_LOG_COLUMNS)} (docs/faults.md)"
+            )
+        bad = np.flatnonzero(~np.isfinite(faults["t"]))
+        if bad.size:
+            raise BundleError(
+                f"{directory / f'{FAULT_LOG}.csv'}{_line(faults, int(bad[0]))}: the time t is "
+                "empty or not a number"
+            )
     unknown = tuple(
-        sorted(p.name for p in directory.glob("*.csv") if p.stem not in REQUIRED_COLUMNS)
+        sorted(p.name for p in directory.glob("*.csv")
+               if p.stem not in REQUIRED_COLUMNS and p.stem != FAULT_LOG)
     )
     if not tables:
         found = f"; it has {', '.join(unknown)}, which the format does not know" if unknown else ""
@@ -307,7 +335,7 @@ def load_bundle(directory: Path) -> Bundle:
     log.info(
         "loaded bundle %s: %s", directory, ", ".join(f"{k}[{len(v)}]" for k, v in tables.items())
     )
-    return Bundle(directory, tables, meta, unknown)
+    return Bundle(directory, tables, meta, unknown, faults=faults)
 
 
 def _line(table: Table, row: int) -> str:

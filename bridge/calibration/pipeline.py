@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -24,6 +24,7 @@ from koala_bridge.calibration.effects.common import (
 from koala_bridge.calibration.effects.scale import GROSS_GAIN, gross_gain
 from koala_bridge.calibration.effects.time_offset import clock_rival, search_window
 from koala_bridge.calibration.errors import EffectRegistryError
+from koala_bridge.calibration.fault_log import set_aside_faulted
 from koala_bridge.calibration.metrics import HeldOutStatistics, g4, heldout_statistics
 from koala_bridge.calibration.model import DeclaredModel
 from koala_bridge.calibration.noise import StreamNoise, identify_noise
@@ -739,7 +740,7 @@ def decimate_bundle(bundle: Bundle, max_rows: int, references: bool = False) -> 
             keep[[0, -1]] = True  # keep the span, so the split is the same
             table = table.select(keep)
         tables[name] = table
-    return Bundle(bundle.path, tables, bundle.meta, bundle.unknown_files, whole=bundle)
+    return replace(bundle, tables=tables, whole=bundle)
 
 
 def _problems(
@@ -883,6 +884,7 @@ def calibrate(
     """
     found: list[SkippedStream] = []
     options = options or Options()
+    bundle, fault_notes = set_aside_faulted(bundle)
     small = decimate_bundle(bundle, options.max_rows)
     small_odometry = decimate_bundle(bundle, options.max_rows, references=True)
 
@@ -937,6 +939,7 @@ def calibrate(
             )
     found += unknown_files(bundle)
     for res in results:
+        res.problem.notes.extend(fault_notes.get(res.problem.name, []))
         res.noise = identify_noise(res.problem, res.selection.after)
     note_level_bias(results)
     if skipped is not None:

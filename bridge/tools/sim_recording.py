@@ -58,9 +58,13 @@ def record_simulator(
     ``command`` gives the body speed ``(v m/s, omega rad/s)`` at each step (default
     :func:`weave_command`); the truth pose is recorded at ``pose_rate_hz`` (default: the
     config's ``[zenoh] pose_rate_hz``, read with the bridge's typed settings as a run reads it).
+    The config's ``[[faults]]`` (docs/faults.md) act as in a run, drawn from ``seed``: on the
+    simulator before each step (kidnap, wheel slip), on each step's readings (stuck, glitch,
+    bias, ...), and their events are recorded on ``events/fault``; bus faults have no bus here.
     """
-    from koala_bridge.core.topics import WorldMessage
+    from koala_bridge.core.topics import FaultEventMessage, WorldMessage
     from koala_bridge.recording.mcap_file import Recorder, run_metadata
+    from koala_bridge.runtime.faults import FaultInjector, faults_from_config
     from koala_bridge.runtime.settings import BridgeSettings
     from koala_bridge.runtime.zenoh_io import pose_message, sensor_messages
 
@@ -72,15 +76,24 @@ def record_simulator(
     world = WorldMessage.of(sim.world, sim.robot_description()).to_json()
     steps = round(duration_s / sim.dt)
     with Recorder(path, metadata=run_metadata("sim", config, None), world=world) as rec:
+        specs = faults_from_config(config)
+        faults = FaultInjector(specs, seed) if specs else None
         r = sim.reset(seed)
         for k in range(steps + 1):
+            if faults is not None:
+                r = faults.on_readings(r)
             messages = sensor_messages(r)
             if k % pose_period == 0:
                 messages = {"truth/pose": pose_message(r), **messages}
             for suffix, message in messages.items():
                 rec.record(suffix, r.t, message)
+            if faults is not None:
+                for event in faults.events():
+                    rec.record(FaultEventMessage.TOPIC, event.t, event.to_json())
             if k == steps:
                 break
+            if faults is not None:
+                faults.apply_to_sim(sim, sim.t)
             v, w = command(r.t)
             r = sim.step(WheelCommand(v - w * half_base, v + w * half_base))
     return Path(path)

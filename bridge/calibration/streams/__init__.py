@@ -1086,9 +1086,10 @@ def build_odometry(
         start_pose=(float(t_ref[inside][0]), model.start_pose.theta, 0.0)
         if model.start_pose is not None and theta is None
         else None,
+        faulted=bundle.odometry_faulted,
         **kw,
     )
-    jumps = reference_jumps(t_ref[inside], problem.p_ref[inside])
+    jumps = reference_jumps(t_ref[inside], problem.p_ref[inside], problem.faulted)
     if jumps:
         problem.notes.append(jumps)
     problem.notes.append(

@@ -303,32 +303,54 @@ JUMP_FACTOR = 5.0
 JUMP_QUANTILE = 0.98
 
 
-def reference_jumps(t: FloatArray, p: FloatArray) -> str | None:
+def reference_jumps(
+    t: FloatArray, p: FloatArray, explained: tuple[tuple[float, float], ...] = ()
+) -> str | None:
     """A note when the reference positions ``p`` (N, 2) at ``t`` jump: steps faster than
     :data:`JUMP_FACTOR` times the :data:`JUMP_QUANTILE` quantile of all steps' speeds (a
     tracker that loses its markers for a sample, a mocap frame swap). Nothing is taken out: a
     jump counts in its window's error (and may be set aside as a stall), so the note says
-    where, and how to remove them."""
+    where, and how to remove them. Steps inside ``explained`` (spans the fault log sets
+    aside: a kidnap) are none. A reference still in more than
+    ``1 - JUMP_QUANTILE`` of its steps (a simulated robot that never drove) jumps at any step
+    that moves."""
     dt = np.diff(t)
     ok = dt > 0
     if ok.sum() < 10:
         return None
     speed = np.hypot(*np.diff(p, axis=0)[ok].T) / dt[ok]
     top = float(np.quantile(speed, JUMP_QUANTILE))
-    if top <= 0:
-        return None
     fast = np.flatnonzero(speed > JUMP_FACTOR * top)
+    at = t[1:][ok][fast]
+    for a, b in explained:
+        keep = (at < a) | (at > b)
+        fast, at = fast[keep], at[keep]
     if fast.size == 0:
         return None
-    at = t[1:][ok][fast]
+    than = (f"faster than {JUMP_FACTOR:g}x the robot's {100 * JUMP_QUANTILE:g}th-percentile "
+            f"speed {top:.3g} m/s" if top > 0 else
+            f"at all, where it is still in at least {100 * JUMP_QUANTILE:g} % of them")
     return (
-        f"the reference jumps: {fast.size} of {speed.size} truth_pose steps move faster than "
-        f"{JUMP_FACTOR:g}x the robot's {100 * JUMP_QUANTILE:g}th-percentile speed "
-        f"{top:.3g} m/s (up to {float(speed[fast].max()):.3g} m/s; first at t = "
+        f"the reference jumps: {fast.size} of {speed.size} truth_pose steps move {than} "
+        f"(up to {float(speed[fast].max()):.3g} m/s; first at t = "
         f"{', '.join(f'{v:.6g}' for v in at[:3])}{', ...' if at.size > 3 else ''} s): "
         "a tracker's glitches? They count in their windows' errors; remove those rows from "
         "truth_pose.csv to leave them out"
     )
+
+
+def _with_spans(stalls: SetAside, more: tuple[tuple[float, float], ...]) -> SetAside:
+    """``stalls`` with the spans ``more`` too (sorted, overlapping ones merged: the windows
+    restart after each), its travel totals the stalls' own."""
+    if not more:
+        return stalls
+    merged: list[list[float]] = []
+    for a, b in sorted([*stalls.spans, *more]):
+        if merged and a <= merged[-1][1]:
+            merged[-1][1] = max(merged[-1][1], b)
+        else:
+            merged.append([a, b])
+    return SetAside(tuple((a, b) for a, b in merged), stalls.odometry_m, stalls.reference_m)
 
 
 def _runs(flag: NDArray[np.bool_]) -> list[tuple[int, int]]:
@@ -434,6 +456,9 @@ class OdometryProblem(StreamProblem):
     window_s: float = 10.0
     form: str = "ticks"
     start_pose: tuple[float, float, float] | None = None  # (t, theta) known at the start
+    #: spans set aside because a fault was injected there (``Bundle.odometry_faulted``:
+    #: a kidnap, a wheel slip, stuck encoders; :mod:`koala_bridge.calibration.fault_log`)
+    faulted: tuple[tuple[float, float], ...] = ()
 
     def __post_init__(self) -> None:
         self._last = LastResult()
@@ -444,9 +469,10 @@ class OdometryProblem(StreamProblem):
         self.clock_offset, clock_note = self.coarse_clock_offset(declared)
         if clock_note:
             self.notes.append(clock_note)
-        self.set_aside = find_stalls(
+        self.stalls = find_stalls(
             self.t_odo, declared, self.t_ref, self.p_ref, self.theta_ref, -self.clock_offset
         )
+        self.set_aside = _with_spans(self.stalls, self.faulted)
         if self.set_aside.spans:
             mid = 0.5 * (self.t_odo[1:] + self.t_odo[:-1])
             self._counted = ~self.set_aside.contains(mid)
@@ -458,7 +484,7 @@ class OdometryProblem(StreamProblem):
             for p in ("fit", "score")
         }
         self._windows["all"] = self._make_windows(keep, "all")
-        if self.set_aside.spans:
+        if self.stalls.spans:
             self._note_set_aside(inside)
 
     def coarse_clock_offset(
@@ -514,7 +540,7 @@ class OdometryProblem(StreamProblem):
         )
 
     def _note_set_aside(self, inside: NDArray[np.bool_]) -> None:
-        s = self.set_aside
+        s = self.stalls
         span = float(np.ptp(self.t_ref[inside])) if inside.any() else 0.0
         share = f"{s.seconds:.1f} s of {span:.1f} s ({100 * s.seconds / max(span, 1e-9):.0f} %)"
         if s.reference_m < STALL_FRACTION * s.odometry_m:
@@ -742,10 +768,12 @@ class OdometryProblem(StreamProblem):
             "windows": {"fit": self._windows["fit"].n, "score": self._windows["score"].n},
             "set_aside": {
                 "reason": "stall or wheel slip: the encoders counted, the reference did not move",
-                "spans_s": [[round(a, 3), round(b, 3)] for a, b in self.set_aside.spans],
-                "seconds": round(self.set_aside.seconds, 3),
-                "odometry_m": round(self.set_aside.odometry_m, 4),
-                "reference_m": round(self.set_aside.reference_m, 4),
+                "spans_s": [[round(a, 3), round(b, 3)] for a, b in self.stalls.spans],
+                "seconds": round(self.stalls.seconds, 3),
+                "odometry_m": round(self.stalls.odometry_m, 4),
+                "reference_m": round(self.stalls.reference_m, 4),
                 "short_pieces_s": round(self._short_s, 3),
             },
+            **({"faulted_spans_s": [[round(a, 3), round(b, 3)] for a, b in self.faulted]}
+               if self.faulted else {}),
         }
