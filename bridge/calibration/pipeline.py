@@ -22,7 +22,12 @@ from koala_bridge.calibration.effects.common import (
     stream_share,
 )
 from koala_bridge.calibration.effects.scale import GROSS_GAIN, gross_gain
-from koala_bridge.calibration.effects.time_offset import clock_rival, search_window
+from koala_bridge.calibration.effects.time_offset import (
+    clock_rival,
+    clocks_note,
+    correlations,
+    search_window,
+)
 from koala_bridge.calibration.errors import EffectRegistryError
 from koala_bridge.calibration.fault_log import set_aside_faulted
 from koala_bridge.calibration.metrics import HeldOutStatistics, g4, heldout_statistics
@@ -365,6 +370,8 @@ def run_stream(
     noted = len(problem.notes)  # what proposing and selecting note (an effect not tried, why)
     _note_clock_offset(problem)
     cands = candidates_for(problem, options.effects)
+    if options.effects is not None:
+        _note_unproposed(problem, options.effects, cands, noted)
     done = 0
 
     def tick() -> None:
@@ -416,14 +423,7 @@ def _note_clock_offset(problem: StreamProblem) -> None:
                else problem.latency_window())
     if abs(tau) <= span:
         return  # a latency the window holds (its inner half only centres the search)
-    problem.notes.append(
-        f"the readings match the reference best {tau:+.3g} s later ({score} {r:.2f}, "
-        f"against {r_near:.2f} at most, by magnitude, near no shift): the readings' stamps "
-        f"look about {tau:+.3g} s late against the reference's (a coarse search; time_offset, "
-        "where it is tried, is fitted about it and says how far exactly). Stamp both on one "
-        "clock, or subtract that offset from the readings' t (docs/bundle-format.md: one "
-        "clock for all files)"
-    )
+    problem.notes.append(clocks_note(tau, r, r_near, score))
     rival = clock_rival(problem, tau) if isinstance(problem, ScalarProblem) else None
     if rival is not None:
         problem.notes.append(
@@ -433,6 +433,31 @@ def _note_clock_offset(problem: StreamProblem) -> None:
             "a period on, and the fit part cannot tell which shift is the clocks'. Stamp both "
             "on one clock, or record motion that does not repeat"
         )
+
+
+def _note_unproposed(
+    problem: StreamProblem, names: Sequence[str], cands: Sequence[EffectInstance], noted: int
+) -> None:
+    """An effect of ``problem``'s kind asked for by name (``--effects``) that proposed nothing
+    for it and that no note since ``noted`` explains: say that it was not tried, and why where
+    it is plain (a reference computed per reading, which no shift moves), so that an effect
+    asked for never vanishes without a word."""
+    proposed = {c.name for c in cands} | {c.name.split(":", 1)[0] for c in cands}
+    said = " ".join(problem.notes[noted:])
+    for name in names:
+        if name in proposed or f"{name} not tried" in said:
+            continue
+        effect = available_effects().get(name.split(":", 1)[0])
+        if effect is None or problem.kind not in effect.kinds:
+            continue  # an effect of another kind of stream (a compass's, asked for a gyro)
+        if name == "time_offset" and getattr(problem, "reference", 1) is None:
+            why = ("the reference is computed per reading (a true range), not a series in "
+                   "time a shift could move: stamp the readings and the reference on one clock")
+        elif ":" in name:
+            why = "the stream has no such column, or its column does not vary"
+        else:
+            why = "it found nothing to fit on this stream (the notes above say what it lacks)"
+        problem.notes.append(f"{name} asked for (--effects) but not tried: {why}")
 
 
 def _note_gross_gain(problem: StreamProblem, sel: Selection) -> None:
@@ -779,6 +804,54 @@ HEADING_SPACE_SHARE = NOTE_REFERENCE_NOISE_SHARE
 LATENCY_SHARE_LEFT = 0.25
 
 
+#: the share of the declared model's rate residual (variance, fit part) that the reference's
+#: own differenced noise may be before a gyro is compared in heading space: beyond it the rate
+#: residual is mostly the reference's noise, and a shift of a fraction of a sample "improves"
+#: it by smoothing that noise (an independent study's clean gyros against a 50 Hz tracker with
+#: 0.3 mrad of heading noise, its share of the reference's variance only 0.16 %:
+#: ``time_offset`` 9-15 ms, "better by 16-39 %", on 4 of 28, the heading 8 times worse)
+RESIDUAL_NOISE_SHARE = 0.5
+#: consecutive rows of the fit part that residual is measured on
+RESIDUAL_ROWS = 4000
+
+
+def _noise_of_residual(problem: ScalarProblem, share: float) -> float:
+    """The reference's own noise (``share`` of its variance, as
+    :func:`koala_bridge.calibration.effects.common.reference_noise_share` measures it) over
+    the variance of the rate residual on the fit part: the least of the declared model's and
+    of a line ``a + b u(t - tau)`` through the reference read at the latency grid's best
+    ``tau`` (on a block of consecutive rows from the middle of the fit part, as the share is
+    measured): a gyro late by 0.15 s, or 5 % off in scale, has a residual that is mostly that
+    error, and once the effect is in the model, mostly the reference's noise again."""
+    p = problem.part("fit")
+    pred = problem.base_gain * p.u
+    ok = np.isfinite(pred) & np.isfinite(p.y)
+    if ok.sum() < 3:
+        return 0.0
+    var_p = float(np.var(pred[ok]))
+    var_r = float(np.var(p.y[ok] - pred[ok]))
+    if problem.reference is not None:
+        rows = np.flatnonzero(ok)
+        if rows.size > RESIDUAL_ROWS:
+            start = (rows.size - RESIDUAL_ROWS) // 2
+            rows = rows[start:start + RESIDUAL_ROWS]
+        t, y = p.t[rows], p.y[rows]
+        step, span = search_window(problem)
+        taus = np.arange(-span, span + step / 2, step) if span else np.zeros(1)
+        # the least squares line's residual variance is var(y) (1 - r^2)
+        r = correlations(t, y, problem.reference, taus)
+        if np.isfinite(r).any():
+            best = int(np.nanargmax(r))
+            var_r = min(var_r, float(np.var(y)) * (1.0 - float(r[best]) ** 2))
+            if taus[best]:
+                # the reference's noise as measured at the readings' latency: motion read a
+                # latency apart looks partly unshared, and the estimate then shrinks (a gyro
+                # 0.148 s late: a quarter of what its stamps' reference holds)
+                share = max(share, reference_noise_share(
+                    problem, u=problem._u_at(problem.t, float(taus[best]))))
+    return share * var_p / var_r if var_r > 0 else 0.0
+
+
 def _aligned_share(problem: ScalarProblem) -> float:
     """The reference noise share with the reference read at the stream's latency (the best of
     the latency grid, :func:`koala_bridge.calibration.effects.time_offset.coarse_lag`): readings
@@ -811,12 +884,14 @@ def _heading_space_if_noisy(small: StreamProblem, full: StreamProblem | None) ->
     share = stream_share(small)  # the whole stream's: calibrate sets it for a subset
     if not np.isfinite(share):
         return  # a constant reference (a still gyro: its noise, by Allan)
+    residual = _noise_of_residual(whole, share)
     if share <= MAX_REFERENCE_NOISE_SHARE and (
-        share <= HEADING_SPACE_SHARE or _aligned_share(whole) <= LATENCY_SHARE_LEFT * share
+        (share <= HEADING_SPACE_SHARE and residual <= RESIDUAL_NOISE_SHARE)
+        or _aligned_share(whole) <= LATENCY_SHARE_LEFT * share
     ):
         return  # a clean reference, or a latency the readings' share is
     for q in [small] if whole is small else [small, whole]:
-        to_heading_space(q, share)
+        to_heading_space(q, share, residual)
     # the heading's noise share in heading space, on consecutive samples: on a random subset
     # the readings' trapezoid over its gaps is no integral of the motion
     small.heading_share = whole.heading_share = whole.heading_noise_share()

@@ -70,6 +70,7 @@ def test_rate_space_on_the_same_data_misses_the_bias(
     # what the switch is for: rates compared with a reference that is mostly noise
     monkeypatch.setattr(pipeline, "MAX_REFERENCE_NOISE_SHARE", 1.0)
     monkeypatch.setattr(pipeline, "HEADING_SPACE_SHARE", 1.0)
+    monkeypatch.setattr(pipeline, "RESIDUAL_NOISE_SHARE", np.inf)
     res = _gyro(_bundle(tmp_path / "b", 0))
     assert res.problem.metric == "rms_rate_error"
     assert "bias" not in [i.name for i in res.effects]

@@ -82,6 +82,7 @@ def test_a_gain_within_the_reference_noise_is_not_written(
     # ~0.86 at several standard errors: the diluted gain is what predicts the readings from
     # that reference (named), not the gyro's (not written)
     monkeypatch.setattr(pipeline, "HEADING_SPACE_SHARE", 1.0)
+    monkeypatch.setattr(pipeline, "RESIDUAL_NOISE_SHARE", np.inf)
     for seed in range(2):
         res = _gyro(tmp_path, seed, 0.0, 0.02)
         share = res.problem.reference_share

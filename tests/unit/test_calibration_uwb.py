@@ -93,3 +93,53 @@ def test_beacons_without_positions_are_skipped_with_a_reason(tmp_path: Path) -> 
     skipped: list[SkippedStream] = []
     assert calibrate(bundle, declared_model({}, bundle.meta), skipped=skipped) == []
     assert [(s.stream, "landmark_map.csv" in s.missing) for s in skipped] == [("range:uwb", True)]
+
+
+def _shift_ranges(bundle: Path, late_s: float) -> None:
+    """Stamp the readings of ``landmarks.csv`` ``late_s`` later (their clock runs ahead)."""
+    path = bundle / "landmarks.csv"
+    lines = path.read_text(encoding="utf-8").splitlines()
+    out = [lines[0]]
+    for line in lines[1:]:
+        t, rest = line.split(",", 1)
+        out.append(f"{float(t) + late_s:.4f},{rest}")
+    path.write_text("\n".join(out) + "\n", encoding="utf-8")
+
+
+def _uwb(bundle: Path, effects: list[str] | None = None) -> list[str]:
+    from koala_bridge.calibration.pipeline import Options
+
+    b = load_bundle(bundle)
+    (res,) = calibrate(b, declared_model({}, b.meta), Options(effects=effects))
+    assert res.problem.name == "range:uwb"
+    return list(res.problem.notes)
+
+
+@pytest.mark.parametrize("late_s", [2.0, -3.0])
+def test_ranges_on_a_clock_seconds_apart_are_said_to_be(tmp_path: Path, late_s: float) -> None:
+    """A new user's lawn-mower log with its ranges 2 s late got a wrong scale and 9.8 times a
+    hand fit's error, and no word: the readings' correlation with the true ranges of the robot
+    shifted, searched as a scalar stream's clocks are, says how far they look apart."""
+    case = UwbCase(duration_s=200.0)
+    b = make_uwb_bundle(tmp_path / "b", 1, case)
+    _shift_ranges(b, late_s)
+    notes = _uwb(b)
+    said = [n for n in notes if n.startswith("the readings match the reference best")]
+    assert len(said) == 1, notes
+    tau = float(said[0].split(" best ")[1].split(" s later")[0])
+    # the coarse grid's step: reach / 50 steps, reach = min(10 s, 10 % of the fit part)
+    assert abs(tau - late_s) <= 0.1 * 0.6 * 200.0 / 50, said
+    dropped = [n for n in notes if "outside truth_pose.csv's time span" in n]
+    assert len(dropped) == 1 and dropped[0].startswith(f"{int(abs(late_s) * 4 * 10)} readings")
+
+
+def test_ranges_on_one_clock_are_not_said_to_be_apart(tmp_path: Path) -> None:
+    notes = _uwb(make_uwb_bundle(tmp_path / "b", 1, UwbCase(duration_s=200.0)))
+    assert not any(n.startswith("the readings match the reference best") for n in notes)
+    assert not any("outside truth_pose.csv" in n for n in notes)
+
+
+def test_an_effect_asked_for_and_not_tried_is_said_why(tmp_path: Path) -> None:
+    notes = _uwb(make_uwb_bundle(tmp_path / "b", 1, UwbCase()), ["time_offset", "scale"])
+    said = [n for n in notes if n.startswith("time_offset asked for (--effects) but not tried")]
+    assert len(said) == 1 and "computed per reading" in said[0], notes

@@ -60,7 +60,7 @@ def latency_window(t: Any) -> tuple[float, float]:
     return (step, span) if step > 0 and span >= step else (0.0, 0.0)
 
 
-def _correlations(t: Any, y: Any, reference: Any, taus: Any) -> Any:
+def correlations(t: Any, y: Any, reference: Any, taus: Any) -> Any:
     """The correlation of readings ``y`` at ``t`` with the reference shifted by each ``tau``."""
     t_ref, u_ref = reference
     yc = y - y.mean()
@@ -89,7 +89,7 @@ def coarse_lag(problem: Any, step: float, span: float, around: float = 0.0) -> f
         return around
     t, y = _fit_readings(problem)
     taus = around + np.arange(-span, span + step / 2, step)
-    r = _correlations(t, y, problem.reference, taus)
+    r = correlations(t, y, problem.reference, taus)
     return float(taus[int(np.argmax(r))]) if np.isfinite(r).any() else around
 
 
@@ -129,7 +129,7 @@ def _clock_scores(problem: Any) -> tuple[Any, Any, Any, Any, float, Any] | None:
     if grid is None:
         return None
     taus, rows, span = grid
-    return t, y, taus, rows, span, _correlations(t[rows], y[rows], problem.reference, taus)
+    return t, y, taus, rows, span, correlations(t[rows], y[rows], problem.reference, taus)
 
 
 def clock_rival(problem: Any, tau: float) -> tuple[float, float, float] | None:
@@ -156,7 +156,7 @@ def clock_rival(problem: Any, tau: float) -> tuple[float, float, float] | None:
 
     def refined(center: float) -> tuple[float, float]:
         fine = center + np.arange(-coarse, coarse + step / 2, step)
-        rf = _correlations(t[rows], y[rows], problem.reference, fine)
+        rf = correlations(t[rows], y[rows], problem.reference, fine)
         k = int(np.argmax(rf))
         return float(fine[k]), float(rf[k])
 
@@ -170,6 +170,20 @@ def clock_reach(t: Any) -> float:
     """How far a clock offset is searched either way: min(:data:`MAX_CLOCK_OFFSET_S`,
     :data:`CLOCK_SPAN_SHARE` of the fit part, its reading times ``t``)."""
     return min(MAX_CLOCK_OFFSET_S, CLOCK_SPAN_SHARE * float(t[-1] - t[0]))
+
+
+def clocks_note(tau: float, r: float, r_near: float, score: str, fitted: bool = True) -> str:
+    """The note on readings whose stamps look ``tau`` s late against the reference's."""
+    return (
+        f"the readings match the reference best {tau:+.3g} s later ({score} {r:.2f}, "
+        f"against {r_near:.2f} at most, by magnitude, near no shift): the readings' stamps "
+        f"look about {tau:+.3g} s late against the reference's ("
+        + ("a coarse search; time_offset, where it is tried, is fitted about it and says how "
+           "far exactly" if fitted else "a coarse search; no time_offset is fitted on this "
+           "stream")
+        + "). Stamp both on one clock, or subtract that offset from the readings' t "
+        "(docs/bundle-format.md: one clock for all files)"
+    )
 
 
 def clock_grid(t: Any, t_ref: Any) -> tuple[Any, Any, float] | None:

@@ -310,7 +310,7 @@ def _in_heading_space(problem: ScalarProblem) -> None:
     problem.integrate_window_s = HEADING_WINDOW_S
 
 
-def to_heading_space(problem: ScalarProblem, share: float) -> None:
+def to_heading_space(problem: ScalarProblem, share: float, of_residual: float = 0.0) -> None:
     """Compare a gyro with its dense reference in heading space, as with a compass: over
     :data:`HEADING_WINDOW_S` windows, the residual rate integrated
     (:attr:`ScalarProblem.integrate_window_s`). For a reference whose differenced rate is
@@ -323,11 +323,14 @@ def to_heading_space(problem: ScalarProblem, share: float) -> None:
     :meth:`ScalarProblem.heading_noise_share` on the whole stream: the pipeline sets it;
     ``effects.common.reference_dominates``): the heading's path over a window is its regressor.
     A time offset stays judged against the rate's share: a time shift smooths the reference's
-    noise."""
+    noise. ``of_residual``: that noise over the rate residual's variance
+    (``pipeline._noise_of_residual``), said when it is most of the residual."""
     _in_heading_space(problem)
+    most = (f" and {100 * min(of_residual, 1.0):.3g} % of the rate residual's variance"
+            if of_residual > 0.5 else "")
     problem.notes.append(
         f"compared in heading space ({HEADING_WINDOW_S:g} s windows): the reference rate is "
-        f"{100 * share:.3g} % its own noise once differenced (white noise grows with "
+        f"{100 * share:.3g} % its own noise once differenced{most} (white noise grows with "
         "differencing, shrinks with integration), so rates compared with it would say nothing; "
         "a reference with less noise, or more motion, is compared rate with rate. No Allan "
         "analysis and no noise density (--write-noise) come from it: the residual's noise "

@@ -23,11 +23,19 @@ from __future__ import annotations
 import numpy as np
 from koala_bridge.calibration.bundle import Bundle, Table
 from koala_bridge.calibration.effects.common import categorical_levels
+from koala_bridge.calibration.effects.time_offset import (
+    CLOCK_ROWS,
+    clock_grid,
+    clock_pick,
+    clocks_note,
+)
 from koala_bridge.calibration.model import DeclaredModel
 from koala_bridge.calibration.problem import FORMAT_DOC, MIN_ROWS, SkippedStream, Split
 from koala_bridge.calibration.problem import skip_stream as _skip
 from koala_bridge.calibration.streams.scalar import ScalarProblem
 from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
 
 #: The kind of range-only ``landmarks.csv`` readings without a ``kind`` column.
 DEFAULT_BEACON_KIND = "uwb"
@@ -70,6 +78,48 @@ def beacon_streams(bundle: Bundle) -> list[str]:
     rows = beacon_rows(obs) & np.isfinite(obs["range"])
     range_kinds = _range_csv_kinds(bundle)
     return [_stream_name(k, range_kinds) for k in sorted(set(_kinds(obs)[rows].tolist()))]
+
+
+def beacon_clocks(
+    t: FloatArray,
+    y: FloatArray,
+    bx: FloatArray,
+    by: FloatArray,
+    truth: tuple[FloatArray, FloatArray, FloatArray],
+    fit: NDArray[np.bool_],
+) -> tuple[float, float, float] | None:
+    """``(tau, r, r_near)`` when the ranges ``y`` (at ``t``, to beacons at ``bx, by``) and the
+    robot's positions ``truth`` ``(t, x, y)`` look stamped on clocks seconds apart: on the fit
+    part's readings, the ranges' correlation with the true ranges of the robot shifted by each
+    ``tau`` of :func:`.time_offset.clock_grid`, picked by :func:`.time_offset.clock_pick` as a
+    scalar stream's clocks are (a new user's lawn-mower log with its ranges 2 s late:
+    scale fitted 6.1 % for 7.0 %, 9.8 times a hand fit's error, and nothing said)."""
+    tt, tx, ty = truth
+    tf = t[fit]
+    if tf.size < 10 or tt.size < 2:
+        return None
+    grid = clock_grid(np.unique(tf), tt)
+    if grid is None:
+        return None
+    taus, _, span = grid
+    reach = float(np.max(np.abs(taus)))
+    keep = np.flatnonzero((tf >= tt[0] + reach) & (tf <= tt[-1] - reach))
+    rows = keep[:: max(1, keep.size // CLOCK_ROWS)]
+    if rows.size < 10:
+        return None
+    tr, yr, bxr, byr = tf[rows], y[fit][rows], bx[fit][rows], by[fit][rows]
+    r = np.array([
+        _correlation(yr, np.hypot(bxr - np.interp(tr - tau, tt, tx),
+                                  byr - np.interp(tr - tau, tt, ty)))
+        for tau in taus
+    ])
+    return clock_pick(taus, r, span)
+
+
+def _correlation(a: FloatArray, b: FloatArray) -> float:
+    a, b = a - a.mean(), b - b.mean()
+    d = float(np.sqrt(np.dot(a, a) * np.dot(b, b)))
+    return float(np.dot(a, b)) / d if d > 0 else float("nan")
 
 
 def build_beacons(
@@ -161,5 +211,15 @@ def build_beacons(
         unknown = int((~known & (kinds == kind)).sum())
         if unknown:
             problem.notes.append(f"{unknown} readings of beacons not in landmark_map.csv dropped")
+        outside = int((known & ~during & (kinds == kind) & np.isfinite(obs["range"])).sum())
+        if outside:
+            problem.notes.append(
+                f"{outside} readings outside truth_pose.csv's time span "
+                f"({tt[0]:.6g}-{tt[-1]:.6g} s) dropped: nothing says where the robot was"
+            )
+        clocks = beacon_clocks(ts, sub["range"], lmap["x"][j], lmap["y"][j], (tt, tx, ty),
+                               fit)
+        if clocks is not None:
+            problem.notes.append(clocks_note(*clocks, "correlation", fitted=False))
         out.append(problem)
     return out
