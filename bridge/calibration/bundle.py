@@ -231,8 +231,8 @@ def _read_numeric_fast(path: Path, raw: bytes) -> Table | None:
         head = raw[:eol].decode("utf-8-sig")
     except UnicodeDecodeError:
         return None
-    if head.lstrip().startswith("#"):
-        return None
+    if head.lstrip().startswith("#") or '"' in head:
+        return None  # a comment, or a quoted header (csv.QUOTE_NONNUMERIC): the csv module's
     header = [h.strip() for h in head.rstrip("\r").split(",")]
     if len(set(header)) != len(header) or not all(header):
         return None
@@ -290,7 +290,16 @@ def load_bundle(directory: Path) -> Bundle:
         table = read_csv_table(csv_path)
         missing = [c for c in required if c not in table]
         if missing:
-            raise BundleError(f"{csv_path} lacks required column(s) {', '.join(missing)}")
+            named = [*table.columns, *table.text]
+            hint = ""
+            if len(named) == 1 and any(sep in named[0] for sep in (";", "\t", "|")):
+                hint = ": a bundle CSV is comma separated"
+            elif any(c.lower() == m for c in named for m in missing):
+                hint = ": column names are lower case"
+            raise BundleError(
+                f"{csv_path} lacks required column(s) {', '.join(missing)} (its header: "
+                f"{', '.join(repr(c) for c in named)[:200]}){hint}"
+            )
         either = ONE_OF_COLUMNS.get(name, ())
         if either and not any(c in table for c in either):
             raise BundleError(f"{csv_path} lacks a {' or '.join(either)} column")
@@ -316,6 +325,8 @@ def load_bundle(directory: Path) -> Bundle:
                 f"{', '.join(missing)}: a fault log has the columns "
                 f"{','.join(FAULT_LOG_COLUMNS)} (docs/faults.md)"
             )
+        if "t" in faults.text:
+            raise BundleError(f"{directory / f'{FAULT_LOG}.csv'}: the time t is not numeric")
         bad = np.flatnonzero(~np.isfinite(faults["t"]))
         if bad.size:
             raise BundleError(

@@ -37,6 +37,7 @@ from typing import Any
 
 from koala_bridge.calibration.config_update import config_diff, not_simulated, write_config
 from koala_bridge.calibration.effects import available_effects
+from koala_bridge.calibration.errors import BundleError
 from koala_bridge.calibration.model import read_config
 from koala_bridge.calibration.pipeline import Options, check_effect_names
 from koala_bridge.calibration.report import metric_lines, write_report
@@ -161,8 +162,16 @@ def _paths_for(config: dict[str, Any], source: Path, target: Path) -> dict[str, 
 def run(args: argparse.Namespace) -> int:
     """Run the calibration; 0 on success, 1 when the output cannot be written. A bad input or
     config raises a CalibrationError, which cli/main.py reports in one line (exit 2)."""
+    # checked before the work: a wrong path found after minutes of fitting is lost work
+    if args.out.exists() and not args.out.is_dir():
+        print(f"koala-bridge calibrate: --out {args.out} is a file, not a directory; give the "
+              "directory the report goes into, e.g. --out calibration", file=sys.stderr)
+        return 2
+    for each in args.input:
+        if not Path(each).exists():  # (every stage's, before the first one's work)
+            raise BundleError(f"{each} does not exist: give a bundle directory or an .mcap "
+                              "recording")
     if args.write_config is not None:
-        # checked before the work: a wrong path found after minutes of fitting is lost work
         if args.write_config.is_dir():
             print(f"koala-bridge calibrate: --write-config {args.write_config} is a directory; "
                   f"give a file name, e.g. {args.write_config}/calibrated.toml", file=sys.stderr)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 from difflib import get_close_matches
 from typing import Any
 
@@ -550,6 +551,7 @@ def build_gyro(
         )
         return None
     table = gyro.select(inside)
+    outside = int((~inside).sum())
     t = table["t"]
     interval = model.gyro_sample_interval_s
     if interval is not None and dense:
@@ -603,6 +605,11 @@ def build_gyro(
         sparse_reference_t=ref[0] if sparse else None,
     )
     problem.notes.append(f"reference: {source}")
+    if outside:
+        problem.notes.append(
+            f"{outside} gyro.csv row(s) outside the reference's time span "
+            f"({ref[0][0]:.6g}-{ref[0][-1]:.6g} s) or with an empty yaw_rate left out"
+        )
     if means is not None and not averaged:
         problem.notes.append(
             "not compared as means over the reference's intervals, as a sparse reference asks: "
@@ -951,6 +958,52 @@ def _declared_motor_field(
     return np.asarray(speeds @ np.asarray(model.compass_motor_uT_per_mps).T / uT_per_unit)
 
 
+#: odometry.csv's column sets, in the order a stream takes the first it has
+ODOMETRY_FORMS = (("left_ticks", "right_ticks"), ("v", "omega"), ("x", "y", "theta"))
+
+
+def unwrap_counter(c: FloatArray) -> tuple[FloatArray, int | None, int]:
+    """Cumulative encoder counts ``c`` unwrapped where a 16- or 32-bit counter wrapped, the
+    counter's bits (None: no wrap) and how many wraps: every step beyond half the counter's
+    range and within a quarter of a multiple of it, the counts themselves within one range. A
+    16-bit count's wrap read as wheels spinning against a wall: 12 spans, 16 % of the run, set
+    aside as stalls."""
+    d = np.diff(c)
+    if d.size == 0 or not np.all(np.isfinite(c)):
+        return c, None, 0
+    for bits in (16, 32):
+        m = float(2**bits)
+        if float(np.max(c) - np.min(c)) >= m or not np.any(np.abs(d) > m / 2):
+            continue
+        wraps = np.round(d / m)
+        jumps = wraps != 0
+        if np.all(np.abs(d[jumps] - wraps[jumps] * m) < m / 4):
+            return (np.r_[c[0], c[0] + np.cumsum(d - wraps * m)], bits,
+                    int(np.abs(wraps).sum()))
+    return c, None, 0
+
+
+def _filled_rows(odo: Table) -> tuple[Table, str | None]:
+    """``odo`` without the rows whose form's columns (:data:`ODOMETRY_FORMS`) have an empty
+    cell, and a note saying which were left out (None when none were). One empty tick cell made
+    every dead-reckoned window NaN, and the stream "not comparable" with no word why; cumulative
+    counts lose nothing but that row's time, speeds and poses that sample."""
+    for cols in ODOMETRY_FORMS:
+        if all(c in odo.columns for c in cols):
+            filled = np.all([np.isfinite(odo[c]) for c in cols], axis=0)
+            if filled.all():
+                return odo, None
+            gone = np.flatnonzero(~filled)
+            lines = ("" if odo.lines is None else " (line " + ", ".join(
+                str(int(v)) for v in odo.lines[gone][:3]) + (", ..." if gone.size > 3 else "")
+                + ")")
+            return odo.select(filled), (
+                f"{gone.size} odometry.csv row(s) with an empty {'/'.join(cols)} cell left "
+                f"out{lines}: the rows on either side are dead-reckoned across them"
+            )
+    return odo, None
+
+
 def build_odometry(
     bundle: Bundle,
     model: DeclaredModel,
@@ -972,6 +1025,7 @@ def build_odometry(
     t = odo["t"]
     keep = np.r_[True, np.diff(t) > 0]
     odo = odo.select(keep)
+    odo, emptied = _filled_rows(odo)
     t = odo["t"]
     kw: dict[str, Any] = {}
     if "left_ticks" in odo.columns and "right_ticks" in odo.columns:
@@ -1008,6 +1062,14 @@ def build_odometry(
             )
             return None
         form = "ticks"
+        wrapped = []
+        for side in ("left_ticks", "right_ticks"):
+            counts, bits, n = unwrap_counter(odo[side])
+            if bits:
+                odo = replace(odo, columns={**odo.columns, side: counts})
+                wrapped.append(f"{side} wraps {n} time(s) at 2^{bits} (a {bits}-bit counter)")
+        if wrapped:
+            emptied = "; ".join(filter(None, [emptied, "; ".join(wrapped) + ": unwrapped"]))
         kw.update(
             d_left=np.diff(odo["left_ticks"]),
             d_right=np.diff(odo["right_ticks"]),
@@ -1092,6 +1154,23 @@ def build_odometry(
         faulted=bundle.odometry_faulted,
         **kw,
     )
+    windows = problem.describe()["windows"]
+    parts = {"fit": "fit part (first 60 %)", "score": "held-out part (last 40 %)"}
+    empty = [label for part, label in parts.items() if windows[part] == 0]
+    if empty:
+        aside = problem.set_aside.seconds
+        _skip(
+            skipped,
+            "odometry",
+            f"no dead-reckoning window left in the {' or the '.join(empty)}"
+            + (f": {aside:.1f} s of the recording set aside (stalls, wheel slip, faults)"
+               if aside else ""),
+            "record more driving where the wheels grip, in both parts of the time span (or "
+            f"give a shorter --window-s); see {FORMAT_DOC}",
+        )
+        return None
+    if emptied:
+        problem.notes.append(emptied)
     jumps = reference_jumps(t_ref[inside], problem.p_ref[inside], problem.faulted)
     if jumps:
         problem.notes.append(jumps)
@@ -1135,6 +1214,11 @@ def build_ranges(
             continue
         ok = np.isfinite(sub["measured"]) & np.isfinite(sub["true_range"]) & (sub["true_range"] > 0)
         dropped = int((~ok).sum())
+        # A metric range below 0 is no distance (an error code, a signed overflow): 2 % of
+        # negated readings hid a 5 % scale, unsaid. Set aside and counted.
+        negative = 0 if counts else int((ok & (sub["measured"] < 0)).sum())
+        if negative:
+            ok &= ~(sub["measured"] < 0)
         beyond = 0
         # The sonar's declared echo rules are the sonar's: a UWB or lidar range beyond the
         # sonar's 2.5 m is no censored echo (every UWB reading once went, unreported).
@@ -1272,7 +1356,15 @@ def build_ranges(
             problem.notes.append(outside)
         problem.notes.extend(_range_unit_notes(bundle.meta, str(kind), counts))
         if dropped:
-            problem.notes.append(f"{dropped} readings with true_range <= 0 or non-finite dropped")
+            problem.notes.append(
+                f"{dropped} readings with measured or true_range empty, or true_range <= 0, "
+                "dropped"
+            )
+        if negative:
+            problem.notes.append(
+                f"{negative} readings below 0 m set aside: a range cannot be negative (an error "
+                "code, or a signed overflow?)"
+            )
         if beyond:
             problem.notes.append(
                 f"{beyond} readings beyond the declared critical incidence angle or within "
