@@ -876,7 +876,7 @@ def _heading_space_if_noisy(small: StreamProblem, full: StreamProblem | None) ->
     stream's consecutive samples above ``MAX_REFERENCE_NOISE_SHARE``) is compared in heading
     space instead (:func:`koala_bridge.calibration.streams.to_heading_space`), the subset it is
     selected on and the whole stream alike."""
-    if small.name != "gyro" or not isinstance(small, ScalarProblem):
+    if small.name not in ("gyro", "gyro:level") or not isinstance(small, ScalarProblem):
         return
     if small.integrate_window_s is not None:  # already in heading space (a compass reference)
         return

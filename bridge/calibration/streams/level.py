@@ -155,6 +155,12 @@ def mounting_mask(gyro: Table) -> tuple[NDArray[np.bool_], str] | None:
     return mask, how
 
 
+#: a gap between level rows longer than this many of their median intervals, and than
+#: LEVEL_GAP_S, separates two level segments (heading-space windows start again after it)
+LEVEL_GAP_INTERVALS = 10
+LEVEL_GAP_S = 0.5
+
+
 def build_gyro_level(bundle: Bundle, model: DeclaredModel) -> ScalarProblem | None:
     """The ``gyro:level`` stream (module docstring), or None."""
     from koala_bridge.calibration.streams import build_gyro, heading_reference
@@ -179,7 +185,11 @@ def build_gyro_level(bundle: Bundle, model: DeclaredModel) -> ScalarProblem | No
     if min(int(fit.sum()), int((~fit).sum())) < MIN_LEVEL_SAMPLES:
         return None
     problem.name = "gyro:level"
-    problem.heading_window_s = None  # windows would span the tilted gaps
+    problem.heading_window_s = None  # the rate-space heading metric's windows run on over gaps
+    # heading space's windows start again after each tilted gap (a noisy reference's rate is
+    # compared there, as the whole stream's is: pipeline._heading_space_if_noisy)
+    dt = np.diff(problem.t)
+    problem.window_gap_s = max(LEVEL_GAP_INTERVALS * float(np.median(dt)), LEVEL_GAP_S)
     problem.notes.append(
         f"level segments only ({how}): {int(mask.sum())} of {mask.size} samples; the z-rate "
         "bias is fitted and scored here, apart from the tilt coupling of the whole stream"

@@ -164,6 +164,11 @@ class ScalarProblem(StreamProblem):
     #: (re-anchored at each window start) instead of the rate residual itself; used when the
     #: reference heading is noisy (a compass), whose derivative is far noisier than its integral.
     integrate_window_s: float | None = None
+    #: a gap between rows longer than this (s) starts a new window (of heading space, of the
+    #: heading metric): the level segments of a gyro moved in 3-D, between which the tilted
+    #: stretches are left out and the readings' trapezoid over the gap is no integral; None:
+    #: windows run on over any gap
+    window_gap_s: float | None = None
     #: the reference heading ``(t, rad)`` whose rate ``u`` is, and the interval the declared
     #: readings average over (``u`` is then the heading's change over it): a heading error
     #: (heading space, :meth:`heading_window_errors`) takes the reference's share as the
@@ -276,7 +281,7 @@ class ScalarProblem(StreamProblem):
         if self.integrate_window_s is not None:
             t = self._parts[part].t
             return self._integrate(t, self._increments(insts, x, part, for_fit),
-                                   self.integrate_window_s)
+                                   self.integrate_window_s, self.window_gap_s)
         return self._residual(insts, x, part, for_fit)
 
     def _increments(
@@ -367,21 +372,33 @@ class ScalarProblem(StreamProblem):
         return clock_offset(self)
 
     @staticmethod
-    def _windows(t: FloatArray, window_s: float) -> tuple[np.ndarray, np.ndarray]:
-        """Per row of ``t``: its ``window_s`` window's number (from ``t[0]``), and the row its
-        window starts at (the latest start, not the running maximum of anything: a heading error
-        that falls from one window to the next is re-anchored as well)."""
-        k = np.floor((t - t[0]) / window_s).astype(int)
-        start = np.r_[True, k[1:] != k[:-1]]
+    def _windows(
+        t: FloatArray, window_s: float, gap_s: float | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Per row of ``t``: its ``window_s`` window's number (from ``t[0]``, and from the first
+        row after each gap longer than ``gap_s``: :attr:`window_gap_s`), and the row its window
+        starts at (the latest start, not the running maximum of anything: a heading error that
+        falls from one window to the next is re-anchored as well)."""
+        if gap_s is None or t.size < 2:
+            k = np.floor((t - t[0]) / window_s).astype(int)
+            start = np.r_[True, k[1:] != k[:-1]]
+        else:
+            piece = np.r_[0, np.cumsum(np.diff(t) > gap_s)]
+            first = np.r_[0, np.flatnonzero(np.diff(piece)) + 1]
+            within = np.floor((t - t[first][piece]) / window_s).astype(int)
+            start = np.r_[True, (piece[1:] != piece[:-1]) | (within[1:] != within[:-1])]
+            k = np.cumsum(start) - 1
         return k, np.maximum.accumulate(np.where(start, np.arange(t.size), 0))
 
     @staticmethod
-    def _integrate(t: FloatArray, inc: FloatArray, window_s: float) -> FloatArray:
+    def _integrate(
+        t: FloatArray, inc: FloatArray, window_s: float, gap_s: float | None = None
+    ) -> FloatArray:
         """The sum of the increments ``inc`` (one per interval of ``t``) from the start of each
         ``window_s`` window: each window starts from zero."""
         if t.size < 2:
             return np.zeros(t.shape)
-        _, anchor = ScalarProblem._windows(t, window_s)
+        _, anchor = ScalarProblem._windows(t, window_s, gap_s)
         c = np.r_[0.0, np.cumsum(inc)]
         return np.asarray(c - c[anchor], dtype=float)
 
@@ -413,7 +430,7 @@ class ScalarProblem(StreamProblem):
         t = self._parts[part].t
         if t.size < 2:
             return 0.0
-        k, _ = self._windows(t, self.integrate_window_s)
+        k, _ = self._windows(t, self.integrate_window_s, self.window_gap_s)
         sizes = np.bincount(k)
         sizes = sizes[sizes >= 2]
         if r is None or r.size != t.size:
@@ -458,12 +475,12 @@ class ScalarProblem(StreamProblem):
         t = p.t
         if t.size < 4:
             return 0.0
-        _, anchor = self._windows(t, self.integrate_window_s)
+        _, anchor = self._windows(t, self.integrate_window_s, self.window_gap_s)
         # read where the readings' clock puts it (a gyro 3 s off read as 24 % noise)
         path = self._heading_at(t - (0.0 if self.clocks_apart is None else self.clocks_apart[0]))
         path = path - path[anchor]
         readings = self._integrate(t, 0.5 * (p.y[1:] + p.y[:-1]) * np.diff(t),
-                                   self.integrate_window_s)
+                                   self.integrate_window_s, self.window_gap_s)
         tau = t - t[anchor]
         tt = float(np.dot(tau, tau))
         if tt > 0:
@@ -514,7 +531,8 @@ class ScalarProblem(StreamProblem):
     ) -> tuple[FloatArray, FloatArray]:
         if self.integrate_window_s is not None:
             return self.t, self._integrate(
-                self.t, self._increments(insts, x, "all"), self.integrate_window_s
+                self.t, self._increments(insts, x, "all"), self.integrate_window_s,
+                self.window_gap_s,
             )
         return self.t, self._residual(insts, x, "all", False)
 
@@ -580,7 +598,7 @@ class ScalarProblem(StreamProblem):
         p = self._parts["score"]
         if p.t.size < 2:
             return np.empty(0)
-        k, _ = self._windows(p.t, window_s)
+        k, _ = self._windows(p.t, window_s, self.window_gap_s)
         dt = np.diff(p.t)
         inc = self._increments(insts, x, "score")
         same = k[1:] == k[:-1]
