@@ -7,7 +7,7 @@ truth heading), then gyro, odometry, range sensors and landmarks.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -31,7 +31,7 @@ from koala_bridge.calibration.effects.time_offset import (
 from koala_bridge.calibration.errors import EffectRegistryError
 from koala_bridge.calibration.fault_log import set_aside_faulted
 from koala_bridge.calibration.metrics import HeldOutStatistics, g4, heldout_statistics
-from koala_bridge.calibration.model import DeclaredModel
+from koala_bridge.calibration.model import META_KEYS, DeclaredModel
 from koala_bridge.calibration.noise import StreamNoise, identify_noise
 from koala_bridge.calibration.problem import (
     FloatArray,
@@ -1015,11 +1015,38 @@ def calibrate(
     found += unknown_files(bundle)
     for res in results:
         res.problem.notes.extend(fault_notes.get(res.problem.name, []))
+        unread = _unread_meta(bundle.meta, res.problem.name)
+        if unread:
+            res.problem.notes.append(unread)
         res.noise = identify_noise(res.problem, res.selection.after)
     note_level_bias(results)
     if skipped is not None:
         skipped.extend(found)
     return results  # empty: no stream with a reference (the caller says so, from skipped)
+
+
+def _unread_meta(meta: Mapping[str, Any], stream: str) -> str | None:
+    """A note when ``meta.json``'s ``sensor`` section has numbers for ``stream``'s kind of
+    sensor (``sensor.<kind>``: ``uwb`` for ``range:uwb``) that the declared model does not read
+    (:data:`koala_bridge.calibration.model.META_KEYS`): a user's declared UWB scale was ignored
+    without a word, and the tool then "found" the scale the user had declared."""
+    kind = stream.split(":", 1)[1] if stream.startswith(("range:", "landmark_range:")) else stream
+    section = meta.get("sensor")
+    declared = section.get(kind) if isinstance(section, Mapping) else None
+    if not isinstance(declared, Mapping):
+        return None
+    read = {path[-1] for path in META_KEYS if path[:2] == ("sensor", kind)}
+    numbers = {k: v for k, v in declared.items()
+               if k not in read and isinstance(v, int | float) and not isinstance(v, bool)}
+    if not numbers:
+        return None
+    listed = ", ".join(f"{k} = {v:g}" for k, v in list(numbers.items())[:5])
+    return (
+        f"meta.json's sensor.{kind} ({listed}) is not read: the declared model takes from "
+        f"meta.json only {', '.join(sorted(dotted for dotted in META_KEYS.values()))}; a "
+        "found effect is measured against the model without them (declare what the simulator "
+        "has keys for with --config)"
+    )
 
 
 def compass_heading_of(problem: CompassProblem, sel: Selection) -> tuple[Any, Any] | None:

@@ -103,6 +103,10 @@ def test_level_segments_against_a_noisy_heading_are_compared_in_heading_space(
     bundle = load_bundle(path)
     results = {r.problem.name: r for r in calibrate(bundle, declared_model(IDEAL, bundle.meta))}
     level = results["gyro:level"]
+    # the whole stream says how much of it is tilted, where its z gyro reads no heading rate
+    (tilted,) = (n for n in results["gyro"].problem.notes if "tilted off its level" in n)
+    share = 1 - level.problem.t.size / results["gyro"].problem.t.size
+    assert f"about {100 * share:.0f} % of the samples" in tilted
     assert level.problem.integrate_window_s is not None  # heading space
     assert level.problem.window_gap_s is not None
     assert [i.name for i in level.effects] == ["bias"]

@@ -143,3 +143,14 @@ def test_an_effect_asked_for_and_not_tried_is_said_why(tmp_path: Path) -> None:
     notes = _uwb(make_uwb_bundle(tmp_path / "b", 1, UwbCase()), ["time_offset", "scale"])
     said = [n for n in notes if n.startswith("time_offset asked for (--effects) but not tried")]
     assert len(said) == 1 and "computed per reading" in said[0], notes
+
+
+def test_a_declared_beacon_model_the_tool_does_not_read_is_said(tmp_path: Path) -> None:
+    """A new user declared the UWB scale in meta.json (``sensor.uwb.scale_error``): ignored
+    without a word, and the tool then "found" the scale the user had declared."""
+    b = make_uwb_bundle(tmp_path / "b", 1, UwbCase())
+    (b / "meta.json").write_text('{"sensor": {"uwb": {"scale_error": 0.03, "name": "dw1000"}}}',
+                                 encoding="utf-8")
+    notes = _uwb(b)
+    said = [n for n in notes if n.startswith("meta.json's sensor.uwb (scale_error = 0.03)")]
+    assert len(said) == 1 and "is not read" in said[0], notes

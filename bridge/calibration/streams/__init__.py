@@ -573,6 +573,9 @@ def build_gyro(
         rate_ref = (np.interp(t, *ref) - np.interp(t - interval, *ref)) / interval
     else:
         rate_ref = _rate_of(ref[0], ref[1], t)
+    clipped = saturated(table["yaw_rate"], rate_ref)
+    if clipped is not None:
+        table, t, rate_ref = table.select(~clipped[0]), t[~clipped[0]], rate_ref[~clipped[0]]
     readings = table["yaw_rate"]
     sparse, means = _sparse_means(bundle, ref, t, readings, interval is None) if dense else (
         False, None)
@@ -619,6 +622,8 @@ def build_gyro(
         sparse_reference_t=ref[0] if sparse else None,
     )
     problem.notes.append(f"reference: {source}")
+    if clipped is not None:
+        problem.notes.append(clipped[1])
     if outside:
         problem.notes.append(
             f"{outside} gyro.csv row(s) outside the reference's time span "
@@ -974,6 +979,44 @@ def _declared_motor_field(
 
 #: odometry.csv's column sets, in the order a stream takes the first it has
 ODOMETRY_FORMS = (("left_ticks", "right_ticks"), ("v", "omega"), ("x", "y", "theta"))
+
+
+#: readings equal to the stream's largest (smallest) value are a saturated sensor's when at
+#: least SATURATED_ROWS of them, and SATURATED_SHARE of the readings, repeat it, and the
+#: reference is beyond it on most of them
+SATURATED_ROWS = 3
+SATURATED_SHARE = 1e-3
+
+
+def saturated(y: FloatArray, u: FloatArray) -> tuple[NDArray[np.bool_], str] | None:
+    """The readings ``y`` pinned at the sensor's range's end, and a note; None when there are
+    none. A reading that repeats the stream's extreme value while the reference ``u`` (in the
+    readings' unit) is beyond it says "at least this much", not a value: a gyro clipped at
+    +-250 deg/s read as a scale error the model lacked (7.6 % of readings pinned hid a real 2 %
+    scale, unsaid). Set aside and counted; readings of another unit (the reference never
+    beyond them) are kept."""
+    ok = np.isfinite(y)
+    if ok.sum() < 10:
+        return None
+    pinned = np.zeros(y.size, dtype=bool)
+    ends = []
+    for sign, end in ((1.0, float(np.max(y[ok]))), (-1.0, float(np.min(y[ok])))):
+        hit = ok & np.isclose(y, end, rtol=1e-9, atol=0.0)
+        n = int(hit.sum())
+        if n < max(SATURATED_ROWS, SATURATED_SHARE * ok.sum()) or n > 0.5 * ok.sum():
+            continue
+        beyond = sign * u[hit] > sign * end
+        if end == 0.0 or sign * end < 0 or beyond.mean() < 0.5:
+            continue
+        pinned |= hit
+        ends.append(f"{end:+.4g}")
+    if not pinned.any():
+        return None
+    return pinned, (
+        f"{int(pinned.sum())} readings pinned at the sensor's range's end ({', '.join(ends)}, "
+        "where the reference turned faster) set aside: a saturated reading says 'at least "
+        "this much', not a value"
+    )
 
 
 def unwrap_counter(c: FloatArray) -> tuple[FloatArray, int | None, int]:

@@ -202,7 +202,16 @@ def note_level_bias(results: Sequence[Any]) -> None:
     found one (``results``: :class:`koala_bridge.calibration.pipeline.StreamResult`)."""
     by_name = {res.problem.name: res for res in results}
     whole, level = by_name.get("gyro"), by_name.get("gyro:level")
-    if whole is None or level is None or not any(i.name == "bias" for i in level.effects):
+    if whole is None or level is None:
+        return
+    share = 1.0 - level.problem.t.size / max(whole.problem.t.size, 1)
+    whole.problem.notes.append(
+        f"the sensor is tilted off its level mounting on about {100 * share:.0f} % of the "
+        "samples (the accelerometer's gravity): there its z gyro does not read the heading's "
+        "rate, and this stream's error holds the tilt, not only the sensor's; the level "
+        "segments alone are stream gyro:level"
+    )
+    if not any(i.name == "bias" for i in level.effects):
         return
     whole.problem.notes.append(
         "the gyro's bias is the level segments' (stream gyro:level, written as bias_rad_s): "
