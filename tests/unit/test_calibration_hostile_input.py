@@ -168,3 +168,33 @@ def test_readings_of_another_unit_are_not_called_saturated() -> None:
     assert found is not None and int(found[0].sum()) == int(np.sum(np.abs(u) >= 4.0))
     # the same readings in deg/s: the reference (rad/s) is never beyond them
     assert saturated(np.degrees(y), u) is None
+
+
+def _turning_gyro(tmp_path: Path, seed: int, scale: float, spikes_at: list[int]) -> Path:
+    from _bundles import gyro_bundle
+
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, 120.0, 0.02)
+    w = 1.5 * np.sin(2 * np.pi * t / 9.0) * np.sin(2 * np.pi * t / 31.0)
+    theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * 0.02)]
+    y = (1 + scale) * w + rng.normal(0.0, 0.003, t.size)
+    y[spikes_at] = 30.0
+    return gyro_bundle(tmp_path / f"b{seed}", t, theta, y)
+
+
+def test_isolated_gyro_spikes_are_set_aside(tmp_path: Path) -> None:
+    """Six single-sample glitches of 30 rad/s among 6000 readings hid a real 3 % scale."""
+    at = [500, 1700, 2300, 3100, 4400, 5900]
+    res, _ = calibrate_stream(_turning_gyro(tmp_path, 1, 0.03, at), "gyro", DECLARED)
+    assert res is not None
+    assert any(n.startswith("6 isolated spike(s) set aside") for n in res.problem.notes)
+    params = {k: (v, s[k]) for p, s in res.effect_params() for k, v in p.items()}
+    value, se = params["scale_error"]
+    assert abs(value - 0.03) < 4 * se, (value, se)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_gaussian_noise_has_no_spikes(tmp_path: Path, seed: int) -> None:
+    res, _ = calibrate_stream(_turning_gyro(tmp_path, seed, 0.0, []), "gyro", DECLARED)
+    assert res is not None
+    assert not any("spike" in n for n in res.problem.notes)
