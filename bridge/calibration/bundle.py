@@ -318,7 +318,7 @@ def load_bundle(directory: Path) -> Bundle:
     faults = None
     if (directory / f"{FAULT_LOG}.csv").exists():
         faults = read_csv_table(directory / f"{FAULT_LOG}.csv")
-        missing = [c for c in ("t", "kind", "target") if c not in faults]
+        missing = [c for c in ("t", "name", "kind", "target") if c not in faults]
         if missing:
             raise BundleError(
                 f"{directory / f'{FAULT_LOG}.csv'} lacks required column(s) "

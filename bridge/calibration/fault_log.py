@@ -27,7 +27,6 @@ readings the recording holds: nothing of them is set aside.
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -158,22 +157,26 @@ def set_aside_faulted(bundle: Bundle) -> tuple[Bundle, dict[str, list[str]]]:
     for name, table in bundle.tables.items():
         if name not in ("gyro", "compass", "range", "landmarks"):
             continue
-        t = table["t"]
+        t = table["t"]  # non-decreasing (load_bundle checks): windows by binary search
         drop = np.zeros(len(table), dtype=bool)
         margin = KIDNAP_MARGIN_SAMPLES * max(dt_ref, _interval(t))
+        kinds = (np.asarray(table.text["kind"]).astype(str) if "kind" in table.text
+                 else None)
         for f in faults:
             if f.kind == "kidnap" and name != "range" and truth is not None:
-                hit = (t >= f.start - margin) & (t <= f.start + margin)
+                lo, hi = f.start - margin, f.start + margin
             elif f.kind in SENSOR_FAULTS and _TABLE.get(f.target) == name:
-                hit = _in_window(t, f)
-                if name == "range":
-                    hit &= _of_sensors(table, f)
+                # a glitch: its one reading's stamp
+                lo, hi = (f.start - 1e-6, f.end + 1e-6) if f.start == f.end else (f.start, f.end)
             else:
                 continue
-            new = int((hit & ~drop).sum())
+            rows = np.arange(np.searchsorted(t, lo, "left"), np.searchsorted(t, hi, "right"))
+            if name == "range" and rows.size:
+                rows = rows[_of_sensors(table, f, rows, kinds)]
+            new = int((~drop[rows]).sum())
             for stream in _STREAMS[f.target if name == "range" else name]:
                 aside.setdefault(stream, _Aside()).add(new, f)
-            drop |= hit
+            drop[rows] = True
         if drop.any():
             tables[name] = table.select(~drop)
     spans, why = _odometry_spans(bundle, faults, dt_ref)
@@ -188,30 +191,23 @@ def set_aside_faulted(bundle: Bundle) -> tuple[Bundle, dict[str, list[str]]]:
     if spans:
         notes.setdefault("odometry", []).append(
             f"set aside the odometry where {len(spans)} fault(s) were injected, as the "
-            "recording's "
-            f"fault log says ({FAULT_LOG}.csv: {'; '.join(why)}): "
-            "a robot picked up, a wheel slipping or encoders stuck on purpose is no error of "
-            "the odometry model); windows restart after each"
+            f"recording's fault log says ({FAULT_LOG}.csv: {'; '.join(why)}): a robot picked "
+            "up, a wheel slipping or encoders stuck on purpose is no error of the odometry "
+            "model; windows restart after each"
         )
     return replace(bundle, tables=tables, odometry_faulted=spans), notes
 
 
-def _in_window(t: NDArray[np.float64], f: Fault) -> NDArray[np.bool_]:
-    if f.start == f.end:  # one reading (a glitch): its own stamp
-        return np.isclose(t, f.start, rtol=0.0, atol=1e-6)
-    return (t >= f.start) & (t <= f.end)
-
-
-def _of_sensors(table: Table, f: Fault) -> NDArray[np.bool_]:
-    """Range rows of the fault's kind of sensor (the ``kind`` column; all rows when there is
-    none) and of its ``sensors``."""
-    n = len(table)
-    out = np.ones(n, dtype=bool)
-    kinds: Mapping[str, Any] = table.text
-    if "kind" in kinds:
-        out &= np.asarray(kinds["kind"]).astype(str) == f.target
+def _of_sensors(
+    table: Table, f: Fault, rows: NDArray[np.intp], kinds: NDArray[np.str_] | None
+) -> NDArray[np.bool_]:
+    """Which of the range ``rows`` are of the fault's kind of sensor (the ``kind`` column; all
+    when there is none) and of its ``sensors``."""
+    out = np.ones(rows.size, dtype=bool)
+    if kinds is not None:
+        out &= kinds[rows] == f.target
     if f.sensors is not None and "sensor" in table.columns:
-        out &= np.isin(table["sensor"], np.asarray(f.sensors, dtype=float))
+        out &= np.isin(table["sensor"][rows], np.asarray(f.sensors, dtype=float))
     return out
 
 

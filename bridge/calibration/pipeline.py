@@ -798,38 +798,50 @@ def _problems(
 #: it off by 2 SE); the report's note on attenuation starts there too
 HEADING_SPACE_SHARE = NOTE_REFERENCE_NOISE_SHARE
 #: a share a latency explains: read at the latency grid's best, at most this part of it is left
-#: (the simulator's gyro 7 ms late: 1.2 % -> 0). A noisy reference read half a sample over is
-#: smoothed, and its share falls too, but by less (a clean gyro against a 50 Hz heading: 1.14
-#: -> 0.67 %): it stays a noisy reference
-LATENCY_SHARE_LEFT = 0.25
+#: (the simulator's gyro 7 ms late: 1.2 % -> 0). A noisy reference read between its samples is
+#: smoothed, and its share falls too: half a sample over, white heading noise keeps exactly a
+#: quarter of its differenced variance, ``1 - 3f + 3f^2`` at a fraction ``f`` (a new user's
+#: gyro against a tracker sampled as densely: 0.72 -> 0.18 %, ratio 0.249, rate space on 4 of 9
+#: seeds at 0.25 and a half-sample latency "found"); half that floor is a latency's
+LATENCY_SHARE_LEFT = 0.125
 
 
-#: the share of the declared model's rate residual (variance, fit part) that the reference's
-#: own differenced noise may be before a gyro is compared in heading space: beyond it the rate
-#: residual is mostly the reference's noise, and a shift of a fraction of a sample "improves"
-#: it by smoothing that noise (an independent study's clean gyros against a 50 Hz tracker with
-#: 0.3 mrad of heading noise, its share of the reference's variance only 0.16 %:
-#: ``time_offset`` 9-15 ms, "better by 16-39 %", on 4 of 28, the heading 8 times worse)
-RESIDUAL_NOISE_SHARE = 0.5
+#: the share of the rate residual (variance, fit part) that the reference's own differenced
+#: noise may be before a gyro is compared in heading space: beyond it that noise is a large
+#: part of the rate residual, and a shift of a fraction of a sample "improves" it by smoothing
+#: the noise (a gyro late by a whole number of a tracker's samples read 0.45 of its residual,
+#: a tracker's own noise nearly all of it). An independent study's clean gyros against a
+#: 50 Hz tracker with 0.3 mrad of heading noise, its share of the reference's variance only 0.16 %:
+#: ``time_offset`` 9-15 ms, "better by 16-39 %", on 4 of 28, the heading 8 times worse
+RESIDUAL_NOISE_SHARE = 0.25
 #: consecutive rows of the fit part that residual is measured on
 RESIDUAL_ROWS = 4000
 
 
-def _noise_of_residual(problem: ScalarProblem, share: float) -> float:
-    """The reference's own noise (``share`` of its variance, as
-    :func:`koala_bridge.calibration.effects.common.reference_noise_share` measures it) over
-    the variance of the rate residual on the fit part: the least of the declared model's and
-    of a line ``a + b u(t - tau)`` through the reference read at the latency grid's best
-    ``tau`` (on a block of consecutive rows from the middle of the fit part, as the share is
-    measured): a gyro late by 0.15 s, or 5 % off in scale, has a residual that is mostly that
-    error, and once the effect is in the model, mostly the reference's noise again."""
+def _reference_noise(problem: ScalarProblem, share: float) -> tuple[float, float]:
+    """``(of_residual, aligned)``: the reference's own noise over the variance of the rate
+    residual on the fit part, and the noise share with the reference read at the readings'
+    latency (the best of the latency grid, about the clocks' offset).
+
+    Both on a block of consecutive rows from the middle of the fit part (the latency grid's
+    correlations there; on a whole hour of 100 Hz readings they took 7 s). ``aligned``:
+    readings late by a fraction of a sample share the reference's fast variation smoothed,
+    which reads as unshared at no lag (a simulated gyro 7 ms late: 1.2 %), where the
+    reference's own noise stays unshared at any lag. ``of_residual``: the noise, the larger of
+    ``share`` and ``aligned`` (motion read a latency apart looks partly unshared, and the
+    estimate shrinks: a gyro 0.148 s late, a quarter), in the readings' unit (times the slope
+    of the line ``a + b u(t - tau)`` through the readings: a gyro of gain 2, or in deg/s,
+    stayed in rate space by the gain squared), over the least of the declared model's residual
+    variance and that line's (a gyro late by 0.15 s, or 5 % off in scale, has a residual that
+    is mostly that error, and once the effect is in the model, mostly the reference's noise)."""
     p = problem.part("fit")
     pred = problem.base_gain * p.u
     ok = np.isfinite(pred) & np.isfinite(p.y)
     if ok.sum() < 3:
-        return 0.0
-    var_p = float(np.var(pred[ok]))
+        return 0.0, share
     var_r = float(np.var(p.y[ok] - pred[ok]))
+    var_p = float(np.var(pred[ok]))
+    aligned = share
     if problem.reference is not None:
         rows = np.flatnonzero(ok)
         if rows.size > RESIDUAL_ROWS:
@@ -837,37 +849,26 @@ def _noise_of_residual(problem: ScalarProblem, share: float) -> float:
             rows = rows[start:start + RESIDUAL_ROWS]
         t, y = p.t[rows], p.y[rows]
         step, span = search_window(problem)
-        taus = np.arange(-span, span + step / 2, step) if span else np.zeros(1)
-        # the least squares line's residual variance is var(y) (1 - r^2)
+        clocks = problem.clocks_apart
+        around = 0.0 if clocks is None else clocks[0]
+        taus = around + (np.arange(-span, span + step / 2, step) if span else np.zeros(1))
         r = correlations(t, y, problem.reference, taus)
         if np.isfinite(r).any():
             best = int(np.nanargmax(r))
-            var_r = min(var_r, float(np.var(y)) * (1.0 - float(r[best]) ** 2))
-            if taus[best]:
-                # the reference's noise as measured at the readings' latency: motion read a
-                # latency apart looks partly unshared, and the estimate then shrinks (a gyro
-                # 0.148 s late: a quarter of what its stamps' reference holds)
-                share = max(share, reference_noise_share(
-                    problem, u=problem._u_at(problem.t, float(taus[best]))))
-    return share * var_p / var_r if var_r > 0 else 0.0
-
-
-def _aligned_share(problem: ScalarProblem) -> float:
-    """The reference noise share with the reference read at the stream's latency (the best of
-    the latency grid, :func:`koala_bridge.calibration.effects.time_offset.coarse_lag`): readings
-    late by a fraction of a sample share its fast variation smoothed, which reads as unshared at
-    no lag (a simulated gyro 7 ms late: 1.2 %), where a reference's own noise stays unshared at
-    any lag."""
-    from koala_bridge.calibration.effects.time_offset import coarse_lag
-
-    if problem.reference is None:
-        return stream_share(problem)
-    step, span = search_window(problem)
-    clocks = problem.clocks_apart
-    tau = coarse_lag(problem, step, span, 0.0 if clocks is None else clocks[0])
-    if tau == 0.0:
-        return stream_share(problem)
-    return reference_noise_share(problem, u=problem._u_at(problem.t, tau))
+            tau = float(taus[best])
+            u = problem._u_at(t, tau)
+            var_u = float(np.var(u))
+            if tau:
+                aligned = reference_noise_share(problem, u=problem._u_at(problem.t, tau))
+            if var_u > 0:
+                slope = float(np.cov(y, u, bias=True)[0, 1]) / var_u
+                # the least squares line's residual variance is var(y) (1 - r^2)
+                line = float(np.var(y)) * (1.0 - float(r[best]) ** 2)
+                if line > 0:
+                    noise = max(share, aligned)
+                    of_declared = noise * var_p / var_r if var_r > 0 else 0.0
+                    return max(noise * var_u * slope**2 / line, of_declared), aligned
+    return (share * var_p / var_r if var_r > 0 else 0.0), aligned
 
 
 def _heading_space_if_noisy(small: StreamProblem, full: StreamProblem | None) -> None:
@@ -884,10 +885,10 @@ def _heading_space_if_noisy(small: StreamProblem, full: StreamProblem | None) ->
     share = stream_share(small)  # the whole stream's: calibrate sets it for a subset
     if not np.isfinite(share):
         return  # a constant reference (a still gyro: its noise, by Allan)
-    residual = _noise_of_residual(whole, share)
+    residual, aligned = _reference_noise(whole, share)
     if share <= MAX_REFERENCE_NOISE_SHARE and (
         (share <= HEADING_SPACE_SHARE and residual <= RESIDUAL_NOISE_SHARE)
-        or _aligned_share(whole) <= LATENCY_SHARE_LEFT * share
+        or aligned <= LATENCY_SHARE_LEFT * share
     ):
         return  # a clean reference, or a latency the readings' share is
     for q in [small] if whole is small else [small, whole]:

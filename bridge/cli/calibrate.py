@@ -163,9 +163,12 @@ def run(args: argparse.Namespace) -> int:
     """Run the calibration; 0 on success, 1 when the output cannot be written. A bad input or
     config raises a CalibrationError, which cli/main.py reports in one line (exit 2)."""
     # checked before the work: a wrong path found after minutes of fitting is lost work
-    if args.out.exists() and not args.out.is_dir():
-        print(f"koala-bridge calibrate: --out {args.out} is a file, not a directory; give the "
-              "directory the report goes into, e.g. --out calibration", file=sys.stderr)
+    blocking = next((p for p in (args.out, *args.out.parents) if p.exists() and not p.is_dir()),
+                    None)
+    if blocking is not None:
+        print(f"koala-bridge calibrate: --out {args.out}: {blocking} is a file, not a "
+              "directory; give the directory the report goes into, e.g. --out calibration",
+              file=sys.stderr)
         return 2
     for each in args.input:
         if not Path(each).exists():  # (every stage's, before the first one's work)
@@ -226,6 +229,8 @@ def run(args: argparse.Namespace) -> int:
                 template=None if args.config is None else (
                     args.config.read_text(encoding="utf-8"), config),
             )
+            log.info("model with the found effects written to %s (report.md's \"Model "
+                     "change\" shows what changed)", args.write_config)
     except OSError as e:  # the report or the config cannot be written
         print(f"koala-bridge calibrate: {e}", file=sys.stderr)
         return 1

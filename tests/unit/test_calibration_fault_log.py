@@ -101,6 +101,11 @@ def test_a_log_calibrate_cannot_read_is_an_error_naming_its_line(tmp_path: Path)
     (d / "faults.csv").write_text("t,what\n1,x\n", encoding="utf-8")
     with pytest.raises(BundleError, match="lacks required column"):
         load_bundle(d)
+    # without names the windows' start and end rows cannot be paired
+    (d / "faults.csv").write_text('t,kind,target,detail\n1,stuck,gyro,"{""phase"":""start""}"\n',
+                                  encoding="utf-8")
+    with pytest.raises(BundleError, match="lacks required column.*name"):
+        load_bundle(d)
 
 
 def test_a_reference_still_but_for_one_jump_is_said_to_jump() -> None:

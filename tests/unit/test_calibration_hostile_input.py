@@ -198,3 +198,63 @@ def test_gaussian_noise_has_no_spikes(tmp_path: Path, seed: int) -> None:
     res, _ = calibrate_stream(_turning_gyro(tmp_path, seed, 0.0, []), "gyro", DECLARED)
     assert res is not None
     assert not any("spike" in n for n in res.problem.notes)
+
+
+def test_a_plateau_s_top_of_the_noise_is_not_saturation() -> None:
+    """An under-reading gyro (-8 %), rounded to 0.01 rad/s, at a steady 1 rad/s spin: its
+    largest value repeats while the reference is beyond it, but the reference does not move
+    there: no sensor pinned at its end (setting them aside biased the scale by 12 SE)."""
+    from koala_bridge.calibration.streams import saturated
+
+    rng = np.random.default_rng(0)
+    u = np.where(np.arange(6000) % 2000 < 1000, 1.0, -1.0)
+    y = np.round(0.92 * u + rng.normal(0.0, 0.003, u.size), 2)
+    assert saturated(y, u) is None
+
+
+def test_unwrap_counter_across_a_gap_and_not_across_a_reset() -> None:
+    t = np.arange(0.0, 60.0, 0.05)
+    true = np.cumsum(np.full(t.size, 400.0))
+    # one logging gap of 2.45 s (49 rows) in a 16-bit count: 19 600 ticks across it
+    keep = np.ones(t.size, dtype=bool)
+    keep[300:349] = False
+    c, tc = np.mod(true[keep], 65536.0), t[keep]
+    out, bits, n = unwrap_counter(c, tc)
+    assert bits == 16 and n >= 1
+    np.testing.assert_allclose(np.diff(out), np.diff(true[keep]))
+    # a counter reset from 60 000 to 0 (a reboot) is no wrap
+    reset = np.r_[np.linspace(0.0, 60000.0, 150), np.linspace(0.0, 3000.0, 30)]
+    assert unwrap_counter(reset, np.arange(reset.size) * 0.05)[1] is None
+
+
+def test_a_uwb_reading_below_zero_close_by_is_kept(tmp_path: Path) -> None:
+    """Two-way ranging with an antenna delay of -0.15 m reads below 0 at 2 cm: kept (setting
+    them aside biased the offset by 4 SE)."""
+    rng = np.random.default_rng(5)
+    n = 6000
+    t = np.sort(rng.uniform(0, 600, n))
+    r = rng.uniform(0.02, 3.0, n)
+    y = r - 0.15 + rng.normal(0, 0.05, n)
+    b = tmp_path / "b"
+    b.mkdir()
+    lines = ["t,kind,sensor,measured,true_range"] + [
+        f"{a:.5f},uwb,0,{m:.5f},{g:.5f}" for a, m, g in zip(t, y, r, strict=True)]
+    (b / "range.csv").write_text("\n".join(lines) + "\n", encoding="utf-8")
+    (b / "meta.json").write_text('{"units": {"range.measured": {"uwb": "m"}}}', "utf-8")
+    res, _ = calibrate_stream(b, "range:uwb")
+    assert res is not None
+    assert not any("below 0 m" in n for n in res.problem.notes)
+    params = {k: (v, s[k]) for p, s in res.effect_params() for k, v in p.items()}
+    value, se = params["bias"]
+    assert abs(value + 0.15) < 4 * se, (value, se)
+
+
+def test_out_under_a_file_is_refused_before_the_work(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from koala_bridge.cli.main import main
+
+    b = make_bundle(tmp_path / "b", 5, duration_s=30.0)
+    (tmp_path / "afile").write_text("x", encoding="utf-8")
+    assert main(["calibrate", str(b), "--out", str(tmp_path / "afile" / "sub"), "--quiet"]) == 2
+    assert "is a file, not a directory" in capsys.readouterr().err
