@@ -815,7 +815,7 @@ LATENCY_SHARE_LEFT = 0.125
 #: ``time_offset`` 9-15 ms, "better by 16-39 %", on 4 of 28, the heading 8 times worse
 RESIDUAL_NOISE_SHARE = 0.25
 #: consecutive rows of the fit part that residual is measured on
-RESIDUAL_ROWS = 4000
+RESIDUAL_ROWS = 2000
 
 
 def _reference_noise(problem: ScalarProblem, share: float) -> tuple[float, float]:
@@ -823,8 +823,8 @@ def _reference_noise(problem: ScalarProblem, share: float) -> tuple[float, float
     residual on the fit part, and the noise share with the reference read at the readings'
     latency (the best of the latency grid, about the clocks' offset).
 
-    Both on a block of consecutive rows from the middle of the fit part (the latency grid's
-    correlations there; on a whole hour of 100 Hz readings they took 7 s). ``aligned``:
+    Both on a block of :data:`RESIDUAL_ROWS` consecutive rows from the middle of the fit part
+    (the latency grid's correlations on a whole hour of 100 Hz readings took 7 s). ``aligned``:
     readings late by a fraction of a sample share the reference's fast variation smoothed,
     which reads as unshared at no lag (a simulated gyro 7 ms late: 1.2 %), where the
     reference's own noise stays unshared at any lag. ``of_residual``: the noise, the larger of
