@@ -888,7 +888,9 @@ def _heading_space_if_noisy(small: StreamProblem, full: StreamProblem | None) ->
     residual, aligned = _reference_noise(whole, share)
     if share <= MAX_REFERENCE_NOISE_SHARE and (
         (share <= HEADING_SPACE_SHARE and residual <= RESIDUAL_NOISE_SHARE)
-        or aligned <= LATENCY_SHARE_LEFT * share
+        # a share beyond 1 % that a latency explains; below 1 % the residual decides alone (a
+        # noisy reference read at a sub-sample shift can look noiseless: 0.075 % -> 0)
+        or (share > HEADING_SPACE_SHARE and aligned <= LATENCY_SHARE_LEFT * share)
     ):
         return  # a clean reference, or a latency the readings' share is
     for q in [small] if whole is small else [small, whole]:
