@@ -69,23 +69,14 @@ def test_in_rate_space_the_tracker_s_noise_reads_as_a_latency(
     assert 0 < abs(p["tau_s"]) < 1.0 / RATE_HZ  # a fraction of a sample
 
 
-@pytest.mark.parametrize("late_s", [0.148, 0.254])
-def test_a_real_latency_is_fitted_where_it_is(tmp_path: Path, late_s: float) -> None:
-    res, _ = calibrate_stream(_bundle(tmp_path / "b", 1, late_s), "gyro", DECLARED)
-    assert res is not None
-    assert [i.name for i in res.effects] == ["time_offset"]
-    ((p, se),) = res.effect_params()
-    assert abs(p["tau_s"] - late_s) < 4 * se["tau_s"], (p, se)
-
-
-@pytest.mark.parametrize("late_s", [0.14, 0.3])
-def test_a_latency_of_whole_tracker_samples_is_fitted_where_it_is(
-    tmp_path: Path, late_s: float
-) -> None:
-    """A reviewer's sweep: at a whole number of the tracker's samples the reference read at the
-    latency is not smoothed, the noise estimate came out 0.45 of the residual, and rate space
-    fitted 0.134 s for 0.14 (42 SE off)."""
-    res, _ = calibrate_stream(_bundle(tmp_path / "b", 0, late_s), "gyro", DECLARED)
+@pytest.mark.parametrize(("late_s", "seed"), [(0.148, 1), (0.254, 1), (0.14, 0), (0.3, 0)])
+def test_a_real_latency_is_fitted_where_it_is(tmp_path: Path, late_s: float, seed: int) -> None:
+    """Between the tracker's samples (0.148, 0.254 s: rate space fitted them 1-2 ms off, pulled
+    towards the shifts that smooth most) and at a whole number of them (0.14, 0.3 s: a
+    reviewer's sweep, where the reference read at the latency is not smoothed, the noise
+    estimate came out 0.45 of the residual, and rate space fitted 0.134 s for 0.14, 42 SE
+    off): in heading space, within 4 SE."""
+    res, _ = calibrate_stream(_bundle(tmp_path / "b", seed, late_s), "gyro", DECLARED)
     assert res is not None and res.problem.integrate_window_s is not None
     assert [i.name for i in res.effects] == ["time_offset"]
     ((p, se),) = res.effect_params()
