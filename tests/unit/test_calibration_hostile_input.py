@@ -258,3 +258,26 @@ def test_out_under_a_file_is_refused_before_the_work(
     (tmp_path / "afile").write_text("x", encoding="utf-8")
     assert main(["calibrate", str(b), "--out", str(tmp_path / "afile" / "sub"), "--quiet"]) == 2
     assert "is a file, not a directory" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("truth_moves", [False, True])
+def test_odometry_that_never_counted_is_not_calibrated_and_says_why(
+    tmp_path: Path, truth_moves: bool
+) -> None:
+    """A bridge run nothing drove reported the odometry "0 -> 0 m, unchanged" as if it had
+    been calibrated; encoders that never count while the robot moves are worth saying too."""
+    b = make_bundle(tmp_path / "b", 3, duration_s=60.0)
+    odo = CsvTable(b / "odometry.csv")
+    for side in ("left_ticks", "right_ticks"):
+        odo[side] = np.full(len(odo.rows), 1234.0)
+    odo.save()
+    if not truth_moves:
+        truth = CsvTable(b / "truth_pose.csv")
+        for c in ("x", "y", "theta"):
+            truth[c] = np.full(len(truth.rows), truth[c][0])
+        truth.save()
+    res, skipped = _odometry(b)
+    assert res is None
+    (why,) = [s for s in skipped if s.stream == "odometry"]
+    assert why.missing.startswith("the wheels never turned")
+    assert ("while the reference moved" in why.missing) == truth_moves

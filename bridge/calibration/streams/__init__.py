@@ -989,6 +989,11 @@ def _declared_motor_field(
     return np.asarray(speeds @ np.asarray(model.compass_motor_uT_per_mps).T / uT_per_unit)
 
 
+#: an odometry that counts less than this travel and this turn over a whole recording never
+#: moved: nothing in it shows the geometry (a run nothing drove reported "0 -> 0 m")
+STILL_TRAVEL_M = 0.01
+STILL_TURN_RAD = 0.05
+
 #: odometry.csv's column sets, in the order a stream takes the first it has
 ODOMETRY_FORMS = (("left_ticks", "right_ticks"), ("v", "omega"), ("x", "y", "theta"))
 
@@ -1278,6 +1283,32 @@ def build_odometry(
             )
             return None
     inside = (t_ref >= t[0]) & (t_ref <= t[-1])
+    if form == "ticks":
+        counted = float(np.nansum(np.abs(kw["d_left"]) + np.abs(kw["d_right"]))) / (
+            2 * kw["tpm"])
+        turned = float(np.nansum(np.abs(kw["d_right"] - kw["d_left"]))) / (
+            kw["tpm"] * kw["wheel_base"])
+    else:
+        counted = float(np.nansum(np.abs(kw["ds"])))
+        turned = float(np.nansum(np.abs(kw["dtheta"])))
+    if counted < STILL_TRAVEL_M and turned < STILL_TURN_RAD:
+        steps = np.hypot(*np.diff(p_ref[inside], axis=0).T)
+        t_step = t_ref[inside][1:]
+        for a, b in bundle.odometry_faulted:  # a kidnap is no motion of the wheels
+            steps = np.where((t_step >= a) & (t_step <= b), 0.0, steps)
+        moved = float(np.nansum(steps))
+        _skip(
+            skipped,
+            "odometry",
+            f"the wheels never turned: the odometry counts {counted:.3g} m and "
+            f"{turned:.3g} rad over the recording"
+            + (f", while the reference moved {moved:.3g} m (encoders not read, or a robot "
+               "carried?)" if moved >= STILL_TRAVEL_M else ", and the reference stayed put"),
+            "record a run in which the robot drives: with `koala-bridge run`, a client or "
+            "firmware on its buses commands the wheels (docs/protocols.md); nothing moves it "
+            "otherwise",
+        )
+        return None
     split = Split.of(t_ref[inside])
     window = min(window_s, (split.t2 - split.t1) / 2)
     problem = OdometryProblem(
