@@ -147,8 +147,6 @@ def set_aside_faulted(bundle: Bundle) -> tuple[Bundle, dict[str, list[str]]]:
     stream name saying what was set aside. A bundle without a fault log is returned as is."""
     if bundle.faults is None or len(bundle.faults) == 0:
         return bundle, {}
-    if "t" in bundle.faults.text:
-        raise BundleError(f"{bundle.path / (FAULT_LOG + '.csv')}: the time t is not numeric")
     faults = read_faults(bundle.faults, str(bundle.path / f"{FAULT_LOG}.csv"))
     truth = bundle.get("truth_pose")
     dt_ref = _interval(truth["t"]) if truth is not None else 0.0

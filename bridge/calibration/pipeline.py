@@ -894,7 +894,8 @@ def _heading_space_if_noisy(small: StreamProblem, full: StreamProblem | None) ->
     ):
         return  # a clean reference, or a latency the readings' share is
     for q in [small] if whole is small else [small, whole]:
-        to_heading_space(q, share, residual)
+        # the residual's share is the reason where the share alone was below the note's 1 %
+        to_heading_space(q, share, residual if share <= HEADING_SPACE_SHARE else 0.0)
     # the heading's noise share in heading space, on consecutive samples: on a random subset
     # the readings' trapezoid over its gaps is no integral of the motion
     small.heading_share = whole.heading_share = whole.heading_noise_share()

@@ -338,9 +338,9 @@ def to_heading_space(problem: ScalarProblem, share: float, of_residual: float = 
     ``effects.common.reference_dominates``): the heading's path over a window is its regressor.
     A time offset stays judged against the rate's share: a time shift smooths the reference's
     noise. ``of_residual``: that noise over the rate residual's variance
-    (``pipeline._noise_of_residual``), said when it is most of the residual."""
+    (``pipeline._reference_noise``) when it, not ``share``, sent the stream here (0 else)."""
     _in_heading_space(problem)
-    if share > 0.01 or of_residual <= 0.25:
+    if not of_residual:
         what = f"the reference rate is {100 * share:.3g} % its own noise once differenced"
     else:
         what = (f"the reference rate's own noise once differenced, {100 * share:.3g} % of its "
@@ -1176,6 +1176,7 @@ def build_odometry(
     keep = np.r_[True, np.diff(t) > 0]
     odo = odo.select(keep)
     odo, emptied = _filled_rows(odo)
+    read_notes = [emptied] if emptied else []  # how the columns were read, said on the stream
     t = odo["t"]
     kw: dict[str, Any] = {}
     if "left_ticks" in odo.columns and "right_ticks" in odo.columns:
@@ -1219,7 +1220,7 @@ def build_odometry(
                 odo = replace(odo, columns={**odo.columns, side: counts})
                 wrapped.append(f"{side} wraps {n} time(s) at 2^{bits} (a {bits}-bit counter)")
         if wrapped:
-            emptied = "; ".join(filter(None, [emptied, "; ".join(wrapped) + ": unwrapped"]))
+            read_notes.append("; ".join(wrapped) + ": unwrapped")
         kw.update(
             d_left=np.diff(odo["left_ticks"]),
             d_right=np.diff(odo["right_ticks"]),
@@ -1345,8 +1346,7 @@ def build_odometry(
             f"give a shorter --window-s); see {FORMAT_DOC}",
         )
         return None
-    if emptied:
-        problem.notes.append(emptied)
+    problem.notes.extend(read_notes)
     jumps = reference_jumps(t_ref[inside], problem.p_ref[inside], problem.faulted)
     if jumps:
         problem.notes.append(jumps)
