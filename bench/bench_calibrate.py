@@ -58,6 +58,7 @@ def bench_hour(workdir: Path) -> int:
     gen = time.monotonic() - t0
     rows = {f.name: sum(1 for _ in f.open()) - 1 for f in sorted(bundle_dir.glob("*.csv"))}
     print(f"generated in {gen:.1f} s: " + ", ".join(f"{k} {v}" for k, v in rows.items()))
+    load_bundle(bundle_dir)  # once untimed: the file cache warm and the CSV reader imported
     t0 = time.monotonic()
     load_bundle(bundle_dir)
     floor = time.monotonic() - t0
