@@ -55,6 +55,7 @@ from koala_bridge.calibration.selection import (
 )
 from koala_bridge.calibration.sim_keys import config_path, is_simulated
 from koala_bridge.calibration.streams import (
+    beacon_streams,
     build_beacons,
     build_compass,
     build_gyro,
@@ -68,6 +69,7 @@ from koala_bridge.calibration.streams import (
 from koala_bridge.calibration.streams.compass import CompassProblem
 from koala_bridge.calibration.streams.level import build_gyro_level, note_level_bias
 from koala_bridge.calibration.streams.scalar import ScalarProblem
+from koala_bridge.calibration.units import Misread, misread_units
 from koala_bridge.core.distributions import norm_ppf
 
 log = logging.getLogger(__name__)
@@ -776,18 +778,26 @@ def _problems(
     with_compass: bool = True,
     odometry_bundle: Bundle | None = None,
     skipped: list[SkippedStream] | None = None,
+    misread: Misread | None = None,
 ) -> list[StreamProblem]:
+    """The streams' problems; none of those ``misread`` sets aside (:mod:`.units`)."""
     out: list[StreamProblem | None] = []
     if with_compass:
         out.append(build_compass(bundle, model, skipped))
     else:
         out.append(build_gyro(bundle, model, compass_heading, skipped))
         out.append(build_gyro_level(bundle, model))
-        out.append(build_odometry(odometry_bundle or bundle, model, options.window_s, skipped))
+        positions = misread is None or not misread.skip_positions
+        if positions:
+            out.append(
+                build_odometry(odometry_bundle or bundle, model, options.window_s, skipped)
+            )
         out.extend(build_ranges(bundle, model, skipped))
-        out.extend(build_beacons(bundle, model, skipped))
-        out.extend(build_landmarks(bundle, model, skipped))
-    return [p for p in out if p is not None]
+        if positions:
+            out.extend(build_beacons(bundle, model, skipped))
+            out.extend(build_landmarks(bundle, model, skipped))
+    aside = set() if misread is None else {s.stream for s in misread.skipped}
+    return [p for p in out if p is not None and p.name not in aside]
 
 
 #: the reference noise share (:func:`koala_bridge.calibration.effects.common.
@@ -964,6 +974,8 @@ def calibrate(
     found: list[SkippedStream] = []
     options = options or Options()
     bundle, fault_notes = set_aside_faulted(bundle)
+    misread = misread_units(bundle, bundle_streams(bundle), beacon_streams(bundle))
+    bundle = misread.bundle
     small = decimate_bundle(bundle, options.max_rows)
     small_odometry = decimate_bundle(bundle, options.max_rows, references=True)
 
@@ -1001,11 +1013,15 @@ def calibrate(
             with_compass=False,
             odometry_bundle=small_odometry,
             skipped=found,
+            misread=misread,
         ),
-        _problems(bundle, model, options, compass_heading, with_compass=False)
+        _problems(bundle, model, options, compass_heading, with_compass=False, misread=misread)
         if small is not bundle
         else [],
     )
+    # a stream set aside for its unit is said so, not why a builder would also have skipped it
+    aside = {s.stream for s in misread.skipped}
+    found = [s for s in found if s.stream not in aside] + misread.skipped
     named = {r.problem.name for r in results} | {s.stream for s in found}
     for stream in bundle_streams(bundle):
         if stream not in named:  # a builder that dropped a stream without saying why
@@ -1019,6 +1035,7 @@ def calibrate(
     found += unknown_files(bundle)
     for res in results:
         res.problem.notes.extend(fault_notes.get(res.problem.name, []))
+        res.problem.notes.extend(misread.notes)
         unread = _unread_meta(bundle.meta, res.problem.name)
         if unread:
             res.problem.notes.append(unread)
