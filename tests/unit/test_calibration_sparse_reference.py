@@ -200,7 +200,9 @@ def test_a_reference_noisy_beyond_one_percent_is_compared_in_heading_space(
     res = _gyro(tmp_path, seed, 0.0, 0.02)
     share = res.problem.reference_share
     assert share is not None and 0.1 < share <= MAX_REFERENCE_NOISE_SHARE
-    assert res.problem.metric == "heading_error_10s_running_rms"
+    # 12 s held out, less than two 10 s windows: windows of a quarter of it
+    assert res.problem.integrate_window_s == pytest.approx(3.0, abs=0.05)
+    assert res.problem.metric == f"heading_error_{res.problem.integrate_window_s:g}s_running_rms"
     assert res.effects == []
 
 

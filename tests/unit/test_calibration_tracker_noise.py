@@ -97,3 +97,33 @@ def test_a_mis_scaled_gyro_against_the_tracker_gets_no_latency(
     res, _ = calibrate_stream(path, "gyro", DECLARED)
     assert res is not None
     assert [i.name for i in res.effects] == ["scale"]
+
+
+def _short_bundle(out: Path, seed: int, late_s: float) -> Path:
+    """15 s of a gyro at 50 Hz against a tracker's heading at 100 Hz with 2 mrad of noise (a
+    navX against motion capture, cut where the tracker's tilt stayed small): 6 s held out."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, 15.0, 0.01)
+    ph = rng.uniform(0.0, 2 * np.pi, 3)
+    w = (0.8 * np.sin(2 * np.pi * t / 3.1 + ph[0]) + 0.5 * np.sin(2 * np.pi * t / 1.3 + ph[1])
+         + 0.3 * np.sin(2 * np.pi * t / 0.7 + ph[2]))
+    theta = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))]
+    t_gyro = t[::2]
+    rate = np.interp(t_gyro - late_s, t, w) + rng.normal(0.0, 0.01, t_gyro.size)
+    return gyro_bundle(out, t, theta + rng.normal(0.0, 2e-3, t.size), rate, gyro_t=t_gyro)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_latency_on_a_short_recording_is_found(tmp_path: Path, seed: int) -> None:
+    """6 s held out is less than one 10 s heading window: about 1.3 independent units, and no
+    effect could pass (a real navX's 37 ms, a hand fit's held-out error 76 % lower, was
+    'not significant'). Against a tracker the windows are then a quarter of the held-out
+    part; the latency is found, and a clean gyro gets none."""
+    res, _ = calibrate_stream(_short_bundle(tmp_path / "late", seed, 0.04), "gyro")
+    assert res is not None
+    assert res.problem.integrate_window_s == pytest.approx(1.5, abs=0.01)
+    assert [i.name for i in res.effects] == ["time_offset"]
+    ((p, se),) = res._params_and_se()
+    assert se is not None and abs(float(p[0]) - 0.04) < 4 * float(se[0]) + 0.01
+    clean, _ = calibrate_stream(_short_bundle(tmp_path / "clean", seed, 0.0), "gyro")
+    assert clean is not None and clean.effects == []

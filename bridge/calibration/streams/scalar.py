@@ -169,6 +169,10 @@ class ScalarProblem(StreamProblem):
     #: stretches are left out and the readings' trapezoid over the gap is no integral; None:
     #: windows run on over any gap
     window_gap_s: float | None = None
+    #: the reference is a tracker's heading (``truth_pose.theta``), whose errors are far below
+    #: a compass heading's: heading space may then use windows shorter than 10 s on a short
+    #: recording (:func:`koala_bridge.calibration.streams._in_heading_space`)
+    tracker_heading: bool = False
     #: the reference heading ``(t, rad)`` whose rate ``u`` is, and the interval the declared
     #: readings average over (``u`` is then the heading's change over it): a heading error
     #: (heading space, :meth:`heading_window_errors`) takes the reference's share as the
