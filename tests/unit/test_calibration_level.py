@@ -112,3 +112,30 @@ def test_level_segments_against_a_noisy_heading_are_compared_in_heading_space(
     assert [i.name for i in level.effects] == ["bias"]
     ((p, se),) = level.effect_params()
     assert abs(p["bias"] - case.bias) < Z * se["bias"], (p, se)
+
+
+def test_a_level_sensor_on_an_accelerating_robot_is_said_to_be_possibly_accelerating(
+    tmp_path: Path,
+) -> None:
+    """An accelerometer reads a horizontal acceleration as a tilt (1 m/s^2 is 5.8 deg), and
+    |a| cannot see it (it grows by 0.5 %). A navX on a driving robot read "tilted on 76 %"
+    where motion capture had it level: where the x/y rates show no rotation on most of the
+    samples called tilted, the note says so. A sensor that does tilt gets no such clause."""
+    d = make_tilt_bundle(tmp_path / "imu", 7, TiltCase(amplitudes_deg=()))
+    path = d / "gyro.csv"
+    header = path.read_text().splitlines()[0]
+    rows = np.loadtxt(path, delimiter=",", skiprows=1)
+    cols = header.split(",")
+    t = rows[:, 0]
+    # the robot starts and brakes: 1 m/s^2 forward in every other 3 s of each 12 s
+    rows[:, cols.index("acc_x")] += np.where((t % 12.0) < 3.0, 1.0, 0.0)
+    np.savetxt(path, rows, delimiter=",", header=header, comments="", fmt="%.10g")
+    bundle = load_bundle(d)
+    results = {r.problem.name: r for r in calibrate(bundle, declared_model(IDEAL, bundle.meta))}
+    assert set(results) == {"gyro", "gyro:level"}  # the accelerometer's "tilts" split it
+    (note,) = [n for n in results["gyro"].problem.notes if "tilted off its level" in n]
+    assert "the x/y rates show no rotation on" in note
+    tilting = load_bundle(make_tilt_bundle(tmp_path / "tilting", 5, TiltCase()))
+    results = {r.problem.name: r for r in calibrate(tilting, declared_model(IDEAL, tilting.meta))}
+    (note,) = [n for n in results["gyro"].problem.notes if "tilted off its level" in n]
+    assert "no rotation" not in note
