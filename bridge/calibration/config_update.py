@@ -22,6 +22,7 @@ import copy
 import difflib
 import importlib
 import math
+import textwrap
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -46,6 +47,34 @@ def _set(doc: dict[str, Any], dotted: str, value: Any) -> None:
             node[key] = nxt
         node = nxt
     node[last] = value
+
+
+def declared_parts(results: Sequence[StreamResult]) -> list[str]:
+    """What a written key holds that the data did not show, one line each: a compass fitted in
+    a plane (two dimensions) writes its hard iron's z and its soft iron's third row and column
+    as declared (a simulator config needs all three), and a spin about the vertical cannot
+    show them; a new user's written ``hard_iron_uT = [40.93, -89.46, 0.0]`` read as a measured
+    zero where the raw z sat at 560 uT."""
+    out = []
+    for res in results:
+        problem = res.problem
+        if getattr(problem, "dims", 3) != 2:
+            continue
+        names = [i.name for i, why in zip(res.effects, res.not_written(), strict=True)
+                 if why is None and i.name in ("hard_iron", "soft_iron")]
+        if not names:
+            continue
+        parts = []
+        if "hard_iron" in names:
+            z = float(problem.h_declared[2]) * problem.uT_per_unit
+            parts.append(f"hard_iron_uT's z ({z:g} uT)")
+        if "soft_iron" in names:
+            parts.append("soft_iron's third row and column")
+        out.append(
+            f"{problem.section}: {' and '.join(parts)} are the declared values, not measured: "
+            "the compass was fitted in its horizontal plane, which does not show the vertical"
+        )
+    return out
 
 
 def found_keys(results: Sequence[StreamResult]) -> dict[str, Any]:
@@ -197,15 +226,19 @@ def write_config(
     unsimulated: Mapping[str, Any] = {},
     fragment: bool = False,
     template: tuple[str, Mapping[str, Any]] | None = None,
+    notes: Sequence[str] = (),
 ) -> None:
     """Write ``doc`` as TOML; ``unsimulated`` findings as a trailing comment; ``fragment``: no
     MODEL.toml was given, so the file holds only the found keys, which the header says.
     ``template``: MODEL.toml's text and what it loads as; the file is then that text with the
-    changed values set (:func:`_edited`), so its comments and layout stay."""
+    changed values set (:func:`_edited`), so its comments and layout stay. ``notes``: what a
+    written key holds that the data did not show (:func:`declared_parts`), in the header."""
     header = (
         "# Written by `koala-bridge calibrate --write-config`: the declared model with the\n"
         "# effects found in measured data added (see the report's config diff).\n"
     )
+    for note in notes:
+        header += "".join(f"# {line}\n" for line in textwrap.wrap(note, 90))
     if fragment:
         header += (
             "# No --config was given: this holds only the keys found, not a whole bridge\n"

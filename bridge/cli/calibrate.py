@@ -35,7 +35,12 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from koala_bridge.calibration.config_update import config_diff, not_simulated, write_config
+from koala_bridge.calibration.config_update import (
+    config_diff,
+    declared_parts,
+    not_simulated,
+    write_config,
+)
 from koala_bridge.calibration.effects import available_effects
 from koala_bridge.calibration.errors import BundleError
 from koala_bridge.calibration.model import read_config
@@ -228,6 +233,7 @@ def run(args: argparse.Namespace) -> int:
                 # MODEL.toml's own text, edited: its comments and layout stay
                 template=None if args.config is None else (
                     args.config.read_text(encoding="utf-8"), config),
+                notes=declared_parts([r for stage in stages for r in stage.results]),
             )
             log.info("model with the found effects written to %s (report.md's \"Model "
                      "change\" shows what changed)", args.write_config)
