@@ -51,29 +51,36 @@ def _set(doc: dict[str, Any], dotted: str, value: Any) -> None:
 
 def declared_parts(results: Sequence[StreamResult]) -> list[str]:
     """What a written key holds that the data did not show, one line each: a compass fitted in
-    a plane (two dimensions) writes its hard iron's z and its soft iron's third row and column
-    as declared (a simulator config needs all three), and a spin about the vertical cannot
-    show them; a new user's written ``hard_iron_uT = [40.93, -89.46, 0.0]`` read as a measured
-    zero where the raw z sat at 560 uT."""
-    out = []
+    a plane (two dimensions) writes its hard iron's z and its soft iron's vertical terms from the
+    declared model (a simulator config needs all three axes), and a spin about the vertical
+    cannot show them; a new user's written ``hard_iron_uT = [40.93, -89.46, 0.0]`` read as a
+    measured zero where the raw z sat at 560 uT. ``results``: every stage's, in order; a part
+    a full-sphere (3-D) fit of any stage measured is not said."""
+    planar: dict[str, tuple[StreamResult, set[str]]] = {}
+    measured: dict[str, set[str]] = {}
     for res in results:
-        problem = res.problem
-        if getattr(problem, "dims", 3) != 2:
-            continue
-        names = [i.name for i, why in zip(res.effects, res.not_written(), strict=True)
-                 if why is None and i.name in ("hard_iron", "soft_iron")]
-        if not names:
-            continue
+        dims = getattr(res.problem, "dims", None)
+        written = {i.name for i, why in zip(res.effects, res.not_written(), strict=True)
+                   if why is None and i.name in ("hard_iron", "soft_iron")}
+        if dims == 3:
+            measured.setdefault(res.problem.section, set()).update(written)
+        elif dims == 2 and written:
+            section = res.problem.section
+            planar[section] = (res, written | planar.get(section, (res, set()))[1])
+    out = []
+    for section, (res, written) in planar.items():
         parts = []
-        if "hard_iron" in names:
+        if "hard_iron" in written - measured.get(section, set()):
+            problem: Any = res.problem
             z = float(problem.h_declared[2]) * problem.uT_per_unit
-            parts.append(f"hard_iron_uT's z ({z:g} uT)")
-        if "soft_iron" in names:
-            parts.append("soft_iron's third row and column")
-        out.append(
-            f"{problem.section}: {' and '.join(parts)} are the declared values, not measured: "
-            "the compass was fitted in its horizontal plane, which does not show the vertical"
-        )
+            parts.append(f"hard_iron_uT's z is the declared {z:g} uT")
+        if "soft_iron" in written - measured.get(section, set()):
+            parts.append("soft_iron's vertical terms follow from the declared matrix")
+        if parts:
+            out.append(
+                f"{section}: {' and '.join(parts)}, not measured: the compass was fitted in "
+                "its horizontal plane, which does not show the vertical"
+            )
     return out
 
 

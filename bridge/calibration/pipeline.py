@@ -1021,7 +1021,7 @@ def calibrate(
     )
     # a stream set aside for its unit is said so, not why a builder would also have skipped it
     aside = {s.stream for s in misread.skipped}
-    found = [s for s in found if s.stream not in aside] + misread.skipped
+    found = [misread.explained(s) for s in found if s.stream not in aside] + misread.skipped
     named = {r.problem.name for r in results} | {s.stream for s in found}
     for stream in bundle_streams(bundle):
         if stream not in named:  # a builder that dropped a stream without saying why
@@ -1035,7 +1035,7 @@ def calibrate(
     found += unknown_files(bundle)
     for res in results:
         res.problem.notes.extend(fault_notes.get(res.problem.name, []))
-        res.problem.notes.extend(misread.notes)
+        res.problem.notes.extend(misread.notes_for(res.problem.name))
         unread = _unread_meta(bundle.meta, res.problem.name)
         if unread:
             res.problem.notes.append(unread)

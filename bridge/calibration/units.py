@@ -14,19 +14,22 @@ why and what to fix:
   beyond :data:`MAX_GROUND_SPEED` (150 m/s, 540 km/h). Millimetres read as metres make a
   robot at 0.3 m/s travel 300 m/s. The streams held against the reference's positions
   (odometry, landmarks, range beacons) are not calibrated;
-* **a truth heading in degrees**: beyond ±(2π + 0.5), which no wrapped heading in radians
-  reaches, and either wrapping by about 360 between two samples (a heading in [-180, 180) or
-  [0, 360) crossing its cut) or turning faster than :data:`MAX_TURN_RATE` (20 rad/s, three
-  turns a second) on a tenth of its samples. An unwrapped heading in radians passes: it never
-  jumps by 360 and turns as fast as the robot. The ``theta`` column is set aside; the streams
-  that can do without it (odometry: the angle that best turns each window's travel onto the
-  reference's) go on;
-* **bearings in degrees**: a bearing is an angle to a landmark, so beyond ±(2π + 0.5) it is
-  not one in radians. The ``landmark_bearing`` stream is not calibrated (the column stays:
-  ranges of rows with a bearing are a camera's, not a beacon's).
+* **a truth heading in degrees**: beyond :data:`MAX_RADIANS`, which no wrapped heading in
+  radians reaches, and either wrapping by about 360 between two samples (a heading in [-180,
+  180) or [0, 360) crossing its cut: a heading in radians would have to turn 360 rad between
+  two samples), or turning :data:`DEGREES_PER_RADIAN` times as far as the gyro integrates to
+  over the same spans (a factor of 1.5 either way). How fast it turns alone says nothing: a
+  rate table turns a gyro at 26 rad/s, and stamps taken in bursts make any heading "fast".
+  The ``theta`` column is set aside; the streams that can do without it go on (the gyro
+  against the compass, the odometry's windows turned by the best angle), and landmark
+  bearings, which need the heading, are not calibrated;
+* **bearings in degrees**: a bearing is an angle to a landmark, wrapped to one turn, so beyond
+  :data:`MAX_RADIANS` it is not one in radians. The ``landmark_bearing`` stream is not
+  calibrated (the column stays: ranges of rows with a bearing are a camera's, not a beacon's).
 
 Nothing is converted: a guessed unit would hide a wrong file. A unit the numbers cannot show
-(degrees of a heading that stays within ±6 deg, positions in cm) stays the user's to get right.
+(degrees of a heading that never wraps in a bundle without a gyro, or that stays within ±6
+deg; positions in cm) stays the user's to get right.
 """
 
 from __future__ import annotations
@@ -44,29 +47,54 @@ MAX_GROUND_SPEED = 150.0
 #: s: the speed is the travel over spans this long (a tracker's jitter between neighbouring
 #: samples, in mm read as m, would be fast too; the motion is what the unit scales)
 SPEED_SPAN_S = 1.0
-#: rad/s: no robot body turns faster (about three turns a second)
-MAX_TURN_RATE = 20.0
-#: the share of samples the speed or the turn rate must exceed its bound on
+#: the share of spans the speed must exceed its bound on
 FAST_SHARE = 0.1
-#: beyond this, an angle is not a wrapped one in radians (2 pi, and a margin for noise)
+#: a wrapped angle in radians stays within one turn, [-pi, pi] or [0, 2 pi); the margin (0.5
+#: rad, 29 deg) takes a noisy tracker's overshoot at the cut, and no degree value of interest
+#: hides below it but headings within ±6 deg
 MAX_RADIANS = 2 * math.pi + 0.5
 #: a step between two samples this close to 360 is a heading in degrees crossing its cut
 WRAP_360_TOLERANCE = 30.0
+DEGREES_PER_RADIAN = 180.0 / math.pi
+#: the truth heading's turn over the gyro's, within this factor of DEGREES_PER_RADIAN: degrees
+DEGREES_RATIO_TOLERANCE = 1.5
+#: s: the spans the truth heading's turn is compared with the gyro's over
+TURN_SPAN_S = 1.0
 
-#: streams held against the reference's positions
+_DEGREES_FIX = "rad = deg x pi / 180"
+#: streams that use the truth heading where the bundle has one
+_HEADING_STREAMS = ("compass", "gyro", "gyro:level", "odometry", "landmark_bearing")
+#: streams held against the reference's positions (and the range beacons)
 _POSITION_STREAMS = ("odometry", "landmark_range", "landmark_bearing")
 
 
 @dataclass(frozen=True)
 class Misread:
-    """What :func:`misread_units` found: the bundle with a misread heading set aside, a note
-    for every stream, whether the streams held against the reference's positions are built at
-    all, and the streams not calibrated (each with why and the fix)."""
+    """What :func:`misread_units` found: the bundle with a misread heading set aside, why the
+    heading was set aside (None: it was not), whether the streams held against the reference's
+    positions are built at all, and the streams not calibrated (each with why and the fix)."""
 
     bundle: Bundle
-    notes: list[str] = field(default_factory=list)
+    heading: str | None = None
     skip_positions: bool = False
     skipped: list[SkippedStream] = field(default_factory=list)
+
+    def notes_for(self, stream: str) -> list[str]:
+        """The note a calibrated stream gets: the heading set aside, where it could use it."""
+        if self.heading is None or stream not in _HEADING_STREAMS:
+            return []
+        return [f"{self.heading}; it is set aside: no stream is held against it "
+                f"({_DEGREES_FIX}; {FORMAT_DOC})"]
+
+    def explained(self, skipped: SkippedStream) -> SkippedStream:
+        """A builder's skip that the heading set aside caused ("no theta") says why."""
+        if self.heading is None or skipped.stream not in _HEADING_STREAMS:
+            return skipped
+        if "theta" not in skipped.missing:
+            return skipped
+        return replace(skipped, missing=f"{skipped.missing} (it was set aside: {self.heading})",
+                       fix=f"give truth_pose.csv's theta in radians ({_DEGREES_FIX}); "
+                           + skipped.fix)
 
 
 def _p90_speed(t: NDArray[np.float64], x: NDArray[np.float64], y: NDArray[np.float64]) -> float:
@@ -99,7 +127,29 @@ def positions_in_mm(truth: Table) -> str | None:
     )
 
 
-def heading_in_degrees(truth: Table) -> str | None:
+def _turn_ratio(t: NDArray[np.float64], theta: NDArray[np.float64], gyro: Table) -> float | None:
+    """The truth heading's turn over the gyro's integrated turn on :data:`TURN_SPAN_S` spans
+    (least squares through 0), or None where the gyro does not turn over the heading's span."""
+    if not {"t", "yaw_rate"} <= set(gyro.columns):
+        return None
+    ok = np.isfinite(gyro["yaw_rate"])
+    tg, w = gyro["t"][ok], gyro["yaw_rate"][ok]
+    if tg.size < 3:
+        return None
+    turned = np.r_[0.0, np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(tg))]
+    lo, hi = max(t[0], tg[0]), min(t[-1], tg[-1])
+    if hi - lo < 2 * TURN_SPAN_S:
+        return None
+    edges = np.arange(lo, hi, TURN_SPAN_S)
+    d_truth = np.diff(np.interp(edges, t, theta))
+    d_gyro = np.diff(np.interp(edges, tg, turned))
+    denominator = float(np.dot(d_gyro, d_gyro))
+    if denominator <= 0:
+        return None
+    return abs(float(np.dot(d_truth, d_gyro)) / denominator)
+
+
+def heading_in_degrees(truth: Table, gyro: Table | None = None) -> str | None:
     """Why ``truth_pose.theta`` is not radians, or None (module docstring)."""
     if "theta" not in truth.columns:
         return None
@@ -107,23 +157,19 @@ def heading_in_degrees(truth: Table) -> str | None:
     th, t = truth["theta"][ok], truth["t"][ok]
     if th.size < 3 or float(np.max(np.abs(th))) <= MAX_RADIANS:
         return None
-    step = np.diff(th)
-    wraps = int(np.sum(np.abs(np.abs(step) - 360.0) < WRAP_360_TOLERANCE))
-    dt = np.diff(t)
-    moving = dt > 0
-    rate = np.abs(np.diff(np.unwrap(th, period=360.0)))[moving] / dt[moving]
-    fast = float(np.quantile(rate, 1.0 - FAST_SHARE)) if rate.size else 0.0
-    if not wraps and fast <= MAX_TURN_RATE:
-        return None
-    how = (
-        f"wraps by about 360 between two samples {wraps} time(s)"
-        if wraps
-        else f"turns {fast:.3g} rad/s (90th percentile), beyond any robot ({MAX_TURN_RATE:g})"
-    )
-    return (
-        f"truth_pose.theta reaches {float(np.max(np.abs(th))):.4g} and {how}: degrees? "
-        "(a heading in radians stays within 2 pi unless unwrapped, and then never jumps by 360)"
-    )
+    reach = f"truth_pose.theta reaches {float(np.max(np.abs(th))):.4g}"
+    wraps = int(np.sum(np.abs(np.abs(np.diff(th)) - 360.0) < WRAP_360_TOLERANCE))
+    if wraps:
+        return (f"{reach} and jumps by about 360 between two samples {wraps} time(s): "
+                "degrees? (in radians that would be 57 turns between two samples)")
+    ratio = None if gyro is None else _turn_ratio(t, th, gyro)
+    if ratio is not None and (
+        DEGREES_PER_RADIAN / DEGREES_RATIO_TOLERANCE < ratio
+        < DEGREES_PER_RADIAN * DEGREES_RATIO_TOLERANCE
+    ):
+        return (f"{reach} and turns {ratio:.3g} times as far as the gyro integrates to over "
+                f"the same {TURN_SPAN_S:g} s spans: degrees? (180 / pi = 57.3)")
+    return None
 
 
 def bearings_in_degrees(landmarks: Table) -> str | None:
@@ -134,8 +180,8 @@ def bearings_in_degrees(landmarks: Table) -> str | None:
     if b.size == 0 or float(np.max(np.abs(b))) <= MAX_RADIANS:
         return None
     return (
-        f"landmarks.bearing reaches {float(np.max(np.abs(b))):.4g}, beyond 2 pi: degrees? "
-        "(a bearing is an angle to a landmark)"
+        f"landmarks.bearing reaches {float(np.max(np.abs(b))):.4g}, beyond one turn in "
+        "radians: degrees? (a bearing is an angle to a landmark)"
     )
 
 
@@ -150,38 +196,36 @@ def misread_units(bundle: Bundle, streams: list[str], beacons: list[str]) -> Mis
 
     ``streams``: every stream the bundle holds (``streams.bundle_streams``); ``beacons``: its
     range-beacon streams (held against the reference's positions too)."""
-    tables = dict(bundle.tables)
-    notes: list[str] = []
-    skipped: list[SkippedStream] = []
     truth, obs = bundle.get("truth_pose"), bundle.get("landmarks")
-    positions = positions_in_mm(truth) if truth is not None else None
-    if positions is not None:
-        notes.append(positions + "; the streams held against them are not calibrated")
-        fix = f"give truth_pose.csv's x, y in metres (m = mm / 1000); see {FORMAT_DOC}"
-        skipped += [
-            SkippedStream(s, positions, fix)
-            for s in streams
-            if s in _POSITION_STREAMS or s in beacons
-        ]
-    heading = heading_in_degrees(truth) if truth is not None else None
-    if heading is not None:
-        notes.append(
-            heading + "; it is set aside: no stream is held against it (convert it: "
-            f"rad = deg x pi / 180; {FORMAT_DOC})"
-        )
-        tables["truth_pose"] = _without(tables["truth_pose"], "theta")
-        if "landmark_bearing" in streams and positions is None:  # a bearing needs the heading
-            skipped.append(SkippedStream(
-                "landmark_bearing", heading,
-                f"give truth_pose.csv's theta in radians (rad = deg x pi / 180); see {FORMAT_DOC}",
-            ))
-    bearing = bearings_in_degrees(obs) if obs is not None else None
-    if bearing is not None and not skipped and "landmark_bearing" in streams:
-        # the column stays: without bearings, a camera's range rows would read as beacons'
-        skipped.append(SkippedStream(
-            "landmark_bearing", bearing,
-            f"give landmarks.csv's bearing in radians (rad = deg x pi / 180); see {FORMAT_DOC}",
-        ))
-    if not notes and not skipped:
+    if truth is None:
+        bearing = bearings_in_degrees(obs) if obs is not None else None
+        positions = heading = None
+    else:
+        positions = positions_in_mm(truth)
+        heading = heading_in_degrees(truth, bundle.get("gyro"))
+        bearing = bearings_in_degrees(obs) if obs is not None else None
+    if positions is None and heading is None and bearing is None:
         return Misread(bundle)
-    return Misread(replace(bundle, tables=tables), notes, positions is not None, skipped)
+    why: dict[str, list[str]] = {}
+    fixes: dict[str, list[str]] = {}
+
+    def aside(stream: str, reason: str, fix: str) -> None:
+        if stream in streams:
+            why.setdefault(stream, []).append(reason)
+            fixes.setdefault(stream, []).append(fix)
+
+    if positions is not None:
+        for s in [*_POSITION_STREAMS, *beacons]:
+            aside(s, positions, "give truth_pose.csv's x, y in metres (m = mm / 1000)")
+    if heading is not None:
+        aside("landmark_bearing", heading,
+              f"give truth_pose.csv's theta in radians ({_DEGREES_FIX})")
+    if bearing is not None:
+        aside("landmark_bearing", bearing,
+              f"give landmarks.csv's bearing in radians ({_DEGREES_FIX})")
+    skipped = [SkippedStream(s, "; and ".join(why[s]), "; ".join(fixes[s]) + f"; see {FORMAT_DOC}")
+               for s in streams if s in why]
+    tables = dict(bundle.tables)
+    if heading is not None:
+        tables["truth_pose"] = _without(tables["truth_pose"], "theta")
+    return Misread(replace(bundle, tables=tables), heading, positions is not None, skipped)

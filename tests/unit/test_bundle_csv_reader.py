@@ -39,6 +39,9 @@ CASES = {
     "hex": "t,a\n0,0x10\n1,2\n",
     "byte order mark": "\ufefft,a\n0,1\n1,2\n",
     "tab around a number": "t,a\n0,\t1\n1,2\n",
+    # Arrow's first line ends at the CR, the header's at the LF: columns 't\r0' and '1' were read
+    "lone CR in the header line": "t\r0\n1\n2\n",
+    "CR-only line ends": "t,a\r0,1\r1,2\r",
 }
 
 

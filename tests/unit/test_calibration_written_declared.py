@@ -27,8 +27,8 @@ def test_a_planar_hard_iron_says_its_z_is_the_declared_one(tmp_path: Path) -> No
                if r.problem.name == "compass"]
     assert [i.name for i in results[0].effects] == ["hard_iron"]
     (note,) = declared_parts(results)
-    assert note.startswith("sensors.compass: hard_iron_uT's z (")
-    assert "declared values, not measured" in note
+    assert note.startswith("sensors.compass: hard_iron_uT's z is the declared ")
+    assert "uT, not measured" in note
     out = tmp_path / "model.toml"
     keys = found_keys(results)
     write_config(out, {"sensors": {"compass": {"hard_iron_uT": keys[
@@ -40,9 +40,14 @@ def test_a_planar_hard_iron_says_its_z_is_the_declared_one(tmp_path: Path) -> No
         "sensors.compass.hard_iron_uT"][:2]
 
 
-def test_a_full_sphere_compass_has_nothing_to_say() -> None:
+def test_a_full_sphere_compass_has_nothing_to_say(tmp_path: Path) -> None:
     bundle = load_bundle(DATA / "hmc5883l_sphere")
-    results = calibrate(bundle, declared_model({}, bundle.meta))
-    compass = [r for r in results if r.problem.name == "compass"]
+    sphere = calibrate(bundle, declared_model({}, bundle.meta))
+    compass = [r for r in sphere if r.problem.name == "compass"]
     assert {"hard_iron", "soft_iron"} <= {i.name for i in compass[0].effects}
-    assert declared_parts(results) == []
+    assert declared_parts(sphere) == []
+    # staged with a planar run, before or after it: the sphere measured the vertical
+    planar = load_bundle(make_bundle(tmp_path / "b", seed=1, inj=Injected(hard_iron=(5.0, -3.0)),
+                                     duration_s=120.0))
+    flat = calibrate(planar, declared_model(DECLARED, planar.meta))
+    assert declared_parts([*flat, *sphere]) == declared_parts([*sphere, *flat]) == []

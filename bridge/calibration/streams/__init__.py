@@ -71,9 +71,9 @@ __all__ = [
 
 #: Heading-error windows for the gyro's secondary metric (shortened on short recordings).
 HEADING_WINDOW_S = 10.0
-#: an odometry window must span this many of the reference's sample intervals (its anchor and
-#: a later sample: the travel between them is what the dead reckoning is held against)
-WINDOW_REFERENCE_SAMPLES = 2
+#: an odometry window must span at least one of the reference's sample intervals (its anchor
+#: and a later sample: the travel between them is what the dead reckoning is held against)
+WINDOW_REFERENCE_INTERVALS = 1
 #: Smoothing of a compass-derived heading before it is differentiated into a reference rate.
 COMPASS_SMOOTHING_S = 0.25
 
@@ -1325,15 +1325,15 @@ def build_odometry(
     split = Split.of(t_ref[inside])
     window = min(window_s, (split.t2 - split.t1) / 2)
     dt_ref = float(np.median(np.diff(t_ref[inside])))
-    if window < WINDOW_REFERENCE_SAMPLES * dt_ref:
+    if window < WINDOW_REFERENCE_INTERVALS * dt_ref:
         _skip(
             skipped,
             "odometry",
             f"truth_pose's samples are {dt_ref:.3g} s apart (median), so a {window:.3g} s "
-            "dead-reckoning window holds one: no travel to hold the odometry against (t in "
-            "milliseconds read as seconds puts a 20 Hz reference 50 s apart)",
-            f"give t in seconds (t_ms / 1000), or a --window-s of at least "
-            f"{WINDOW_REFERENCE_SAMPLES * dt_ref:.3g} s; see {FORMAT_DOC}",
+            "dead-reckoning window holds its anchor alone: no travel to hold the odometry "
+            "against (t in milliseconds read as seconds puts a 20 Hz reference 50 s apart)",
+            f"give t in seconds (t_ms / 1000), or a --window-s longer than "
+            f"{WINDOW_REFERENCE_INTERVALS * dt_ref:.3g} s; see {FORMAT_DOC}",
         )
         return None
     problem = OdometryProblem(

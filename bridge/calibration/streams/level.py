@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 from koala_bridge.calibration.bundle import Bundle, Table
 from koala_bridge.calibration.model import DeclaredModel
-from koala_bridge.calibration.robust import white_noise_sigma
+from koala_bridge.calibration.robust import mad_sigma, white_noise_sigma
 from koala_bridge.calibration.streams.scalar import ScalarProblem
 from numpy.typing import NDArray
 from scipy.ndimage import uniform_filter1d
@@ -206,34 +206,52 @@ def build_gyro_level(bundle: Bundle, model: DeclaredModel) -> ScalarProblem | No
     return problem
 
 
-#: the share of the samples called tilted on which the x/y rates show no rotation, beyond which
-#: the note says the accelerometer's "tilt" may be an acceleration
-STILL_TILTED_SHARE = 0.5
+#: where the accelerometer's tilt changes faster than this (rad/s, 3 deg/s; and than 4 robust
+#: sigmas of its rate on the level samples, its noise), the x/y rates are asked whether a
+#: rotation made the change
+MIN_TILT_RATE = 0.05
+#: the share of those changes that no rotation made (the x/y rates, smoothed as the
+#: accelerometer is, below half the tilt's rate), beyond which the note says the
+#: accelerometer's "tilt" may be an acceleration
+UNTURNED_TILT_SHARE = 0.5
+#: fewest such changes the share is read on
+MIN_TILT_CHANGES = 10
 
 
-def _accelerating(t: NDArray[np.float64], level_t: NDArray[np.float64],
-                  columns: Any) -> str:
-    """A clause for the tilt note where the x/y rates show no rotation on most samples the
-    accelerometer calls tilted (:data:`STILL_TILTED_SHARE`): an accelerometer reads a
-    horizontal acceleration as a tilt (3 deg is 0.5 m/s^2, a robot's turn or start), and the
-    |a| test cannot see it (it lengthens the vector by 0.14 %); a navX on a driving robot read
-    "tilted on 76 %" where motion capture had it within 5 deg on all but 0.1 %."""
-    if not all(c in columns for c in RATE_COLUMNS):
+def _accelerating(t: NDArray[np.float64], level_t: NDArray[np.float64], columns: Any) -> str:
+    """A clause for the tilt note where most changes of the accelerometer's tilt come with no
+    rotation in the x/y rates (:data:`UNTURNED_TILT_SHARE`): an accelerometer reads a
+    horizontal acceleration as a tilt (1 m/s^2 is 5.8 deg), which no rotation makes, and the
+    |a| test cannot see it (it lengthens the vector by 0.5 %). A navX on a driving robot read
+    "tilted on 76 %" where motion capture had it within 5 deg on all but 0.1 %: 93 % of its
+    tilt's changes came with no rotation. A robot driving onto a ramp rotates as its tilt
+    changes (7 % did not, the rates' noise): its tilt is one. Rates compared at the same time,
+    not integrated since a level sample: the integral of a gyro's residual bias over a few
+    seconds is degrees (the navX's 2 deg)."""
+    if not all(c in columns for c in (*RATE_COLUMNS, *ACC_COLUMNS)) or t.size < 3:
         return ""
-    rows = Table("gyro", {"t": t, **{c: columns[c] for c in RATE_COLUMNS}})
-    still = not_rotating(rows)
-    tilted = ~np.isin(t, level_t)
-    if still is None or not tilted.any():
+    level = np.isin(t, level_t)
+    if level.all() or not level.any():
         return ""
-    share = float(still[tilted].mean())
-    if share <= STILL_TILTED_SHARE:
+    acc, _ = _gravity(Table("gyro", {"t": t, **{c: columns[c] for c in ACC_COLUMNS}}))
+    tilt_rate = np.abs(np.gradient(tilt_from_accelerometer(np.nan_to_num(acc)), t))
+    n = max(int(round(ATTITUDE_SMOOTH_S / max(float(np.median(np.diff(t))), 1e-9))), 1)
+    rotation = np.hypot(*(
+        uniform_filter1d(np.nan_to_num(columns[c] - np.nanmedian(columns[c])), n)
+        for c in RATE_COLUMNS
+    ))
+    noise = 4 * mad_sigma(tilt_rate[level])
+    changing = tilt_rate > max(MIN_TILT_RATE, noise)
+    if changing.sum() < MIN_TILT_CHANGES:
+        return ""
+    share = float(np.mean(rotation[changing] < 0.5 * tilt_rate[changing]))
+    if share <= UNTURNED_TILT_SHARE:
         return ""
     return (
-        f". But the x/y rates show no rotation on {100 * share:.0f} % of those samples: there "
-        "the accelerometer may read a horizontal acceleration as a tilt (3 deg is 0.5 m/s^2: "
-        "a driving robot's turns and starts), or a mounting near the 3 deg bound; a sensor "
-        "that stays level is one stream (drop acc_x, acc_y, acc_z from gyro.csv to calibrate "
-        "it so)"
+        f". But {100 * share:.0f} % of the accelerometer's tilt changes come with no rotation "
+        "in the x/y rates: a horizontal acceleration reads as a tilt (1 m/s^2 is 5.8 deg: a "
+        "driving robot's turns and starts), which no rotation makes; a sensor that stays "
+        "level is one stream (drop acc_x, acc_y, acc_z from gyro.csv to calibrate it so)"
     )
 
 
