@@ -12,6 +12,7 @@ test) it named a spurious ``scale`` of about -4 % on every seed: the mean of the
 from __future__ import annotations
 
 import csv
+import shutil
 import tomllib
 from pathlib import Path
 
@@ -315,3 +316,51 @@ def test_short_readings_below_the_declared_minimum_are_named_short(tmp_path: Pat
     assert set(params) == {"outlier:short"}
     n_fit = res.problem.readings("fit").size
     assert abs(params["outlier:short"]["probability"] - SHORT) <= _fraction_bound(SHORT, n_fit)
+
+
+def test_one_gross_error_makes_a_stream_heavy_tailed() -> None:
+    """One reading beyond every Gaussian reading's reach (robust.GROSS_ALPHA: n 2 Phi(-z) <
+    1e-6, about 6.1 sigmas among 3000) is a gross error the count beyond 4 sigmas misses (one
+    such reading among 3000 is a Gaussian's 19 %). Over 100 Gaussian samples the maximum
+    reaches it with probability 1e-4."""
+    rng = np.random.default_rng(5)
+    assert not any(heavy_tailed(rng.normal(0, 1, 3000)) for _ in range(100))
+    x = rng.normal(0, 1, 3000)
+    x[7] = 4.5  # beyond 4 sigmas, within a Gaussian's reach
+    assert not heavy_tailed(x)
+    x[7] = -230.0  # a UWB's -11.1 m against a true 3.1 m, at 6 cm of noise
+    assert heavy_tailed(x)
+    # a declared share of spurious readings explains one (0.1 % of 3000: three expected)
+    assert not heavy_tailed(x, declared_fraction=0.001)
+
+
+def test_a_corrupt_uwb_range_does_not_move_the_fit(tmp_path: Path) -> None:
+    """A real UWB log (cjhhalla/RCV_uwb_dataset, sequence 5) held one range of -11.1 m against
+    a true 3.1 m among 5630: in plain least squares it moved its anchor's offset by 2.2
+    standard errors, unsaid. It is a gross error: the fit is robust, and the report says what
+    was read below 0 m."""
+    from koala_bridge.calibration.synthetic_beacons import UwbCase, make_uwb_bundle
+
+    case = UwbCase()
+    clean = make_uwb_bundle(tmp_path / "clean", 7, case, "range")
+    corrupt = tmp_path / "corrupt"
+    shutil.copytree(clean, corrupt)
+    path = corrupt / "range.csv"
+    lines = path.read_text().splitlines()
+    header = lines[0].split(",")
+    row = lines[len(lines) // 4].split(",")  # in the fit part
+    row[header.index("measured")] = "-11.12"
+    lines[len(lines) // 4] = ",".join(row)
+    path.write_text("\n".join(lines) + "\n")
+    fits = []
+    for d in (clean, corrupt):
+        bundle = load_bundle(d)
+        (res,) = calibrate(bundle, declared_model({}, bundle.meta))
+        fits.append({i.name: (p, se) for i, (p, se) in
+                     zip(res.effects, res.effect_params(), strict=True)})
+        notes = res.problem.notes
+    assert set(fits[0]) == set(fits[1]) == {"bias", "scale"}
+    for name, key in (("bias", "bias"), ("scale", "scale_error")):
+        (a, se), (b, _) = fits[0][name], fits[1][name]
+        assert abs(a[key] - b[key]) < se[key], name  # within one standard error
+    assert any("1 reading(s) below 0 m kept (the lowest -11.12 m)" in n for n in notes)

@@ -1420,6 +1420,7 @@ def build_ranges(
         negative = int((ok & (sub["measured"] < 0)).sum()) if section_kind == "sonar" else 0
         if negative:
             ok &= ~(sub["measured"] < 0)
+        below = ok & (sub["measured"] < 0) if not counts else np.zeros(len(sub), dtype=bool)
         beyond = 0
         # The sonar's declared echo rules are the sonar's: a UWB or lidar range beyond the
         # sonar's 2.5 m is no censored echo (every UWB reading once went, unreported).
@@ -1565,6 +1566,13 @@ def build_ranges(
             problem.notes.append(
                 f"{negative} readings below 0 m set aside: a range cannot be negative (an error "
                 "code, or a signed overflow?)"
+            )
+        if below.any():
+            problem.notes.append(
+                f"{int(below.sum())} reading(s) below 0 m kept (the lowest "
+                f"{float(np.min(sub['measured'][below])):.4g} m): two-way ranging with antenna "
+                "delays reads a little below 0 close by; far below is a corrupt reading, which "
+                "a robust fit discounts"
             )
         if beyond:
             problem.notes.append(
