@@ -248,9 +248,10 @@ def write_config(
         header += "".join(f"# {line}\n" for line in textwrap.wrap(note, 90))
     if fragment:
         header += (
-            "# No --config was given: this holds only the keys found, not a whole bridge\n"
-            "# config. To simulate with them, copy them into one (e.g. config/default.toml),\n"
-            "# or calibrate again with --config that file.\n"
+            "# No --config was given: this holds the keys found and the robot geometry\n"
+            "# meta.json declared, not a whole bridge config. To simulate with them, copy\n"
+            "# them into one (e.g. config/default.toml), or calibrate again with --config\n"
+            "# that file.\n"
         )
     tail = ""
     if unsimulated:

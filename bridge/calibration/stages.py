@@ -143,7 +143,7 @@ def calibrate_stages(
         work = tmp / f"stage-{number}"
         work.mkdir(parents=True, exist_ok=True)
         bundle = load_input(path, work)
-        current = _with_meta(current, bundle.meta, found, path, whole=bool(config))
+        current = _with_meta(current, bundle.meta, found, path, whole=True)
         skipped: list[SkippedStream] = []
         # what earlier stages found a later bundle's meta.json (the nominal values) must not undo
         meta = without_declared(bundle.meta, found)
@@ -184,8 +184,10 @@ def _with_meta(
     robot with the bundle's found wheel base (a LEGO robot's wheel base over a Koala's tick
     size). Where the config states another value a warning says so; ``whole`` (a --config was
     given, completed by the simulator's defaults) sets the keys it does not state too, which
-    would otherwise be the default Koala's. Without a config nothing is laid: the written
-    file holds only what was found."""
+    would otherwise be the default Koala's. Without a config (``whole`` too) the written file
+    holds what was found and the geometry meta.json declared: a new user's file held
+    ``wheel_base_m`` alone, which its header's advice to copy into ``config/default.toml`` put
+    on the Koala's ticks per metre (22 222 against the robot's 10 598)."""
     laid = {}
     for key, value in meta_declared(meta).items():
         if not key.startswith("robot.") or key in found:

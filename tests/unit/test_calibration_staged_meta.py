@@ -75,6 +75,13 @@ def test_a_config_without_a_robot_section_gets_the_bundles_geometry(tmp_path: Pa
     assert abs(final["robot"]["wheel_base_m"] - 0.315) < 0.01 * 0.315
 
 
-def test_without_a_config_the_written_keys_are_only_those_found(tmp_path: Path) -> None:
+def test_without_a_config_the_written_keys_are_those_found_and_the_declared_geometry(
+    tmp_path: Path,
+) -> None:
+    """The written file is the model scored: a new user's held ``wheel_base_m`` alone, which
+    its header's advice (copy the keys into config/default.toml) put on the Koala's tick size
+    (22 222 ticks/m against the robot's 10 598)."""
     stages, final = calibrate_stages([_bundle(tmp_path, 1)], {}, Options(), tmp_path / "t")
-    assert set(final["robot"]) == {"wheel_base_m"}
+    assert set(final["robot"]) == {"wheel_base_m", "ticks_per_metre"}
+    assert final["robot"]["ticks_per_metre"] == NOMINAL["ticks_per_metre"]
+    assert "sensors" not in final  # nothing else found, nothing else laid
