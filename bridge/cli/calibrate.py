@@ -97,7 +97,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         metavar="MODEL.toml",
         help="declared model: the bridge config the data were recorded with (the shipped "
-        "default.toml, see `koala-bridge config path`, declares the Koala's own sensor "
+        "\"$(koala-bridge config path)/default.toml\" declares the Koala's own sensor "
         "models: turn-on gyro bias, IR curve, ...). Omitted: "
         "every sensor ideal, as for another robot's data, whose meta.json declares what it "
         "knows (meta.json values always take precedence)",
