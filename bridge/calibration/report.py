@@ -79,6 +79,13 @@ def _effect_entries(res: StreamResult) -> list[dict[str, Any]]:
             "evidence": {**trial.evidence(), "param_se": se},
             "written": reason is None,
         }
+        if inst.name.startswith("offset_per:") and "levels" in inst.data:
+            # the last level's offset is no free parameter (they sum to 0), but it is the
+            # level's: a new user found the fourth UWB anchor's only in the written comment
+            last = f"offset_{int(inst.data['levels'][-1])}"
+            entry["params"] = {**params, last: float(f"{-sum(params.values()):.6g}")}
+            entry["derived"] = {last: "minus the sum of the others: the offsets sum to 0 over "
+                                      "the fit part's levels, the common part is bias's"}
         if reason is not None:
             entry["not_written"] = reason
         elif res.is_comment(inst):

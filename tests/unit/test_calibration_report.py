@@ -494,3 +494,25 @@ def test_the_simulated_effect_that_spoils_the_written_model_is_left_out_and_the_
     keys = found_keys([res])
     assert "sensors.gyro.bias_rad_s" in keys and "sensors.gyro.scale_factor_error" not in keys
     assert res.after_written() == pytest.approx(alone([bias]))
+
+
+def test_every_level_of_a_per_sensor_offset_is_reported(tmp_path: Path) -> None:
+    """The offsets of ``offset_per`` sum to 0 over the fit part's levels, so the last is no
+    free parameter; it is still that level's offset: a new user found the fourth UWB anchor's
+    only in the written config's comment. report.json gives it, marked derived."""
+    offsets = (0.05, -0.03, 0.02, -0.04)
+    bundle = load_bundle(make_bundle(tmp_path / "b", seed=4,
+                                     inj=Injected(sonar_per_sensor=offsets), duration_s=120.0))
+    results = [r for r in calibrate(bundle, declared_model(DECLARED, bundle.meta))
+               if r.problem.name == "range"]
+    report = report_json([Stage(1, "b", results)])
+    (entry,) = (e for s in report["streams"] for e in s["effects"]
+                if e["name"] == "offset_per:sensor")
+    params = entry["params"]
+    assert set(params) == {"offset_0", "offset_1", "offset_2", "offset_3"}
+    assert entry["derived"].keys() == {"offset_3"}
+    assert sum(params.values()) == pytest.approx(0.0, abs=1e-5)
+    # the offsets about their mean, the common part being bias's (within 1 cm of noise's SE)
+    mean = float(np.mean(offsets))
+    for k, o in enumerate(offsets):
+        assert params[f"offset_{k}"] == pytest.approx(o - mean, abs=0.002)
