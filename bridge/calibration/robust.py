@@ -70,24 +70,23 @@ def heavy_tailed(
     ``P(K >= k | n, 2 Phi(-z) + declared_fraction) < alpha``. Every declared spurious reading is
     counted as if it fell in the tail, so the test is conservative against the declared model.
 
-    Or one gross error, where the declared model expects less than one spurious reading: a
-    reading beyond every Gaussian reading's reach, ``n 2 Phi(-z_max)`` < :data:`GROSS_ALPHA`. The
-    count alone misses it (one reading beyond 4 sigmas among 3000 is a Gaussian's 19 %): a
-    UWB range of -11.1 m against a true 3.1 m, 230 sigmas out, moved a plain least-squares fit
-    of its anchor's offset by 2.2 standard errors, unsaid."""
+    Or one gross error: a reading beyond the reach of every reading the declared model
+    expects, ``n (2 Phi(-z_max) + declared_fraction)`` < :data:`GROSS_ALPHA` (the declared
+    spurious readings counted as in the tail again: a model that declares them expects one this
+    far). The count alone misses it (one reading beyond 4 sigmas among 3000 is a Gaussian's
+    19 %): a UWB range of -11.1 m against a true 3.1 m, 230 sigmas out, moved a plain
+    least-squares fit of its anchor's offset by 2.2 standard errors, unsaid."""
     k, n = tail_count(r, z)
     if n < 20 or k == 0:
         return False
     p0 = min(2 * norm_sf(z) + max(declared_fraction, 0.0), 1.0)
     if binom_sf(k - 1, n, p0) < alpha:
         return True
-    if max(declared_fraction, 0.0) * n >= 1:
-        return False
     r = np.asarray(r, dtype=float)
     r = r[np.isfinite(r)]
     s = mad_sigma(r)
     z_max = float(np.max(np.abs(r - np.median(r)))) / s
-    return bool(n * 2 * norm_sf(z_max) < GROSS_ALPHA)
+    return bool(n * (2 * norm_sf(z_max) + max(declared_fraction, 0.0)) < GROSS_ALPHA)
 
 
 def gaussian_logpdf(r: FloatArray, sigma: float, shape: FloatArray | None = None) -> FloatArray:

@@ -330,8 +330,10 @@ def test_one_gross_error_makes_a_stream_heavy_tailed() -> None:
     assert not heavy_tailed(x)
     x[7] = -230.0  # a UWB's -11.1 m against a true 3.1 m, at 6 cm of noise
     assert heavy_tailed(x)
-    # a declared share of spurious readings explains one (0.1 % of 3000: three expected)
-    assert not heavy_tailed(x, declared_fraction=0.001)
+    # a declared share of spurious readings explains one, even one expected in 3000 readings
+    # (the simulator's sonar declares 0.2 %: a recording of 499 readings held one 190 sigmas
+    # out, and calling it gross got the simulator's own sonar an outlier effect)
+    assert not heavy_tailed(x, declared_fraction=1 / 3000)
 
 
 def test_a_corrupt_uwb_range_does_not_move_the_fit(tmp_path: Path) -> None:
