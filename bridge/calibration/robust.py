@@ -51,15 +51,24 @@ def white_noise_sigma(v: FloatArray) -> float:
     return mad_sigma(np.diff(v[np.isfinite(v)])) / float(np.sqrt(2))
 
 
+def _robust_z(r: FloatArray) -> FloatArray | None:
+    """``|r - median r|`` over :func:`mad_sigma` for the finite residuals (two medians, not
+    the three of calling it), or None where there are none or their MAD is 0."""
+    r = np.asarray(r, dtype=float)
+    r = r[np.isfinite(r)]
+    if r.size == 0:
+        return None
+    dev = np.abs(r - np.median(r))
+    s = MAD_TO_SIGMA * float(np.median(dev))
+    return dev / s if s > 0 else None
+
+
 def tail_count(r: FloatArray, z: float = TAIL_Z) -> tuple[int, int]:
     """``(k, n)``: how many of the ``n`` finite residuals lie beyond ``z`` robust standard
     deviations of their median."""
-    r = np.asarray(r, dtype=float)
-    r = r[np.isfinite(r)]
-    s = mad_sigma(r)
-    if r.size == 0 or s <= 0:
-        return 0, int(r.size)
-    return int(np.sum(np.abs(r - np.median(r)) > z * s)), int(r.size)
+    n = int(np.isfinite(np.asarray(r, dtype=float)).sum())
+    scaled = _robust_z(r)
+    return (0, n) if scaled is None else (int(np.sum(scaled > z)), n)
 
 
 def heavy_tailed(
@@ -76,16 +85,16 @@ def heavy_tailed(
     far). The count alone misses it (one reading beyond 4 sigmas among 3000 is a Gaussian's
     19 %): a UWB range of -11.1 m against a true 3.1 m, 230 sigmas out, moved a plain
     least-squares fit of its anchor's offset by 2.2 standard errors, unsaid."""
-    k, n = tail_count(r, z)
+    scaled = _robust_z(r)
+    if scaled is None:
+        return False
+    k, n = int(np.sum(scaled > z)), scaled.size
     if n < 20 or k == 0:
         return False
     p0 = min(2 * norm_sf(z) + max(declared_fraction, 0.0), 1.0)
     if binom_sf(k - 1, n, p0) < alpha:
         return True
-    r = np.asarray(r, dtype=float)
-    r = r[np.isfinite(r)]
-    s = mad_sigma(r)
-    z_max = float(np.max(np.abs(r - np.median(r)))) / s
+    z_max = float(np.max(scaled))
     return bool(n * (2 * norm_sf(z_max) + max(declared_fraction, 0.0)) < GROSS_ALPHA)
 
 
