@@ -78,6 +78,9 @@ class Stage:
     declared_errors: dict[str, FloatArray] = field(default_factory=dict)
     #: streams of the input that could not be calibrated, with what they lack
     skipped: list[SkippedStream] = field(default_factory=list)
+    #: the config this input was calibrated against: the user's, with the geometry its
+    #: meta.json declares and what earlier stages found set (:func:`_with_meta`)
+    config: Mapping[str, Any] = field(default_factory=dict)
 
 
 def _effect_keys(res: StreamResult) -> list[tuple[str, dict[str, float], dict[str, Any]]]:
@@ -143,14 +146,14 @@ def calibrate_stages(
         work = tmp / f"stage-{number}"
         work.mkdir(parents=True, exist_ok=True)
         bundle = load_input(path, work)
-        current = _with_meta(current, bundle.meta, found, path, whole=True)
+        current = _with_meta(current, bundle.meta, found, path, stated=number > 1 or bool(config))
         skipped: list[SkippedStream] = []
         # what earlier stages found a later bundle's meta.json (the nominal values) must not undo
         meta = without_declared(bundle.meta, found)
         results = calibrate(bundle, declared_model(current, meta), options, progress, skipped)
         if not results:
             raise BundleError(_nothing_to_calibrate(path, skipped))
-        stage = Stage(number, str(path), results, skipped=skipped)
+        stage = Stage(number, str(path), results, skipped=skipped, config=current)
         if carried:
             sections = {res.problem.section for res in results}
             for effect in carried:
@@ -176,30 +179,32 @@ def calibrate_stages(
 
 
 def _with_meta(
-    config: dict[str, Any], meta: Mapping[str, Any], found: set[str], path: Path, whole: bool
+    config: dict[str, Any], meta: Mapping[str, Any], found: set[str], path: Path, stated: bool
 ) -> dict[str, Any]:
     """``config`` with the robot geometry ``meta.json`` declares (tick size, wheel base, wheel
     ratio; meta.json wins, :func:`declared_model`) set, except keys an earlier stage found:
     the written config then holds the robot the data were calibrated against, not the config's
     robot with the bundle's found wheel base (a LEGO robot's wheel base over a Koala's tick
-    size). Where the config states another value a warning says so; ``whole`` (a --config was
-    given, completed by the simulator's defaults) sets the keys it does not state too, which
-    would otherwise be the default Koala's. Without a config (``whole`` too) the written file
-    holds what was found and the geometry meta.json declared: a new user's file held
+    size). A --config is completed by the simulator's defaults, so the keys it does not state
+    are set too, which would otherwise be the default Koala's; without one the written file
+    still holds the geometry meta.json declared beside what was found: a new user's file held
     ``wheel_base_m`` alone, which its header's advice to copy into ``config/default.toml`` put
-    on the Koala's ticks per metre (22 222 against the robot's 10 598)."""
+    on the Koala's ticks per metre (22 222 against the robot's 10 598). Where a value already
+    set (``stated``: by the --config, or by an earlier input's meta.json) differs, a warning
+    says so."""
     laid = {}
     for key, value in meta_declared(meta).items():
         if not key.startswith("robot.") or key in found:
             continue
         if not stated_key(config, key):
-            if whole:
-                laid[key] = value
+            laid[key] = value
             continue
-        stated = config_value(config, key)
-        if stated != value:
-            log.warning("%s: meta.json declares %s = %g, over the config's %s; the calibration, "
-                        "and the written config, take meta.json's", path, key, value, stated)
+        before = config_value(config, key)
+        if before != value:
+            if stated:
+                log.warning("%s: meta.json declares %s = %g, over %s from the config or an "
+                            "earlier input's meta.json; the calibration, and the written config, "
+                            "take this meta.json's", path, key, value, before)
             laid[key] = value
     return updated_config(config, laid) if laid else config
 

@@ -17,9 +17,12 @@ why and what to fix:
 * **a truth heading in degrees**: beyond :data:`MAX_RADIANS`, which no wrapped heading in
   radians reaches, and either wrapping by about 360 between two samples (a heading in [-180,
   180) or [0, 360) crossing its cut: a heading in radians would have to turn 360 rad between
-  two samples), or turning :data:`DEGREES_PER_RADIAN` times as far as the gyro integrates to
-  over the same spans (a factor of 1.5 either way). How fast it turns alone says nothing: a
-  rate table turns a gyro at 26 rad/s, and stamps taken in bursts make any heading "fast".
+  two samples), or both turning :data:`DEGREES_PER_RADIAN` times as far as the gyro
+  integrates to over the same spans (a factor of 1.5 either way) and, read as radians,
+  faster than :data:`MAX_BODY_TURN` on a tenth of them. Either alone is ambiguous: a rate
+  table turns a gyro at 26 rad/s (and stamps taken in bursts make any heading "fast" between
+  them, hence spans), and a gyro converted from deg/s twice, or read on another axis, makes
+  a radian heading turn 57 times as far as it.
   The ``theta`` column is set aside; the streams that can do without it go on (the gyro
   against the compass, the odometry's windows turned by the best angle), and landmark
   bearings, which need the heading, are not calibrated;
@@ -60,6 +63,9 @@ DEGREES_PER_RADIAN = 180.0 / math.pi
 DEGREES_RATIO_TOLERANCE = 1.5
 #: s: the spans the truth heading's turn is compared with the gyro's over
 TURN_SPAN_S = 1.0
+#: rad/s: a robot body turning a full turn a second on a tenth of its 1 s spans is no robot's
+#: (a robot turning at 0.11 rad/s, read in degrees, turns this fast)
+MAX_BODY_TURN = 2 * math.pi
 
 _DEGREES_FIX = "rad = deg x pi / 180"
 #: streams that use the truth heading where the bundle has one
@@ -127,9 +133,12 @@ def positions_in_mm(truth: Table) -> str | None:
     )
 
 
-def _turn_ratio(t: NDArray[np.float64], theta: NDArray[np.float64], gyro: Table) -> float | None:
+def _turn_ratio(
+    t: NDArray[np.float64], theta: NDArray[np.float64], gyro: Table
+) -> tuple[float, float] | None:
     """The truth heading's turn over the gyro's integrated turn on :data:`TURN_SPAN_S` spans
-    (least squares through 0), or None where the gyro does not turn over the heading's span."""
+    (least squares through 0), and the 90th percentile of the heading's turn per span per
+    second; None where the gyro does not turn over the heading's span."""
     if not {"t", "yaw_rate"} <= set(gyro.columns):
         return None
     ok = np.isfinite(gyro["yaw_rate"])
@@ -146,7 +155,8 @@ def _turn_ratio(t: NDArray[np.float64], theta: NDArray[np.float64], gyro: Table)
     denominator = float(np.dot(d_gyro, d_gyro))
     if denominator <= 0:
         return None
-    return abs(float(np.dot(d_truth, d_gyro)) / denominator)
+    rate = float(np.quantile(np.abs(d_truth), 1.0 - FAST_SHARE)) / TURN_SPAN_S
+    return abs(float(np.dot(d_truth, d_gyro)) / denominator), rate
 
 
 def heading_in_degrees(truth: Table, gyro: Table | None = None) -> str | None:
@@ -162,13 +172,15 @@ def heading_in_degrees(truth: Table, gyro: Table | None = None) -> str | None:
     if wraps:
         return (f"{reach} and jumps by about 360 between two samples {wraps} time(s): "
                 "degrees? (in radians that would be 57 turns between two samples)")
-    ratio = None if gyro is None else _turn_ratio(t, th, gyro)
-    if ratio is not None and (
-        DEGREES_PER_RADIAN / DEGREES_RATIO_TOLERANCE < ratio
-        < DEGREES_PER_RADIAN * DEGREES_RATIO_TOLERANCE
-    ):
-        return (f"{reach} and turns {ratio:.3g} times as far as the gyro integrates to over "
-                f"the same {TURN_SPAN_S:g} s spans: degrees? (180 / pi = 57.3)")
+    turns = None if gyro is None else _turn_ratio(t, th, gyro)
+    if turns is None:
+        return None
+    ratio, rate = turns
+    if (DEGREES_PER_RADIAN / DEGREES_RATIO_TOLERANCE < ratio
+            < DEGREES_PER_RADIAN * DEGREES_RATIO_TOLERANCE) and rate > MAX_BODY_TURN:
+        return (f"{reach}, turns {ratio:.3g} times as far as the gyro integrates to over the "
+                f"same {TURN_SPAN_S:g} s spans, and {rate:.3g} rad/s read as radians "
+                f"(90th percentile): degrees? (180 / pi = 57.3)")
     return None
 
 

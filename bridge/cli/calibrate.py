@@ -219,7 +219,10 @@ def run(args: argparse.Namespace) -> int:
                 args.input, config, options, Path(tmp), progress, args.write_noise, on_stage
             )
         name = args.config.name if args.config is not None else "MODEL.toml"
-        diff = config_diff(config, new_config, name)
+        # without --config, the declared model is the first input's meta.json: its geometry,
+        # laid into the written file, is no change
+        diff = config_diff(config if args.config is not None else stages[0].config,
+                           new_config, name)
         write_report(args.out, stages, diff, plots=not args.no_plots)
         if args.write_config is not None:
             args.write_config.parent.mkdir(parents=True, exist_ok=True)

@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from koala_bridge.calibration.config_update import config_diff
 from koala_bridge.calibration.pipeline import Options
 from koala_bridge.calibration.stages import calibrate_stages
 from koala_bridge.calibration.synthetic import DECLARED, Injected, make_bundle
@@ -85,3 +86,16 @@ def test_without_a_config_the_written_keys_are_those_found_and_the_declared_geom
     assert set(final["robot"]) == {"wheel_base_m", "ticks_per_metre"}
     assert final["robot"]["ticks_per_metre"] == NOMINAL["ticks_per_metre"]
     assert "sensors" not in final  # nothing else found, nothing else laid
+
+
+def test_without_a_config_the_model_change_shows_what_was_found_only(tmp_path: Path) -> None:
+    """The geometry meta.json declared, laid into the written file, is no change: the report's
+    diff is against the first input's declared model (a reviewer saw ticks_per_metre listed
+    as a change beside the found wheel base)."""
+    stages, final = calibrate_stages([_bundle(tmp_path, 1)], {}, Options(), tmp_path / "t")
+    diff = config_diff(stages[0].config, final)
+    changed = [line for line in diff.splitlines() if line[:1] in "+-" and line[:3] not in
+               ("+++", "---")]
+    assert any(line.startswith("+wheel_base_m") for line in changed), diff
+    assert not any("ticks_per_metre" in line for line in changed), diff
+

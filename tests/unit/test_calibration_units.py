@@ -145,6 +145,7 @@ def test_stamps_in_ms_leave_the_odometry_no_window_and_say_so(
     odo = skipped["odometry"]
     assert "truth_pose's samples are 50 s apart (median)" in odo.missing
     assert "t in seconds (t_ms / 1000)" in odo.fix
+    assert "holds one sample after its anchor at most" in odo.missing
     # the gyro says the same of its gain of 1000 (not written), as before
     (why,) = results["gyro"].not_written()
     assert why is not None and "a time base in ms" in why
@@ -190,3 +191,35 @@ def test_a_slow_robot_tracked_in_mm_is_beyond_the_checks_reach() -> None:
     t = np.arange(0.0, 60.0, 0.01)
     slow = _table("truth_pose", t=t, x=50.0 * t, y=0 * t)
     assert positions_in_mm(slow) is None
+
+
+@pytest.mark.parametrize("spacing_s", [4.5, 5.0])
+def test_a_reference_as_sparse_as_the_window_is_not_held_against(
+    base: Path, tmp_path: Path, spacing_s: float
+) -> None:
+    """A reviewer's clean bundles against a truth_pose every 4.5-5 s with 5 s windows: a window
+    then holds one sample after its anchor at most, or none, and half of them got wheel_ratio,
+    heading_drift or time_offset (one interval allowed); at 5.0 s, '0 -> 0 m'."""
+    d = tmp_path / "sparse"
+    shutil.copytree(base, d)
+    path = d / "truth_pose.csv"
+    rows = np.loadtxt(path, delimiter=",", skiprows=1)
+    header = path.read_text().splitlines()[0]
+    keep = np.r_[True, np.diff(np.floor(rows[:, 0] / spacing_s)) > 0]
+    np.savetxt(path, rows[keep], delimiter=",", header=header, comments="", fmt="%.10g")
+    results, skipped = _calibrate(d)
+    assert "odometry" not in results
+    assert "holds one sample after its anchor at most" in skipped["odometry"].missing
+
+
+def test_a_gyro_converted_twice_does_not_make_a_radian_heading_degrees(
+    base: Path, tmp_path: Path
+) -> None:
+    """A radian heading turning 57 times as far as a gyro converted from deg/s twice: the
+    ratio alone cannot tell which is wrong (a reviewer's case, which set the right heading
+    aside); the heading turns as a robot does, so it stays."""
+    d = _converted(base, tmp_path / "twice", "gyro", "yaw_rate", np.radians)
+    results, skipped = _calibrate(d)
+    assert "gyro" in results and "landmark_bearing" in results
+    assert not skipped
+    assert not any("degrees?" in n for r in results.values() for n in r.problem.notes)

@@ -71,9 +71,11 @@ __all__ = [
 
 #: Heading-error windows for the gyro's secondary metric (shortened on short recordings).
 HEADING_WINDOW_S = 10.0
-#: an odometry window must span at least one of the reference's sample intervals (its anchor
-#: and a later sample: the travel between them is what the dead reckoning is held against)
-WINDOW_REFERENCE_INTERVALS = 1
+#: an odometry window must span this many of the reference's sample intervals: with fewer,
+#: it holds its anchor and one later sample at most, or none where the window is one interval
+#: long (a reviewer's clean bundles against a reference every 4.5-5 s got wheel_ratio,
+#: heading_drift or time_offset on half the seeds at one interval)
+WINDOW_REFERENCE_INTERVALS = 2
 #: Smoothing of a compass-derived heading before it is differentiated into a reference rate.
 COMPASS_SMOOTHING_S = 0.25
 
@@ -1330,9 +1332,10 @@ def build_odometry(
             skipped,
             "odometry",
             f"truth_pose's samples are {dt_ref:.3g} s apart (median), so a {window:.3g} s "
-            "dead-reckoning window holds its anchor alone: no travel to hold the odometry "
-            "against (t in milliseconds read as seconds puts a 20 Hz reference 50 s apart)",
-            f"give t in seconds (t_ms / 1000), or a --window-s longer than "
+            "dead-reckoning window holds one sample after its anchor at most: too little "
+            "travel to hold the odometry against (t in milliseconds read as seconds puts a "
+            "20 Hz reference 50 s apart)",
+            f"give t in seconds (t_ms / 1000), or a --window-s of at least "
             f"{WINDOW_REFERENCE_INTERVALS * dt_ref:.3g} s; see {FORMAT_DOC}",
         )
         return None
