@@ -140,6 +140,7 @@ def calibrate_stages(
     current: dict[str, Any] = dict(config)
     carried: list[CarriedEffect] = []
     found: set[str] = set()  # config keys an earlier stage found
+    uncarried: dict[str, list[str]] = {}  # stream -> earlier stages' effects with no key
     for number, path in enumerate(inputs, 1):
         if on_stage is not None:
             on_stage(number, path)
@@ -168,6 +169,20 @@ def calibrate_stages(
                 )
                 for r in declared
             }
+        for res in results:
+            if res.problem.name in uncarried:
+                res.problem.notes.append(
+                    f"not carried from earlier stages: {'; '.join(uncarried[res.problem.name])} "
+                    "(the simulator has no key for them, so the declared model cannot hold "
+                    "them: they are in the written config's comment); this stage is against "
+                    "the declared model without them"
+                )
+        for res in results:
+            names = [i.name for i, why in zip(res.effects, res.not_written(), strict=True)
+                     if why is None and res.is_comment(i)]
+            if names:
+                uncarried.setdefault(res.problem.name, []).append(
+                    f"{', '.join(names)} (stage {number})")
         stages.append(stage)
         keys = found_keys(results)
         if with_noise:

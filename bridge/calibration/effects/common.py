@@ -264,12 +264,45 @@ def gain_share(problem: Any) -> float:
     return stream_share(problem)
 
 
+def _one_value_per_level(problem: Any) -> tuple[str, int] | None:
+    """``(column, levels)`` of a categorical column of the fit part within each of whose
+    levels the reference holds one value, its variation all between the levels; None."""
+    part = problem.part("fit")
+    u = np.asarray(part.u, dtype=float)
+    if u.size < 2 or not np.all(np.isfinite(u)) or float(np.ptp(u)) == 0.0:
+        return None
+    tol = 1e-9 * float(np.max(np.abs(u)))
+    for col in getattr(problem, "categorical_names", ()):
+        z = np.asarray(part.columns[col])
+        levels = np.unique(z[np.isfinite(z)])
+        if levels.size < 2:
+            continue
+        if all(float(np.ptp(u[z == v])) <= tol for v in levels if np.any(z == v)):
+            return col, int(levels.size)
+    return None
+
+
 def reference_dominates(problem: Any, effect: str) -> bool:
     """Whether a scalar stream's reference varies enough beyond its own noise to determine an
     effect fitted through it (a gain, a range-squared term, a time offset: a reference that is
     constant on the fit part determines none of them; :func:`reference_noise_share` at most
     :data:`MAX_REFERENCE_NOISE_SHARE`, for a gain :func:`gain_share`); when not, a note on the
-    stream says why the effect was not tried."""
+    stream says why the effect was not tried.
+
+    Nor does a reference that holds one value per level of a categorical column (each sensor
+    held at its own distance): through it, a gain or a range-squared term is one offset per
+    level, which ``offset_per`` names. Two time-of-flight rangers held at 256 and 265 mm got a
+    ``scale`` of +1.6 there, and the report called it a unit error."""
+    confounded = _one_value_per_level(problem)
+    if confounded is not None:
+        col, levels = confounded
+        note_once(
+            problem,
+            f"{effect} not tried: the reference holds one value per {col} on the fit part "
+            f"({levels} values): fitted through it, an effect is an offset per {col}, which "
+            f"offset_per:{col} names; record several distances (speeds) per {col}",
+        )
+        return False
     share = gain_share(problem) if effect == "scale" else stream_share(problem)
     if share <= MAX_REFERENCE_NOISE_SHARE:
         if share > NOTE_REFERENCE_NOISE_SHARE and effect == "scale":
