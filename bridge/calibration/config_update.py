@@ -56,25 +56,25 @@ def declared_parts(results: Sequence[StreamResult]) -> list[str]:
     cannot show them; a new user's written ``hard_iron_uT = [40.93, -89.46, 0.0]`` read as a
     measured zero where the raw z sat at 560 uT. ``results``: every stage's, in order; a part
     a full-sphere (3-D) fit of any stage measured is not said."""
-    planar: dict[str, tuple[StreamResult, set[str]]] = {}
-    measured: dict[str, set[str]] = {}
+    written: dict[tuple[str, int], set[str]] = {}  # (section, dims) -> iron effects written
+    planar: dict[str, Any] = {}  # section -> its last planar compass problem
     for res in results:
         dims = getattr(res.problem, "dims", None)
-        written = {i.name for i, why in zip(res.effects, res.not_written(), strict=True)
-                   if why is None and i.name in ("hard_iron", "soft_iron")}
-        if dims == 3:
-            measured.setdefault(res.problem.section, set()).update(written)
-        elif dims == 2 and written:
-            section = res.problem.section
-            planar[section] = (res, written | planar.get(section, (res, set()))[1])
+        if dims not in (2, 3):
+            continue
+        names = {i.name for i, why in zip(res.effects, res.not_written(), strict=True)
+                 if why is None and i.name in ("hard_iron", "soft_iron")}
+        written.setdefault((res.problem.section, dims), set()).update(names)
+        if dims == 2 and names:
+            planar[res.problem.section] = res.problem
     out = []
-    for section, (res, written) in planar.items():
+    for section, problem in planar.items():
+        unmeasured = written[(section, 2)] - written.get((section, 3), set())
         parts = []
-        if "hard_iron" in written - measured.get(section, set()):
-            problem: Any = res.problem
+        if "hard_iron" in unmeasured:
             z = float(problem.h_declared[2]) * problem.uT_per_unit
             parts.append(f"hard_iron_uT's z is the declared {z:g} uT")
-        if "soft_iron" in written - measured.get(section, set()):
+        if "soft_iron" in unmeasured:
             parts.append("soft_iron's vertical terms follow from the declared matrix")
         if parts:
             out.append(

@@ -34,14 +34,18 @@ GROSS_ALPHA = 1e-6
 _LOG_SQRT_2PI = 0.5 * np.log(2 * np.pi)
 
 
+def _deviations(r: FloatArray) -> FloatArray:
+    """``|r - median r|`` of the finite residuals (empty where there are none)."""
+    r = np.asarray(r, dtype=float)
+    r = r[np.isfinite(r)]
+    return np.abs(r - np.median(r)) if r.size else r
+
+
 def mad_sigma(r: FloatArray) -> float:
     """1.4826 * median |r - median r|: the standard deviation of the Gaussian core of ``r``,
     unmoved by up to half the readings being spurious (Hampel 1974)."""
-    r = np.asarray(r, dtype=float)
-    r = r[np.isfinite(r)]
-    if r.size == 0:
-        return 0.0
-    return MAD_TO_SIGMA * float(np.median(np.abs(r - np.median(r))))
+    dev = _deviations(r)
+    return MAD_TO_SIGMA * float(np.median(dev)) if dev.size else 0.0
 
 
 def white_noise_sigma(v: FloatArray) -> float:
@@ -52,14 +56,10 @@ def white_noise_sigma(v: FloatArray) -> float:
 
 
 def _robust_z(r: FloatArray) -> FloatArray | None:
-    """``|r - median r|`` over :func:`mad_sigma` for the finite residuals (two medians, not
-    the three of calling it), or None where there are none or their MAD is 0."""
-    r = np.asarray(r, dtype=float)
-    r = r[np.isfinite(r)]
-    if r.size == 0:
-        return None
-    dev = np.abs(r - np.median(r))
-    s = MAD_TO_SIGMA * float(np.median(dev))
+    """``|r - median r|`` over :func:`mad_sigma` for the finite residuals (the deviations
+    computed once), or None where there are none or their MAD is 0."""
+    dev = _deviations(r)
+    s = MAD_TO_SIGMA * float(np.median(dev)) if dev.size else 0.0
     return dev / s if s > 0 else None
 
 
@@ -91,11 +91,10 @@ def heavy_tailed(
     k, n = int(np.sum(scaled > z)), scaled.size
     if n < 20 or k == 0:
         return False
-    p0 = min(2 * norm_sf(z) + max(declared_fraction, 0.0), 1.0)
-    if binom_sf(k - 1, n, p0) < alpha:
+    spurious = max(declared_fraction, 0.0)
+    if binom_sf(k - 1, n, min(2 * norm_sf(z) + spurious, 1.0)) < alpha:
         return True
-    z_max = float(np.max(scaled))
-    return bool(n * (2 * norm_sf(z_max) + max(declared_fraction, 0.0)) < GROSS_ALPHA)
+    return bool(n * (2 * norm_sf(float(np.max(scaled))) + spurious) < GROSS_ALPHA)
 
 
 def gaussian_logpdf(r: FloatArray, sigma: float, shape: FloatArray | None = None) -> FloatArray:

@@ -169,7 +169,7 @@ def calibrate_stages(
                 )
                 for r in declared
             }
-        for res in results:
+        for res in results:  # stream names are unique in a stage: earlier stages' only
             if res.problem.name in uncarried:
                 res.problem.notes.append(
                     f"not carried from earlier stages: {'; '.join(uncarried[res.problem.name])} "
@@ -177,7 +177,6 @@ def calibrate_stages(
                     "them: they are in the written config's comment); this stage is against "
                     "the declared model without them"
                 )
-        for res in results:
             names = [i.name for i, why in zip(res.effects, res.not_written(), strict=True)
                      if why is None and res.is_comment(i)]
             if names:

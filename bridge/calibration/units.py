@@ -214,34 +214,27 @@ def misread_units(bundle: Bundle, streams: list[str], beacons: list[str]) -> Mis
     ``streams``: every stream the bundle holds (``streams.bundle_streams``); ``beacons``: its
     range-beacon streams (held against the reference's positions too)."""
     truth, obs = bundle.get("truth_pose"), bundle.get("landmarks")
-    if truth is None:
-        bearing = bearings_in_degrees(obs) if obs is not None else None
-        positions = heading = None
-    else:
-        positions = positions_in_mm(truth)
-        heading = heading_in_degrees(truth, bundle.get("gyro"))
-        bearing = bearings_in_degrees(obs) if obs is not None else None
+    positions = positions_in_mm(truth) if truth is not None else None
+    heading = heading_in_degrees(truth, bundle.get("gyro")) if truth is not None else None
+    bearing = bearings_in_degrees(obs) if obs is not None else None
     if positions is None and heading is None and bearing is None:
         return Misread(bundle)
-    why: dict[str, list[str]] = {}
-    fixes: dict[str, list[str]] = {}
-
-    def aside(stream: str, reason: str, fix: str) -> None:
-        if stream in streams:
-            why.setdefault(stream, []).append(reason)
-            fixes.setdefault(stream, []).append(fix)
-
+    # (stream set aside, why, the fix): a stream may be set aside for several columns
+    reasons: list[tuple[str, str, str]] = []
     if positions is not None:
-        for s in [*_POSITION_STREAMS, *beacons]:
-            aside(s, positions, "give truth_pose.csv's x, y in metres (m = mm / 1000)")
+        reasons += [(s, positions, "give truth_pose.csv's x, y in metres (m = mm / 1000)")
+                    for s in (*_POSITION_STREAMS, *beacons)]
     if heading is not None:
-        aside("landmark_bearing", heading,
-              f"give truth_pose.csv's theta in radians ({_DEGREES_FIX})")
+        reasons.append(("landmark_bearing", heading,
+                        f"give truth_pose.csv's theta in radians ({_DEGREES_FIX})"))
     if bearing is not None:
-        aside("landmark_bearing", bearing,
-              f"give landmarks.csv's bearing in radians ({_DEGREES_FIX})")
-    skipped = [SkippedStream(s, "; and ".join(why[s]), "; ".join(fixes[s]) + f"; see {FORMAT_DOC}")
-               for s in streams if s in why]
+        reasons.append(("landmark_bearing", bearing,
+                        f"give landmarks.csv's bearing in radians ({_DEGREES_FIX})"))
+    skipped = [
+        SkippedStream(s, "; and ".join(r for n, r, _ in reasons if n == s),
+                      "; ".join(f for n, _, f in reasons if n == s) + f"; see {FORMAT_DOC}")
+        for s in streams if any(n == s for n, _, _ in reasons)
+    ]
     tables = dict(bundle.tables)
     if heading is not None:
         tables["truth_pose"] = _without(tables["truth_pose"], "theta")

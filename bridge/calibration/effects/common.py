@@ -277,7 +277,7 @@ def _one_value_per_level(problem: Any) -> tuple[str, int] | None:
         levels = np.unique(z[np.isfinite(z)])
         if levels.size < 2:
             continue
-        if all(float(np.ptp(u[z == v])) <= tol for v in levels if np.any(z == v)):
+        if all(float(np.ptp(u[z == v])) <= tol for v in levels):
             return col, int(levels.size)
     return None
 

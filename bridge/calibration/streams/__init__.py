@@ -1098,6 +1098,12 @@ def spikes(y: FloatArray, u: FloatArray) -> tuple[NDArray[np.bool_], str] | None
     )
 
 
+#: unwrap_counter: the steps each side whose rate a wrap's step is held against, and how far
+#: (a share of the counter's range) from what that rate expects it may lie
+UNWRAP_NEIGHBOURS = 10
+UNWRAP_TOLERANCE = 1 / 16
+
+
 def unwrap_counter(
     c: FloatArray, t: FloatArray | None = None
 ) -> tuple[FloatArray, int | None, int]:
@@ -1140,11 +1146,6 @@ def unwrap_counter(
             return np.r_[c[0], c[0] + np.cumsum(out)], bits, n
     return c, None, 0
 
-
-#: unwrap_counter: the steps each side whose rate a wrap's step is held against, and how far
-#: (a share of the counter's range) from what that rate expects it may lie
-UNWRAP_NEIGHBOURS = 10
-UNWRAP_TOLERANCE = 1 / 16
 
 
 def _filled_rows(odo: Table) -> tuple[Table, str | None]:
