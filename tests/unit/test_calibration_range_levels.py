@@ -36,7 +36,8 @@ def test_rangers_each_at_one_distance_get_offsets_not_a_scale(tmp_path: Path) ->
         assert "offset_per:sensor" in names
         assert any(n.startswith("scale not tried: the reference holds one value per sensor")
                    for n in res.problem.notes)
-        # the offsets the sensors read: -50 mm in common, -7 mm and +7 mm apart
+        # the offsets the sensors read: -50 mm in common, -7 mm and +7 mm apart (3 mm of noise
+        # over 360 fit readings per sensor: an SE of 0.16 mm, the bound 6 of them)
         params = {k: v for p, _ in res.effect_params() for k, v in p.items()}
         assert abs(params["bias"] + 0.050) < 0.001
         assert abs(params["offset_0"] + 0.007) < 0.001
@@ -56,5 +57,4 @@ def test_a_staged_run_says_what_it_could_not_carry(tmp_path: Path) -> None:
     assert {"bias", "offset_per:sensor"} <= found
     (note,) = [n for n in later.problem.notes if n.startswith("not carried from earlier")]
     assert "offset_per:sensor" in note and "(stage 1)" in note
-    assert not stages[0].results[0].problem.notes or not any(
-        n.startswith("not carried") for n in stages[0].results[0].problem.notes)
+    assert not any(n.startswith("not carried") for n in stages[0].results[0].problem.notes)
