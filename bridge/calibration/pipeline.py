@@ -974,7 +974,8 @@ def calibrate(
     found: list[SkippedStream] = []
     options = options or Options()
     bundle, fault_notes = set_aside_faulted(bundle)
-    misread = misread_units(bundle, bundle_streams(bundle), beacon_streams(bundle))
+    streams = bundle_streams(bundle)  # a column misread_units sets aside is no stream's
+    misread = misread_units(bundle, streams, beacon_streams(bundle))
     bundle = misread.bundle
     small = decimate_bundle(bundle, options.max_rows)
     small_odometry = decimate_bundle(bundle, options.max_rows, references=True)
@@ -1023,7 +1024,7 @@ def calibrate(
     aside = {s.stream for s in misread.skipped}
     found = [misread.explained(s) for s in found if s.stream not in aside] + misread.skipped
     named = {r.problem.name for r in results} | {s.stream for s in found}
-    for stream in bundle_streams(bundle):
+    for stream in streams:
         if stream not in named:  # a builder that dropped a stream without saying why
             found.append(
                 SkippedStream(
